@@ -1,0 +1,100 @@
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from torchseam.core.config import (
+    CONFIG_DIR,
+    CellConfig,
+    ConfigError,
+    PartConfig,
+    load_cell,
+    load_config,
+    load_noise,
+    load_part,
+)
+
+
+def test_defaults_load_with_the_briefs_figures():
+    cell, part = load_cell(), load_part()
+    assert (cell.camera.width, cell.camera.height) == (656, 492)
+    assert cell.process.look_ahead_mm == 20.0
+    assert cell.process.step_mm == 2.0
+    assert cell.process.weld_speed_mm_s == 8.0
+    assert (part.main_od_mm, part.branch_od_mm) == (203.0, 152.0)
+    assert 60.0 <= part.intersection_angle_deg <= 90.0
+    # the hand-eye and tool poses give a real rigid transform
+    T = cell.hand_eye.matrix()
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+
+
+def _write(tmp_path: Path, data: dict, name: str = "cell.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(data))
+    return p
+
+
+def _cell_dict() -> dict:
+    return yaml.safe_load((CONFIG_DIR / "cell.yaml").read_text())
+
+
+def test_missing_field_names_file_and_field(tmp_path):
+    d = _cell_dict()
+    del d["camera"]["fx"]
+    p = _write(tmp_path, d)
+    with pytest.raises(ConfigError, match=r"cell\.yaml: camera\.fx: missing"):
+        load_cell(p)
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "message"),
+    [
+        (("camera", "fx"), -3, r"camera\.fx: expected a number > 0"),
+        (("camera", "width"), 656.5, r"camera\.width: expected a whole number"),
+        (("camera", "dist"), [0.1, 0.2], r"camera\.dist: expected 5 values, got 2"),
+        (("camera", "cy"), "abc", r"camera\.cy: expected a number"),
+        (("hand_eye", "quaternion"), [1, 1, 0, 0], r"hand_eye\.quaternion: expected a unit"),
+        (("laser_plane", "source_mm"), [0, 0, 0], r"laser_plane\.source_mm: lies .* off"),
+        (("process", "step_mm"), 0, r"process\.step_mm: expected a number > 0"),
+    ],
+)
+def test_wrong_field_values(tmp_path, path, value, message):
+    d = _cell_dict()
+    d[path[0]][path[1]] = value
+    with pytest.raises(ConfigError, match=message):
+        load_cell(_write(tmp_path, d))
+
+
+def test_unknown_field_and_bad_files(tmp_path):
+    d = _cell_dict()
+    d["camera"]["fz"] = 1.0
+    with pytest.raises(ConfigError, match=r"camera\.fz: unknown field"):
+        load_cell(_write(tmp_path, d))
+    with pytest.raises(ConfigError, match="cannot read config"):
+        load_cell(tmp_path / "absent.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("camera: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(CellConfig, bad)
+
+
+def test_part_validation(tmp_path):
+    d = yaml.safe_load((CONFIG_DIR / "parts" / "t_joint.yaml").read_text())
+    d["intersection_angle_deg"] = 45.0
+    with pytest.raises(ConfigError, match=r"intersection_angle_deg: expected a number >= 60"):
+        load_part(_write(tmp_path, d, "p.yaml"))
+    d["intersection_angle_deg"] = 90.0
+    d["branch_od_mm"] = 210.0
+    with pytest.raises(ConfigError, match="branch_od_mm: branch radius"):
+        load_config(PartConfig, _write(tmp_path, d, "p.yaml"))
+
+
+def test_noise_levels():
+    n = load_noise()
+    assert n.level("clean") == 0.0 and n.level("heavy") == 1.0
+    assert n.level("0.4") == pytest.approx(0.4)
+    with pytest.raises(ValueError, match="use a number in"):
+        n.level("loud")
+    with pytest.raises(ValueError, match=r"must lie in \[0, 1\]"):
+        n.level(1.5)

@@ -1,0 +1,115 @@
+"""The simulated sensor: labels are projections of the 3D truth; stripes lie on the plane."""
+
+import cv2
+import numpy as np
+import torch
+
+from torchseam.core.camera import intrinsics, laser_plane_tensor, pixels_to_plane, project_points
+from torchseam.core.transforms import apply, invert
+from torchseam.sim.noise import ArcNoise
+from torchseam.sim.scene import Scene
+from torchseam.sim.sensor import ARM_DISTANCE_MM
+
+
+def test_label_is_the_projection_of_the_3d_seam_point(cell, clean_seq):
+    K, dist = intrinsics(cell.camera)
+    for _, t in clean_seq:
+        X_C = apply(invert(t.T_B_C), t.seam_B)
+        uv = project_points(torch.tensor(X_C), K, dist).numpy()
+        assert np.linalg.norm(uv - t.uv) < 0.01
+        assert t.visible
+
+
+def test_torch_camera_matches_opencv(cell):
+    K, dist = intrinsics(cell.camera)
+    rng = np.random.default_rng(1)
+    X = rng.uniform([-40, -30, 100], [40, 30, 180], (200, 3))
+    ref, _ = cv2.projectPoints(X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cell.camera.K,
+                               np.array(cell.camera.dist))
+    uv = project_points(torch.tensor(X), K, dist)
+    np.testing.assert_allclose(uv.numpy(), ref.reshape(-1, 2), atol=1e-9)
+    und = cv2.undistortPoints(ref, cell.camera.K, np.array(cell.camera.dist),
+                              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 0))
+    from torchseam.core.camera import undistort_points
+
+    np.testing.assert_allclose(undistort_points(uv, K, dist).numpy(), und.reshape(-1, 2),
+                               atol=1e-9)
+    np.testing.assert_allclose(undistort_points(uv, K, dist).numpy(), X[:, :2] / X[:, 2:],
+                               atol=1e-9)
+
+
+def test_back_projected_stripe_lies_on_plane_and_part(cell, part, clean_seq):
+    """Stripe pixels back-projected onto the laser plane land on the true 3D points."""
+    K, dist = intrinsics(cell.camera)
+    plane = laser_plane_tensor(cell.laser_plane)
+    scene = Scene(part)
+    for _, t in clean_seq[:4]:
+        uv = torch.tensor(np.vstack([t.uv[None], t.arm_uv]))
+        X_C = pixels_to_plane(uv, K, dist, plane).numpy()
+        X_B = apply(t.T_B_C, X_C)
+        np.testing.assert_allclose(X_B[0], t.seam_B, atol=1e-6)
+        np.testing.assert_allclose(X_B[1:], t.arm_B, atol=1e-6)
+        np.testing.assert_allclose(np.linalg.norm(t.arm_B - t.seam_B, axis=1), ARM_DISTANCE_MM,
+                                   atol=1e-6)
+        # the arm points lie on the branch (first) and main pipe (second) surfaces
+        j = scene.true_joint
+        P_T = apply(invert(scene.part_pose(t.t_s)), t.arm_B)
+        q = P_T[0] - j.o
+        assert abs(np.linalg.norm(q - (q @ j.d) * j.d) - j.r) < 1e-6
+        assert abs((P_T[1, 1] / j.a) ** 2 + (P_T[1, 2] / j.b) ** 2 - 1) < 1e-9
+
+
+def test_rendered_stripe_centre_is_on_the_part(cell, part, clean_seq):
+    """The brightest row in each column of the rendered stripe back-projects onto the part."""
+    K, dist = intrinsics(cell.camera)
+    plane = laser_plane_tensor(cell.laser_plane)
+    scene = Scene(part)
+    img, t = clean_seq[0]
+    red = img[..., 2].astype(float)
+    cols = np.arange(40, 620, 7)
+    v = np.array([np.sum(np.arange(492) * np.where(red[:, c] > 120, red[:, c], 0))
+                  / max(np.sum(np.where(red[:, c] > 120, red[:, c], 0)), 1) for c in cols])
+    keep = np.abs(cols - t.uv[0]) > 8  # skip the corner where the two arms overlap
+    uv = torch.tensor(np.stack([cols[keep], v[keep]], axis=1).astype(float))
+    P_T = apply(invert(scene.part_pose(t.t_s)) @ t.T_B_C,
+                pixels_to_plane(uv, K, dist, plane).numpy())
+    j = scene.true_joint
+    q = P_T - j.o
+    d_branch = np.abs(np.linalg.norm(q - (q @ j.d)[:, None] * j.d, axis=1) - j.r)
+    d_main = np.abs(np.sqrt((P_T[:, 1] / j.a) ** 2 + (P_T[:, 2] / j.b) ** 2) - 1) * j.a
+    # within 0.1 mm of one of the surfaces (about a pixel at 0.08 mm/px)
+    assert np.max(np.minimum(d_branch, d_main)) < 0.1
+
+
+def test_arc_noise_levels_scale_the_light(noise):
+    size = (656, 492)
+    arc, stripe = np.array([330.0, 420.0]), np.array([330.0, 240.0])
+    energy = []
+    for level in (0.0, 0.3, 1.0):
+        gen = ArcNoise(noise, level, size, seed=5)
+        e = 0.0
+        for _ in range(20):
+            layers = gen.next(arc, stripe)
+            e += float(layers.glare.sum() + layers.spatter.sum())
+        energy.append(e)
+    assert energy[0] == 0.0 and energy[0] < energy[1] < energy[2]
+
+
+def test_heavy_noise_has_bursts_flashes_and_dropouts(cell, part, noise):
+    from torchseam.sim.sequence import SequenceSpec, simulate
+
+    flags = [t.flags for _, t in simulate(cell, part, noise,
+                                          SequenceSpec(n_frames=150, level=1.0, seed=11))]
+    assert sum(f.burst for f in flags) > 0
+    assert sum(f.dropout for f in flags) > 10
+    assert sum(f.spatter for f in flags) > 150 * 5
+    assert not any(f.spatter for f in flags[: noise.clean_lead_frames])
+
+
+def test_laser_off_frames_have_no_stripe(cell, part, noise):
+    from torchseam.sim.sequence import SequenceSpec, simulate
+
+    out = list(simulate(cell, part, noise, SequenceSpec(n_frames=3, seed=2, laser_off=(1,))))
+    (on, t_on), (off, t_off) = out[0], out[1]
+    assert t_on.visible and not t_off.visible and not t_off.laser_on
+    assert on[..., 2].max() > 200 and off[..., 2].max() < 60

@@ -1,0 +1,99 @@
+"""TIPM on clean frames of varied geometry, and its answers on frames it cannot use."""
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from torchseam.core.dataset import check_frame, read_frame
+from torchseam.core.errors import FrameError
+from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.vision.tipm import Tipm, draw_overlay
+
+
+@pytest.fixture(scope="module")
+def varied_clean_frames(cell, part, noise):
+    """>= 100 clean frames over intersection angles 60-90, offsets, ovality, seam positions."""
+    rng = np.random.default_rng(42)
+    out = []
+    for k in range(26):
+        p = dataclasses.replace(
+            part, intersection_angle_deg=float(rng.uniform(60, 90)),
+            branch_offset_mm=tuple(rng.uniform(-3, 3, 2)), main_ovality=float(rng.uniform(0, .02)))
+        out += list(simulate(cell, p, noise, SequenceSpec(n_frames=4, level=0.0, seed=k)))
+    return out
+
+
+def test_tipm_accuracy_on_clean_frames(varied_clean_frames):
+    tipm = Tipm()
+    err = []
+    for img, t in varied_clean_frames:
+        res = tipm(img)
+        assert res.ok, res.reason
+        err.append(np.linalg.norm(res.uv - t.uv))
+    err = np.array(err)
+    assert len(err) >= 100
+    assert np.sqrt(np.mean(err**2)) <= 0.5
+    assert err.max() <= 1.5
+
+
+def test_thinning_centre_line_finds_the_point_too(varied_clean_frames):
+    tipm = Tipm(centre_line="thinning")
+    err = [np.linalg.norm(tipm(img).uv - t.uv) for img, t in varied_clean_frames[:20]]
+    assert np.sqrt(np.mean(np.square(err))) < 1.5
+
+
+def test_overlay_marks_the_point(varied_clean_frames):
+    img, t = varied_clean_frames[0]
+    res = Tipm()(img)
+    ov = draw_overlay(img, res, t.uv)
+    assert ov.shape == img.shape and not np.array_equal(ov, img)
+    u, v = np.round(res.uv).astype(int)
+    # yellow marker at the point, where the frame had none
+    def yellow(a):
+        return (a[..., 0] < 120) & (a[..., 1] > 200) & (a[..., 2] > 200)
+
+    win = (slice(v - 9, v + 10), slice(u - 9, u + 10))
+    assert yellow(ov[win]).sum() > 10 and not yellow(img[win]).any()
+
+
+def test_laser_off_and_dark_frames_give_no_point(cell, part, noise):
+    tipm = Tipm()
+    frames = list(simulate(cell, part, noise, SequenceSpec(n_frames=2, seed=1, laser_off=(0, 1))))
+    for img, _ in frames:
+        res = tipm(img)
+        assert not res.ok and "no stripe" in res.reason and np.isnan(res.uv).all()
+    res = tipm(np.zeros((492, 656, 3), np.uint8))
+    assert not res.ok and "no stripe" in res.reason
+
+
+def test_arc_saturated_frame_is_refused(clean_seq):
+    img = clean_seq[0][0].copy()
+    img[60:, :] = 255  # a flash that blinds most of the sensor
+    res = Tipm()(img)
+    assert not res.ok and "saturated" in res.reason
+
+
+def test_straight_stripe_has_no_corner():
+    img = np.zeros((492, 656, 3), np.uint8)
+    cv2.line(img, (20, 240), (630, 250), (40, 50, 230), 3, cv2.LINE_AA)
+    res = Tipm()(img)
+    assert not res.ok and "no corner" in res.reason
+
+
+def test_bad_frames_raise_clear_errors(tmp_path, clean_seq):
+    tipm = Tipm()
+    img = clean_seq[0][0]
+    with pytest.raises(FrameError, match="grey image"):
+        tipm(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
+    with pytest.raises(FrameError, match="8-bit"):
+        tipm(img.astype(np.float32))
+    with pytest.raises(FrameError, match="frame is 328 x 246 px, the camera is configured"):
+        check_frame(img[::2, ::2], (656, 492), "frame")
+    junk = tmp_path / "00000.png"
+    junk.write_bytes(b"not a png at all")
+    with pytest.raises(FrameError, match="cannot be decoded"):
+        read_frame(junk)
+    with pytest.raises(FrameError, match="no such file"):
+        read_frame(tmp_path / "missing.png")

@@ -1,0 +1,346 @@
+"""Typed, validated configuration of the weld cell, the part and the arc-noise model.
+
+Every file in ``configs/`` loads into a frozen dataclass. A missing, unknown or wrong field
+raises :class:`ConfigError` naming the file and the dotted field, e.g.
+``configs/cell.yaml: camera.fx: expected a number > 0, got -3``.
+
+Units are the cell's: mm, degrees, pixels; quaternions in ABB order (w, x, y, z).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+import yaml
+
+from torchseam.core.errors import TorchseamError
+
+T = TypeVar("T")
+
+#: Folder holding the shipped configuration (override with ``TORCHSEAM_CONFIGS``).
+CONFIG_DIR = Path(
+    os.environ.get("TORCHSEAM_CONFIGS", Path(__file__).resolve().parents[2] / "configs"))
+
+
+class ConfigError(TorchseamError, ValueError):
+    """A configuration file is missing, unreadable, or has a bad field."""
+
+
+def _spec(n: int | None = None, lo: float | None = None, hi: float | None = None,
+          lo_open: bool = False, unit: bool = False) -> dict[str, Any]:
+    """Field constraints: fixed length ``n``, bounds ``lo``/``hi``, unit-norm vector."""
+    return {"n": n, "lo": lo, "hi": hi, "lo_open": lo_open, "unit": unit}
+
+
+def _f(n: int | None = None, **kw: Any) -> Any:
+    return field(metadata=_spec(n, **kw))
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Rigid pose: position (mm) and unit quaternion (w, x, y, z) of a child frame in a parent."""
+
+    position_mm: tuple[float, ...] = _f(3)
+    quaternion: tuple[float, ...] = _f(4, unit=True)
+
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous transform parent <- child (mm)."""
+        from torchseam.core.transforms import pose_matrix
+
+        return pose_matrix(np.asarray(self.position_mm), np.asarray(self.quaternion))
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Pinhole camera with OpenCV distortion (k1, k2, p1, p2, k3)."""
+
+    width: int = _f(lo=1)
+    height: int = _f(lo=1)
+    fx: float = _f(lo=0.0, lo_open=True)
+    fy: float = _f(lo=0.0, lo_open=True)
+    cx: float = _f()
+    cy: float = _f()
+    dist: tuple[float, ...] = _f(5)
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 - the math's name
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class LaserPlane:
+    """Laser light plane in the camera frame: ``normal . X = distance_mm``."""
+
+    normal: tuple[float, ...] = _f(3, unit=True)
+    distance_mm: float = _f()
+    source_mm: tuple[float, ...] = _f(3)
+
+    def _check(self) -> None:
+        off = float(np.dot(self.normal, self.source_mm) - self.distance_mm)
+        if abs(off) > 0.01:
+            raise ValueError(f"source_mm: lies {off:.3f} mm off the plane (must be on it)")
+
+
+@dataclass(frozen=True)
+class ProcessConfig:
+    look_ahead_mm: float = _f(lo=0.0, lo_open=True)
+    step_mm: float = _f(lo=0.0, lo_open=True)
+    weld_speed_mm_s: float = _f(lo=0.0, lo_open=True)
+    frame_rate_hz: float = _f(lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    """The whole sensor/robot cell (``configs/cell.yaml``)."""
+
+    camera: CameraConfig
+    laser_plane: LaserPlane
+    hand_eye: Pose
+    tool: Pose
+    process: ProcessConfig
+
+
+@dataclass(frozen=True)
+class PartConfig:
+    """Pipe-to-pipe joint geometry and its real-part deviations (``configs/parts/*.yaml``)."""
+
+    main_od_mm: float = _f(lo=0.0, lo_open=True)
+    branch_od_mm: float = _f(lo=0.0, lo_open=True)
+    intersection_angle_deg: float = _f(lo=60.0, hi=90.0)
+    branch_offset_mm: tuple[float, ...] = _f(2)
+    main_ovality: float = _f(lo=0.0, hi=0.1)
+    distortion_mm: float = _f(lo=0.0, hi=10.0)
+    distortion_period_s: float = _f(lo=0.0, lo_open=True)
+    placement: Pose = field(default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
+    placement_error: Pose = field(
+        default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
+
+    def _check(self) -> None:
+        R = self.main_od_mm / 2 * (1 - self.main_ovality)
+        r = self.branch_od_mm / 2
+        if r + abs(self.branch_offset_mm[1]) >= R:
+            raise ValueError(
+                "branch_od_mm: branch radius plus its y offset must stay inside the main pipe "
+                f"({r + abs(self.branch_offset_mm[1]):.1f} mm >= {R:.1f} mm)")
+
+
+@dataclass(frozen=True)
+class GlareNoise:
+    peak: float = _f(lo=0.0, hi=255.0)
+    radius_px: float = _f(lo=0.0, lo_open=True)
+    flicker: float = _f(lo=0.0)
+
+
+@dataclass(frozen=True)
+class GrooveNoise:
+    brightness: tuple[float, ...] = _f(2, lo=0.0, hi=255.0)
+    reach: tuple[float, ...] = _f(2, lo=0.0, hi=1.5)
+    width_px: float = _f(lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class SpatterNoise:
+    rate: float = _f(lo=0.0)
+    burst_rate: float = _f(lo=0.0)
+    burst_prob: float = _f(lo=0.0, hi=1.0)
+    burst_frames: float = _f(lo=1.0)
+    length_px: tuple[float, ...] = _f(2, lo=0.0)
+    brightness: tuple[float, ...] = _f(2, lo=0.0, hi=255.0)
+
+
+@dataclass(frozen=True)
+class ReflectionNoise:
+    count: int = _f(lo=0)
+    radius_px: tuple[float, ...] = _f(2, lo=0.0)
+    brightness: tuple[float, ...] = _f(2, lo=0.0, hi=255.0)
+
+
+@dataclass(frozen=True)
+class FlashNoise:
+    prob: float = _f(lo=0.0, hi=1.0)
+    brightness: tuple[float, ...] = _f(2, lo=0.0, hi=255.0)
+
+
+@dataclass(frozen=True)
+class DropoutNoise:
+    prob: float = _f(lo=0.0, hi=1.0)
+    gaps: tuple[int, ...] = _f(2, lo=0)
+    length_px: tuple[float, ...] = _f(2, lo=0.0)
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    sigma_clean: float = _f(lo=0.0)
+    sigma_arc: float = _f(lo=0.0)
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Arc-noise model (``configs/noise.yaml``); amplitudes are those at level 1.0."""
+
+    levels: dict[str, float]
+    clean_lead_frames: int = _f(lo=0)
+    glare: GlareNoise = field(default_factory=GlareNoise)
+    groove: GrooveNoise = field(default_factory=GrooveNoise)
+    spatter: SpatterNoise = field(default_factory=SpatterNoise)
+    reflections: ReflectionNoise = field(default_factory=ReflectionNoise)
+    flash: FlashNoise = field(default_factory=FlashNoise)
+    dropout: DropoutNoise = field(default_factory=DropoutNoise)
+    sensor: SensorNoise = field(default_factory=SensorNoise)
+
+    def level(self, name_or_value: str | float) -> float:
+        """Resolve ``'heavy'`` or ``'0.4'`` or ``0.4`` to a level in [0, 1]."""
+        if isinstance(name_or_value, str) and name_or_value in self.levels:
+            return float(self.levels[name_or_value])
+        try:
+            value = float(name_or_value)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"noise level {name_or_value!r}: use a number in [0, 1] or one of "
+                f"{', '.join(self.levels)}") from None
+        if not 0.0 <= value <= 1.0 or math.isnan(value):
+            raise ValueError(f"noise level {value}: must lie in [0, 1]")
+        return value
+
+
+# --------------------------------------------------------------------------- parsing
+
+def _check_number(v: Any, meta: dict[str, Any], want_int: bool) -> float | int:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ValueError(f"expected a {'whole number' if want_int else 'number'}, got {v!r}")
+    if want_int and not float(v).is_integer():
+        raise ValueError(f"expected a whole number, got {v!r}")
+    if not math.isfinite(v):
+        raise ValueError(f"expected a finite number, got {v!r}")
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if lo is not None and (v <= lo if meta.get("lo_open") else v < lo):
+        op = ">" if meta.get("lo_open") else ">="
+        raise ValueError(f"expected a number {op} {lo}, got {v!r}")
+    if hi is not None and v > hi:
+        raise ValueError(f"expected a number <= {hi}, got {v!r}")
+    return int(v) if want_int else float(v)
+
+
+def _parse_value(tp: Any, v: Any, meta: dict[str, Any], path: str) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        return _parse_dataclass(tp, v, path)
+    if origin is tuple:
+        item_tp = typing.get_args(tp)[0]
+        if not isinstance(v, (list, tuple)):
+            raise ValueError(f"expected a list, got {v!r}")
+        n = meta.get("n")
+        if n is not None and len(v) != n:
+            raise ValueError(f"expected {n} values, got {len(v)}")
+        out = tuple(_check_number(x, meta, item_tp is int) for x in v)
+        if meta.get("unit"):
+            norm = math.sqrt(sum(x * x for x in out))
+            if abs(norm - 1.0) > 1e-4:
+                raise ValueError(f"expected a unit vector, norm is {norm:.6f}")
+            out = tuple(x / norm for x in out)
+        return out
+    if origin is dict:
+        if not isinstance(v, dict) or not v:
+            raise ValueError(f"expected a non-empty mapping, got {v!r}")
+        return {str(k): _check_number(x, {"lo": 0.0, "hi": 1.0}, False) for k, x in v.items()}
+    if tp in (int, float):
+        return _check_number(v, meta, tp is int)
+    raise TypeError(f"unsupported config type {tp!r} at {path}")  # programming error
+
+
+def _parse_dataclass(cls: type[T], data: Any, path: str) -> T:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path or 'top level'}: expected a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(f"{path + '.' if path else ''}{unknown[0]}: unknown field "
+                          f"(expected one of {', '.join(fields)})")
+    kwargs = {}
+    for name, f in fields.items():
+        where = f"{path}.{name}" if path else name
+        if name not in data:
+            raise ConfigError(f"{where}: missing")
+        try:
+            kwargs[name] = _parse_value(hints[name], data[name], dict(f.metadata), where)
+        except ConfigError:
+            raise
+        except ValueError as e:
+            raise ConfigError(f"{where}: {e}") from None
+    obj = cls(**kwargs)
+    check = getattr(obj, "_check", None)
+    if check is not None:
+        try:
+            check()
+        except ValueError as e:
+            raise ConfigError(f"{path + '.' if path else ''}{e}") from None
+    return obj
+
+
+def load_config(cls: type[T], path: str | os.PathLike[str]) -> T:
+    """Load and validate a YAML file into the dataclass ``cls``.
+
+    Raises:
+        ConfigError: ``"<file>: <field>: <problem>"`` for a missing file, bad YAML or bad field.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read config ({e.strerror or e})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: not valid YAML ({e})") from None
+    try:
+        return _parse_dataclass(cls, data, "")
+    except ConfigError as e:
+        raise ConfigError(f"{p}: {e}") from None
+
+
+def load_cell(path: str | os.PathLike[str] | None = None) -> CellConfig:
+    """The cell configuration (default ``configs/cell.yaml``)."""
+    return load_config(CellConfig, path or CONFIG_DIR / "cell.yaml")
+
+
+def load_part(path: str | os.PathLike[str] | None = None) -> PartConfig:
+    """A part configuration (default ``configs/parts/t_joint.yaml``, the deviated T joint)."""
+    return load_config(PartConfig, path or CONFIG_DIR / "parts" / "t_joint.yaml")
+
+
+def load_noise(path: str | os.PathLike[str] | None = None) -> NoiseConfig:
+    """The arc-noise model (default ``configs/noise.yaml``)."""
+    return load_config(NoiseConfig, path or CONFIG_DIR / "noise.yaml")
+
+
+def to_dict(obj: Any) -> Any:
+    """A config object as plain lists/dicts (for ``meta.json`` and writing YAML back)."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (tuple, list)):
+        return [to_dict(x) for x in obj]
+    if isinstance(obj, dict):
+        return {k: to_dict(v) for k, v in obj.items()}
+    return obj
+
+
+def from_dict(cls: type[T], data: Any, source: str = "<dict>") -> T:
+    """Inverse of :func:`to_dict`, with the same validation as :func:`load_config`."""
+    try:
+        return _parse_dataclass(cls, data, "")
+    except ConfigError as e:
+        raise ConfigError(f"{source}: {e}") from None
+
+
+def save_config(obj: Any, path: str | os.PathLike[str]) -> None:
+    """Write a config object back to YAML (used by ``torchseam calibrate``)."""
+    Path(path).write_text(yaml.safe_dump(to_dict(obj), sort_keys=False))
+

@@ -1,0 +1,201 @@
+"""The dataset format every stage reads: a folder of frames with labels and metadata.
+
+::
+
+    DIR/00000.png ...        frames, numbered from 0 in file-name order (BGR, 8 bit)
+    DIR/labels.csv           header ``frame,u,v``: the feature pixel of each labelled frame
+    DIR/meta.json            optional: calibration, noise level, per-frame 3D truth (simulator)
+
+A real recording needs only the frames and ``labels.csv`` (or only frames, for ``track``).
+Every problem is reported with the folder, the file and the row or frame it concerns.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from torchseam.core.errors import DatasetError, FrameError
+
+FRAME_RE = re.compile(r"^(\d+)\.png$")
+LABEL_HEADER = ["frame", "u", "v"]
+
+
+def frame_name(index: int) -> str:
+    """File name of frame ``index``: ``00042.png``."""
+    return f"{index:05d}.png"
+
+
+def check_frame(img: Any, size: tuple[int, int] | None = None, name: str = "frame") -> np.ndarray:
+    """Validate a BGR frame: (H, W, 3) uint8, of ``size`` = (width, height) when given.
+
+    Raises:
+        FrameError: naming ``name`` and what is wrong (grey, wrong size, wrong dtype...).
+    """
+    if not isinstance(img, np.ndarray):
+        raise FrameError(f"{name}: expected an image array, got {type(img).__name__}")
+    if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
+        raise FrameError(f"{name}: grey image {img.shape[:2]}; a BGR colour frame (H, W, 3) "
+                         "is needed to recognise the red laser stripe")
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise FrameError(f"{name}: expected shape (H, W, 3) BGR, got {img.shape}")
+    if img.dtype != np.uint8:
+        raise FrameError(f"{name}: expected 8-bit pixels, got {img.dtype}")
+    if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        raise FrameError(f"{name}: frame is {img.shape[1]} x {img.shape[0]} px, the camera "
+                         f"is configured for {size[0]} x {size[1]}")
+    return img
+
+
+def read_frame(path: str | os.PathLike[str], size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read one BGR frame from disk, validated (see :func:`check_frame`)."""
+    p = Path(path)
+    if not p.is_file():
+        raise FrameError(f"{p}: no such file")
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise FrameError(f"{p}: cannot be decoded as an image")
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]
+    return check_frame(img, size, str(p))
+
+
+@dataclass
+class Dataset:
+    """A dataset folder, opened and checked.
+
+    Attributes:
+        root: the folder.
+        frames: (N,) frame numbers, ascending (from the file names).
+        paths: N frame paths in the same order.
+        labels: (N, 2) float64 labelled pixels, NaN where a frame has no label; None when the
+            folder has no ``labels.csv``.
+        meta: parsed ``meta.json`` or None.
+
+    Example:
+        >>> ds = Dataset.open("data/seq0")          # doctest: +SKIP
+        >>> img = ds.read(0); ds.labels[0]           # doctest: +SKIP
+    """
+
+    root: Path
+    frames: np.ndarray
+    paths: list[Path]
+    labels: np.ndarray | None
+    meta: dict[str, Any] | None
+
+    @classmethod
+    def open(cls, root: str | os.PathLike[str], require_labels: bool = False) -> Dataset:
+        root = Path(root)
+        if not root.exists():
+            raise DatasetError(f"{root}: no such folder")
+        if not root.is_dir():
+            raise DatasetError(f"{root}: not a folder")
+        found = []
+        for p in root.iterdir():
+            m = FRAME_RE.match(p.name)
+            if m:
+                found.append((int(m.group(1)), p))
+        if not found:
+            raise DatasetError(f"{root}: no frames (expected files named like 00000.png)")
+        found.sort()
+        frames = np.array([f for f, _ in found])
+        dup = frames[np.nonzero(np.diff(frames) == 0)[0]]
+        if len(dup):
+            raise DatasetError(f"{root}: frame number {dup[0]} appears twice (e.g. 1.png and "
+                               "00001.png)")
+        paths = [p for _, p in found]
+        labels = None
+        lp = root / "labels.csv"
+        if lp.exists():
+            labels = _read_labels(lp, frames)
+        elif require_labels:
+            raise DatasetError(f"{root}: labels.csv is missing (header: frame,u,v)")
+        meta = None
+        mp = root / "meta.json"
+        if mp.exists():
+            try:
+                meta = json.loads(mp.read_text())
+            except (OSError, ValueError) as e:
+                raise DatasetError(f"{mp}: not valid JSON ({e})") from None
+        return cls(root, frames, paths, labels, meta)
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def read(self, i: int, size: tuple[int, int] | None = None) -> np.ndarray:
+        """Frame at position ``i`` (not frame number) as validated BGR uint8."""
+        return read_frame(self.paths[i], size)
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for i in range(len(self)):
+            yield self.read(i)
+
+    @property
+    def labelled(self) -> np.ndarray:
+        """(N,) bool: which frames carry a label."""
+        if self.labels is None:
+            return np.zeros(len(self), bool)
+        return ~np.isnan(self.labels[:, 0])
+
+
+def _read_labels(path: Path, frames: np.ndarray) -> np.ndarray:
+    pos = {int(f): i for i, f in enumerate(frames)}
+    labels = np.full((len(frames), 2), np.nan)
+    try:
+        with path.open(newline="") as fh:
+            rows = list(csv.reader(fh))
+    except (OSError, UnicodeDecodeError) as e:
+        raise DatasetError(f"{path}: cannot read ({e})") from None
+    if not rows or [c.strip() for c in rows[0]] != LABEL_HEADER:
+        got = ",".join(rows[0]) if rows else "an empty file"
+        raise DatasetError(f"{path}: header must be 'frame,u,v', got {got!r}")
+    seen = set()
+    for line, row in enumerate(rows[1:], start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) != 3:
+            raise DatasetError(f"{path}: line {line}: expected 3 fields frame,u,v, got {len(row)}")
+        try:
+            f = int(row[0])
+        except ValueError:
+            raise DatasetError(f"{path}: line {line}: frame {row[0]!r} is not a whole number"
+                               ) from None
+        vals = []
+        for name, cell in zip(("u", "v"), row[1:], strict=True):
+            try:
+                x = float(cell)
+            except ValueError:
+                raise DatasetError(f"{path}: line {line}: {name} {cell!r} is not a number"
+                                   ) from None
+            if not math.isfinite(x):
+                raise DatasetError(f"{path}: line {line}: {name} is {cell!r}")
+            vals.append(x)
+        if f not in pos:
+            raise DatasetError(f"{path}: line {line}: frame {f} has no image {frame_name(f)}")
+        if f in seen:
+            raise DatasetError(f"{path}: line {line}: frame {f} is labelled twice")
+        seen.add(f)
+        labels[pos[f]] = vals
+    if not seen:
+        raise DatasetError(f"{path}: no labels below the header")
+    return labels
+
+
+def write_labels(path: str | os.PathLike[str], frames: np.ndarray, uv: np.ndarray) -> None:
+    """Write ``labels.csv`` (frame,u,v) with 4 decimals; rows with NaN are left out."""
+    with Path(path).open("w", newline="") as fh:
+        wr = csv.writer(fh)
+        wr.writerow(LABEL_HEADER)
+        for f, (u, v) in zip(frames, uv, strict=True):
+            if np.isfinite(u) and np.isfinite(v):
+                wr.writerow([int(f), f"{u:.4f}", f"{v:.4f}"])

@@ -1,0 +1,55 @@
+"""Rigid transforms and quaternions (ABB order w, x, y, z), numpy side.
+
+The batched torch versions live in :mod:`pytorch_kinematics.transforms` (same w-first order).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(..., 4) quaternions (w, x, y, z) -> (..., 3, 3) rotation matrices."""
+    q = np.asarray(q, dtype=float)
+    return Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix().reshape(
+        *q.shape[:-1], 3, 3)
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations -> (..., 4) quaternions (w, x, y, z) with w >= 0."""
+    R = np.asarray(R, dtype=float)
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat(scalar_first=True)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q.reshape(*R.shape[:-2], 4)
+
+
+def pose_matrix(position: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
+    """(..., 3) position + (..., 4) quaternion -> (..., 4, 4) homogeneous transform."""
+    position = np.asarray(position, dtype=float)
+    T = np.zeros((*position.shape[:-1], 4, 4))
+    T[..., :3, :3] = quat_to_matrix(quaternion)
+    T[..., :3, 3] = position
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of (..., 4, 4) rigid transforms."""
+    R = T[..., :3, :3]
+    out = np.zeros_like(T)
+    out[..., :3, :3] = np.swapaxes(R, -1, -2)
+    out[..., :3, 3] = -np.einsum("...ji,...j->...i", R, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply (4, 4) transform(s) to (..., 3) points."""
+    return np.einsum("...ij,...j->...i", T[..., :3, :3], p) + T[..., :3, 3]
+
+
+def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """3x3 rotation about a unit ``axis`` by ``angle_rad``."""
+    axis = np.asarray(axis, dtype=float)
+    return Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle_rad).as_matrix()

@@ -1,0 +1,95 @@
+"""The simulated cell over time: the true part (with deviations), the nominal part, the torch path.
+
+* The **nominal** part is the design: pipe diameters and intersection angle at the nominal
+  placement, no offset, ovality or drift. A robot programmed from the design follows it.
+* The **true** part adds the branch offset, ovality, clamping error and a slow thermal drift.
+* The part sits on a positioner that turns it about the branch axis by ``rotation_deg`` (the
+  six-segment welding of METHOD.md section 6).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from torchseam.core.config import PartConfig
+from torchseam.core.transforms import rotation_about
+from torchseam.sim.joint import PipeJoint, SeamSample
+
+# Direction of the thermal drift in {T} (fixed: the part warps one way as it heats).
+DRIFT_DIRECTION = np.array([0.6, -0.55, 0.58]) / np.linalg.norm([0.6, -0.55, 0.58])
+
+
+def torch_frames(sample: SeamSample) -> np.ndarray:
+    """Ideal torch frames along a seam, (N, 4, 4) in the joint frame.
+
+    x: travel direction (seam tangent); z: torch axis, pointing into the corner along the
+    bisector of the two surface normals; y = z x x. The same convention as METHOD.md eq. 29
+    (wx = px is the normal of the stripe plane, i.e. the travel direction).
+    """
+    x = sample.tangent
+    z = -(sample.normal_main + sample.normal_branch)
+    z = z - np.einsum("ij,ij->i", z, x)[:, None] * x
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    T = np.tile(np.eye(4), (len(x), 1, 1))
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2], T[:, :3, 3] = x, y, z, sample.point
+    return T
+
+
+def nominal_part(part: PartConfig) -> PartConfig:
+    """The design of ``part``: same pipes and angle, no deviations."""
+    ident = dataclasses.replace(part.placement, position_mm=(0.0, 0.0, 0.0),
+                                quaternion=(1.0, 0.0, 0.0, 0.0))
+    return dataclasses.replace(part, branch_offset_mm=(0.0, 0.0), main_ovality=0.0,
+                               distortion_mm=0.0, placement_error=ident)
+
+
+class Scene:
+    """True and nominal part in the robot base frame {B}.
+
+    Example:
+        >>> from torchseam.core.config import load_part
+        >>> scene = Scene(load_part())
+        >>> scene.nominal_tcp(np.array([0.0, 10.0])).shape
+        (2, 4, 4)
+    """
+
+    def __init__(self, part: PartConfig, rotation_deg: float = 0.0) -> None:
+        self.part = part
+        self.true_joint = PipeJoint(part)
+        self.nominal_joint = PipeJoint(nominal_part(part))
+        # positioner turn about the branch axis of the nominal part
+        Rz = np.eye(4)
+        Rz[:3, :3] = rotation_about(self.nominal_joint.d, np.deg2rad(rotation_deg))
+        self.T_B_Tnom = part.placement.matrix() @ Rz
+        self._T_B_Ttrue0 = self.T_B_Tnom @ part.placement_error.matrix()
+        self._phi_tab, self._s_tab = self.nominal_joint.arc_length_table()
+        self.seam_length_mm = float(self._s_tab[-1])
+
+    def part_pose(self, t_s: float) -> np.ndarray:
+        """True pose of the part {T} in {B} at weld time ``t_s``, (4, 4)."""
+        p = self.part
+        drift = np.eye(4)
+        grow = 0.5 * (1.0 - np.cos(2 * np.pi * t_s / p.distortion_period_s))
+        drift[:3, 3] = p.distortion_mm * grow * DRIFT_DIRECTION
+        return self._T_B_Ttrue0 @ drift
+
+    def phi_at(self, s_mm: np.ndarray) -> np.ndarray:
+        """Nominal seam angle at arc length ``s_mm`` (wraps around the ring)."""
+        return np.interp(np.mod(s_mm, self.seam_length_mm), self._s_tab, self._phi_tab)
+
+    def s_at(self, phi: np.ndarray) -> np.ndarray:
+        """Nominal seam arc length at angle ``phi``."""
+        return np.interp(np.mod(phi, 2 * np.pi), self._phi_tab, self._s_tab)
+
+    def nominal_tcp(self, s_mm: np.ndarray) -> np.ndarray:
+        """Nominal torch poses in {B} at seam arc lengths ``s_mm`` (N,), (N, 4, 4)."""
+        frames = torch_frames(self.nominal_joint.seam(self.phi_at(np.asarray(s_mm, float))))
+        return self.T_B_Tnom @ frames
+
+    def true_seam_base(self, phi: np.ndarray, t_s: float) -> np.ndarray:
+        """True seam points (N, 3) in {B} at angles ``phi`` and time ``t_s``."""
+        T = self.part_pose(t_s)
+        return self.true_joint.seam(phi).point @ T[:3, :3].T + T[:3, 3]

@@ -1,0 +1,269 @@
+"""Simulated laser-stripe sensor: the laser fan cut through the pipes, seen by the camera.
+
+Physics kept: the fan leaves the projector and lights the first surface it meets; a lit point is
+seen only if nothing of the part lies between it and the camera; points are projected with the
+pinhole + OpenCV distortion model (``cv2.projectPoints`` is the reference); the stripe has a
+Gaussian cross-section, brightness falling with incidence angle, and speckle along it.
+Everything geometric is done in the part frame {T}.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from torchseam.core.config import CellConfig
+from torchseam.core.transforms import apply, invert
+from torchseam.sim.joint import PipeJoint
+
+ARM_DISTANCE_MM = 5.0  # truth points on each stripe arm lie this far (3D) from the seam point
+STRIPE_SIGMA_PX = 1.8  # Gaussian cross-section of the imaged stripe (about 0.35 mm on the part)
+STRIPE_PEAK = 235.0    # red-channel grey level of a stripe lit head-on
+SPLAT_STEP_PX = 0.25   # spacing of splatted samples along the imaged stripe
+
+
+@dataclass
+class StripeView:
+    """The stripe as the camera sees it in one frame.
+
+    Attributes:
+        uv: (N, 2) distorted pixel coordinates of the visible stripe samples, in fan order.
+        brightness: (N,) relative brightness (incidence falloff) of each sample.
+        surface: (N,) 1 main pipe, 2 branch, 3 the exact seam point.
+        seam_uv: (2,) pixel of the seam point (the weld feature point).
+        seam_T: (3,) seam point in {T}.
+        arm_T: (2, 3) points on the branch arm and the main arm, ``ARM_DISTANCE_MM`` from the seam.
+        arm_uv: (2, 2) their pixels.
+        visible: whether the seam point is lit, unoccluded and inside the image.
+    """
+
+    uv: np.ndarray
+    brightness: np.ndarray
+    surface: np.ndarray
+    seam_uv: np.ndarray
+    seam_T: np.ndarray
+    arm_T: np.ndarray
+    arm_uv: np.ndarray
+    visible: bool
+
+
+class LaserSensor:
+    """Camera + line laser of ``cell``, looking at a :class:`PipeJoint`.
+
+    Example:
+        >>> from torchseam.core.config import load_cell, load_part
+        >>> sensor = LaserSensor(load_cell())
+        >>> sensor.fan_rays
+        1600
+    """
+
+    def __init__(self, cell: CellConfig, fan_rays: int = 1600, fan_half_angle_deg: float = 32.0):
+        self.cell = cell
+        self.K = cell.camera.K
+        self.dist = np.asarray(cell.camera.dist, dtype=float)
+        self.size = (cell.camera.width, cell.camera.height)
+        self.fan_rays = fan_rays
+        lp = cell.laser_plane
+        self.n_C = np.asarray(lp.normal)
+        self.d_C = float(lp.distance_mm)
+        self.src_C = np.asarray(lp.source_mm)
+        # Fan directions in {C}: centred on the direction from the source to the point of the
+        # plane on the optical axis (what the sensor is aimed at).
+        aim = np.array([0.0, 0.0, self.d_C / self.n_C[2]]) - self.src_C
+        a = aim / np.linalg.norm(aim)
+        b = np.cross(self.n_C, a)
+        self._fan_ab = (a, b)
+        self.psi = np.deg2rad(np.linspace(-fan_half_angle_deg, fan_half_angle_deg, fan_rays))
+        self.fan_C = np.cos(self.psi)[:, None] * a + np.sin(self.psi)[:, None] * b
+        w, h = self.size
+        grain = np.random.default_rng(7).standard_normal(((h + 32) // 2, (w + 32) // 2))
+        self._grain = 1.0 + 0.12 * cv2.resize(grain.astype(np.float32), (w + 32, h + 32))
+
+    # ---------------------------------------------------------------- projection
+    def project(self, X_C: np.ndarray) -> np.ndarray:
+        """(N, 3) points in {C} (mm) -> (N, 2) distorted pixels (OpenCV reference model)."""
+        X = np.ascontiguousarray(X_C, dtype=np.float64).reshape(-1, 1, 3)
+        uv, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), self.K, self.dist)
+        return uv.reshape(-1, 2)
+
+    def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        w, h = self.size
+        return ((uv[..., 0] >= margin) & (uv[..., 0] <= w - 1 - margin)
+                & (uv[..., 1] >= margin) & (uv[..., 1] <= h - 1 - margin))
+
+    # ---------------------------------------------------------------- stripe geometry
+    def view(self, joint: PipeJoint, T_T_C: np.ndarray, phi_hint: float | None = None
+             ) -> StripeView:
+        """Stripe seen by a camera at pose ``T_T_C`` ({C} in {T}, 4x4 mm) on ``joint``."""
+        R, c = T_T_C[:3, :3], T_T_C[:3, 3]
+        src = apply(T_T_C, self.src_C)
+        dirs = self.fan_C @ R.T
+        t, surf = joint.raycast(src, dirs)
+        hit = np.isfinite(t)
+        psi = self.psi[hit]
+        P = src + t[hit, None] * dirs[hit]
+        surf = surf[hit]
+        n_T = R @ self.n_C
+        d_T = self.d_C + n_T @ c
+
+        # Visibility from the camera: the first surface along the line of sight is the point.
+        los = P - c
+        dist = np.linalg.norm(los, axis=1)
+        t_cam, _ = joint.raycast(c, los / dist[:, None])
+        seen = t_cam >= dist - 1e-3
+        X_C = (P - c) @ R  # {T} -> {C}
+        seen &= X_C[:, 2] > 1.0
+
+        # Brightness: Lambertian falloff with the laser's incidence angle.
+        normals = np.where((surf == 1)[:, None], joint.normal_main(P), joint.normal_branch(P))
+        inc = np.abs(np.einsum("ij,ij->i", normals, dirs[hit]))
+        bright = 0.35 + 0.65 * inc
+
+        seam_T = self._seam_in_plane(joint, n_T, d_T, c, phi_hint)
+        seam_C = (seam_T - c) @ R
+        seam_uv = self.project(seam_C[None])[0]
+        t_seam, _ = joint.raycast(c, (seam_T - c) / np.linalg.norm(seam_T - c))
+        # The seam lies on both surfaces: its line of sight may graze one of them.
+        visible = bool(t_seam >= np.linalg.norm(seam_T - c) - 0.05 and self.in_image(seam_uv)
+                       and seam_C[2] > 1.0)
+
+        # Insert the exact seam point where the fan passes from one surface to the other, so
+        # the imaged corner is sharp.
+        order_P, order_s, order_b, order_seen = P, surf, bright, seen
+        jump = np.nonzero(surf[1:] != surf[:-1])[0]
+        if len(jump):
+            k = jump[np.argmin(np.linalg.norm(P[jump] - seam_T, axis=1))] + 1
+            if np.linalg.norm(P[k] - seam_T) < 2.0:
+                order_P = np.insert(P, k, seam_T, axis=0)
+                order_s = np.insert(surf, k, 3)
+                order_b = np.insert(bright, k, 0.5 * (bright[k - 1] + bright[k]))
+                order_seen = np.insert(seen, k, visible)
+        uv = self.project((order_P - c) @ R)
+        keep = order_seen & self.in_image(uv, margin=-20.0)
+
+        a_T, b_T = R @ self._fan_ab[0], R @ self._fan_ab[1]
+
+        def lit(angle: float) -> np.ndarray:
+            d = np.cos(angle) * a_T + np.sin(angle) * b_T
+            return src + joint.raycast(src, d)[0][0] * d
+
+        arm_T = self._arm_points(P, surf, psi, seam_T, lit)
+        arm_uv = self.project((arm_T - c) @ R)
+        return StripeView(uv[keep], order_b[keep], order_s[keep], seam_uv, seam_T, arm_T,
+                          arm_uv, visible)
+
+    @staticmethod
+    def _seam_in_plane(joint: PipeJoint, n: np.ndarray, d: float, c: np.ndarray,
+                       phi_hint: float | None) -> np.ndarray:
+        """Where the seam crosses the laser plane: the crossing nearest the camera."""
+        from scipy.optimize import brentq
+
+        phi = np.linspace(0.0, 2 * np.pi, 721)
+        f = joint.seam(phi).point @ n - d
+        idx = np.nonzero(np.sign(f[1:]) != np.sign(f[:-1]))[0]
+        if len(idx) == 0:
+            raise ValueError("the laser plane does not cross the seam")
+        mids = joint.seam(0.5 * (phi[idx] + phi[idx + 1])).point
+        if phi_hint is not None:
+            gap = np.abs(np.angle(np.exp(1j * (0.5 * (phi[idx] + phi[idx + 1]) - phi_hint))))
+            i = idx[np.argmin(gap)]
+        else:
+            i = idx[np.argmin(np.linalg.norm(mids - c, axis=1))]
+        root = brentq(lambda x: float(joint.seam(np.array([x])).point[0] @ n - d),
+                      phi[i], phi[i + 1], xtol=1e-13)
+        return joint.seam(np.array([root])).point[0]
+
+    @staticmethod
+    def _arm_points(P: np.ndarray, surf: np.ndarray, psi: np.ndarray, seam: np.ndarray,
+                    lit) -> np.ndarray:
+        """Lit points on the branch arm and the main arm exactly ``ARM_DISTANCE_MM`` from the
+        seam: bracketed between fan samples, then solved for the fan angle."""
+        from scipy.optimize import brentq
+
+        out = np.full((2, 3), np.nan)
+        dist = np.linalg.norm(P - seam, axis=1) - ARM_DISTANCE_MM
+        for j, sid in enumerate((2, 1)):
+            k = np.nonzero((surf[:-1] == sid) & (surf[1:] == sid)
+                           & (np.sign(dist[:-1]) != np.sign(dist[1:])))[0]
+            if len(k) == 0:
+                continue
+            k = k[np.argmin(np.abs(P[k] - seam).sum(axis=1))]
+            ang = brentq(lambda a: float(np.linalg.norm(lit(a) - seam) - ARM_DISTANCE_MM),
+                         psi[k], psi[k + 1], xtol=1e-14)
+            out[j] = lit(ang)
+        return out
+
+    # ---------------------------------------------------------------- rendering
+    def stripe_layer(self, view: StripeView, rng: np.random.Generator,
+                     gaps: list[tuple[float, float]] | None = None) -> np.ndarray:
+        """Float32 (H, W) red-channel stripe intensity, speckled, with optional dropouts.
+
+        ``gaps`` are (start, end) arc-length ranges in pixels along the imaged stripe, measured
+        from the feature point (negative: towards the first arm) where the stripe is missing.
+        """
+        w, h = self.size
+        uv = view.uv
+        if len(uv) < 2:
+            return np.zeros((h, w), np.float32)
+        seg = np.diff(uv, axis=0)
+        seg_len = np.linalg.norm(seg, axis=1)
+        # Do not bridge real gaps (occlusion, fan ends): consecutive samples must be close.
+        ok = seg_len < 6.0
+        n_sub = np.maximum(1, np.ceil(seg_len / SPLAT_STEP_PX).astype(int)) * ok
+        starts = np.repeat(np.arange(len(seg)), n_sub)
+        frac = (np.arange(n_sub.sum()) - np.repeat(np.cumsum(n_sub) - n_sub, n_sub)) / np.repeat(
+            np.maximum(n_sub, 1), n_sub)
+        pts = uv[starts] + frac[:, None] * seg[starts]
+        weight = (view.brightness[starts] * (1 - frac) + view.brightness[starts + 1] * frac)
+        weight = weight * (seg_len[starts] / np.maximum(n_sub[starts], 1))
+        # speckle: smooth log-normal modulation along the stripe
+        sp = rng.standard_normal(len(pts) // 8 + 2)
+        sp = np.interp(np.arange(len(pts)) / 8.0, np.arange(len(sp)), sp)
+        weight = weight * np.exp(0.25 * sp - 0.03)
+        if gaps:
+            arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+            k0 = int(np.argmin(np.linalg.norm(pts - view.seam_uv, axis=1)))
+            arc = arc - arc[k0]
+            for a0, a1 in gaps:
+                weight[(arc >= a0) & (arc <= a1)] *= 0.04
+        img = _splat(pts, weight, w, h)
+        img = cv2.GaussianBlur(img, (0, 0), STRIPE_SIGMA_PX)
+        img *= STRIPE_PEAK * np.sqrt(2 * np.pi) * STRIPE_SIGMA_PX
+        # grainy laser speckle on the surface: a random crop of a fixed speckle field
+        dy, dx = rng.integers(0, 32, 2)
+        img *= self._grain[dy:dy + h, dx:dx + w]
+        return img
+
+
+def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Bilinear splat of weighted points into a float32 (h, w) image (keeps the centroid)."""
+    img = np.zeros((h, w), np.float32)
+    inside = ((pts[:, 0] > -1) & (pts[:, 0] < w) & (pts[:, 1] > -1) & (pts[:, 1] < h))
+    pts, weight = pts[inside], weight[inside]
+    if len(pts) == 0:
+        return img
+    x0 = np.floor(pts[:, 0]).astype(int)
+    y0 = np.floor(pts[:, 1]).astype(int)
+    fx = pts[:, 0] - x0
+    fy = pts[:, 1] - y0
+    # accumulate in the bounding box only (with a one-pixel border for the +1 neighbours)
+    bx, by = x0.min(), y0.min()
+    bw, bh = x0.max() - bx + 2, y0.max() - by + 2
+    acc = np.zeros(bw * bh)
+    for dx, dy, wt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
+                       (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        acc += np.bincount((y0 - by + dy) * bw + (x0 - bx + dx), weights=weight * wt,
+                           minlength=acc.size)
+    acc = acc.reshape(bh, bw)
+    # drop what falls outside the image (the box may start at -1)
+    sx, sy = max(0, -bx), max(0, -by)
+    ex, ey = min(bw, w - bx), min(bh, h - by)
+    img[by + sy:by + ey, bx + sx:bx + ex] = acc[sy:ey, sx:ex]
+    return img
+
+
+def camera_pose(cell: CellConfig, T_B_W: np.ndarray) -> np.ndarray:
+    """Camera pose in {B} for a torch TCP pose ``T_B_W``: T_B_C = T_B_W inv(tool) hand_eye."""
+    return T_B_W @ invert(cell.tool.matrix()) @ cell.hand_eye.matrix()

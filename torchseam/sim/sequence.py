@@ -1,0 +1,139 @@
+"""Sequences of simulated frames: the sensor rides along the seam at weld speed and frame rate.
+
+The robot follows the *nominal* (design) seam with a small path wobble, while the true part
+deviates from the design; so the feature point wanders in the image the way it does in a real
+cell. Every frame carries its ground truth (:class:`FrameTruth`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
+from torchseam.core.transforms import apply, invert, rotation_about
+from torchseam.sim.noise import ARC_BGR, SPATTER_BGR, STRIPE_BGR, ArcNoise, NoiseFlags
+from torchseam.sim.scene import Scene
+from torchseam.sim.sensor import LaserSensor, camera_pose
+
+BACKGROUND_GREY = 6.0       # ambient light behind the band-pass filter
+WOBBLE_MM = 0.15            # robot path wobble (std, smooth)
+WOBBLE_DEG = 0.15
+# (B, G, R) <- (stripe, glare, spatter) grey layers
+COLOUR_MIX = np.stack([STRIPE_BGR, ARC_BGR, SPATTER_BGR], axis=1).astype(np.float32)
+
+
+@dataclass
+class FrameTruth:
+    """Ground truth of one frame (positions in the robot base frame {B}, mm)."""
+
+    index: int
+    t_s: float
+    uv: np.ndarray             # (2,) feature pixel
+    visible: bool              # the seam point is lit, unoccluded and inside the image
+    laser_on: bool
+    seam_B: np.ndarray         # (3,) true 3D seam point on the stripe
+    arm_B: np.ndarray          # (2, 3) points on the branch arm and on the main arm
+    arm_uv: np.ndarray         # (2, 2)
+    T_B_C: np.ndarray          # (4, 4) camera pose
+    T_B_W: np.ndarray          # (4, 4) torch TCP pose
+    arc_uv: np.ndarray         # (2,) where the arc (torch tip) projects
+    flags: NoiseFlags = field(default_factory=NoiseFlags)
+
+
+@dataclass
+class SequenceSpec:
+    """What to simulate. ``start_mm`` is the nominal seam arc length at frame 0 (None: random)."""
+
+    n_frames: int = 300
+    level: float = 0.0
+    seed: int = 0
+    start_mm: float | None = None
+    rotation_deg: float = 0.0
+    wobble: bool = True
+    laser_off: tuple[int, ...] = ()
+
+
+def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: SequenceSpec
+             ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
+    """Yield ``(frame, truth)`` pairs: (H, W, 3) uint8 BGR frames with their ground truth.
+
+    The first ``noise.clean_lead_frames`` frames are arc-off (clean), as before a real weld
+    starts; then the arc noise of ``spec.level`` applies.
+
+    Example:
+        >>> from torchseam.core.config import load_cell, load_part, load_noise
+        >>> frames = simulate(load_cell(), load_part(), load_noise(), SequenceSpec(n_frames=2))
+        >>> img, truth = next(frames)
+        >>> img.shape, truth.visible
+        ((492, 656, 3), True)
+    """
+    if spec.n_frames < 1:
+        raise ValueError(f"n_frames must be >= 1, got {spec.n_frames}")
+    rng = np.random.default_rng(spec.seed)
+    scene = Scene(part, spec.rotation_deg)
+    sensor = LaserSensor(cell)
+    w, h = cell.camera.width, cell.camera.height
+    proc = cell.process
+    start = rng.uniform(0, scene.seam_length_mm) if spec.start_mm is None else spec.start_mm
+    arc_noise = ArcNoise(noise, spec.level, (w, h), int(rng.integers(2**31)))
+    clean = ArcNoise(noise, 0.0, (w, h), 0)
+    background = _background(rng, w, h)
+    read_noise = [rng.standard_normal((h + 16, w + 16, 3), dtype=np.float32) for _ in range(4)]
+    wob = np.zeros(6)
+    a = 0.97  # wobble correlation per frame
+
+    for k in range(spec.n_frames):
+        t = k / proc.frame_rate_hz
+        s = start + proc.weld_speed_mm_s * t
+        T_B_W = scene.nominal_tcp(np.array([s]))[0]
+        if spec.wobble:
+            wob = a * wob + np.sqrt(1 - a * a) * rng.standard_normal(6)
+            T_B_W = T_B_W @ _small_motion(wob[:3] * WOBBLE_MM, wob[3:] * WOBBLE_DEG)
+        T_B_C = camera_pose(cell, T_B_W)
+        T_B_T = scene.part_pose(t)
+        T_T_C = invert(T_B_T) @ T_B_C
+        phi_hint = float(scene.phi_at(np.array([s + proc.look_ahead_mm]))[0])
+        view = sensor.view(scene.true_joint, T_T_C, phi_hint)
+        # the arc burns at the torch tip
+        arc_uv = sensor.project(apply(invert(T_B_C), T_B_W[:3, 3])[None])[0]
+
+        arc_on = k >= noise.clean_lead_frames
+        src = arc_noise if arc_on else clean
+        layers = src.next(arc_uv, view.seam_uv)
+        laser_on = k not in spec.laser_off
+        stripe = (sensor.stripe_layer(view, rng, layers.gaps) if laser_on
+                  else np.zeros((h, w), np.float32))
+        # colour mixing of stripe, arc glare and spatter light in one pass
+        img = cv2.transform(cv2.merge([stripe, layers.glare, layers.spatter]), COLOUR_MIX)
+        img += background
+        dy, dx = rng.integers(0, 16, 2)
+        img += src.sensor_sigma() * read_noise[k % 4][dy:dy + h, dx:dx + w]
+        frame = np.clip(img, 0, 255, out=img).astype(np.uint8)
+        flags = layers.flags
+
+        truth = FrameTruth(
+            index=k, t_s=t, uv=view.seam_uv, visible=view.visible and laser_on,
+            laser_on=laser_on, seam_B=apply(T_B_T, view.seam_T), arm_B=apply(T_B_T, view.arm_T),
+            arm_uv=view.arm_uv, T_B_C=T_B_C, T_B_W=T_B_W, arc_uv=arc_uv, flags=flags)
+        yield frame, truth
+
+
+def _small_motion(dp_mm: np.ndarray, drot_deg: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    ang = np.linalg.norm(drot_deg)
+    if ang > 0:
+        T[:3, :3] = rotation_about(drot_deg / ang, np.deg2rad(ang))
+    T[:3, 3] = dp_mm
+    return T
+
+
+def _background(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
+    """Dim, blotchy metal seen through the band-pass filter, (H, W, 3) float32."""
+    low = rng.random((h // 32 + 2, w // 32 + 2)).astype(np.float32)
+    low = cv2.resize(low, (w, h), interpolation=cv2.INTER_CUBIC)
+    grey = BACKGROUND_GREY * (0.5 + low)
+    return grey[..., None] * np.array([0.5, 0.6, 1.0], np.float32)

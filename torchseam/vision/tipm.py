@@ -1,0 +1,287 @@
+"""TIPM: the weld feature point in a clean laser-stripe frame (METHOD.md section 1).
+
+Pipeline: red-stripe recognition (``R - max(G, B)``: the 650 nm stripe is red, arc light that
+saturates all channels is not; minus its local vertical mean, so broad glare drops out) ->
+threshold -> connected-area filtering (drop small blobs) -> dilation (close breaks) -> centre
+line -> feature point.
+
+Centre line: the paper thins the mask to a one-pixel skeleton (``centre_line="thinning"``, kept
+for comparison and for the overlay); the default is a sub-pixel grey-gravity centre per column
+(the accepted improvement of METHOD.md).
+
+Feature point: the stripe is split into its two arms at the column that best explains it as two
+lines (an exhaustive two-line least-squares search, O(N) with cumulative sums); each arm is then
+fitted with a quadratic ``v = a + b u + c u^2`` over a window next to the corner (skipping the
+few columns at the corner where the two arms blur together), and the feature point is where the
+two quadratics meet. A frame without a usable stripe gives ``ok=False`` and a reason, never a
+garbage point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from torchseam.core.config import CONFIG_DIR, load_config
+from torchseam.core.dataset import check_frame
+
+
+@dataclass(frozen=True)
+class TipmConfig:
+    """Parameters of TIPM (``configs/tipm.yaml``)."""
+
+    min_red: float
+    rel_threshold: float
+    ridge_px: int
+    min_area: int
+    dilate_px: int
+    corner_gap_px: float
+    fit_window_px: float
+    min_points_per_arm: int
+    max_rms_px: float
+    min_corner_deg: float
+    max_saturated_fraction: float
+
+
+def load_tipm_config(path: str | Path | None = None) -> TipmConfig:
+    return load_config(TipmConfig, path or CONFIG_DIR / "tipm.yaml")
+
+
+@dataclass
+class TipmResult:
+    """Outcome of TIPM on one frame.
+
+    Attributes:
+        ok: a feature point was found.
+        uv: (2,) feature pixel (u, v), NaN when not ``ok``.
+        reason: why not, when not ``ok`` (e.g. ``"no stripe found"``).
+        centre: (N, 2) centre-line points (u, v) used.
+        arms: ((3,), (3,)) quadratic coefficients (a, b, c) of each arm in ``u - u0``, or None.
+        u0: the column the arm fits are centred on.
+        corner_deg: angle between the two arms' directions at the corner (180 = straight).
+        rms_px: RMS residual of the arm fits.
+        mask: (H, W) uint8 stripe mask after filtering (for the overlay).
+    """
+
+    ok: bool
+    uv: np.ndarray
+    reason: str = ""
+    centre: np.ndarray | None = None
+    arms: tuple[np.ndarray, np.ndarray] | None = None
+    u0: float = 0.0
+    corner_deg: float = float("nan")
+    rms_px: float = float("nan")
+    mask: np.ndarray | None = None
+
+
+def _fail(reason: str, mask: np.ndarray | None = None, centre: np.ndarray | None = None
+          ) -> TipmResult:
+    return TipmResult(False, np.full(2, np.nan), reason, centre=centre, mask=mask)
+
+
+class Tipm:
+    """Classic stripe image processing for the weld feature point.
+
+    Example:
+        >>> tipm = Tipm()
+        >>> res = tipm(np.zeros((492, 656, 3), np.uint8))
+        >>> res.ok, res.reason
+        (False, 'no stripe found (no red pixels above threshold)')
+    """
+
+    def __init__(self, cfg: TipmConfig | None = None, centre_line: str = "subpixel") -> None:
+        if centre_line not in ("subpixel", "thinning"):
+            raise ValueError(f"centre_line must be 'subpixel' or 'thinning', got {centre_line!r}")
+        self.cfg = cfg or load_tipm_config()
+        self.centre_line = centre_line
+        k = 2 * self.cfg.dilate_px + 1
+        self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+
+    # ------------------------------------------------------------------ stages
+    def stripe_mask(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+        """Red response (float32), filtered + dilated mask (uint8), and a failure reason."""
+        cfg = self.cfg
+        b, g, r = cv2.split(frame)
+        red = cv2.subtract(r, cv2.max(g, b))
+        # the stripe saturates R only; white arc light saturates G as well
+        if cv2.countNonZero(cv2.compare(g, 250, cv2.CMP_GE)) > (
+                cfg.max_saturated_fraction * red.size):
+            return red, np.zeros_like(red), "frame saturated by arc light"
+        # ridge: red minus its local vertical mean, so broad red glare does not pass as stripe
+        ridge = cv2.subtract(red, cv2.blur(red, (1, cfg.ridge_px)))
+        peak = float(np.percentile(ridge[::4, ::4], 99.9)) if ridge.any() else 0.0
+        thr = max(cfg.min_red, cfg.rel_threshold * peak)
+        _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY)
+        bx, by, bw, bh = cv2.boundingRect(binary)
+        if bw == 0:
+            return red, binary, "no stripe found (no red pixels above threshold)"
+        # label only the box that holds anything (the stripe is a thin band)
+        roi = (slice(by, by + bh), slice(bx, bx + bw))
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(binary[roi], connectivity=8,
+                                                            ltype=cv2.CV_16U)
+        keep = np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= cfg.min_area)[0] + 1
+        mask = np.zeros_like(binary)
+        if len(keep) == 0:
+            return red, mask, "no stripe found (only small blobs)"
+        lut = np.zeros(n, np.uint8)
+        lut[keep] = 255
+        mask[roi] = np.take(lut, lab)
+        mask = cv2.dilate(mask, self._kernel)
+        return red, mask, ""
+
+    def centre(self, red: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """(N, 2) centre-line points (u, v) of the masked stripe."""
+        if self.centre_line == "thinning":
+            skel = cv2.ximgproc.thinning(mask)
+            v, u = np.nonzero(skel)
+            order = np.argsort(u, kind="stable")
+            return np.stack([u[order], v[order]], axis=1).astype(float)
+        ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+        y0, y1, x0, x1 = ys[0], ys[-1] + 1, xs[0], xs[-1] + 1
+        w = red[y0:y1, x0:x1].astype(np.float32) * (mask[y0:y1, x0:x1] > 0)
+        s0 = w.sum(axis=0)
+        s1 = (w * np.arange(y0, y1, dtype=np.float32)[:, None]).sum(axis=0)
+        cols = np.nonzero(s0 > 0)[0]
+        return np.stack([cols + x0, s1[cols] / s0[cols]], axis=1).astype(float)
+
+    # ------------------------------------------------------------------ main
+    def __call__(self, frame: np.ndarray) -> TipmResult:
+        """Find the feature point in one BGR (H, W, 3) uint8 frame."""
+        check_frame(frame)
+        red, mask, why = self.stripe_mask(frame)
+        if why:
+            return _fail(why, mask)
+        pts = self.centre(red, mask)
+        return self.corner(pts, mask)
+
+    def corner(self, pts: np.ndarray, mask: np.ndarray | None = None) -> TipmResult:
+        """Feature point from centre-line points (N, 2), sorted by u."""
+        cfg = self.cfg
+        if len(pts) < 2 * cfg.min_points_per_arm:
+            return _fail(f"no stripe found ({len(pts)} centre-line points)", mask, pts)
+        split = _best_split(pts[:, 0], pts[:, 1], cfg.min_points_per_arm)
+        if split is None:
+            return _fail("no corner: the stripe cannot be split into two arms", mask, pts)
+        # The two-line split is only roughly at the corner (the arms are curved): fit the arms
+        # next to it, move to where they meet, and refit there until the corner stays put.
+        u0 = split
+        for it in range(4):
+            fit = self._fit_arms(pts, u0)
+            if isinstance(fit, str):
+                return _fail(fit, mask, pts)
+            arms, rms, x = fit  # arms are centred on u0; they meet at u0 + x
+            if abs(x) < 0.05 or it == 3:
+                break
+            u0 += x
+        if rms > cfg.max_rms_px:
+            return _fail(f"no clean stripe: arm fit residual {rms:.2f} px", mask, pts)
+        v = float(np.polynomial.polynomial.polyval(x, arms[0]))
+        # angle between the arms at the corner (slopes b + 2 c x)
+        s1 = arms[0][1] + 2 * arms[0][2] * x
+        s2 = arms[1][1] + 2 * arms[1][2] * x
+        d1, d2 = np.array([-1.0, -s1]), np.array([1.0, s2])
+        cosang = d1 @ d2 / (np.linalg.norm(d1) * np.linalg.norm(d2))
+        corner = float(np.degrees(np.arccos(np.clip(cosang, -1, 1))))
+        if 180.0 - corner < cfg.min_corner_deg:
+            return _fail(f"no corner: the stripe is straight ({corner:.1f} deg)", mask, pts)
+        return TipmResult(True, np.array([u0 + x, v]), "", pts, (arms[0], arms[1]), u0, corner,
+                          rms, mask)
+
+    def _fit_arms(self, pts: np.ndarray, u0: float
+                  ) -> tuple[list[np.ndarray], float, float] | str:
+        """Quadratic fit of each arm beside column ``u0``; returns (arms, rms, x of the meeting
+        point relative to ``u0``) or the reason it fails."""
+        cfg = self.cfg
+        arms, rms_all = [], []
+        for side in (-1, 1):
+            du = (pts[:, 0] - u0) * side
+            sel = (du >= cfg.corner_gap_px) & (du <= cfg.fit_window_px)
+            if sel.sum() < cfg.min_points_per_arm:
+                return (f"no corner: the {'left' if side < 0 else 'right'} arm has only "
+                        f"{int(sel.sum())} points")
+            x, y = pts[sel, 0] - u0, pts[sel, 1]
+            coef = _quadfit(x, y)
+            res = y - np.polynomial.polynomial.polyval(x, coef)
+            # one robust pass: drop points far off the fit (spatter touching the stripe)
+            good = np.abs(res) < max(3 * np.std(res), 0.5)
+            if good.sum() >= cfg.min_points_per_arm and not good.all():
+                coef = _quadfit(x[good], y[good])
+                res = y[good] - np.polynomial.polynomial.polyval(x[good], coef)
+            arms.append(coef)
+            rms_all.append(float(np.sqrt(np.mean(res**2))))
+        diff = arms[0] - arms[1]
+        if abs(diff[2]) > 1e-12:
+            roots = np.roots(diff[::-1])
+        elif abs(diff[1]) > 1e-12:
+            roots = np.array([-diff[0] / diff[1]])
+        else:
+            return "no corner: the arms are parallel"
+        roots = roots[np.isreal(roots)].real
+        if len(roots) == 0:
+            return "no corner: the arms do not meet"
+        x = float(roots[np.argmin(np.abs(roots))])
+        if abs(x) > cfg.fit_window_px:
+            return "no corner: the arms meet far from the stripe"
+        return arms, max(rms_all), x
+
+
+def _quadfit(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Least-squares (a, b, c) of y = a + b x + c x^2 (x is centred on the corner already)."""
+    A = np.stack([np.ones_like(x), x, x * x], axis=1)
+    return np.linalg.lstsq(A, y, rcond=None)[0]
+
+
+def _best_split(u: np.ndarray, v: np.ndarray, min_pts: int) -> float | None:
+    """Column that best splits (u, v) into two straight lines (least squares, O(N))."""
+    n = len(u)
+    if n < 2 * min_pts:
+        return None
+    uc = u - u.mean()
+    vc = v - v.mean()
+
+    def sse(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        # SSE of a line fit to every prefix, from cumulative moments
+        k = np.arange(1, len(x) + 1, dtype=float)
+        sx, sy = np.cumsum(x), np.cumsum(y)
+        sxx, sxy, syy = np.cumsum(x * x), np.cumsum(x * y), np.cumsum(y * y)
+        vx = sxx - sx * sx / k
+        cxy = sxy - sx * sy / k
+        vy = syy - sy * sy / k
+        return vy - np.where(vx > 1e-9, cxy * cxy / np.maximum(vx, 1e-9), 0.0)
+
+    left = sse(uc, vc)                       # left[i]: points 0..i
+    right = sse(uc[::-1], vc[::-1])[::-1]    # right[i]: points i..n-1
+    i = np.arange(min_pts - 1, n - min_pts)
+    total = left[i] + right[i + 1]
+    best = i[np.argmin(total)]
+    return float(0.5 * (u[best] + u[best + 1]))
+
+
+def draw_overlay(frame: np.ndarray, res: TipmResult, truth: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """Frame with the stripe centre line (green), arm fits (blue) and feature point (yellow)."""
+    out = frame.copy()
+    if res.centre is not None and len(res.centre):
+        for u, v in res.centre[:: max(1, len(res.centre) // 400)].astype(int):
+            cv2.circle(out, (int(u), int(v)), 0, (0, 255, 0), -1)
+    if res.ok and res.arms is not None:
+        for side, coef in zip((-1, 1), res.arms, strict=True):
+            x = np.linspace(0, 150, 40) * side + (res.uv[0] - res.u0)
+            y = np.polynomial.polynomial.polyval(x, coef)
+            poly = np.stack([x + res.u0, y], axis=1)
+            cv2.polylines(out, [np.round(poly * 16).astype(np.int32)], False, (255, 128, 0), 1,
+                          cv2.LINE_AA, 4)
+        c = tuple(int(round(x * 16)) for x in res.uv)
+        cv2.circle(out, c, 8 * 16, (0, 255, 255), 1, cv2.LINE_AA, 4)
+        cv2.drawMarker(out, tuple(int(round(x)) for x in res.uv), (0, 255, 255),
+                       cv2.MARKER_CROSS, 18, 1, cv2.LINE_AA)
+    label = f"TIPM ({res.uv[0]:.1f}, {res.uv[1]:.1f})" if res.ok else f"TIPM: {res.reason}"
+    cv2.putText(out, label, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    if truth is not None:
+        cv2.drawMarker(out, tuple(int(round(x)) for x in truth), (0, 255, 0),
+                       cv2.MARKER_TILTED_CROSS, 12, 1, cv2.LINE_AA)
+    return out
