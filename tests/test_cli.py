@@ -56,3 +56,13 @@ def test_demo_runs_as_installed_command(tmp_path):
     row = lines[lines.index(next(x for x in lines if x.startswith("frames"))) + 2].split()
     assert int(row[0]) == 20 and int(row[1]) == 20
     assert float(row[2]) < 0.5  # RMSE px on clean frames
+
+
+def test_detect_refuses_frames_of_the_wrong_size(tmp_path, capsys):
+    import cv2
+
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((240, 320, 3), np.uint8))
+    assert main(["detect", str(small)]) == 1
+    assert "frame is 320 x 240 px, the camera is configured for 656 x 492" in (
+        capsys.readouterr().out)

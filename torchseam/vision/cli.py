@@ -7,6 +7,7 @@ from pathlib import Path
 
 import cv2
 
+from torchseam.core.config import load_cell
 from torchseam.core.dataset import read_frame
 from torchseam.core.errors import FrameError
 from torchseam.vision.tipm import Tipm, draw_overlay
@@ -19,19 +20,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("frames", nargs="+", type=Path, metavar="FRAME", help="BGR image files")
     p.add_argument("--overlay", type=Path, metavar="DIR",
                    help="write an overlay image per frame into DIR")
+    p.add_argument("--cell", type=Path,
+                   help="cell config giving the camera size (default configs/cell.yaml)")
     p.add_argument("--centre-line", choices=("subpixel", "thinning"), default="subpixel",
                    help="centre-line method (default subpixel; thinning as in the paper)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    cam = load_cell(args.cell).camera
+    size = (cam.width, cam.height)
     tipm = Tipm(centre_line=args.centre_line)
     if args.overlay:
         args.overlay.mkdir(parents=True, exist_ok=True)
     found = 0
     for path in args.frames:
         try:
-            img = read_frame(path)
+            img = read_frame(path, size)
         except FrameError as e:
             print(f"{path} error: {e}")
             continue

@@ -112,7 +112,9 @@ class Tipm:
             return red, np.zeros_like(red), "frame saturated by arc light"
         # ridge: red minus its local vertical mean, so broad red glare does not pass as stripe
         ridge = cv2.subtract(red, cv2.blur(red, (1, cfg.ridge_px)))
-        peak = float(np.percentile(ridge[::4, ::4], 99.9)) if ridge.any() else 0.0
+        # relative to the strongest ridge: a brighter spatter streak only raises the threshold
+        # to rel_threshold * 255, still well below a lit stripe
+        peak = cv2.minMaxLoc(ridge)[1]
         thr = max(cfg.min_red, cfg.rel_threshold * peak)
         _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY)
         bx, by, bw, bh = cv2.boundingRect(binary)
@@ -168,12 +170,12 @@ class Tipm:
         # The two-line split is only roughly at the corner (the arms are curved): fit the arms
         # next to it, move to where they meet, and refit there until the corner stays put.
         u0 = split
-        for it in range(4):
+        for it in range(3):
             fit = self._fit_arms(pts, u0)
             if isinstance(fit, str):
                 return _fail(fit, mask, pts)
             arms, rms, x = fit  # arms are centred on u0; they meet at u0 + x
-            if abs(x) < 0.05 or it == 3:
+            if abs(x) < 0.05 or it == 2:
                 break
             u0 += x
         if rms > cfg.max_rms_px:

@@ -1,0 +1,226 @@
+"""ECAL: expanding circle, arc length (METHOD.md section 5) -> the arm points p1t, p2t.
+
+On the binarised stripe frame, a circle of radius R around the feature point crosses the stripe
+once on each arm. Walking round the circle, the mask switches background -> stripe -> background
+at the two boundaries of an arm: such a pair of crossings whose arc between them is stripe and
+whose outer arcs are background, and whose arc length is a stripe width, is one arm crossing; its
+midpoint (refined by the grey-level centroid along the arc when an intensity image is given) is
+the arm point. Crossings from spatter and other blobs are rejected: a crossing must be a stripe
+width long and joined to the feature point by stripe along the radius. The circle grows from
+``r_min`` until both arms are found and keeps growing (more leverage for the torch frame) while
+both stay clean, up to ``r_max``.
+
+Occluded arm (fallback): when only one arm is found at every radius and the previous frame's
+arm directions are given, the missing arm point is placed along the previous direction at the
+found arm's radius and the result is flagged ``fallback``; with no previous directions, or with
+no arm at all, the result is not ``ok`` and says why (the caller then makes no pose).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from torchseam.core.config import CONFIG_DIR, load_config
+
+ARC_STEP_PX = 0.5  # sampling step along the circle
+
+
+@dataclass(frozen=True)
+class EcalConfig:
+    r_min_px: float
+    r_max_px: float
+    r_step_px: float
+    min_width_px: float
+    max_width_px: float
+    min_connected: float
+
+
+def load_ecal_config(path: str | Path | None = None) -> EcalConfig:
+    return load_config(EcalConfig, path or CONFIG_DIR / "ecal.yaml")
+
+
+@dataclass
+class EcalResult:
+    """Arm points of one frame.
+
+    Attributes:
+        ok: both arm points are available (found, or one by fallback).
+        p: (2, 2) pixels of p1t (the left arm, smaller u) and p2t; NaN when missing.
+        angles: (2,) direction of each arm from the feature point (rad, image frame).
+        radius: circle radius used (px).
+        p_tangent: (2, 2) points on the arms' tangents at the corner, ``r_min_px`` out: the
+            chord to a curved arm leans by r / (2 rho); the arm angle measured on every clean
+            circle is extrapolated linearly to r = 0. Falls back to ``p`` with one circle.
+        fallback: one arm point came from the previous frame's direction.
+        rejected: crossings rejected on the circles tried (spatter, other blobs).
+        reason: why not ``ok``.
+    """
+
+    ok: bool
+    p: np.ndarray
+    angles: np.ndarray
+    radius: float = float("nan")
+    p_tangent: np.ndarray | None = None
+    fallback: bool = False
+    rejected: int = 0
+    reason: str = ""
+
+
+class Ecal:
+    """Expanding-circle arc-length arm finder.
+
+    Example:
+        >>> import cv2
+        >>> mask = np.zeros((200, 200), np.uint8)
+        >>> _ = cv2.line(mask, (100, 100), (10, 60), 255, 5)
+        >>> _ = cv2.line(mask, (100, 100), (190, 60), 255, 5)
+        >>> res = Ecal()(mask, np.array([100.0, 100.0]))
+        >>> res.ok, bool(res.p[0, 0] < 100 < res.p[1, 0])
+        (True, True)
+    """
+
+    def __init__(self, cfg: EcalConfig | None = None) -> None:
+        self.cfg = cfg or load_ecal_config()
+
+    def crossings(self, mask: np.ndarray, uv: np.ndarray, r: float,
+                  intensity: np.ndarray | None = None) -> tuple[list[tuple[float, np.ndarray]],
+                                                                int]:
+        """Accepted arm crossings at radius ``r``: [(angle, pixel)], and the rejected count."""
+        cfg = self.cfg
+        h, w = mask.shape
+        n = max(16, int(np.ceil(2 * np.pi * r / ARC_STEP_PX)))
+        th = np.arange(n) * (2 * np.pi / n)
+        pu, pv = uv[0] + r * np.cos(th), uv[1] + r * np.sin(th)
+        iu, iv = np.round(pu).astype(int), np.round(pv).astype(int)
+        inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
+        on = np.zeros(n, bool)
+        on[inside] = mask[iv[inside], iu[inside]] > 0
+        if on.all() or not on.any():
+            return [], 0
+        # rotate so the walk starts on background: every stripe run is then whole
+        shift = int(np.argmin(on))
+        on = np.roll(on, -shift)
+        edges = np.diff(on.astype(np.int8))
+        starts = np.nonzero(edges == 1)[0] + 1
+        ends = np.nonzero(edges == -1)[0] + 1
+        out, rejected = [], 0
+        for s, e in zip(starts, ends, strict=True):
+            width = (e - s) * 2 * np.pi * r / n
+            idx = (np.arange(s, e) + shift) % n
+            if intensity is not None:
+                wts = intensity[iv[idx].clip(0, h - 1), iu[idx].clip(0, w - 1)].astype(float)
+                wts = wts * inside[idx]
+            else:
+                wts = np.ones(len(idx))
+            # circular mean of the run's angles, weighted by the grey level
+            ang = float(np.angle(np.sum(wts * np.exp(1j * th[idx]))))
+            p = uv + r * np.array([np.cos(ang), np.sin(ang)])
+            if not (cfg.min_width_px <= width <= cfg.max_width_px):
+                rejected += 1
+                continue
+            # joined to the feature point along the radius?
+            t = np.linspace(0.15, 1.0, max(8, int(r)))
+            su = np.round(uv[0] + t * (p[0] - uv[0])).astype(int).clip(0, w - 1)
+            sv = np.round(uv[1] + t * (p[1] - uv[1])).astype(int).clip(0, h - 1)
+            if np.mean(mask[sv, su] > 0) < cfg.min_connected:
+                rejected += 1
+                continue
+            out.append((ang, p))
+        return out, rejected
+
+    def __call__(self, mask: np.ndarray, uv: np.ndarray, intensity: np.ndarray | None = None,
+                 prev_angles: np.ndarray | None = None) -> EcalResult:
+        """Arm points around feature pixel ``uv`` (2,) on the stripe ``mask`` (H, W) uint8.
+
+        Args:
+            mask: binarised stripe frame (non-zero = stripe).
+            uv: (2,) feature point.
+            intensity: optional (H, W) grey/red image for sub-pixel arm centres.
+            prev_angles: (2,) arm directions of the previous frame (rad), for choosing among
+                several candidates and for the occluded-arm fallback.
+        """
+        if mask.ndim != 2:
+            raise ValueError(f"mask: expected (H, W), got {mask.shape}")
+        uv = np.asarray(uv, dtype=float)
+        nan2 = np.full((2, 2), np.nan)
+        if not np.all(np.isfinite(uv)):
+            return EcalResult(False, nan2, np.full(2, np.nan), reason="no feature point")
+        cfg = self.cfg
+        best: EcalResult | None = None
+        single: tuple[float, float, np.ndarray] | None = None
+        radii, arm_angles, rejected_total = [], [], 0
+        for r in np.arange(cfg.r_min_px, cfg.r_max_px + 1e-9, cfg.r_step_px):
+            cands, rejected = self.crossings(mask, uv, float(r), intensity)
+            rejected_total += rejected
+            pair = _pick_pair(cands, prev_angles)
+            if pair is None:
+                if len(cands) == 1 and single is None:
+                    single = (float(r), cands[0][0], cands[0][1])
+                if best is not None:
+                    break  # the arms stop being clean further out: keep the last good circle
+                continue
+            (a1, p1), (a2, p2) = pair
+            prev_angles = np.array([a1, a2])  # follow the arms outwards
+            radii.append(float(r))
+            arm_angles.append(prev_angles)
+            best = EcalResult(True, np.stack([p1, p2]), np.array([a1, a2]), float(r),
+                              rejected=rejected_total)
+        if best is not None:
+            best.p_tangent = _tangent_points(uv, np.array(radii), np.array(arm_angles),
+                                             cfg.r_min_px)
+            return best
+        if single is not None and prev_angles is not None:
+            r, a, p = single
+            k = int(np.argmin(np.abs(_wrap(prev_angles - a))))
+            other = float(prev_angles[1 - k])
+            q = uv + r * np.array([np.cos(other), np.sin(other)])
+            pts = [(a, p), (other, q)] if k == 0 else [(other, q), (a, p)]
+            p = np.stack([pts[0][1], pts[1][1]])
+            return EcalResult(True, p, np.array([pts[0][0], pts[1][0]]), r, p_tangent=p,
+                              fallback=True)
+        why = "one arm only (occluded) and no previous arm directions" if single else (
+            "no arm crossings around the feature point")
+        return EcalResult(False, nan2, np.full(2, np.nan), reason=why)
+
+
+def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref: float
+                    ) -> np.ndarray:
+    """Arm directions extrapolated to the corner, as points ``r_ref`` from it, (2, 2)."""
+    out = np.empty((2, 2))
+    for i in range(2):
+        a = np.unwrap(angles[:, i])
+        a0 = np.polyfit(radii, a, 1)[1] if len(radii) >= 2 else a[-1]
+        out[i] = uv + r_ref * np.array([np.cos(a0), np.sin(a0)])
+    return out
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _pick_pair(cands: list[tuple[float, np.ndarray]], prev: np.ndarray | None
+               ) -> tuple[tuple[float, np.ndarray], tuple[float, np.ndarray]] | None:
+    """Two arm crossings, ordered left arm (smaller u) first."""
+    if len(cands) < 2:
+        return None
+    if len(cands) == 2:
+        pair = cands
+    elif prev is not None:
+        # the candidates nearest the previous arm directions
+        pair = [min(cands, key=lambda c, a=a: abs(_wrap(c[0] - a))) for a in prev]
+        if pair[0] is pair[1]:
+            return None
+    else:
+        # the two most opposed crossings: arms leave the corner on opposite sides
+        best, score = None, -1.0
+        for i in range(len(cands)):
+            for j in range(i + 1, len(cands)):
+                s = abs(_wrap(cands[i][0] - cands[j][0]))
+                if s > score:
+                    best, score = (cands[i], cands[j]), s
+        pair = list(best)
+    pair = sorted(pair, key=lambda c: c[1][0])
+    return pair[0], pair[1]

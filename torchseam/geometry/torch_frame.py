@@ -1,0 +1,116 @@
+"""Torch frame from three points (METHOD.md section 5, eq. 27-29), batched in torch.
+
+``p``: the 3D weld point; ``q1``, ``q2``: a point on each stripe arm.
+eq. 27: px = normal of the plane Omega through p, q1, q2 (oriented along the travel direction);
+eq. 28: pz = bisector of the angle q1-p-q2 in Omega; py = pz x px;
+eq. 29: wx = px, wy = -py, wz = -pz (wz points from the torch into the corner).
+Work and travel angles then tilt the torch about wx and wy. Poses go to the robot as position +
+quaternion in ABB order (w, x, y, z), with the sign kept continuous along the seam.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from pytorch_kinematics.transforms import matrix_to_quaternion
+from torch import Tensor
+
+# |u1 x u2| / (|u1| |u2|) below this: the three points are (nearly) collinear
+MIN_SIN = 0.02
+MIN_ARM_MM = 0.2  # an arm point this close to the weld point is coincident with it
+
+
+def _check3(x: Tensor, name: str) -> None:
+    if not isinstance(x, Tensor) or x.ndim < 1 or x.shape[-1] != 3:
+        raise ValueError(f"{name}: expected a tensor of shape (..., 3), got "
+                         f"{tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__}")
+
+
+def torch_frame(p: Tensor, q1: Tensor, q2: Tensor, travel: Tensor | None = None,
+                tangent: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Torch orientation at weld points from the three-point principle.
+
+    Args:
+        p: (..., 3) weld points; q1, q2: (..., 3) points on each stripe arm.
+        travel: (..., 3) travel direction; px is flipped to agree with it. Without it px
+            follows the right-hand rule from q1 to q2.
+        tangent: (..., 3) measured seam tangent (e.g. from the located path). When given, Omega
+            is the plane through p perpendicular to it, instead of the stripe plane: the stripe
+            plane leans on a curved seam (the saddle turns about 15 degrees over the 20 mm
+            look-ahead), which tilts the arms' bisector off the joint's; across the seam, the
+            bisector of the arms is the bisector of the joint.
+
+    Returns:
+        ``(R, valid)``: (..., 3, 3) rotation matrices with columns (wx, wy, wz), and (...,)
+        bool. Degenerate inputs (coincident or collinear points, non-finite values) give
+        ``valid = False`` and the identity, never NaN.
+
+    Example:
+        >>> p = torch.tensor([[0.0, 0.0, 0.0]])
+        >>> q1, q2 = torch.tensor([[0.0, -5.0, 0.0]]), torch.tensor([[0.0, 0.0, -5.0]])
+        >>> R, ok = torch_frame(p, q1, q2, travel=torch.tensor([[1.0, 0.0, 0.0]]))
+        >>> ok.item(), [round(x, 4) for x in R[0, :, 2].tolist()]  # wz: into the corner
+        (True, [-0.0, 0.7071, 0.7071])
+    """
+    for x, n in ((p, "p"), (q1, "q1"), (q2, "q2")):
+        _check3(x, n)
+    u1, u2 = q1 - p, q2 - p
+    if tangent is not None:
+        # Omega taken perpendicular to the seam: the arms' components across the seam
+        _check3(tangent, "tangent")
+        t = tangent / tangent.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        u1 = u1 - (u1 * t).sum(-1, keepdim=True) * t
+        u2 = u2 - (u2 * t).sum(-1, keepdim=True) * t
+        if travel is None:
+            travel = t
+    n1, n2 = u1.norm(dim=-1, keepdim=True), u2.norm(dim=-1, keepdim=True)
+    cross = torch.cross(u1, u2, dim=-1)
+    sin = cross.norm(dim=-1) / (n1 * n2).squeeze(-1).clamp_min(1e-12)
+    valid = ((n1.squeeze(-1) > MIN_ARM_MM) & (n2.squeeze(-1) > MIN_ARM_MM) & (sin > MIN_SIN)
+             & torch.isfinite(cross).all(-1))
+    px = cross / cross.norm(dim=-1, keepdim=True).clamp_min(1e-12)             # eq. 27
+    if travel is not None:
+        _check3(travel, "travel")
+        flip = (px * travel).sum(-1, keepdim=True) < 0
+        px = torch.where(flip, -px, px)
+    pz = u1 / n1.clamp_min(1e-12) + u2 / n2.clamp_min(1e-12)                    # eq. 28
+    pz = pz / pz.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    py = torch.cross(pz, px, dim=-1)
+    R = torch.stack([px, -py, -pz], dim=-1)                                    # eq. 29
+    eye = torch.eye(3, dtype=R.dtype, device=R.device).expand_as(R)
+    R = torch.where(valid[..., None, None], R, eye)
+    return R, valid
+
+
+def tilt(R: Tensor, work_deg: float = 0.0, travel_deg: float = 0.0) -> Tensor:
+    """Apply the work angle (about wx) and the travel angle (about wy) in the torch frame."""
+    def rot(axis: int, deg: float) -> Tensor:
+        c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+        M = torch.eye(3, dtype=R.dtype, device=R.device)
+        i, j = [(1, 2), (2, 0), (0, 1)][axis]
+        M[i, i], M[i, j], M[j, i], M[j, j] = c, -s, s, c
+        return M
+
+    return R @ rot(0, work_deg) @ rot(1, travel_deg)
+
+
+def quaternions(R: Tensor, previous: Tensor | None = None) -> Tensor:
+    """(N, 3, 3) rotations -> (N, 4) quaternions (w, x, y, z), signs continuous along N.
+
+    ``q`` and ``-q`` are the same rotation; a controller interpolating between them turns the
+    long way round. Each quaternion takes the sign nearest its predecessor (the first one
+    nearest ``previous`` (4,), when given).
+    """
+    q = matrix_to_quaternion(R)
+    if len(q) == 0:
+        return q
+    ref = previous if previous is not None else None
+    out = []
+    for k in range(len(q)):  # sequential by nature: each sign depends on the one before
+        qk = q[k]
+        if ref is not None and torch.dot(qk, ref) < 0:
+            qk = -qk
+        out.append(qk)
+        ref = qk
+    return torch.stack(out)

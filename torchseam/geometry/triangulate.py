@@ -1,0 +1,70 @@
+"""Pixels -> 3D seam points in the robot base (METHOD.md section 7), batched in torch.
+
+pixel -> undistorted ray -> cut with the laser plane -> camera frame {C} -> flange {F} (hand-eye)
+-> robot base {B} (the flange pose the robot reports for the frame's time stamp).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from torchseam.core.camera import intrinsics, laser_plane_tensor, pixels_to_plane
+from torchseam.core.config import CellConfig
+
+
+def _check(x: Tensor, shape_tail: tuple[int, ...], name: str) -> None:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    if tuple(x.shape[x.ndim - len(shape_tail):]) != shape_tail or x.ndim < len(shape_tail):
+        raise ValueError(f"{name}: expected shape (..., {', '.join(map(str, shape_tail))}), "
+                         f"got {tuple(x.shape)}")
+
+
+def transform_points(T: Tensor, X: Tensor) -> Tensor:
+    """Apply (..., 4, 4) rigid transforms to (..., 3) points (broadcasting)."""
+    return (T[..., :3, :3] @ X.unsqueeze(-1)).squeeze(-1) + T[..., :3, 3]
+
+
+def triangulate(uv: Tensor, K: Tensor, dist: Tensor, plane: Tensor, T_F_C: Tensor,
+                T_B_F: Tensor) -> Tensor:
+    """Seam pixels to 3D points in the robot base.
+
+    Args:
+        uv: (..., 2) pixels (u, v) on the laser stripe.
+        K: (3, 3) intrinsics; dist: (5,) OpenCV distortion.
+        plane: (4,) laser plane (n, d) in {C}: n . X = d (mm).
+        T_F_C: (4, 4) hand-eye, camera pose in the flange frame (mm).
+        T_B_F: (..., 4, 4) flange pose in the base at each frame (mm).
+
+    Returns:
+        (..., 3) points in {B} (mm); NaN where a pixel's ray misses the plane.
+
+    Example:
+        >>> from torchseam.core.config import load_cell
+        >>> tri = Triangulator(load_cell())
+        >>> tri(torch.tensor([[331.5, 243.2]]), torch.eye(4, dtype=torch.float64)).shape
+        torch.Size([1, 3])
+    """
+    _check(uv, (2,), "uv")
+    _check(T_F_C, (4, 4), "T_F_C")
+    _check(T_B_F, (4, 4), "T_B_F")
+    X_C = pixels_to_plane(uv, K, dist, plane)
+    return transform_points(T_B_F @ T_F_C, X_C)
+
+
+class Triangulator(nn.Module):
+    """:func:`triangulate` with the cell's calibration held as buffers (device/dtype follow)."""
+
+    def __init__(self, cell: CellConfig, dtype: torch.dtype = torch.float64) -> None:
+        super().__init__()
+        K, dist = intrinsics(cell.camera, dtype)
+        self.register_buffer("K", K)
+        self.register_buffer("dist", dist)
+        self.register_buffer("plane", laser_plane_tensor(cell.laser_plane, dtype))
+        self.register_buffer("T_F_C", torch.tensor(cell.hand_eye.matrix(), dtype=dtype))
+
+    def forward(self, uv: Tensor, T_B_F: Tensor) -> Tensor:
+        """(..., 2) pixels + (..., 4, 4) flange poses -> (..., 3) base points (mm)."""
+        uv = uv.to(self.K)
+        return triangulate(uv, self.K, self.dist, self.plane, self.T_F_C, T_B_F.to(self.K))
