@@ -15,7 +15,6 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 SEGMENTS = 6
 SEGMENT_NAMES = "abcdef"
@@ -57,68 +56,85 @@ def ipi_step(cp: np.ndarray, np_: np.ndarray, step_mm: float) -> np.ndarray:
 
 @dataclass
 class Located:
-    """A located seam point waiting in the buffer."""
+    """A located seam point waiting in the buffer (robot base, mm)."""
 
     s_mm: float          # arc length along the located path
-    p: np.ndarray        # (3,) mm, robot base
-    R: np.ndarray        # (3, 3) torch orientation
+    p: np.ndarray        # (3,) weld point
+    q: np.ndarray        # (2, 3) points on the two stripe arms (NaN when ECAL found none)
     t_s: float           # time of the frame that saw it
 
 
 class LookAheadBuffer:
     """Bounded FIFO of located seam points between the stripe and the torch.
 
+    The stripe runs ahead of the torch, so when the torch reaches a located point the buffer
+    holds located points on both sides of it. That is used twice: the commanded point is a
+    local quadratic fit of the located points around it (in arc length, ``smooth_mm`` each
+    side), which averages the measurement noise without lag, and the seam tangent for the
+    torch frame (:func:`~torchseam.geometry.torch_frame.torch_frame`) is that fit's derivative,
+    centred on the point instead of trailing it.
+
     Example:
         >>> buf = LookAheadBuffer(maxlen=100)
         >>> for x in range(0, 30):
-        ...     buf.push(np.array([float(x), 0, 0]), np.eye(3), t_s=x / 25)
-        >>> ip, R = buf.next_command(np.array([0.0, 0, 0]), step_mm=2.0)
-        >>> ip.tolist()
-        [2.0, 0.0, 0.0]
+        ...     buf.push(np.array([float(x), 0, 0]), np.full((2, 3), np.nan), t_s=x / 25)
+        >>> ip, tangent, q = buf.next_command(np.array([0.0, 0, 0]), step_mm=2.0)
+        >>> ip.round(6).tolist(), tangent.round(6).tolist()
+        ([2.0, 0.0, 0.0], [1.0, 0.0, 0.0])
     """
 
-    def __init__(self, maxlen: int = 2048) -> None:
+    def __init__(self, maxlen: int = 2048, smooth_mm: float = 3.0) -> None:
         self.points: deque[Located] = deque(maxlen=maxlen)
+        self.smooth_mm = smooth_mm
         self.dropped = 0  # points pushed out by a full buffer (reported, never silent)
 
     def __len__(self) -> int:
         return len(self.points)
 
-    def push(self, p: np.ndarray, R: np.ndarray, t_s: float) -> None:
+    def push(self, p: np.ndarray, q: np.ndarray, t_s: float) -> None:
+        p = np.asarray(p, float)
         s = 0.0 if not self.points else self.points[-1].s_mm + float(
             np.linalg.norm(p - self.points[-1].p))
         if len(self.points) == self.points.maxlen:
             self.dropped += 1
-        self.points.append(Located(s, np.asarray(p, float), np.asarray(R, float), t_s))
+        self.points.append(Located(s, p, np.asarray(q, float), t_s))
 
     def ahead_mm(self, cp: np.ndarray) -> float:
         """Distance from cp to the newest located point (what the stripe has seen ahead)."""
         return float(np.linalg.norm(self.points[-1].p - cp)) if self.points else 0.0
 
-    def next_command(self, cp: np.ndarray, step_mm: float
-                     ) -> tuple[np.ndarray, np.ndarray] | None:
-        """IPI step from cp: (ip (3,), R (3, 3)) or None when nothing is located far enough.
+    def fit(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Smoothed point and unit tangent at buffered point ``k``: a local quadratic over the
+        points within ``smooth_mm`` of it, parameterised by frame time."""
+        s = np.array([loc.s_mm for loc in self.points])
+        sel = np.nonzero(np.abs(s - s[k]) <= self.smooth_mm)[0]
+        if len(sel) < 4:
+            lo, hi = max(0, k - 1), min(len(s) - 1, k + 1)
+            t = self.points[hi].p - self.points[lo].p
+            n = np.linalg.norm(t)
+            return self.points[k].p, t / n if n > 0 else np.array([1.0, 0.0, 0.0])
+        # fit in frame time, not in the (noisy) arc length: points arrive at a steady rate
+        x = np.array([self.points[i].t_s for i in sel]) - self.points[k].t_s
+        P = np.stack([self.points[i].p for i in sel])
+        A = np.stack([np.ones_like(x), x, x * x], axis=1)
+        coef = np.linalg.lstsq(A, P, rcond=None)[0]  # (3, 3): rows c0, c1, c2
+        return coef[0], coef[1] / np.linalg.norm(coef[1])
 
-        np is the first buffered point at least one step from cp; points the torch has passed
-        are dropped. The orientation is slerped between the buffered frames around ip.
+    def next_command(self, cp: np.ndarray, step_mm: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """IPI step from cp: ``(ip (3,), tangent (3,), q (2, 3))`` or None when nothing is
+        located a step ahead yet.
+
+        np is the first buffered point at least one step from cp (smoothed); points the torch
+        has passed are dropped. The arm points returned are those of np (for the torch frame).
         """
-        while self.points and np.linalg.norm(self.points[0].p - cp) < step_mm and len(
-                self.points) > 1 and np.linalg.norm(self.points[1].p - cp) < step_mm:
+        while len(self.points) > 1 and np.linalg.norm(self.points[1].p - cp) < step_mm and (
+                np.linalg.norm(self.points[0].p - cp) < step_mm):
             self.points.popleft()
         target = next((k for k, loc in enumerate(self.points)
                        if np.linalg.norm(loc.p - cp) >= step_mm), None)
         if target is None:
             return None
-        ip = ipi_step(cp, self.points[target].p, step_mm)
-        R = self._orientation_at(ip, target)
-        return ip, R
-
-    def _orientation_at(self, ip: np.ndarray, k: int) -> np.ndarray:
-        if k == 0:
-            return self.points[0].R
-        a, b = self.points[k - 1], self.points[k]
-        seg = b.p - a.p
-        L2 = float(seg @ seg)
-        f = 0.0 if L2 == 0 else float(np.clip((ip - a.p) @ seg / L2, 0.0, 1.0))
-        rots = Rotation.from_matrix(np.stack([a.R, b.R]))
-        return Slerp([0.0, 1.0], rots)([f]).as_matrix()[0]
+        p_np, tangent = self.fit(target)
+        ip = ipi_step(cp, p_np, step_mm)
+        return ip, tangent, self.points[target].q

@@ -46,6 +46,17 @@ class TipmConfig:
     max_saturated_fraction: float
 
 
+def red_response(frame: np.ndarray, with_green: bool = False):
+    """Red-stripe response ``R - max(G, B)`` (H, W) uint8 of a BGR frame.
+
+    The 650 nm stripe is red; arc light bright enough to saturate the sensor is white. This is
+    also the grey image the trackers work on. With ``with_green`` also returns the G channel.
+    """
+    b, g, r = cv2.split(frame)
+    red = cv2.subtract(r, cv2.max(g, b))
+    return (red, g) if with_green else red
+
+
 def load_tipm_config(path: str | Path | None = None) -> TipmConfig:
     return load_config(TipmConfig, path or CONFIG_DIR / "tipm.yaml")
 
@@ -104,8 +115,7 @@ class Tipm:
     def stripe_mask(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
         """Red response (float32), filtered + dilated mask (uint8), and a failure reason."""
         cfg = self.cfg
-        b, g, r = cv2.split(frame)
-        red = cv2.subtract(r, cv2.max(g, b))
+        red, g = red_response(frame, with_green=True)
         # the stripe saturates R only; white arc light saturates G as well
         if cv2.countNonZero(cv2.compare(g, 250, cv2.CMP_GE)) > (
                 cfg.max_saturated_fraction * red.size):
