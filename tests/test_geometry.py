@@ -10,7 +10,7 @@ import torch
 from torchseam.core.transforms import apply, invert
 from torchseam.geometry.ecal import Ecal
 from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
-from torchseam.geometry.triangulate import Triangulator
+from torchseam.geometry.triangulate import FastTriangulator, Triangulator
 from torchseam.sim.scene import Scene, torch_frames
 from torchseam.sim.sequence import SequenceSpec, simulate
 from torchseam.vision.tipm import Tipm
@@ -27,6 +27,11 @@ def test_triangulation_recovers_the_true_3d_points(cell, clean_seq):
     X = tri(uv, T_B_F).numpy()
     truth = np.stack([np.vstack([t.seam_B, t.arm_B]) for _, t in clean_seq])
     np.testing.assert_allclose(X, truth, atol=1e-6)
+    # the OpenCV path of the live loop gives the same points
+    fast = FastTriangulator(cell)
+    for i in range(len(clean_seq)):
+        np.testing.assert_allclose(fast(uv[i].numpy(), T_B_F[i, 0].numpy()), truth[i],
+                                   atol=1e-6)
     # float32 on the same inputs stays within a micrometre or so
     X32 = Triangulator(cell, torch.float32)(uv.float(), T_B_F.float())
     assert np.abs(X32.double().numpy() - truth).max() < 5e-3

@@ -69,13 +69,14 @@ def project_points(X: Tensor, K: Tensor, dist: Tensor) -> Tensor:
                         K[1, 1] * xy[..., 1] + K[1, 2]], dim=-1)
 
 
-def undistort_points(uv: Tensor, K: Tensor, dist: Tensor, iters: int = 20) -> Tensor:
+def undistort_points(uv: Tensor, K: Tensor, dist: Tensor, iters: int = 8) -> Tensor:
     """Distorted pixels -> ideal normalised coordinates (fixed-point iteration, as OpenCV).
 
     Args:
         uv: (..., 2) pixels.
         K: (3, 3), dist: (5,).
-        iters: iterations; 20 reach float64 precision for this lens class.
+        iters: fixed-point iterations; each gains about two digits on this lens class
+            (|k1| r^2 ~ 0.01), so 8 reach float64 precision.
 
     Returns:
         (..., 2) normalised coordinates (x/z, y/z).

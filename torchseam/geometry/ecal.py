@@ -25,7 +25,8 @@ import numpy as np
 
 from torchseam.core.config import CONFIG_DIR, load_config
 
-ARC_STEP_PX = 0.5  # sampling step along the circle
+ARC_STEP_PX = 1.5     # sampling step along the largest circle (all circles share the angles)
+RADIAL_STEP_PX = 2.0  # ring spacing of the polar resampling
 
 
 @dataclass(frozen=True)
@@ -51,9 +52,9 @@ class EcalResult:
         p: (2, 2) pixels of p1t (the left arm, smaller u) and p2t; NaN when missing.
         angles: (2,) direction of each arm from the feature point (rad, image frame).
         radius: circle radius used (px).
-        p_tangent: (2, 2) points on the arms' tangents at the corner, ``r_min_px`` out: the
+        p_tangent: (2, 2) points on the arms' tangents at the corner, ``radius`` out: the
             chord to a curved arm leans by r / (2 rho); the arm angle measured on every clean
-            circle is extrapolated linearly to r = 0. Falls back to ``p`` with one circle.
+            circle is extrapolated linearly to r = 0. Equals ``p`` with one circle.
         fallback: one arm point came from the previous frame's direction.
         rejected: crossings rejected on the circles tried (spatter, other blobs).
         reason: why not ``ok``.
@@ -84,51 +85,71 @@ class Ecal:
 
     def __init__(self, cfg: EcalConfig | None = None) -> None:
         self.cfg = cfg or load_ecal_config()
-
-    def crossings(self, mask: np.ndarray, uv: np.ndarray, r: float,
-                  intensity: np.ndarray | None = None) -> tuple[list[tuple[float, np.ndarray]],
-                                                                int]:
-        """Accepted arm crossings at radius ``r``: [(angle, pixel)], and the rejected count."""
         cfg = self.cfg
+        n = max(64, int(np.ceil(2 * np.pi * cfg.r_max_px / ARC_STEP_PX)))
+        self._theta = np.arange(n) * (2 * np.pi / n)
+        self._phasor = np.exp(1j * self._theta)
+        # rings every RADIAL_STEP_PX out to r_max (the circles ECAL tries are among them)
+        self.ring_radii = np.arange(cfg.r_max_px, 0.0, -RADIAL_STEP_PX)[::-1]
+        self._ru = self.ring_radii[:, None] * np.cos(self._theta)
+        self._rv = self.ring_radii[:, None] * np.sin(self._theta)
+        self.circles = self.ring_radii[np.unique(np.argmin(np.abs(
+            self.ring_radii[:, None] - np.arange(cfg.r_min_px, cfg.r_max_px + 1e-9,
+                                                 cfg.r_step_px)[None]), axis=0))]
+
+    def polar(self, mask: np.ndarray, uv: np.ndarray, intensity: np.ndarray | None
+              ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Mask (and intensity) resampled on rings ``self.ring_radii`` around ``uv``: (R, N).
+
+        One gather gives every circle (a row) and every radius from the feature point out to a
+        crossing (a column), which is what the connectivity test walks along.
+        """
         h, w = mask.shape
-        n = max(16, int(np.ceil(2 * np.pi * r / ARC_STEP_PX)))
-        th = np.arange(n) * (2 * np.pi / n)
-        pu, pv = uv[0] + r * np.cos(th), uv[1] + r * np.sin(th)
-        iu, iv = np.round(pu).astype(int), np.round(pv).astype(int)
+        iu = np.rint(uv[0] + self._ru).astype(np.intp)
+        iv = np.rint(uv[1] + self._rv).astype(np.intp)
         inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
-        on = np.zeros(n, bool)
-        on[inside] = mask[iv[inside], iu[inside]] > 0
-        if on.all() or not on.any():
+        iu *= inside
+        iv *= inside
+        on = (mask[iv, iu] > 0) & inside
+        val = intensity[iv, iu].astype(float) * inside if intensity is not None else None
+        return on, val
+
+    def crossings(self, on: np.ndarray, val: np.ndarray | None, uv: np.ndarray, r: float
+                  ) -> tuple[list[tuple[float, np.ndarray]], int]:
+        """Accepted arm crossings on the circle of radius ``r`` of a :meth:`polar` sampling:
+        [(angle, pixel)], and the number rejected."""
+        cfg = self.cfg
+        n = len(self._theta)
+        row = int(np.argmin(np.abs(self.ring_radii - r)))
+        r = float(self.ring_radii[row])
+        ring = on[row]
+        prev = np.empty_like(ring)
+        prev[0], prev[1:] = ring[-1], ring[:-1]
+        starts = np.flatnonzero(ring & ~prev)          # background -> stripe
+        if len(starts) == 0:
             return [], 0
-        # rotate so the walk starts on background: every stripe run is then whole
-        shift = int(np.argmin(on))
-        on = np.roll(on, -shift)
-        edges = np.diff(on.astype(np.int8))
-        starts = np.nonzero(edges == 1)[0] + 1
-        ends = np.nonzero(edges == -1)[0] + 1
-        out, rejected = [], 0
-        for s, e in zip(starts, ends, strict=True):
-            width = (e - s) * 2 * np.pi * r / n
-            idx = (np.arange(s, e) + shift) % n
-            if intensity is not None:
-                wts = intensity[iv[idx].clip(0, h - 1), iu[idx].clip(0, w - 1)].astype(float)
-                wts = wts * inside[idx]
-            else:
+        ends = np.flatnonzero(~ring & prev)            # stripe -> background
+        # pair each rise with the first fall after it, going round the circle
+        j = np.searchsorted(ends, starts) % len(ends)
+        lengths = (ends[j] - starts) % n
+        widths = lengths * (2 * np.pi * r / n)
+        ok = (widths >= cfg.min_width_px) & (widths <= cfg.max_width_px)
+        out, rejected = [], int((~ok).sum())
+        col = on[int(0.15 * row):row + 1]
+        for s0, length in zip(starts[ok], lengths[ok], strict=True):
+            idx = (s0 + np.arange(length)) % n
+            wts = val[row, idx] if val is not None else None
+            if wts is None or wts.sum() <= 0:
                 wts = np.ones(len(idx))
             # circular mean of the run's angles, weighted by the grey level
-            ang = float(np.angle(np.sum(wts * np.exp(1j * th[idx]))))
-            p = uv + r * np.array([np.cos(ang), np.sin(ang)])
-            if not (cfg.min_width_px <= width <= cfg.max_width_px):
-                rejected += 1
-                continue
+            z = wts @ self._phasor[idx]
+            ang = float(np.angle(z))
+            k = int(round(ang * n / (2 * np.pi))) % n
             # joined to the feature point along the radius?
-            t = np.linspace(0.15, 1.0, max(8, int(r)))
-            su = np.round(uv[0] + t * (p[0] - uv[0])).astype(int).clip(0, w - 1)
-            sv = np.round(uv[1] + t * (p[1] - uv[1])).astype(int).clip(0, h - 1)
-            if np.mean(mask[sv, su] > 0) < cfg.min_connected:
+            if np.count_nonzero(col[:, k]) < cfg.min_connected * len(col):
                 rejected += 1
                 continue
-            out.append((ang, p))
+            out.append((ang, uv + r * np.array([np.cos(ang), np.sin(ang)])))
         return out, rejected
 
     def __call__(self, mask: np.ndarray, uv: np.ndarray, intensity: np.ndarray | None = None,
@@ -148,12 +169,12 @@ class Ecal:
         nan2 = np.full((2, 2), np.nan)
         if not np.all(np.isfinite(uv)):
             return EcalResult(False, nan2, np.full(2, np.nan), reason="no feature point")
-        cfg = self.cfg
         best: EcalResult | None = None
         single: tuple[float, float, np.ndarray] | None = None
         radii, arm_angles, rejected_total = [], [], 0
-        for r in np.arange(cfg.r_min_px, cfg.r_max_px + 1e-9, cfg.r_step_px):
-            cands, rejected = self.crossings(mask, uv, float(r), intensity)
+        on, val = self.polar(mask, uv, intensity)
+        for r in self.circles:
+            cands, rejected = self.crossings(on, val, uv, float(r))
             rejected_total += rejected
             pair = _pick_pair(cands, prev_angles)
             if pair is None:
@@ -170,7 +191,7 @@ class Ecal:
                               rejected=rejected_total)
         if best is not None:
             best.p_tangent = _tangent_points(uv, np.array(radii), np.array(arm_angles),
-                                             cfg.r_min_px)
+                                             best.radius)
             return best
         if single is not None and prev_angles is not None:
             r, a, p = single

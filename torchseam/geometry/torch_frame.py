@@ -105,7 +105,8 @@ def quaternions(R: Tensor, previous: Tensor | None = None) -> Tensor:
     q = matrix_to_quaternion(R)
     if len(q) == 0:
         return q
-    ref = previous if previous is not None else None
+    # start with w >= 0 unless told where to continue from
+    ref = previous if previous is not None else torch.tensor([1.0, 0, 0, 0]).to(q)
     out = []
     for k in range(len(q)):  # sequential by nature: each sign depends on the one before
         qk = q[k]

@@ -6,11 +6,16 @@ pixel -> undistorted ray -> cut with the laser plane -> camera frame {C} -> flan
 
 from __future__ import annotations
 
+import cv2
+import numpy as np
 import torch
 from torch import Tensor, nn
 
 from torchseam.core.camera import intrinsics, laser_plane_tensor, pixels_to_plane
 from torchseam.core.config import CellConfig
+
+# iterate OpenCV's undistortion to convergence (its default stops after 5 iterations)
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)
 
 
 def _check(x: Tensor, shape_tail: tuple[int, ...], name: str) -> None:
@@ -68,3 +73,30 @@ class Triangulator(nn.Module):
         """(..., 2) pixels + (..., 4, 4) flange poses -> (..., 3) base points (mm)."""
         uv = uv.to(self.K)
         return triangulate(uv, self.K, self.dist, self.plane, self.T_F_C, T_B_F.to(self.K))
+
+
+class FastTriangulator:
+    """:func:`triangulate` for a few pixels at a time on the CPU, through OpenCV.
+
+    The torch version pays a per-op overhead that dominates for the three points of one frame
+    (about 1-3 ms); this one takes tens of microseconds, which the live loop's 4 ms EGM cycle
+    needs. Tests hold the two to the same numbers.
+    """
+
+    def __init__(self, cell: CellConfig) -> None:
+        self.K = cell.camera.K
+        self.dist = np.asarray(cell.camera.dist, float)
+        self.n = np.asarray(cell.laser_plane.normal, float)
+        self.d = float(cell.laser_plane.distance_mm)
+        self.T_F_C = cell.hand_eye.matrix()
+
+    def __call__(self, uv: np.ndarray, T_B_F: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels + (4, 4) flange pose -> (N, 3) base points (mm), NaN off-plane."""
+        uv = np.asarray(uv, float).reshape(-1, 1, 2)
+        xy = cv2.undistortPoints(uv, self.K, self.dist, criteria=_UNDISTORT_CRITERIA)
+        ray = np.concatenate([xy.reshape(-1, 2), np.ones((len(xy), 1))], axis=1)
+        denom = ray @ self.n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            X = ray * np.where(np.abs(denom) > 1e-9, self.d / denom, np.nan)[:, None]
+        T = np.asarray(T_B_F, float) @ self.T_F_C
+        return X @ T[:3, :3].T + T[:3, 3]

@@ -68,11 +68,11 @@ class LookAheadBuffer:
     """Bounded FIFO of located seam points between the stripe and the torch.
 
     The stripe runs ahead of the torch, so when the torch reaches a located point the buffer
-    holds located points on both sides of it. That is used twice: the commanded point is a
-    local quadratic fit of the located points around it (in arc length, ``smooth_mm`` each
-    side), which averages the measurement noise without lag, and the seam tangent for the
-    torch frame (:func:`~torchseam.geometry.torch_frame.torch_frame`) is that fit's derivative,
-    centred on the point instead of trailing it.
+    holds located points on both sides of it. That is used for the commanded point, a local
+    quadratic fit of the located points within ``smooth_mm`` of it, which averages the
+    measurement noise without lag; for the seam tangent of the torch frame
+    (:func:`~torchseam.geometry.torch_frame.torch_frame`), that fit's derivative, centred on
+    the point instead of trailing it; and for the arm directions, averaged over the same points.
 
     Example:
         >>> buf = LookAheadBuffer(maxlen=100)
@@ -103,30 +103,37 @@ class LookAheadBuffer:
         """Distance from cp to the newest located point (what the stripe has seen ahead)."""
         return float(np.linalg.norm(self.points[-1].p - cp)) if self.points else 0.0
 
-    def fit(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Smoothed point and unit tangent at buffered point ``k``: a local quadratic over the
-        points within ``smooth_mm`` of it, parameterised by frame time."""
+    def fit(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Smoothed point, unit tangent and mean unit arm directions (2, 3) at buffered point
+        ``k``: a local quadratic over the points within ``smooth_mm`` of it, parameterised by
+        frame time; arm directions averaged over the same points (NaN if none had arms)."""
         s = np.array([loc.s_mm for loc in self.points])
         sel = np.nonzero(np.abs(s - s[k]) <= self.smooth_mm)[0]
+        arms = np.stack([self.points[i].q - self.points[i].p for i in sel])   # (n, 2, 3)
+        arms = arms / np.linalg.norm(arms, axis=2, keepdims=True)
+        good = np.all(np.isfinite(arms), axis=(1, 2))
+        mean = arms[good].mean(axis=0) if good.any() else np.full((2, 3), np.nan)
+        mean = mean / np.linalg.norm(mean, axis=1, keepdims=True)
         if len(sel) < 4:
             lo, hi = max(0, k - 1), min(len(s) - 1, k + 1)
             t = self.points[hi].p - self.points[lo].p
             n = np.linalg.norm(t)
-            return self.points[k].p, t / n if n > 0 else np.array([1.0, 0.0, 0.0])
+            return self.points[k].p, t / n if n > 0 else np.array([1.0, 0.0, 0.0]), mean
         # fit in frame time, not in the (noisy) arc length: points arrive at a steady rate
         x = np.array([self.points[i].t_s for i in sel]) - self.points[k].t_s
         P = np.stack([self.points[i].p for i in sel])
         A = np.stack([np.ones_like(x), x, x * x], axis=1)
         coef = np.linalg.lstsq(A, P, rcond=None)[0]  # (3, 3): rows c0, c1, c2
-        return coef[0], coef[1] / np.linalg.norm(coef[1])
+        return coef[0], coef[1] / np.linalg.norm(coef[1]), mean
 
     def next_command(self, cp: np.ndarray, step_mm: float
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """IPI step from cp: ``(ip (3,), tangent (3,), q (2, 3))`` or None when nothing is
-        located a step ahead yet.
+        """IPI step from cp: ``(ip (3,), tangent (3,), arm_dirs (2, 3))`` or None when nothing
+        is located a step ahead yet.
 
         np is the first buffered point at least one step from cp (smoothed); points the torch
-        has passed are dropped. The arm points returned are those of np (for the torch frame).
+        has passed are dropped. ``arm_dirs`` are the smoothed unit arm directions at np, for the
+        torch frame: ``torch_frame(ip, ip + arm_dirs[0], ip + arm_dirs[1], tangent=tangent)``.
         """
         while len(self.points) > 1 and np.linalg.norm(self.points[1].p - cp) < step_mm and (
                 np.linalg.norm(self.points[0].p - cp) < step_mm):
@@ -135,6 +142,5 @@ class LookAheadBuffer:
                        if np.linalg.norm(loc.p - cp) >= step_mm), None)
         if target is None:
             return None
-        p_np, tangent = self.fit(target)
-        ip = ipi_step(cp, p_np, step_mm)
-        return ip, tangent, self.points[target].q
+        p_np, tangent, arm_dirs = self.fit(target)
+        return ipi_step(cp, p_np, step_mm), tangent, arm_dirs

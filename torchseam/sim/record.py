@@ -31,7 +31,7 @@ def truth_dict(t: FrameTruth) -> dict[str, Any]:
     return {
         "frame": t.index, "t_s": round(t.t_s, 6),
         "u": float(t.uv[0]), "v": float(t.uv[1]),
-        "visible": bool(t.visible), "laser_on": bool(t.laser_on),
+        "visible": bool(t.visible), "laser_on": bool(t.laser_on), "arc_on": bool(t.arc_on),
         "seam_mm": [float(x) for x in t.seam_B],
         "arms_mm": [[float(x) for x in p] for p in t.arm_B],
         "arms_uv": [[float(x) for x in p] for p in t.arm_uv],

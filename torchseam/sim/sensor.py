@@ -145,9 +145,10 @@ class LaserSensor:
 
         a_T, b_T = R @ self._fan_ab[0], R @ self._fan_ab[1]
 
-        def lit(angle: float) -> np.ndarray:
-            d = np.cos(angle) * a_T + np.sin(angle) * b_T
-            return src + joint.raycast(src, d)[0][0] * d
+        def lit(angle: np.ndarray) -> np.ndarray:
+            """(N,) fan angles -> (N, 3) lit points."""
+            d = np.cos(angle)[:, None] * a_T + np.sin(angle)[:, None] * b_T
+            return src + joint.raycast(src, d)[0][:, None] * d
 
         arm_T = self._arm_points(P, surf, psi, seam_T, lit)
         arm_uv = self.project((arm_T - c) @ R)
@@ -157,22 +158,19 @@ class LaserSensor:
     @staticmethod
     def _seam_in_plane(joint: PipeJoint, n: np.ndarray, d: float, c: np.ndarray,
                        phi_hint: float | None) -> np.ndarray:
-        """Where the seam crosses the laser plane: the crossing nearest the camera."""
-        from scipy.optimize import brentq
-
+        """Where the seam crosses the laser plane: the crossing nearest ``phi_hint`` (or, with
+        no hint, the camera)."""
         phi = np.linspace(0.0, 2 * np.pi, 721)
         f = joint.seam(phi).point @ n - d
         idx = np.nonzero(np.sign(f[1:]) != np.sign(f[:-1]))[0]
         if len(idx) == 0:
             raise ValueError("the laser plane does not cross the seam")
-        mids = joint.seam(0.5 * (phi[idx] + phi[idx + 1])).point
+        mid = 0.5 * (phi[idx] + phi[idx + 1])
         if phi_hint is not None:
-            gap = np.abs(np.angle(np.exp(1j * (0.5 * (phi[idx] + phi[idx + 1]) - phi_hint))))
-            i = idx[np.argmin(gap)]
+            i = idx[np.argmin(np.abs(np.angle(np.exp(1j * (mid - phi_hint)))))]
         else:
-            i = idx[np.argmin(np.linalg.norm(mids - c, axis=1))]
-        root = brentq(lambda x: float(joint.seam(np.array([x])).point[0] @ n - d),
-                      phi[i], phi[i + 1], xtol=1e-13)
+            i = idx[np.argmin(np.linalg.norm(joint.seam(mid).point - c, axis=1))]
+        root = _refine_root(lambda x: joint.seam(x).point @ n - d, phi[i], phi[i + 1])
         return joint.seam(np.array([root])).point[0]
 
     @staticmethod
@@ -180,8 +178,6 @@ class LaserSensor:
                     lit) -> np.ndarray:
         """Lit points on the branch arm and the main arm exactly ``ARM_DISTANCE_MM`` from the
         seam: bracketed between fan samples, then solved for the fan angle."""
-        from scipy.optimize import brentq
-
         out = np.full((2, 3), np.nan)
         dist = np.linalg.norm(P - seam, axis=1) - ARM_DISTANCE_MM
         for j, sid in enumerate((2, 1)):
@@ -190,9 +186,10 @@ class LaserSensor:
             if len(k) == 0:
                 continue
             k = k[np.argmin(np.abs(P[k] - seam).sum(axis=1))]
-            ang = brentq(lambda a: float(np.linalg.norm(lit(a) - seam) - ARM_DISTANCE_MM),
-                         psi[k], psi[k + 1], xtol=1e-14)
-            out[j] = lit(ang)
+            ang = _refine_root(
+                lambda a: np.linalg.norm(lit(a) - seam, axis=1) - ARM_DISTANCE_MM,
+                psi[k], psi[k + 1])
+            out[j] = lit(np.array([ang]))[0]
         return out
 
     # ---------------------------------------------------------------- rendering
@@ -235,6 +232,20 @@ class LaserSensor:
         dy, dx = rng.integers(0, 32, 2)
         img *= self._grain[dy:dy + h, dx:dx + w]
         return img
+
+
+def _refine_root(f, lo: float, hi: float, n: int = 33, rounds: int = 4) -> float:
+    """Root of a vectorised ``f`` bracketed in [lo, hi]: ``rounds`` of n-way subdivision, then
+    linear interpolation (about 1e-12 of the bracket; one vector call per round)."""
+    for _ in range(rounds):
+        x = np.linspace(lo, hi, n)
+        y = f(x)
+        k = np.nonzero(np.sign(y[1:]) != np.sign(y[:-1]))[0]
+        if len(k) == 0:
+            break
+        lo, hi = x[k[0]], x[k[0] + 1]
+    ylo, yhi = f(np.array([lo, hi]))
+    return float(lo - ylo * (hi - lo) / (yhi - ylo)) if yhi != ylo else float(lo)
 
 
 def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int) -> np.ndarray:

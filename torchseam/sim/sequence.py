@@ -35,6 +35,7 @@ class FrameTruth:
     uv: np.ndarray             # (2,) feature pixel
     visible: bool              # the seam point is lit, unoccluded and inside the image
     laser_on: bool
+    arc_on: bool               # the welding arc burns (arc noise applies)
     seam_B: np.ndarray         # (3,) true 3D seam point on the stripe
     arm_B: np.ndarray          # (2, 3) points on the branch arm and on the main arm
     arm_uv: np.ndarray         # (2, 2)
@@ -55,14 +56,16 @@ class SequenceSpec:
     rotation_deg: float = 0.0
     wobble: bool = True
     laser_off: tuple[int, ...] = ()
+    arc_on_frame: int | None = None   # first frame with the arc burning (None: noise config)
+    t0_s: float = 0.0                 # weld time at frame 0 (the part's thermal drift)
 
 
 def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: SequenceSpec
              ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
     """Yield ``(frame, truth)`` pairs: (H, W, 3) uint8 BGR frames with their ground truth.
 
-    The first ``noise.clean_lead_frames`` frames are arc-off (clean), as before a real weld
-    starts; then the arc noise of ``spec.level`` applies.
+    The first ``noise.clean_lead_frames`` frames (or up to ``spec.arc_on_frame``) are arc-off
+    (clean), as before a real weld starts; then the arc noise of ``spec.level`` applies.
 
     Example:
         >>> from torchseam.core.config import load_cell, load_part, load_noise
@@ -84,6 +87,7 @@ def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: Seque
     background = _background(rng, w, h)
     read_noise = [rng.standard_normal((h + 16, w + 16, 3), dtype=np.float32) for _ in range(4)]
     wob = np.zeros(6)
+    arc_on_frame = noise.clean_lead_frames if spec.arc_on_frame is None else spec.arc_on_frame
     a = 0.97  # wobble correlation per frame
 
     for k in range(spec.n_frames):
@@ -94,14 +98,14 @@ def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: Seque
             wob = a * wob + np.sqrt(1 - a * a) * rng.standard_normal(6)
             T_B_W = T_B_W @ _small_motion(wob[:3] * WOBBLE_MM, wob[3:] * WOBBLE_DEG)
         T_B_C = camera_pose(cell, T_B_W)
-        T_B_T = scene.part_pose(t)
+        T_B_T = scene.part_pose(spec.t0_s + t)
         T_T_C = invert(T_B_T) @ T_B_C
         phi_hint = float(scene.phi_at(np.array([s + proc.look_ahead_mm]))[0])
         view = sensor.view(scene.true_joint, T_T_C, phi_hint)
         # the arc burns at the torch tip
         arc_uv = sensor.project(apply(invert(T_B_C), T_B_W[:3, 3])[None])[0]
 
-        arc_on = k >= noise.clean_lead_frames
+        arc_on = k >= arc_on_frame
         src = arc_noise if arc_on else clean
         layers = src.next(arc_uv, view.seam_uv)
         laser_on = k not in spec.laser_off
@@ -116,9 +120,10 @@ def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: Seque
         flags = layers.flags
 
         truth = FrameTruth(
-            index=k, t_s=t, uv=view.seam_uv, visible=view.visible and laser_on,
-            laser_on=laser_on, seam_B=apply(T_B_T, view.seam_T), arm_B=apply(T_B_T, view.arm_T),
-            arm_uv=view.arm_uv, T_B_C=T_B_C, T_B_W=T_B_W, arc_uv=arc_uv, flags=flags)
+            index=k, t_s=spec.t0_s + t, uv=view.seam_uv, visible=view.visible and laser_on,
+            laser_on=laser_on, arc_on=arc_on, seam_B=apply(T_B_T, view.seam_T),
+            arm_B=apply(T_B_T, view.arm_T), arm_uv=view.arm_uv, T_B_C=T_B_C, T_B_W=T_B_W,
+            arc_uv=arc_uv, flags=flags)
         yield frame, truth
 
 
