@@ -7,6 +7,7 @@ from torchseam.plan.path import LookAheadBuffer, ipi_step, six_segments
 
 
 def test_six_segments_cover_the_ring():
+    assert six_segments()[0].phi_start == pytest.approx(np.radians(90.0))  # configs/plan.yaml
     segs = six_segments(0.3)
     assert [s.name for s in segs] == list("abcdef")
     assert segs[0].phi_start == pytest.approx(0.3)

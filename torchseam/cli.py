@@ -16,6 +16,10 @@ from torchseam.core.errors import TorchseamError
 COMMAND_MODULES = (
     "torchseam.sim.cli",       # simulate
     "torchseam.vision.cli",    # detect
+    "torchseam.track.cli",     # track, eval
+    "torchseam.geometry.calib_cli",  # calibrate
+    "torchseam.live.ring_cli",  # ring
+    "torchseam.robot.cli",     # robot fk | ik | check | sim-controller
     "torchseam.live.cli",      # demo
 )
 

@@ -1,8 +1,4 @@
-"""``torchseam demo``: the main job on the built-in simulated T joint.
-
-For now the demo simulates a short clean sequence, runs TIPM on every frame and prints the
-accuracy and speed against the simulator's ground truth; the closed-loop weld grows here.
-"""
+"""``torchseam demo``: the closed-loop weld of the simulated T joint, with a report folder."""
 
 from __future__ import annotations
 
@@ -11,61 +7,104 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
+import torch
 from tqdm import tqdm
 
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
-from torchseam.core.report import error_stats, format_table, percentiles_ms
-from torchseam.sim.sequence import SequenceSpec, simulate
-from torchseam.vision.tipm import Tipm, draw_overlay
+from torchseam.core.report import format_table
+from torchseam.track.peers import TRACKERS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from torchseam.live.demo import FAULTS
+
     p = sub.add_parser(
-        "demo", help="run the built-in simulated T joint and print the error table",
-        description="Simulate the sensor along the default T joint, find the feature point in "
-                    "every frame with TIPM and compare with the simulator's truth.")
-    p.add_argument("--frames", type=int, default=120, help="frames to simulate (default 120)")
-    p.add_argument("--noise", default="clean", help="arc-noise level name or number (clean)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+        "demo", help="weld the simulated T joint in closed loop and write a report",
+        description="Weld the whole 203/152 mm T joint in six segments in closed loop: the "
+                    "simulator renders what the sensor sees from where the simulated robot is, "
+                    "the live loop tracks (EAKF-STC), locates, plans and guides the simulated "
+                    "IRB 1410 over EGM. Prints a summary table and writes plots, a video and "
+                    "summary.json into --out.")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
-    p.add_argument("--out", type=Path, help="write overlay frames of the run into this folder")
+    p.add_argument("--noise", default="heavy", help="arc-noise level: name or 0..1 (heavy)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("demo_out"),
+                   help="report folder (default demo_out)")
+    p.add_argument("--no-video", action="store_true", help="skip the MP4")
+    p.add_argument("--fault", action="append", default=[], metavar="FAULT",
+                   help=f"inject a fault mid-segment ({', '.join(FAULTS)}); repeat or "
+                        "comma-separate to combine")
+    p.add_argument("--segments", default="abcdef", help="which segments (default abcdef)")
+    p.add_argument("--tracker", choices=TRACKERS, default="eakf-stc")
+    p.add_argument("--length-mm", type=float, default=None,
+                   help="weld only this much of each segment (quick runs)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.frames < 1:
-        raise TorchseamError(f"--frames must be at least 1, got {args.frames}")
+    from torchseam.live.demo import FAULTS, run_demo, write_report
+
+    torch.set_num_threads(1)
     cv2.setNumThreads(1)
+    faults = tuple(f.strip() for a in args.fault for f in a.split(",") if f.strip())
+    bad = [f for f in faults if f not in FAULTS]
+    if bad:
+        raise TorchseamError(f"--fault {bad[0]!r}: use one of {', '.join(FAULTS)}")
+    if args.length_mm is not None and not args.length_mm > 0:
+        raise TorchseamError(f"--length-mm must be > 0, got {args.length_mm}")
+    if not args.segments or set(args.segments) - set("abcdef"):
+        raise TorchseamError(f"--segments {args.segments!r}: use letters from abcdef")
     cell, part, noise = load_cell(), load_part(args.part), load_noise()
     try:
         level = noise.level(args.noise)
     except ValueError as e:
         raise TorchseamError(f"--noise: {e}") from None
-    tipm = Tipm()
-    if args.out:
-        args.out.mkdir(parents=True, exist_ok=True)
-    err, secs, reasons = [], [], {}
-    frames = simulate(cell, part, noise, SequenceSpec(args.frames, level, args.seed))
-    for img, truth in tqdm(frames, total=args.frames, desc="demo", unit="frame"):
-        t0 = time.perf_counter()
-        res = tipm(img)
-        secs.append(time.perf_counter() - t0)
-        err.append(np.linalg.norm(res.uv - truth.uv) if res.ok else np.nan)
-        if not res.ok:
-            reasons[res.reason] = reasons.get(res.reason, 0) + 1
-        if args.out:
-            cv2.imwrite(str(args.out / f"{truth.index:05d}.png"),
-                        draw_overlay(img, res, truth.uv))
-    s = error_stats(np.array(err))
-    p50, p99 = percentiles_ms(secs)
-    print(f"\nTIPM on the simulated T joint ({part.main_od_mm:g}/{part.branch_od_mm:g} mm, "
-          f"noise level {level:g}, seed {args.seed})")
+    args.out.mkdir(parents=True, exist_ok=True)
+    video = None
+    if not args.no_video:
+        size = (cell.camera.width // 2 * 2, cell.camera.height // 2 * 2)
+        video = cv2.VideoWriter(str(args.out / "weld.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
+                                cell.process.frame_rate_hz, size)
+        if not video.isOpened():
+            raise TorchseamError(f"{args.out / 'weld.mp4'}: OpenCV cannot write MP4 here "
+                                 "(use --no-video)")
+    t0 = time.perf_counter()
+    bar = tqdm(desc="weld", unit="frame", total=330 * len(args.segments), mininterval=0.5)
+    try:
+        res = run_demo(cell, part, noise, level, args.seed, faults, args.segments,
+                       args.tracker, video, progress=bar.update, length_mm=args.length_mm)
+    finally:
+        bar.close()
+        if video is not None:
+            video.release()
+    files = write_report(res, args.out)
+    s = res.summary
+    print(f"\nclosed-loop weld: {len(args.segments)} segment(s), noise {level:g}, seed "
+          f"{args.seed}, tracker {args.tracker}"
+          + (f", faults {', '.join(faults)}" if faults else "")
+          + f" ({time.perf_counter() - t0:.0f} s)")
     print(format_table(
-        ["frames", "found", "RMSE px", "max px", "> 5 px %", "ms p50", "ms p99"],
-        [[s["n"], s["n"] - int(round(s["pct_none"] * s["n"] / 100)), s["rmse"], s["max"],
-          s["pct_gt5"], p50, p99]]))
-    for why, n in sorted(reasons.items(), key=lambda kv: -kv[1]):
-        print(f"  no point in {n} frames: {why}")
+        ["figure", "value", "unit"],
+        [["torch path vs true seam, RMSE", s["seam_rmse_mm"], "mm"],
+         ["torch path vs true seam, max", s["seam_max_mm"], "mm"],
+         ["nominal path vs true seam, RMSE", s["nominal_rmse_mm"], "mm"],
+         ["nominal path vs true seam, max", s["nominal_max_mm"], "mm"],
+         ["located 3D seam point, RMSE", s["located_rmse_mm"], "mm"],
+         ["feature point, RMSE", s["pixel_rmse_px"], "px"],
+         ["frame -> command latency p50 / p99",
+          f"{s['latency_p50_ms']:.2f} / {s['latency_p99_ms']:.2f}", "ms"],
+         ["poses sent", s["poses_sent"], ""],
+         ["poses refused", s["poses_refused"], ""],
+         ["unsafe poses sent (independent re-check)", s["unsafe_poses_sent"], ""]]))
+    if s["refused_reasons"]:
+        print("refused: " + ", ".join(f"{k} {v}" for k, v in s["refused_reasons"].items()))
+    print("latency per stage (p50 / p99 ms): " + ", ".join(
+        f"{k} {a:.2f}/{b:.2f}" for k, (a, b) in res.latency.items()))
+    for m in res.messages[:12]:
+        print("  " + m)
+    if len(res.messages) > 12:
+        print(f"  ... {len(res.messages) - 12} more in {args.out / 'messages.txt'}")
+    print(f"report: {', '.join(str(f) for f in files)}"
+          + (f", {args.out / 'weld.mp4'}" if video is not None else ""))
     return 0

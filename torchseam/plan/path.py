@@ -13,11 +13,31 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from torchseam.core.config import CONFIG_DIR, load_config
+
 SEGMENTS = 6
 SEGMENT_NAMES = "abcdef"
+MERGE_MM = 0.1  # located points closer than this to the newest one are merged into it
+
+
+@dataclass(frozen=True)
+class PlanConfig:
+    """Planning settings (``configs/plan.yaml``)."""
+
+    segment_start_deg: float
+    approach_mm: float
+    smooth_mm: float
+    buffer_points: int
+    work_angle_deg: float
+    travel_angle_deg: float
+
+
+def load_plan_config(path: str | Path | None = None) -> PlanConfig:
+    return load_config(PlanConfig, path or CONFIG_DIR / "plan.yaml")
 
 
 @dataclass(frozen=True)
@@ -31,12 +51,15 @@ class Segment:
     rotation_deg: float
 
 
-def six_segments(start_phi: float = 0.0) -> list[Segment]:
-    """The six segments a..f of the ring, starting at branch angle ``start_phi`` (rad).
+def six_segments(start_phi: float | None = None) -> list[Segment]:
+    """The six segments a..f of the ring, starting at branch angle ``start_phi`` (rad; default
+    ``segment_start_deg`` of ``configs/plan.yaml``).
 
     Segment k is welded with the part turned by ``-60 k`` degrees, which brings it to where
     segment a was.
     """
+    if start_phi is None:
+        start_phi = float(np.radians(load_plan_config().segment_start_deg))
     step = 2 * np.pi / SEGMENTS
     return [Segment(SEGMENT_NAMES[k], k, start_phi + k * step, start_phi + (k + 1) * step,
                     -60.0 * k) for k in range(SEGMENTS)]
@@ -62,6 +85,7 @@ class Located:
     p: np.ndarray        # (3,) weld point
     q: np.ndarray        # (2, 3) points on the two stripe arms (NaN when ECAL found none)
     t_s: float           # time of the frame that saw it
+    n: int = 1           # measurements averaged into it
 
 
 class LookAheadBuffer:
@@ -92,7 +116,18 @@ class LookAheadBuffer:
         return len(self.points)
 
     def push(self, p: np.ndarray, q: np.ndarray, t_s: float) -> None:
+        """Add a located point (``q``: (2, 3) arm points). A point within ``MERGE_MM`` of the
+        newest one (the sensor standing still) is averaged into it instead of appended."""
         p = np.asarray(p, float)
+        if self.points and np.linalg.norm(p - self.points[-1].p) < MERGE_MM:
+            last = self.points[-1]
+            n = last.n + 1
+            last.p = last.p + (p - last.p) / n
+            q = np.asarray(q, float)
+            if np.all(np.isfinite(q)):
+                last.q = q if not np.all(np.isfinite(last.q)) else last.q + (q - last.q) / n
+            last.n, last.t_s = n, t_s
+            return
         s = 0.0 if not self.points else self.points[-1].s_mm + float(
             np.linalg.norm(p - self.points[-1].p))
         if len(self.points) == self.points.maxlen:
@@ -103,10 +138,12 @@ class LookAheadBuffer:
         """Distance from cp to the newest located point (what the stripe has seen ahead)."""
         return float(np.linalg.norm(self.points[-1].p - cp)) if self.points else 0.0
 
-    def fit(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def fit(self, k: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """Smoothed point, unit tangent and mean unit arm directions (2, 3) at buffered point
         ``k``: a local quadratic over the points within ``smooth_mm`` of it, parameterised by
-        frame time; arm directions averaged over the same points (NaN if none had arms)."""
+        frame time; arm directions averaged over the same points (NaN if none had arms). The
+        tangent is None when fewer than 4 points support the fit (the seam seen at one spot
+        only, e.g. before the robot moves)."""
         s = np.array([loc.s_mm for loc in self.points])
         sel = np.nonzero(np.abs(s - s[k]) <= self.smooth_mm)[0]
         arms = np.stack([self.points[i].q - self.points[i].p for i in sel])   # (n, 2, 3)
@@ -115,10 +152,7 @@ class LookAheadBuffer:
         mean = arms[good].mean(axis=0) if good.any() else np.full((2, 3), np.nan)
         mean = mean / np.linalg.norm(mean, axis=1, keepdims=True)
         if len(sel) < 4:
-            lo, hi = max(0, k - 1), min(len(s) - 1, k + 1)
-            t = self.points[hi].p - self.points[lo].p
-            n = np.linalg.norm(t)
-            return self.points[k].p, t / n if n > 0 else np.array([1.0, 0.0, 0.0]), mean
+            return self.points[k].p, None, mean
         # fit in frame time, not in the (noisy) arc length: points arrive at a steady rate
         x = np.array([self.points[i].t_s for i in sel]) - self.points[k].t_s
         P = np.stack([self.points[i].p for i in sel])
@@ -143,4 +177,6 @@ class LookAheadBuffer:
         if target is None:
             return None
         p_np, tangent, arm_dirs = self.fit(target)
+        if tangent is None:  # too little seen yet: head for the located point
+            tangent = (p_np - cp) / np.linalg.norm(p_np - cp)
         return ipi_step(cp, p_np, step_mm), tangent, arm_dirs

@@ -121,13 +121,19 @@ class LaserSensor:
         inc = np.abs(np.einsum("ij,ij->i", normals, dirs[hit]))
         bright = 0.35 + 0.65 * inc
 
-        seam_T = self._seam_in_plane(joint, n_T, d_T, c, phi_hint)
+        try:
+            seam_T = self._seam_in_plane(joint, n_T, d_T, c, phi_hint)
+        except ValueError:  # the sensor looks off the seam altogether
+            seam_T = np.full(3, np.nan)
         seam_C = (seam_T - c) @ R
-        seam_uv = self.project(seam_C[None])[0]
-        t_seam, _ = joint.raycast(c, (seam_T - c) / np.linalg.norm(seam_T - c))
-        # The seam lies on both surfaces: its line of sight may graze one of them.
-        visible = bool(t_seam >= np.linalg.norm(seam_T - c) - 0.05 and self.in_image(seam_uv)
-                       and seam_C[2] > 1.0)
+        if np.all(np.isfinite(seam_T)):
+            seam_uv = self.project(seam_C[None])[0]
+            t_seam, _ = joint.raycast(c, (seam_T - c) / np.linalg.norm(seam_T - c))
+            # The seam lies on both surfaces: its line of sight may graze one of them.
+            visible = bool(t_seam[0] >= np.linalg.norm(seam_T - c) - 0.05
+                           and self.in_image(seam_uv) and seam_C[2] > 1.0)
+        else:
+            seam_uv, visible = np.full(2, np.nan), False
 
         # Insert the exact seam point where the fan passes from one surface to the other, so
         # the imaged corner is sharp.

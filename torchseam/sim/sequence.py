@@ -60,12 +60,83 @@ class SequenceSpec:
     t0_s: float = 0.0                 # weld time at frame 0 (the part's thermal drift)
 
 
+class SensorRenderer:
+    """Renders what the sensor sees from any torch pose: the frame and its ground truth.
+
+    The arc-noise state (flicker, bursts, reflections) carries over calls, so successive calls
+    form a sequence. :func:`simulate` drives it along the nominal path; the closed-loop demo
+    drives it from wherever the simulated robot actually is.
+
+    Args:
+        scene: the part (true and nominal) on its positioner.
+        level: arc-noise level in [0, 1]; seed: random seed.
+    """
+
+    def __init__(self, cell: CellConfig, scene: Scene, noise: NoiseConfig, level: float,
+                 seed: int) -> None:
+        self.cell, self.scene = cell, scene
+        self.rng = np.random.default_rng(seed)
+        self.sensor = LaserSensor(cell)
+        w, h = cell.camera.width, cell.camera.height
+        self.size = (w, h)
+        self.arc_noise = ArcNoise(noise, level, (w, h), int(self.rng.integers(2**31)))
+        self.clean = ArcNoise(noise, 0.0, (w, h), 0)
+        self.sigma_clean = noise.sensor.sigma_clean
+        self.background = _background(self.rng, w, h)
+        self.read_noise = [self.rng.standard_normal((h + 16, w + 16, 3), dtype=np.float32)
+                           for _ in range(4)]
+        self.k = 0
+
+    def render(self, T_B_W: np.ndarray, t_s: float, arc_on: bool = True, laser_on: bool = True,
+               phi_hint: float | None = None, force_flash: bool = False
+               ) -> tuple[np.ndarray, FrameTruth]:
+        """Frame (H, W, 3) uint8 and truth with the torch at ``T_B_W`` at weld time ``t_s``.
+
+        ``phi_hint``: branch angle near the stripe (default: from the torch position).
+        ``force_flash``: blind the sensor with an arc flash this frame (fault injection).
+        """
+        scene, sensor, rng = self.scene, self.sensor, self.rng
+        w, h = self.size
+        T_B_C = camera_pose(self.cell, T_B_W)
+        T_B_T = scene.part_pose(t_s)
+        T_T_C = invert(T_B_T) @ T_B_C
+        if phi_hint is None:
+            p_T = apply(invert(T_B_T), T_B_W[:3, 3])
+            phi_hint = float(np.arctan2(p_T[1], p_T[0]))
+        view = sensor.view(scene.true_joint, T_T_C, phi_hint)
+        # the arc burns at the torch tip
+        arc_uv = sensor.project(apply(invert(T_B_C), T_B_W[:3, 3])[None])[0]
+        src = self.arc_noise if arc_on else self.clean
+        centre = np.array([w / 2.0, h / 2.0])
+        layers = src.next(arc_uv, view.seam_uv if np.all(np.isfinite(view.seam_uv)) else centre)
+        if force_flash:
+            layers.glare += 400.0
+            layers.flags.flash = True
+        stripe = (sensor.stripe_layer(view, rng, layers.gaps) if laser_on
+                  else np.zeros((h, w), np.float32))
+        # colour mixing of stripe, arc glare and spatter light in one pass
+        img = cv2.transform(cv2.merge([stripe, layers.glare, layers.spatter]), COLOUR_MIX)
+        img += self.background
+        dy, dx = rng.integers(0, 16, 2)
+        sigma = src.sensor_sigma() if arc_on else self.sigma_clean
+        img += sigma * self.read_noise[self.k % 4][dy:dy + h, dx:dx + w]
+        frame = np.clip(img, 0, 255, out=img).astype(np.uint8)
+        truth = FrameTruth(
+            index=self.k, t_s=t_s, uv=view.seam_uv, visible=view.visible and laser_on,
+            laser_on=laser_on, arc_on=arc_on, seam_B=apply(T_B_T, view.seam_T),
+            arm_B=apply(T_B_T, view.arm_T), arm_uv=view.arm_uv, T_B_C=T_B_C, T_B_W=T_B_W,
+            arc_uv=arc_uv, flags=layers.flags)
+        self.k += 1
+        return frame, truth
+
+
 def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: SequenceSpec
              ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
     """Yield ``(frame, truth)`` pairs: (H, W, 3) uint8 BGR frames with their ground truth.
 
-    The first ``noise.clean_lead_frames`` frames (or up to ``spec.arc_on_frame``) are arc-off
-    (clean), as before a real weld starts; then the arc noise of ``spec.level`` applies.
+    The robot runs the nominal path at weld speed (with a small wobble). The first
+    ``noise.clean_lead_frames`` frames (or up to ``spec.arc_on_frame``) are arc-off (clean),
+    as before a real weld starts; then the arc noise of ``spec.level`` applies.
 
     Example:
         >>> from torchseam.core.config import load_cell, load_part, load_noise
@@ -78,18 +149,12 @@ def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: Seque
         raise ValueError(f"n_frames must be >= 1, got {spec.n_frames}")
     rng = np.random.default_rng(spec.seed)
     scene = Scene(part, spec.rotation_deg)
-    sensor = LaserSensor(cell)
-    w, h = cell.camera.width, cell.camera.height
     proc = cell.process
     start = rng.uniform(0, scene.seam_length_mm) if spec.start_mm is None else spec.start_mm
-    arc_noise = ArcNoise(noise, spec.level, (w, h), int(rng.integers(2**31)))
-    clean = ArcNoise(noise, 0.0, (w, h), 0)
-    background = _background(rng, w, h)
-    read_noise = [rng.standard_normal((h + 16, w + 16, 3), dtype=np.float32) for _ in range(4)]
+    renderer = SensorRenderer(cell, scene, noise, spec.level, int(rng.integers(2**31)))
     wob = np.zeros(6)
     arc_on_frame = noise.clean_lead_frames if spec.arc_on_frame is None else spec.arc_on_frame
     a = 0.97  # wobble correlation per frame
-
     for k in range(spec.n_frames):
         t = k / proc.frame_rate_hz
         s = start + proc.weld_speed_mm_s * t
@@ -97,34 +162,9 @@ def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: Seque
         if spec.wobble:
             wob = a * wob + np.sqrt(1 - a * a) * rng.standard_normal(6)
             T_B_W = T_B_W @ _small_motion(wob[:3] * WOBBLE_MM, wob[3:] * WOBBLE_DEG)
-        T_B_C = camera_pose(cell, T_B_W)
-        T_B_T = scene.part_pose(spec.t0_s + t)
-        T_T_C = invert(T_B_T) @ T_B_C
         phi_hint = float(scene.phi_at(np.array([s + proc.look_ahead_mm]))[0])
-        view = sensor.view(scene.true_joint, T_T_C, phi_hint)
-        # the arc burns at the torch tip
-        arc_uv = sensor.project(apply(invert(T_B_C), T_B_W[:3, 3])[None])[0]
-
-        arc_on = k >= arc_on_frame
-        src = arc_noise if arc_on else clean
-        layers = src.next(arc_uv, view.seam_uv)
-        laser_on = k not in spec.laser_off
-        stripe = (sensor.stripe_layer(view, rng, layers.gaps) if laser_on
-                  else np.zeros((h, w), np.float32))
-        # colour mixing of stripe, arc glare and spatter light in one pass
-        img = cv2.transform(cv2.merge([stripe, layers.glare, layers.spatter]), COLOUR_MIX)
-        img += background
-        dy, dx = rng.integers(0, 16, 2)
-        img += src.sensor_sigma() * read_noise[k % 4][dy:dy + h, dx:dx + w]
-        frame = np.clip(img, 0, 255, out=img).astype(np.uint8)
-        flags = layers.flags
-
-        truth = FrameTruth(
-            index=k, t_s=spec.t0_s + t, uv=view.seam_uv, visible=view.visible and laser_on,
-            laser_on=laser_on, arc_on=arc_on, seam_B=apply(T_B_T, view.seam_T),
-            arm_B=apply(T_B_T, view.arm_T), arm_uv=view.arm_uv, T_B_C=T_B_C, T_B_W=T_B_W,
-            arc_uv=arc_uv, flags=flags)
-        yield frame, truth
+        yield renderer.render(T_B_W, spec.t0_s + t, arc_on=k >= arc_on_frame,
+                              laser_on=k not in spec.laser_off, phi_hint=phi_hint)
 
 
 def _small_motion(dp_mm: np.ndarray, drot_deg: np.ndarray) -> np.ndarray:

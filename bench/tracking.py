@@ -1,0 +1,116 @@
+"""Trackers compared on simulated sequences at three arc-noise levels (issue: trackers).
+
+Usage: python bench/tracking.py [--sequences 6] [--frames 300] [--levels clean,strike,heavy]
+
+For every level, the same ``--sequences`` sequences (seeds 1000+) go through TIPM per frame,
+plain STC, KCF, CSRT, MOSSE and EAKF-STC, each started on frame 0 (arc off) by TIPM. Errors are
+over the arc frames against the simulator's labels: RMSE and max (px), % frames lost (no point
+or > 15 px off), and the single-stream time per frame (BGR frame in memory -> point) p50/p99 on
+one thread. A second table times EAKF-STC batched: B sequences stepped together.
+
+Threads: torch.set_num_threads(1) and cv2.setNumThreads(1) for the single-stream figures (the
+live loop's setting: one core per camera); the batched run uses --batch-threads (default 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import cv2
+import numpy as np
+import torch
+
+from torchseam.core.config import load_cell, load_noise, load_part
+from torchseam.core.report import error_stats, format_table, percentiles_ms
+from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.track.fusion import EAKFSTC
+from torchseam.track.peers import TRACKERS, make_tracker, run_tracker
+from torchseam.vision.tipm import red_response
+
+ORDER = ["tipm", "stc", "kcf", "csrt", "mosse", "eakf-stc"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sequences", type=int, default=6)
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--levels", default="clean,strike,heavy")
+    ap.add_argument("--trackers", default=",".join(ORDER))
+    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--batch-threads", type=int, default=2)
+    args = ap.parse_args()
+    trackers = args.trackers.split(",")
+    for t in trackers:
+        if t not in TRACKERS:
+            ap.error(f"unknown tracker {t}")
+    cell, part, noise = load_cell(), load_part(), load_noise()
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    rows = []
+    # red responses and start points of the last level's sequences, for the batch run
+    grey_bank: list[tuple[np.ndarray, np.ndarray]] = []
+    for name in args.levels.split(","):
+        level = noise.level(name)
+        err = {t: [] for t in trackers}
+        secs = {t: [] for t in trackers}
+        for s in range(args.sequences):
+            spec = SequenceSpec(n_frames=args.frames, level=level, seed=1000 + s)
+            frames, labels, arc = [], [], []
+            for img, truth in simulate(cell, part, noise, spec):
+                frames.append(img)
+                labels.append(truth.uv)
+                arc.append(truth.arc_on)
+            labels, arc = np.array(labels), np.array(arc)
+            if name == args.levels.split(",")[-1]:
+                grey_bank.append((np.stack([red_response(f) for f in frames]), labels[0]))
+            for t in trackers:
+                uv, _, sec, _ = run_tracker(make_tracker(t), frames, None)
+                e = np.linalg.norm(uv - labels, axis=1)
+                err[t].append(e[arc] if arc.any() else e[1:])
+                secs[t].append(sec[1:])
+            print(f"  {name}: sequence {s + 1}/{args.sequences} done", flush=True)
+        for t in trackers:
+            st = error_stats(np.concatenate(err[t]))
+            p50, p99 = percentiles_ms(np.concatenate(secs[t]))
+            rows.append([name, t, st["n"], st["rmse"], st["max"], st["pct_gt5"], st["pct_lost"],
+                         p50, p99])
+    cpu = platform.processor() or platform.machine()
+    print(f"\nTrackers on {args.sequences} sequences x {args.frames} frames per level "
+          f"({cell.camera.width} x {cell.camera.height}); {cpu}, 1 thread")
+    print(format_table(["noise", "tracker", "frames", "RMSE px", "max px", ">5px %", "lost %",
+                        "ms p50", "ms p99"], rows))
+    print("Errors over the arc frames; 'lost' = no point or > 15 px off. Time: BGR frame in "
+          "memory -> point, per frame, single stream.")
+    if "eakf-stc" in trackers and grey_bank:
+        batch_table(grey_bank, args.batch, args.batch_threads)
+
+
+@torch.inference_mode()
+def batch_table(bank: list[tuple[np.ndarray, np.ndarray]], B: int, threads: int) -> None:
+    """Time EAKF-STC stepping B sequences at once (frames already grey in memory)."""
+    torch.set_num_threads(threads)
+    T = min(len(g) for g, _ in bank)
+    src = [bank[i % len(bank)][0] for i in range(B)]
+    trk = EAKFSTC()
+    uv0 = torch.tensor(np.stack([bank[i % len(bank)][1] for i in range(B)]),
+                       dtype=torch.float32)
+    frames0 = torch.from_numpy(np.stack([g[0] for g in src])).float()
+    trk.init(frames0, uv0)
+    step_s = []
+    for k in range(1, T):
+        fr = torch.from_numpy(np.stack([g[k] for g in src])).float()
+        t0 = time.perf_counter()
+        trk.step(fr)
+        step_s.append(time.perf_counter() - t0)
+    per = np.array(step_s)
+    fps = B / np.median(per)
+    print(f"\nEAKF-STC batched: B = {B}, {T - 1} steps, torch threads {threads}")
+    print(format_table(["B", "ms per step p50", "ms per step p99", "frames/s (p50)"],
+                       [[B, 1e3 * float(np.median(per)), 1e3 * float(np.percentile(per, 99)),
+                         float(fps)]]))
+
+
+if __name__ == "__main__":
+    main()

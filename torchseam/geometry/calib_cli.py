@@ -1,0 +1,301 @@
+"""``torchseam calibrate``: camera, laser plane, hand-eye and TCP from a folder of views.
+
+Folder layouts (``torchseam calibrate simulate KIND DIR`` writes one of each to try):
+
+camera   ``DIR/*.png`` (or .jpg, .bmp, .tif): the checkerboard at 20-30 poses, tilted
+         20-50 degrees about different axes, over the whole image.
+laser    ``DIR/NAME_board.png`` (checkerboard, lamp on, laser off) and ``DIR/NAME_laser.png``
+         (same pose, laser on, lamp dimmed) for each of 6-10 board poses across the stripe's
+         depth range.
+handeye  ``DIR/poses.csv`` with header ``image,x_mm,y_mm,z_mm,qw,qx,qy,qz``: per image the
+         flange pose in the robot base (ABB tool0 robtarget: mm, quaternion w x y z) and the
+         image of the board, fixed in the cell, taken there.
+tcp      ``DIR/poses.csv`` with header ``pose,x_mm,y_mm,z_mm,qw,qx,qy,qz``: flange poses with
+         the torch tip on one fixed point, the torch tilted about different axes.
+
+A simulated set also holds ``truth.json``; the command then prints the true values beside the
+recovered ones. The result goes into a copy of ``--cell`` (default ``configs/cell.yaml``)
+written to ``--write`` (default ``DIR/cell.yaml``): only the calibrated section changes, other
+values and the file's comments stay.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from torchseam.core.config import (
+    CONFIG_DIR,
+    CellConfig,
+    ConfigError,
+    from_dict,
+    load_cell,
+    save_config,
+    to_dict,
+)
+from torchseam.core.errors import TorchseamError
+from torchseam.core.transforms import pose_matrix
+from torchseam.geometry.calibrate import (
+    HAND_EYE_METHODS,
+    calibrate_camera,
+    calibrate_hand_eye,
+    calibrate_laser_plane,
+    calibrate_tcp,
+    load_calibration,
+    load_camera_set,
+    load_handeye_set,
+    load_laser_set,
+    load_tcp_set,
+)
+
+KINDS = {
+    "camera": ("camera", "intrinsics and distortion from checkerboard images"),
+    "laser": ("laser_plane", "laser plane in the camera frame from stripe images on the board"),
+    "handeye": ("hand_eye", "camera pose in the flange from robot poses and board images"),
+    "tcp": ("tool", "torch TCP in the flange by pivoting about one fixed point"),
+}
+#: Digits kept when a calibrated value is written (far below each one's uncertainty).
+_DIGITS = {"fx": 4, "fy": 4, "cx": 4, "cy": 4, "dist": 8, "normal": 9, "distance_mm": 6,
+           "source_mm": 6, "position_mm": 4, "quaternion": 9}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "calibrate", help="calibrate camera, laser plane, hand-eye or TCP from a folder",
+        description=__doc__.split("\n", 2)[2].replace("``", ""),
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
+    for kind, (section, text) in KINDS.items():
+        q = kinds.add_parser(kind, help=text, description=f"{text}; writes the cell config's "
+                             f"'{section}' section and prints the residuals.")
+        q.add_argument("dir", type=Path, metavar="DIR", help="folder of the calibration set")
+        q.add_argument("--cell", type=Path,
+                       help="cell config to start from (default configs/cell.yaml)")
+        q.add_argument("--write", type=Path, metavar="OUT.yaml",
+                       help="where to write the updated cell config (default DIR/cell.yaml; "
+                            "may be the --cell file itself)")
+        q.add_argument("--calib", type=Path, help="calibration settings "
+                       "(default configs/calibration.yaml)")
+        if kind == "camera":
+            q.add_argument("--skip-failed", action="store_true",
+                           help="leave out images where the board is not found (default: error)")
+        if kind == "handeye":
+            q.add_argument("--method", choices=HAND_EYE_METHODS, default="park",
+                           help="closed-form AX = XB solver of cv2.calibrateHandEye (default "
+                                "park; where the installed OpenCV lacks it, as 5.0.0 does: "
+                                "Park & Martin in numpy)")
+            q.add_argument("--refine", action="store_true",
+                           help="bundle-adjust on the reprojection error (only for near-exact "
+                                "robot poses)")
+        q.set_defaults(func=run)
+    s = kinds.add_parser("simulate", help="write a simulated calibration set to try the procedure",
+                         description="Render a calibration set of KIND with the simulated "
+                                     "cell and write it to DIR with its truth (truth.json).")
+    s.add_argument("set_kind", choices=tuple(KINDS), metavar="KIND",
+                   help="camera, laser, handeye or tcp")
+    s.add_argument("dir", type=Path, metavar="DIR", help="output folder")
+    s.add_argument("--seed", type=int, default=None, help="random seed (default: the config's)")
+    s.add_argument("--views", type=int, default=None,
+                   help="number of views or poses (default: configs/calibration.yaml)")
+    s.add_argument("--cell", type=Path, help="the true cell (default configs/cell.yaml)")
+    s.add_argument("--calib", type=Path,
+                   help="calibration settings (default configs/calibration.yaml)")
+    s.add_argument("--overwrite", action="store_true", help="replace a set already in DIR")
+    s.set_defaults(func=run_simulate)
+
+
+# --------------------------------------------------------------------------- commands
+
+def run(args: argparse.Namespace) -> int:
+    cfg = load_calibration(args.calib)
+    cell_path = Path(args.cell) if args.cell else CONFIG_DIR / "cell.yaml"
+    cell = load_cell(cell_path)
+    folder = Path(args.dir)
+    section, _ = KINDS[args.kind]
+    if args.kind == "camera":
+        images, names = load_camera_set(folder)
+        res: Any = calibrate_camera(images, names, cfg, skip_failed=args.skip_failed)
+        value: Any = res.camera
+        headline = f"RMS {res.rms_px:.4f} px, {len(res.names)} views"
+    elif args.kind == "laser":
+        lasers, lnames, boards, bnames = load_laser_set(folder)
+        res = calibrate_laser_plane(lasers, lnames, cell.camera, cfg, boards, bnames,
+                                    source_mm=cell.laser_plane.source_mm)
+        value = res.plane
+        headline = f"plane RMS {res.rms_mm:.4f} mm, {len(res.names)} views"
+    elif args.kind == "handeye":
+        images, names, T_B_F = load_handeye_set(folder)
+        res = calibrate_hand_eye(images, names, T_B_F, cell.camera, cfg, method=args.method,
+                                 refine=args.refine)
+        value = res.hand_eye
+        headline = (f"board-in-base spread RMS {float(np.sqrt(np.mean(res.view_pos_mm**2))):.4f}"
+                    f" mm, {len(res.names)} poses")
+    else:
+        names, T_B_F = load_tcp_set(folder)
+        res = calibrate_tcp(T_B_F, names, cfg, orientation=cell.tool.quaternion)
+        value = res.tool
+        headline = f"pivot RMS {res.rms_mm:.4f} mm, {len(res.names)} poses"
+    print(f"torchseam calibrate {args.kind}: {folder}")
+    for line in res.summary():
+        print("  " + line)
+    truth = folder / "truth.json"
+    if truth.is_file():
+        for line in compare_with_truth(args.kind, value, json.loads(truth.read_text())):
+            print("  " + line)
+    out = Path(args.write) if args.write else folder / "cell.yaml"
+    note = (f"calibrated: torchseam calibrate {args.kind} {folder} "
+            f"({_dt.date.today().isoformat()}; {headline})")
+    _, kept = update_cell(cell_path, out, section, value, note)
+    how = "" if kept else "; written anew, the input's comments not kept"
+    print(f"wrote {out} (section {section}; the rest from {cell_path}{how})")
+    return 0
+
+
+def run_simulate(args: argparse.Namespace) -> int:
+    from torchseam.sim.board import write_set
+
+    if args.views is not None and args.views < 1:
+        raise TorchseamError(f"--views must be at least 1, got {args.views}")
+    cfg = load_calibration(args.calib)
+    cell = load_cell(args.cell)
+    try:
+        truth = write_set(args.set_kind, args.dir, cell, cfg, seed=args.seed, views=args.views,
+                          overwrite=args.overwrite)
+    except (FileExistsError, ValueError) as e:
+        raise TorchseamError(str(e)) from None
+    n = len(list(Path(args.dir).glob("*.png")))
+    what = f"{n} images" if n else "robot poses (poses.csv)"
+    print(f"wrote a simulated {args.set_kind} calibration set to {args.dir}: {what}, truth in "
+          f"truth.json (seed {truth['seed']})")
+    print(f"next: torchseam calibrate {args.set_kind} {args.dir}")
+    return 0
+
+
+# --------------------------------------------------------------------------- truth
+
+def compare_with_truth(kind: str, value: Any, truth: dict[str, Any]) -> list[str]:
+    """Lines comparing a recovered value with a simulated set's ``truth.json``."""
+    out = ["vs simulator truth (truth.json):"]
+    try:
+        if kind == "camera":
+            t = truth["camera"]
+            for k in ("fx", "fy", "cx", "cy"):
+                v = getattr(value, k)
+                out.append(f"  {k:<4} {v:11.4f}  true {t[k]:11.4f}  error {v - t[k]:+.4f} px "
+                           f"({100 * (v / t[k] - 1):+.3f} %)")
+        elif kind == "laser":
+            t = truth["laser_plane"]
+            cosang = float(np.clip(np.dot(value.normal, t["normal"]), -1.0, 1.0))
+            out.append(f"  normal error {np.degrees(np.arccos(cosang)):.4f} deg, distance error "
+                       f"{value.distance_mm - t['distance_mm']:+.4f} mm")
+        elif kind == "handeye":
+            t = truth["hand_eye"]
+            A = pose_matrix(np.asarray(value.position_mm), np.asarray(value.quaternion))
+            B = pose_matrix(np.asarray(t["position_mm"]), np.asarray(t["quaternion"]))
+            ang = np.degrees(np.arccos(np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2,
+                                               -1.0, 1.0)))
+            out.append(f"  position error {np.linalg.norm(A[:3, 3] - B[:3, 3]):.4f} mm, "
+                       f"rotation error {ang:.4f} deg")
+        else:
+            t = truth["tool"]
+            err = np.asarray(value.position_mm) - np.asarray(t["position_mm"])
+            out.append(f"  TCP error {np.linalg.norm(err):.4f} mm ("
+                       + " ".join(f"{x:+.4f}" for x in err) + ")")
+    except (KeyError, TypeError, ValueError):
+        return ["truth.json: not a simulated set of this kind; no comparison"]
+    return out
+
+
+# --------------------------------------------------------------------------- writing
+
+def _round(section: str, data: dict[str, Any]) -> dict[str, Any]:
+    out = {}
+    for k, v in data.items():
+        nd = _DIGITS.get(k)
+        if nd is None:
+            out[k] = v
+        elif isinstance(v, list):
+            out[k] = [round(float(x), nd) + 0.0 for x in v]
+        else:
+            out[k] = round(float(v), nd) + 0.0
+    return out
+
+
+def _yaml_value(v: Any) -> str:
+    if isinstance(v, list):
+        return "[" + ", ".join(_yaml_value(x) for x in v) + "]"
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise TypeError(f"cannot write {v!r}")  # programming error: sections hold numbers
+    text = repr(v)
+    if "e" in text and "." not in text:  # YAML 1.1 reads 1e-06 as a string, 1.0e-06 as a float
+        text = text.replace("e", ".0e")
+    return text
+
+
+def splice_section(text: str, section: str, data: dict[str, Any], note: str) -> str | None:
+    """Replace the values of a top-level section of a YAML file in place.
+
+    Keeps every comment and every other line; a ``# calibrated: ...`` line right under the
+    section's key is replaced by ``note``. Returns None when a field is not a one-line value
+    in ``text`` (the caller then writes the whole file anew).
+    """
+    lines = text.splitlines(keepends=True)
+    head = next((i for i, ln in enumerate(lines) if re.match(rf"{section}\s*:\s*(#.*)?$", ln)),
+                None)
+    if head is None:
+        return None
+    end = next((i for i in range(head + 1, len(lines)) if re.match(r"[A-Za-z_]", lines[i])),
+               len(lines))
+    for key, val in data.items():
+        pat = re.compile(rf"^(\s+){re.escape(key)}\s*:\s*([^#\s][^#]*?)\s*(#.*)?$")
+        hit = [i for i in range(head + 1, end) if pat.match(lines[i].rstrip("\n"))]
+        if len(hit) != 1:
+            return None
+        m = pat.match(lines[hit[0]].rstrip("\n"))
+        assert m is not None
+        comment = f"  {m.group(3)}" if m.group(3) else ""
+        lines[hit[0]] = f"{m.group(1)}{key}: {_yaml_value(val)}{comment}\n"
+    body = [re.match(r"(\s+)\S", lines[i]) for i in range(head + 1, end)]
+    indent = next((m.group(1) for m in body if m), "  ")
+    if head + 1 < len(lines) and lines[head + 1].strip().startswith("# calibrated:"):
+        lines[head + 1] = f"{indent}# {note}\n"
+    else:
+        lines.insert(head + 1, f"{indent}# {note}\n")
+    return "".join(lines)
+
+
+def update_cell(cell_path: Path, out: Path, section: str, value: Any, note: str
+                ) -> tuple[CellConfig, bool]:
+    """Write ``cell_path``'s config with ``section`` replaced by ``value`` to ``out``.
+
+    The new config is validated by core's parser first (an invalid result is a
+    :class:`ConfigError` naming the field). The file's text is kept, comments included, with
+    only the section's values changed; if the file's layout does not allow that, the whole
+    config is written with :func:`save_config`.
+
+    Returns:
+        ``(the written CellConfig, whether the file's text and comments were kept)``; the
+        config loads back equal with ``load_cell(out)``.
+    """
+    base = load_cell(cell_path)
+    data = to_dict(base)
+    data[section] = _round(section, to_dict(value))
+    new = from_dict(CellConfig, data, source=f"{out} (calibrated {section})")
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    text = splice_section(Path(cell_path).read_text(), section, data[section], note)
+    if text is not None:
+        out.write_text(text)
+        try:
+            if load_cell(out) == new:
+                return new, True
+        except ConfigError:
+            pass
+    save_config(new, out)
+    return new, False

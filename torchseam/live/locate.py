@@ -1,0 +1,90 @@
+"""Per-frame seam location: feature point -> 3D weld point -> ECAL arm points (robot base).
+
+:class:`SeamLocator` is the seeing half of the live loop; the planning half is
+:class:`~torchseam.plan.path.LookAheadBuffer`. It is used by the open-loop ring run
+(:mod:`torchseam.live.ring`) and the closed-loop demo.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from torchseam.core.config import CellConfig
+from torchseam.core.errors import TorchseamError
+from torchseam.geometry.ecal import Ecal
+from torchseam.geometry.triangulate import FastTriangulator
+from torchseam.track.fusion import TrackStatus
+from torchseam.track.peers import FrameTracker
+from torchseam.vision.tipm import Tipm
+
+
+@dataclass
+class Location:
+    """What one frame says about the seam (robot base, mm)."""
+
+    uv: np.ndarray            # (2,) feature pixel from the tracker
+    status: int               # TrackStatus
+    p: np.ndarray             # (3,) weld point, NaN when the status is LOST
+    q: np.ndarray             # (2, 3) arm points, NaN when ECAL found none
+    arms_ok: bool
+    arms_fallback: bool
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class SeamLocator:
+    """Tracker + triangulation + ECAL for one camera stream.
+
+    Args:
+        cell: calibration (camera, laser plane, hand-eye).
+        tracker: any :class:`~torchseam.track.peers.FrameTracker` (EAKF-STC in the live loop).
+    """
+
+    def __init__(self, cell: CellConfig, tracker: FrameTracker) -> None:
+        self.cell = cell
+        self.tracker = tracker
+        self.tipm = Tipm()
+        self.ecal = Ecal()
+        self.tri = FastTriangulator(cell)
+        self.prev_angles: np.ndarray | None = None
+        self._roi = int(self.ecal.cfg.r_max_px) + 8
+
+    def start(self, frame: np.ndarray, uv0: np.ndarray | None = None) -> np.ndarray:
+        """Initialise on a clean frame (TIPM when ``uv0`` is None). Returns the start pixel."""
+        if uv0 is None:
+            res = self.tipm(frame)
+            if not res.ok:
+                raise TorchseamError(f"cannot start tracking: {res.reason}")
+            uv0 = res.uv
+        self.tracker.init(frame, np.asarray(uv0, float))
+        self.prev_angles = None
+        return np.asarray(uv0, float)
+
+    def step(self, frame: np.ndarray, T_B_F: np.ndarray) -> Location:
+        """Locate the seam in ``frame`` taken with the flange at ``T_B_F`` (4, 4) mm."""
+        t0 = time.perf_counter()
+        uv, status = self.tracker.update(frame)
+        t1 = time.perf_counter()
+        nan3, q = np.full(3, np.nan), np.full((2, 3), np.nan)
+        arms_ok = fallback = False
+        if status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
+            return Location(uv, status, nan3, q, False, False,
+                            {"track": (t1 - t0) * 1e3})
+        red, mask, (x0, y0) = self.tipm.mask_around(frame, uv, self._roi)
+        local = uv - (x0, y0)
+        arms = self.ecal(mask, local, red, self.prev_angles)
+        t2 = time.perf_counter()
+        pix = [uv]
+        if arms.ok:
+            arms_ok, fallback = True, arms.fallback
+            self.prev_angles = arms.angles
+            pix += list(arms.p_tangent + (x0, y0))
+        X = self.tri(np.stack(pix), T_B_F)
+        if arms_ok:
+            q = X[1:3]
+        t3 = time.perf_counter()
+        return Location(uv, status, X[0], q, arms_ok, fallback,
+                        {"track": (t1 - t0) * 1e3, "ecal": (t2 - t1) * 1e3,
+                         "triangulate": (t3 - t2) * 1e3})

@@ -1,0 +1,169 @@
+"""The whole ring, segment by segment, in open loop: see, locate, plan (METHOD.md 5-6).
+
+For each of the six segments the positioner turns the part, the robot runs the *nominal*
+(design) path with the sensor 20 mm ahead of the torch, the tracker follows the feature point
+through the arc noise, every frame is located in 3D, and the look-ahead buffer turns the
+located points into the commanded path (IPI steps, torch frames from ECAL's arms). The run
+keeps the simulator's truth, so it measures what the issue asks: the 3D location error, the
+planned path's error and the nominal path's error against the true seam, and the torch axis
+against the joint bisector. The closed loop (``torchseam demo``) commands the robot with the
+planned path instead.
+
+Each segment starts with an approach: the torch starts ``look_ahead + approach_mm`` before
+the segment with the arc off, so the stripe has seen the segment start (and TIPM has found the
+stripe on a clean frame) when the arc strikes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
+from torchseam.core.transforms import apply, invert
+from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
+from torchseam.live.locate import Location, SeamLocator
+from torchseam.plan.path import LookAheadBuffer, Segment, load_plan_config, six_segments
+from torchseam.sim.scene import Scene, torch_frames
+from torchseam.sim.sequence import FrameTruth, SequenceSpec, simulate
+from torchseam.track.peers import make_tracker
+
+
+@dataclass
+class SegmentRun:
+    """One segment's frames, locations, commands and the truth to judge them by."""
+
+    segment: Segment
+    truths: list[FrameTruth] = field(default_factory=list)
+    locations: list[Location] = field(default_factory=list)
+    commands: list[np.ndarray] = field(default_factory=list)       # (3,) ip, base mm
+    rotations: list[np.ndarray] = field(default_factory=list)      # (3, 3) torch frames
+    quats: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    command_t: list[float] = field(default_factory=list)
+    nominal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    scene: Scene | None = None
+
+
+def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: float, seed: int,
+             tracker: str = "eakf-stc", segments: list[int] | None = None,
+             progress: Callable[[int], None] | None = None) -> list[SegmentRun]:
+    """Weld the ring in open loop; returns one :class:`SegmentRun` per segment.
+
+    ``segments``: which of the six to run (default all). ``progress(n)`` is called per frame.
+    """
+    proc = cell.process
+    plan = load_plan_config()
+    runs = []
+    t0 = 0.0
+    for seg in six_segments():
+        if segments is not None and seg.index not in segments:
+            continue
+        scene = Scene(part, seg.rotation_deg)
+        s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
+        s1 = float(scene.s_at(np.array([seg.phi_end]))[0])
+        seg_len = (s1 - s0) % scene.seam_length_mm
+        approach = proc.look_ahead_mm + plan.approach_mm
+        mm_per_frame = proc.weld_speed_mm_s / proc.frame_rate_hz
+        arc_on = int(np.ceil(approach / mm_per_frame))
+        n_frames = arc_on + int(np.ceil((seg_len + plan.approach_mm) / mm_per_frame))
+        spec = SequenceSpec(n_frames=n_frames, level=level, seed=seed * 10 + seg.index,
+                            start_mm=s0 - approach, rotation_deg=seg.rotation_deg,
+                            arc_on_frame=arc_on, t0_s=t0)
+        run = SegmentRun(seg, scene=scene)
+        locator = SeamLocator(cell, make_tracker(tracker))
+        buf = LookAheadBuffer(maxlen=plan.buffer_points, smooth_mm=plan.smooth_mm)
+        T_F_C_inv = invert(cell.hand_eye.matrix())
+        for k, (img, truth) in enumerate(simulate(cell, part, noise, spec)):
+            T_B_F = truth.T_B_C @ T_F_C_inv  # the robot's reported flange pose
+            if k == 0:
+                locator.start(img)
+                loc = Location(truth.uv * np.nan, 0, np.full(3, np.nan), np.full((2, 3), np.nan),
+                               False, False)
+            else:
+                loc = locator.step(img, T_B_F)
+                if np.all(np.isfinite(loc.p)):
+                    buf.push(loc.p, loc.q, truth.t_s)
+            run.truths.append(truth)
+            run.locations.append(loc)
+            if progress:
+                progress(1)
+        t0 += n_frames / proc.frame_rate_hz
+        _plan_segment(run, buf, cell, s0, seg_len)
+        runs.append(run)
+    return runs
+
+
+def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: float,
+                  seg_len: float) -> None:
+    """IPI commands along the located points from the segment start to its end."""
+    scene = run.scene
+    assert scene is not None
+    start = scene.nominal_tcp(np.array([s0]))[0][:3, 3]
+    # the torch starts where the located path passes the segment start
+    d = [np.linalg.norm(loc.p - start) for loc in buf.points]
+    if not d:
+        return
+    while len(buf.points) > 1 and buf.points[0] is not buf.points[int(np.argmin(d))]:
+        buf.points.popleft()
+        d.pop(0)
+    cp = buf.fit(0)[0]
+    step = cell.process.step_mm
+    travelled = 0.0
+    ips, tangents, arms = [], [], []
+    while travelled < seg_len - 1e-6:
+        nxt = buf.next_command(cp, step)
+        if nxt is None:
+            break
+        ip, tangent, arm_dirs = nxt
+        travelled += float(np.linalg.norm(ip - cp))
+        run.command_t.append(min(buf.points, key=lambda L: np.linalg.norm(L.p - ip)).t_s)
+        ips.append(ip)
+        tangents.append(tangent)
+        arms.append(arm_dirs)
+        cp = ip
+    if not ips:
+        return
+    P = torch.tensor(np.array(ips))
+    A = torch.tensor(np.array(arms))
+    R, ok = torch_frame(P, P + A[:, 0], P + A[:, 1], tangent=torch.tensor(np.array(tangents)))
+    plan = load_plan_config()
+    R = tilt(R, plan.work_angle_deg, plan.travel_angle_deg)
+    run.commands = list(np.array(ips))
+    run.rotations = list(R.numpy())
+    run.quats = quaternions(R).numpy()
+    run.nominal = scene.nominal_tcp(s0 + np.arange(0.0, seg_len, step))[:, :3, 3]
+
+
+def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
+    """Per-point errors against the truth, pooled over segments (mm, px, degrees)."""
+    loc3d, pix, planned, nominal, axis = [], [], [], [], []
+    for run in runs:
+        scene = run.scene
+        for t, loc in zip(run.truths, run.locations, strict=True):
+            if not t.arc_on:
+                continue
+            pix.append(np.linalg.norm(loc.uv - t.uv) if np.all(np.isfinite(loc.uv)) else np.nan)
+            loc3d.append(np.linalg.norm(loc.p - t.seam_B) if np.all(np.isfinite(loc.p))
+                         else np.nan)
+        if not run.commands:
+            continue
+        phis = np.linspace(0, 2 * np.pi, 20001)
+        s = scene.true_joint.seam(phis)
+        z_T = torch_frames(s)[:, :3, 2]
+        for ip, R, t in zip(run.commands, run.rotations, run.command_t, strict=True):
+            T_B_T = scene.part_pose(t)  # the part as it was when the stripe saw the point
+            p_T = apply(invert(T_B_T), ip)
+            k = int(np.argmin(np.linalg.norm(s.point - p_T, axis=1)))
+            planned.append(np.linalg.norm(s.point[k] - p_T))
+            z = T_B_T[:3, :3] @ z_T[k]
+            axis.append(np.degrees(np.arccos(np.clip(R[:, 2] @ z, -1, 1))))
+        T_B_T = scene.part_pose(run.truths[len(run.truths) // 2].t_s)
+        curve = apply(T_B_T, s.point)
+        for p in run.nominal:
+            nominal.append(np.min(np.linalg.norm(curve - p, axis=1)))
+    return {k: np.array(v) for k, v in (("located_mm", loc3d), ("pixel_px", pix),
+                                         ("planned_mm", planned), ("nominal_mm", nominal),
+                                         ("axis_deg", axis))}

@@ -1,0 +1,105 @@
+"""The simulated cell for the closed loop: controller and sensor link stepped in sim time.
+
+The simulated IRC5 controller and the EGM link exchange real wire bytes (``EgmRobot`` out,
+``EgmSensor`` back) every 4 ms cycle, but in lockstep with the simulation clock instead of
+through sockets and the wall clock: the demo then runs faster than real time and gives the
+same result on a loaded 2-core machine as on an idle one. The live loop talks to the same
+:class:`~torchseam.robot.egm.EgmLink` it would use with a real controller.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from torchseam.core.config import CellConfig
+from torchseam.core.transforms import invert
+from torchseam.robot.egm import EgmLink, parse_sensor
+from torchseam.robot.egm_config import EgmConfig
+from torchseam.robot.sim_controller import SimController
+
+
+class SimClock:
+    """Simulation time in seconds; the link's clock in the demo."""
+
+    def __init__(self, t0: float = 0.0) -> None:
+        self.t = t0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@dataclass
+class CellFaults:
+    """Link faults for this cycle window (counts of cycles left)."""
+
+    drop_cycles: int = 0       # controller datagrams lost on the way
+    silent_cycles: int = 0     # the controller sends nothing
+    dropped: int = 0
+    silent: int = 0
+    log: list[str] = field(default_factory=list)
+
+
+class LockstepCell:
+    """A :class:`SimController` in pose mode and an :class:`EgmLink`, stepped together.
+
+    Args:
+        cell: the cell (tool = TCP in the flange).
+        egm: EGM configuration (mode is forced to ``pose``: the demo guides full torch poses).
+        link: the sensor-side link (``bind=False``, clock = ``clock``).
+        clock: the simulation clock, advanced by :meth:`advance`.
+        T_B_W0: (4, 4) torch pose to start from (the controller's joints by IK).
+    """
+
+    def __init__(self, cell: CellConfig, egm: EgmConfig, link: EgmLink, clock: SimClock,
+                 T_B_W0: np.ndarray, robot=None) -> None:
+        egm = dataclasses.replace(egm, mode="pose")
+        self.ctrl = SimController(egm, mode="pose", robot=robot, tool=cell.tool.matrix(),
+                                  bind_address=("127.0.0.1", 0))
+        self.link = link
+        self.clock = clock
+        self.period = self.ctrl.period
+        self.tool_inv = invert(cell.tool.matrix())
+        q, ok = self.ctrl.robot.ik(torch.tensor((T_B_W0 @ self.tool_inv)[None]),
+                                   torch.tensor(self.ctrl.q[None]))
+        if not bool(ok[0]):
+            raise RuntimeError("the segment's start pose is out of the robot's reach")
+        self.ctrl.q = q[0].numpy().astype(float)
+        self.ctrl._planned = self.tcp_pose()  # noqa: SLF001 - start at rest
+        self.faults = CellFaults()
+        self.sender = ("127.0.0.1", egm.network.controller_port or 6511)
+
+    def tcp_pose(self) -> np.ndarray:
+        """The torch's actual pose now (forward kinematics of the joints), (4, 4) mm."""
+        return self.ctrl._fk(self.ctrl.q[None])[0]  # noqa: SLF001
+
+    def flange_pose(self) -> np.ndarray:
+        return self.tcp_pose() @ self.tool_inv
+
+    def advance(self, dt: float) -> None:
+        """Run the EGM cycles that fit in ``dt`` seconds of simulation time."""
+        for _ in range(max(1, int(round(dt / self.period)))):
+            self._cycle()
+
+    def _cycle(self) -> None:
+        ctrl, f = self.ctrl, self.faults
+        q, T, T_plan = ctrl._update(self.period)  # noqa: SLF001
+        self.clock.t += self.period
+        if f.silent_cycles > 0:
+            f.silent_cycles -= 1
+            f.silent += 1
+            return
+        data = ctrl._stamp(ctrl._robot_message(q, T, T_plan, 0.0))  # noqa: SLF001
+        if f.drop_cycles > 0:
+            f.drop_cycles -= 1
+            f.dropped += 1
+            return
+        reply = self.link.handle_datagram(data, self.sender)
+        if reply is None:
+            return
+        msg, why = parse_sensor(reply, "pose")
+        if msg is not None:
+            ctrl._apply_reply(msg)  # noqa: SLF001

@@ -1,0 +1,10 @@
+"""The ABB IRB 1410 and its controller link.
+
+- :mod:`torchseam.robot.kinematics`: ``IRB1410`` (FK / Jacobian from the URDF via
+  pytorch-kinematics, closed-form IK), controller <-> URDF joint conversion.
+- :mod:`torchseam.robot.reach`: ``ReachGate``, the reachability gate for torch poses.
+- :mod:`torchseam.robot.config`: ``configs/robot.yaml``.
+- :mod:`torchseam.robot.cli`: ``torchseam robot fk | ik | check`` (and the EGM commands).
+
+Nothing is imported here, so ``import torchseam.robot.egm`` does not pull in torch.
+"""

@@ -1,0 +1,250 @@
+"""``torchseam robot``: forward/inverse kinematics and the reachability gate on the command line.
+
+Sub-commands (joints are controller values in degrees, poses are x y z in mm in the robot base
+plus an ABB quaternion q1..q4 = w, x, y, z)::
+
+    torchseam robot fk --joints 0,0,0,0,30,0        # -> x y z q1 q2 q3 q4 of tool0
+    torchseam robot ik 900 0 800 0 0 1 0 --tool torch
+                                                    # -> A1 .. A6, or "unreachable: <reason>"
+    torchseam robot check poses.csv                 # one verdict per pose + a summary
+
+``check`` reads a CSV file with a header row naming the columns ``x,y,z,q1,q2,q3,q4`` (torch TCP
+pose in the base frame, mm, quaternion w, x, y, z; any order, extra columns ignored) and
+optionally ``t`` (time stamp of the pose, s). Without ``t`` the time between poses is the TCP
+distance at the cell's weld speed. Blank lines and lines starting with ``#`` are skipped.
+
+Exit codes: 0 all poses fine, 1 a pose is unreachable / refused, 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+from torchseam.core.errors import TorchseamError
+
+#: Required CSV columns of ``torchseam robot check`` (``t`` is optional).
+CSV_COLUMNS = ("x", "y", "z", "q1", "q2", "q3", "q4")
+
+
+class PoseFileError(TorchseamError, ValueError):
+    """A pose CSV file is missing, has a bad header, or a bad value (names file/row/field)."""
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``robot`` command group (fk, ik, check, and the EGM commands)."""
+    p = subparsers.add_parser(
+        "robot", help="IRB 1410 kinematics, reachability checks and the EGM link",
+        description="ABB IRB 1410 model: forward/inverse kinematics and the reachability gate. "
+                    "Joints in controller degrees; poses in the base frame, mm, quaternion "
+                    "w x y z (ABB order).")
+    sub = p.add_subparsers(dest="robot_command", metavar="ROBOT_COMMAND", required=True)
+
+    fk = sub.add_parser("fk", help="tool0 pose of controller joints",
+                        description="Print x y z q1 q2 q3 q4 of tool0 (flange) in the base frame.")
+    fk.add_argument("--joints", required=True, metavar="A1,...,A6",
+                    help="six controller joint values in degrees, comma separated")
+    _common(fk)
+    fk.set_defaults(func=run_fk)
+
+    ik = sub.add_parser("ik", help="controller joints reaching a pose",
+                        description="Print the controller joints (deg) reaching the pose, or "
+                                    "'unreachable: <reason>' (exit code 1). Checks reach, axis "
+                                    "ranges and the singularity margin.")
+    for name in CSV_COLUMNS:
+        ik.add_argument(name.upper(), type=float, help=f"pose {name}")
+    ik.add_argument("--tool", choices=("tool0", "torch"), default="tool0",
+                    help="the pose is of tool0 (flange, default) or of the torch TCP "
+                         "(tool of the cell config)")
+    ik.add_argument("--seed", metavar="A1,...,A6", default=None,
+                    help="joints to stay close to (default: home_deg of the robot config)")
+    _common(ik)
+    ik.set_defaults(func=run_ik)
+
+    ck = sub.add_parser("check", help="check a CSV list of torch poses",
+                        description="Check torch TCP poses from a CSV file (header "
+                                    "x,y,z,q1,q2,q3,q4 and optional t in s) with the "
+                                    "reachability gate; one verdict per pose, then a summary. "
+                                    "Exit code 1 if any pose is refused.")
+    ck.add_argument("path", type=Path, help="CSV file of poses, in path order")
+    ck.add_argument("--part", default=None, metavar="YAML|none",
+                    help="part for the clearance check (default configs/parts/t_joint.yaml; "
+                         "'none' skips it)")
+    ck.add_argument("--seed", metavar="A1,...,A6", default=None,
+                    help="joints the path starts from (default: home_deg)")
+    _common(ck)
+    ck.set_defaults(func=run_check)
+
+    # the EGM helper's commands (sim-controller) live in their own module
+    from torchseam.robot import egm_cli
+
+    egm_cli.register(sub)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot-config", default=None, metavar="YAML",
+                   help="robot limits and gate settings (default configs/robot.yaml)")
+    p.add_argument("--cell", default=None, metavar="YAML",
+                   help="cell configuration with the tool (default configs/cell.yaml)")
+    p.add_argument("--urdf", default=None, metavar="URDF",
+                   help="robot description (default urdf/irb1410.urdf)")
+
+
+def parse_joints(text: str, what: str = "--joints") -> list[float]:
+    """``"0,10,-5,0,30,0"`` -> six floats; raises :class:`TorchseamError` naming ``what``."""
+    parts = [x.strip() for x in text.split(",")]
+    try:
+        values = [float(x) for x in parts]
+    except ValueError:
+        raise TorchseamError(f"{what}: expected 6 comma-separated numbers (degrees), got "
+                             f"{text!r}") from None
+    if len(values) != 6 or not all(math.isfinite(v) for v in values):
+        raise TorchseamError(f"{what}: expected 6 finite comma-separated numbers (degrees), "
+                             f"got {text!r}")
+    return values
+
+
+def _robot(args: argparse.Namespace) -> Any:
+    import torch
+
+    from torchseam.robot.config import load_robot
+    from torchseam.robot.kinematics import IRB1410
+
+    torch.set_num_threads(1)  # tiny batches: one thread is fastest
+    cfg = load_robot(args.robot_config) if args.robot_config else None
+    return IRB1410(args.urdf, config=cfg)
+
+
+def _fmt(values: Any, digits: int) -> str:
+    return " ".join(f"{float(v):.{digits}f}" for v in values)
+
+
+def run_fk(args: argparse.Namespace) -> int:
+    from torchseam.robot.kinematics import pose_to_xyzq
+
+    q = parse_joints(args.joints)
+    robot = _robot(args)
+    xyzq = pose_to_xyzq(robot.fk([q]))[0]
+    print(f"{_fmt(xyzq[:3], 3)} {_fmt(xyzq[3:], 6)}")
+    return 0
+
+
+def run_ik(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from torchseam.core.config import load_cell
+    from torchseam.core.transforms import pose_matrix
+    from torchseam.robot.reach import ReachGate
+
+    pose = [getattr(args, n.upper()) for n in CSV_COLUMNS]
+    if not all(math.isfinite(v) for v in pose):
+        raise TorchseamError(f"pose: expected finite numbers, got {pose}")
+    quat = np.asarray(pose[3:])
+    norm = float(np.linalg.norm(quat))
+    if abs(norm - 1.0) > 1e-3:
+        raise TorchseamError(f"pose: quaternion Q1..Q4 (w, x, y, z) must have norm 1, "
+                             f"got {norm:.6f}")
+    robot = _robot(args)
+    cell = load_cell(args.cell)
+    T = pose_matrix(np.asarray(pose[:3]), quat / norm)
+    if args.tool == "tool0":
+        T = T @ cell.tool.matrix()  # the gate takes TCP poses: tool0 pose -> TCP pose
+    seed = parse_joints(args.seed, "--seed") if args.seed is not None else None
+    r = ReachGate(robot, cell=cell).check(T[None], q_start_deg=seed)  # no part, no speed
+    if not bool(r.ok[0]):
+        print(f"unreachable: {r.reasons[0]}")
+        return 1
+    print(_fmt(r.q_deg[0], 3))
+    return 0
+
+
+def read_pose_csv(path: Path) -> tuple[Any, Any]:
+    """Poses (N, 4, 4) mm and time stamps (N,) s or None from a pose CSV (module docstring).
+
+    Raises:
+        PoseFileError: missing file, no/bad header, bad number, non-unit quaternion, time going
+            backwards -- naming the file, the line and the field.
+    """
+    import numpy as np
+
+    from torchseam.core.transforms import pose_matrix
+
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise PoseFileError(f"{path}: cannot read ({e.strerror or e})") from None
+    lines = [(i + 1, ln) for i, ln in enumerate(text.splitlines())
+             if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise PoseFileError(f"{path}: no header and no poses (expected a header row "
+                            f"{','.join(CSV_COLUMNS)}[,t])")
+    rows = list(csv.reader([ln for _, ln in lines]))
+    header = [h.strip().lower() for h in rows[0]]
+    missing = [c for c in CSV_COLUMNS if c not in header]
+    if missing:
+        raise PoseFileError(f"{path}: line {lines[0][0]}: header lacks column(s) "
+                            f"{', '.join(missing)} (expected {','.join(CSV_COLUMNS)}[,t])")
+    cols = list(CSV_COLUMNS) + (["t"] if "t" in header else [])
+    where = {c: header.index(c) for c in cols}
+    data = []
+    for (line_no, _), row in zip(lines[1:], rows[1:], strict=True):
+        if len(row) < len(header):
+            raise PoseFileError(f"{path}: line {line_no}: expected {len(header)} fields, "
+                                f"got {len(row)}")
+        values = []
+        for c in cols:
+            raw = row[where[c]].strip()
+            try:
+                v = float(raw)
+            except ValueError:
+                raise PoseFileError(f"{path}: line {line_no}: field {c!r}: not a number "
+                                    f"({raw!r})") from None
+            if not math.isfinite(v):
+                raise PoseFileError(f"{path}: line {line_no}: field {c!r}: not finite ({raw})")
+            values.append(v)
+        norm = math.sqrt(sum(x * x for x in values[3:7]))
+        if abs(norm - 1.0) > 1e-3:
+            raise PoseFileError(f"{path}: line {line_no}: quaternion q1..q4 has norm {norm:.6f}"
+                                " (must be 1; order w, x, y, z)")
+        data.append(values)
+    if not data:
+        raise PoseFileError(f"{path}: header only, no poses")
+    arr = np.asarray(data)
+    T = pose_matrix(arr[:, :3], arr[:, 3:7] / np.linalg.norm(arr[:, 3:7], axis=1, keepdims=True))
+    t = arr[:, 7] if "t" in cols else None
+    if t is not None and (np.diff(t) < 0).any():
+        i = int(np.flatnonzero(np.diff(t) < 0)[0]) + 1
+        raise PoseFileError(f"{path}: line {lines[i + 1][0]}: field 't': time goes backwards "
+                            f"({t[i - 1]:g} -> {t[i]:g})")
+    return T, t
+
+
+def run_check(args: argparse.Namespace) -> int:
+    import time
+
+    import numpy as np
+
+    from torchseam.core.config import load_cell, load_part
+    from torchseam.robot.reach import ReachGate
+
+    T, t = read_pose_csv(args.path)
+    robot = _robot(args)
+    cell = load_cell(args.cell)
+    part = None if (args.part or "").lower() == "none" else load_part(args.part)
+    gate = ReachGate(robot, cell=cell, part=part)
+    seed = parse_joints(args.seed, "--seed") if args.seed is not None else None
+    dt = None if t is None else np.concatenate([[0.0], np.diff(t)])
+    t0 = time.perf_counter()
+    r = gate.check(T, q_start_deg=seed, dt_s=dt)
+    elapsed = time.perf_counter() - t0
+    width = len(str(len(r) - 1))
+    for i in range(len(r)):
+        if r.code[i].value == "ok":
+            print(f"{i:>{width}} ok {_fmt(r.q_deg[i], 3)}")
+        else:
+            print(f"{i:>{width}} refused: {r.reasons[i]}")
+    print(f"{r.summary()}; checked in {elapsed * 1e3:.1f} ms")
+    return 0 if bool(r.ok.all()) else 1

@@ -1,0 +1,157 @@
+"""Typed configuration of the robot model and the reachability gate (``configs/robot.yaml``).
+
+The numeric sections load through :func:`torchseam.core.config.from_dict` (same validation and
+``"<file>: <field>: <problem>"`` messages as every other config). Core's loader reads numbers
+only, so the two choice fields (``axis3_range_applies_to``, ``ik_method``) are checked here and
+added on top.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from torchseam.core.config import CONFIG_DIR, ConfigError, _f, from_dict
+
+#: Allowed values of the string fields, first one is the documented default.
+CHOICES: dict[str, tuple[str, ...]] = {
+    "axis3_range_applies_to": ("controller", "difference"),
+    "ik_method": ("analytic", "numeric"),
+}
+
+
+@dataclass(frozen=True)
+class AxesConfig:
+    """Controller axis ranges and speeds, axes 1..6 (degrees, deg/s)."""
+
+    min_deg: tuple[float, ...] = _f(6)
+    max_deg: tuple[float, ...] = _f(6)
+    max_speed_deg_s: tuple[float, ...] = _f(6, lo=0.0, lo_open=True)
+    speed_safety_factor: float = _f(lo=0.0, hi=1.0, lo_open=True)
+
+    def _check(self) -> None:
+        for i, (lo, hi) in enumerate(zip(self.min_deg, self.max_deg, strict=True)):
+            if lo >= hi:
+                raise ValueError(f"min_deg: axis {i + 1}: min {lo} must be below max {hi}")
+
+
+@dataclass(frozen=True)
+class SingularityConfig:
+    """Refuse poses whose flange Jacobian's smallest singular value is below ``min_sigma``."""
+
+    min_sigma: float = _f(lo=0.0)
+    length_mm: float = _f(lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class TorchShape:
+    """The torch body as a capsule along the TCP z axis (see ``configs/robot.yaml``)."""
+
+    radius_mm: float = _f(lo=0.0)
+    length_mm: float = _f(lo=0.0, lo_open=True)
+    tip_exclusion_mm: float = _f(lo=0.0)
+
+    def _check(self) -> None:
+        if self.tip_exclusion_mm >= self.length_mm:
+            raise ValueError(f"tip_exclusion_mm: {self.tip_exclusion_mm} must be shorter than "
+                             f"length_mm {self.length_mm}")
+
+
+@dataclass(frozen=True)
+class ClearanceConfig:
+    margin_mm: float = _f(lo=0.0)
+    main_pipe_length_mm: float = _f(lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class IKConfig:
+    position_tol_mm: float = _f(lo=0.0, lo_open=True)
+    orientation_tol_deg: float = _f(lo=0.0, lo_open=True)
+    restarts: int = _f(lo=1)
+    max_iterations: int = _f(lo=1)
+
+
+@dataclass(frozen=True)
+class _RobotNumbers:
+    axes: AxesConfig
+    home_deg: tuple[float, ...] = _f(6)
+    singularity: SingularityConfig
+    torch: TorchShape
+    clearance: ClearanceConfig
+    ik: IKConfig
+
+
+@dataclass(frozen=True)
+class RobotConfig(_RobotNumbers):
+    """The whole ``configs/robot.yaml``.
+
+    Example:
+        >>> cfg = load_robot()
+        >>> cfg.axes.max_deg[4], cfg.axis3_range_applies_to
+        (115.0, 'controller')
+    """
+
+    axis3_range_applies_to: str = "controller"
+    ik_method: str = "analytic"
+
+    def _check(self) -> None:
+        for name, choices in CHOICES.items():
+            if getattr(self, name) not in choices:
+                raise ValueError(f"{name}: expected one of {', '.join(choices)}, "
+                                 f"got {getattr(self, name)!r}")
+        lo, hi = self.axes.min_deg, self.axes.max_deg
+        bad = [i for i in range(6) if not lo[i] <= self.home_deg[i] <= hi[i]]
+        if bad:
+            raise ValueError(f"home_deg: axis {bad[0] + 1} ({self.home_deg[bad[0]]}) lies outside "
+                             f"its range {lo[bad[0]]}..{hi[bad[0]]}")
+
+    def __post_init__(self) -> None:
+        try:
+            self._check()
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+
+
+def robot_config_from_dict(data: Any, source: str = "<dict>") -> RobotConfig:
+    """Validate a parsed ``robot.yaml`` mapping (raises :class:`ConfigError` naming the field)."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: top level: expected a mapping, got {data!r}")
+    data = dict(data)
+    strings: dict[str, str] = {}
+    for name, choices in CHOICES.items():
+        if name not in data:
+            raise ConfigError(f"{source}: {name}: missing")
+        value = data.pop(name)
+        if value not in choices:
+            raise ConfigError(f"{source}: {name}: expected one of {', '.join(choices)}, "
+                              f"got {value!r}")
+        strings[name] = value
+    numbers = from_dict(_RobotNumbers, data, source)
+    fields = {f.name: getattr(numbers, f.name) for f in dataclasses.fields(_RobotNumbers)}
+    try:
+        return RobotConfig(**fields, **strings)
+    except ConfigError as e:
+        raise ConfigError(f"{source}: {e}") from None
+
+
+def load_robot(path: str | os.PathLike[str] | None = None) -> RobotConfig:
+    """Load ``configs/robot.yaml`` (or ``path``).
+
+    Raises:
+        ConfigError: ``"<file>: <field>: <problem>"`` for a missing file, bad YAML or bad field.
+    """
+    p = Path(path) if path is not None else CONFIG_DIR / "robot.yaml"
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read config ({e.strerror or e})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: not valid YAML ({e})") from None
+    return robot_config_from_dict(data, str(p))

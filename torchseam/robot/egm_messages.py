@@ -1,0 +1,187 @@
+"""Protobuf message classes of ABB EGM (package ``abb.egm``, proto2), built without protoc.
+
+The schema lives in one table below, written from the field table in ``shared/ROBOT.md``; the
+readable ``egm.proto`` next to this file says the same thing, and a test compiles that file with
+``grpc_tools.protoc`` and checks the two agree descriptor by descriptor and byte by byte.
+
+Why a table and not generated ``*_pb2.py``: generated code is tied to the protoc version that
+wrote it (newer gencode is refused by an older runtime, very old gencode by a newer one), while a
+``FileDescriptorProto`` built here works with any protobuf runtime >= 4.21 and needs nothing but
+the ``protobuf`` package at run time.
+
+The classes live in a private descriptor pool, so they never clash with another ``abb.egm``
+module (e.g. ABB's own generated ``egm_pb2``) imported into the same process.
+
+Usage::
+
+    from torchseam.robot.egm_messages import EgmRobot, EgmHeader
+    msg = EgmRobot()
+    msg.header.mtype = EgmHeader.MSGTYPE_DATA
+    data = msg.SerializeToString()
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from google.protobuf.message import Message
+
+PACKAGE = "abb.egm"
+#: File name the descriptors are registered under (matches ``protoc -I <dir> egm.proto``).
+PROTO_FILE = "egm.proto"
+
+_F = descriptor_pb2.FieldDescriptorProto
+_SCALARS = {
+    "double": _F.TYPE_DOUBLE,
+    "uint32": _F.TYPE_UINT32,
+    "uint64": _F.TYPE_UINT64,
+    "bool": _F.TYPE_BOOL,
+}
+_LABELS = {"optional": _F.LABEL_OPTIONAL, "required": _F.LABEL_REQUIRED,
+           "repeated": _F.LABEL_REPEATED}
+
+# (message, nested enums {name: [(value name, number)]},
+#  fields [(label, type, name, number, default or None)])
+# A type that is not a scalar names a message of this package or a "Message.Enum".
+SCHEMA: tuple[tuple[str, dict[str, list[tuple[str, int]]],
+                    list[tuple[str, str, str, int, str | None]]], ...] = (
+    ("EgmHeader",
+     {"MessageType": [("MSGTYPE_UNDEFINED", 0), ("MSGTYPE_COMMAND", 1), ("MSGTYPE_DATA", 2),
+                      ("MSGTYPE_CORRECTION", 3), ("MSGTYPE_PATH_CORRECTION", 4)]},
+     [("optional", "uint32", "seqno", 1, None),
+      ("optional", "uint32", "tm", 2, None),
+      ("optional", "EgmHeader.MessageType", "mtype", 3, "MSGTYPE_UNDEFINED")]),
+    ("EgmCartesian", {},
+     [("required", "double", "x", 1, None), ("required", "double", "y", 2, None),
+      ("required", "double", "z", 3, None)]),
+    ("EgmQuaternion", {},
+     [("required", "double", "u0", 1, None), ("required", "double", "u1", 2, None),
+      ("required", "double", "u2", 3, None), ("required", "double", "u3", 4, None)]),
+    ("EgmEuler", {},
+     [("required", "double", "x", 1, None), ("required", "double", "y", 2, None),
+      ("required", "double", "z", 3, None)]),
+    ("EgmClock", {},
+     [("required", "uint64", "sec", 1, None), ("required", "uint64", "usec", 2, None)]),
+    ("EgmPose", {},
+     [("optional", "EgmCartesian", "pos", 1, None),
+      ("optional", "EgmQuaternion", "orient", 2, None),
+      ("optional", "EgmEuler", "euler", 3, None)]),
+    ("EgmJoints", {}, [("repeated", "double", "joints", 1, None)]),
+    ("EgmCartesianSpeed", {}, [("repeated", "double", "value", 1, None)]),
+    ("EgmPlanned", {},
+     [("optional", "EgmJoints", "joints", 1, None),
+      ("optional", "EgmPose", "cartesian", 2, None),
+      ("optional", "EgmJoints", "externalJoints", 3, None),
+      ("optional", "EgmClock", "time", 4, None)]),
+    ("EgmFeedBack", {},
+     [("optional", "EgmJoints", "joints", 1, None),
+      ("optional", "EgmPose", "cartesian", 2, None),
+      ("optional", "EgmJoints", "externalJoints", 3, None),
+      ("optional", "EgmClock", "time", 4, None)]),
+    ("EgmSpeedRef", {},
+     [("optional", "EgmJoints", "joints", 1, None),
+      ("optional", "EgmCartesianSpeed", "cartesians", 2, None),
+      ("optional", "EgmJoints", "externalJoints", 3, None)]),
+    ("EgmPathCorr", {},
+     [("required", "EgmCartesian", "pos", 1, None),
+      ("required", "uint32", "age", 2, None)]),
+    ("EgmMotorState",
+     {"MotorStateType": [("MOTORS_UNDEFINED", 0), ("MOTORS_ON", 1), ("MOTORS_OFF", 2)]},
+     [("required", "EgmMotorState.MotorStateType", "state", 1, None)]),
+    ("EgmMCIState",
+     {"MCIStateType": [("MCI_UNDEFINED", 0), ("MCI_ERROR", 1), ("MCI_STOPPED", 2),
+                       ("MCI_RUNNING", 3)]},
+     [("required", "EgmMCIState.MCIStateType", "state", 1, "MCI_UNDEFINED")]),
+    ("EgmRapidCtrlExecState",
+     {"RapidCtrlExecStateType": [("RAPID_UNDEFINED", 0), ("RAPID_STOPPED", 1),
+                                 ("RAPID_RUNNING", 2)]},
+     [("required", "EgmRapidCtrlExecState.RapidCtrlExecStateType", "state", 1,
+       "RAPID_UNDEFINED")]),
+    ("EgmTestSignals", {}, [("repeated", "double", "signals", 1, None)]),
+    ("EgmMeasuredForce", {}, [("repeated", "double", "force", 1, None)]),
+    ("EgmRobot", {},
+     [("optional", "EgmHeader", "header", 1, None),
+      ("optional", "EgmFeedBack", "feedBack", 2, None),
+      ("optional", "EgmPlanned", "planned", 3, None),
+      ("optional", "EgmMotorState", "motorState", 4, None),
+      ("optional", "EgmMCIState", "mciState", 5, None),
+      ("optional", "bool", "mciConvergenceMet", 6, None),
+      ("optional", "EgmTestSignals", "testSignals", 7, None),
+      ("optional", "EgmRapidCtrlExecState", "rapidExecState", 8, None),
+      ("optional", "EgmMeasuredForce", "measuredForce", 9, None),
+      ("optional", "double", "utilizationRate", 10, None)]),
+    ("EgmSensor", {},
+     [("optional", "EgmHeader", "header", 1, None),
+      ("optional", "EgmPlanned", "planned", 2, None),
+      ("optional", "EgmSpeedRef", "speedRef", 3, None)]),
+    ("EgmSensorPathCorr", {},
+     [("optional", "EgmHeader", "header", 1, None),
+      ("optional", "EgmPathCorr", "pathCorr", 2, None)]),
+)
+
+MESSAGE_NAMES: tuple[str, ...] = tuple(name for name, _, _ in SCHEMA)
+
+
+def file_descriptor_proto() -> descriptor_pb2.FileDescriptorProto:
+    """The ``egm.proto`` file as a ``FileDescriptorProto`` (what ``protoc`` would produce)."""
+    # syntax left unset: that means proto2, and it is what protoc writes for a proto2 file.
+    fdp = descriptor_pb2.FileDescriptorProto(name=PROTO_FILE, package=PACKAGE)
+    enum_names = {f"{msg}.{enum}" for msg, enums, _ in SCHEMA for enum in enums}
+    for msg_name, enums, fields in SCHEMA:
+        msg = fdp.message_type.add(name=msg_name)
+        for enum_name, values in enums.items():
+            enum = msg.enum_type.add(name=enum_name)
+            for value_name, number in values:
+                enum.value.add(name=value_name, number=number)
+        for label, type_, name, number, default in fields:
+            # json_name as protoc fills it in (lowerCamelCase; these names have no '_').
+            field = msg.field.add(name=name, number=number, label=_LABELS[label],
+                                  json_name=name)
+            if type_ in _SCALARS:
+                field.type = _SCALARS[type_]
+            elif type_ in enum_names:
+                field.type = _F.TYPE_ENUM
+                field.type_name = f".{PACKAGE}.{type_}"
+            else:
+                field.type = _F.TYPE_MESSAGE
+                field.type_name = f".{PACKAGE}.{type_}"
+            if default is not None:
+                field.default_value = default
+    return fdp
+
+
+def _build() -> dict[str, type[Message]]:
+    pool = descriptor_pool.DescriptorPool()
+    pool.Add(file_descriptor_proto())
+    return {name: message_factory.GetMessageClass(pool.FindMessageTypeByName(
+        f"{PACKAGE}.{name}")) for name in MESSAGE_NAMES}
+
+
+CLASSES: dict[str, type[Message]] = _build()
+
+# Module attributes typed as Any: the classes are made at run time, so a type checker cannot
+# see their fields.
+EgmHeader: Any = CLASSES["EgmHeader"]
+EgmCartesian: Any = CLASSES["EgmCartesian"]
+EgmQuaternion: Any = CLASSES["EgmQuaternion"]
+EgmEuler: Any = CLASSES["EgmEuler"]
+EgmClock: Any = CLASSES["EgmClock"]
+EgmPose: Any = CLASSES["EgmPose"]
+EgmJoints: Any = CLASSES["EgmJoints"]
+EgmCartesianSpeed: Any = CLASSES["EgmCartesianSpeed"]
+EgmPlanned: Any = CLASSES["EgmPlanned"]
+EgmFeedBack: Any = CLASSES["EgmFeedBack"]
+EgmSpeedRef: Any = CLASSES["EgmSpeedRef"]
+EgmPathCorr: Any = CLASSES["EgmPathCorr"]
+EgmMotorState: Any = CLASSES["EgmMotorState"]
+EgmMCIState: Any = CLASSES["EgmMCIState"]
+EgmRapidCtrlExecState: Any = CLASSES["EgmRapidCtrlExecState"]
+EgmTestSignals: Any = CLASSES["EgmTestSignals"]
+EgmMeasuredForce: Any = CLASSES["EgmMeasuredForce"]
+EgmRobot: Any = CLASSES["EgmRobot"]
+EgmSensor: Any = CLASSES["EgmSensor"]
+EgmSensorPathCorr: Any = CLASSES["EgmSensorPathCorr"]
+
+__all__ = ["CLASSES", "MESSAGE_NAMES", "PACKAGE", "PROTO_FILE", "SCHEMA",
+           "file_descriptor_proto", *MESSAGE_NAMES]

@@ -1,0 +1,452 @@
+"""Reachability gate: may the IRB 1410 move the torch through these TCP poses?
+
+Every pose is checked before it reaches the controller, in this order (a refused pose carries
+every reason that applies, the first one as its :class:`Reason` code):
+
+1. **IK**: the tool transform of ``configs/cell.yaml`` turns the torch TCP pose into a flange
+   (tool0) pose; the closed-form IK gives all branches, and along a sequence each pose takes the
+   solution nearest its neighbour's (the first one nearest a start/home configuration).
+2. **Axis ranges**, with the coupled axis-3 check of ``configs/robot.yaml``.
+3. **Singularity margin**: smallest singular value of the flange Jacobian.
+4. **Joint speed** between consecutive poses, at the time between them (explicit, or the TCP
+   distance at the cell's weld speed but at least one camera frame), against the axis speeds
+   times a safety factor. It is measured from the previous pose that passed the other checks
+   (a refused pose is not where the robot will be).
+5. **Torch-vs-part clearance**: the torch body is a capsule along the TCP z axis (the tip's last
+   mm excluded: it touches the seam by design), the pipes are capsules around their axes from
+   the part configuration and its nominal placement.
+
+Batched (:meth:`ReachGate.check`) for a whole seam, or one pose at a time
+(:meth:`ReachGate.step`, which keeps the last accepted joints) for the live loop; a gate is also
+the callable ``gate(position_mm, quaternion) -> (ok, reason)`` the EGM link takes.
+
+Example:
+    >>> from torchseam.core.config import load_part
+    >>> gate = ReachGate(part=load_part())
+    >>> T = nominal_torch_poses(load_part(), 360)
+    >>> result = gate.check(T)
+    >>> result.ok.shape
+    torch.Size([360])
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+import torch
+
+from torchseam.core.config import CellConfig, PartConfig, load_cell
+from torchseam.core.transforms import pose_matrix
+from torchseam.robot.config import RobotConfig
+from torchseam.robot.kinematics import (
+    IRB1410,
+    RobotInputError,
+    Tensor,
+    _np,
+    arm_candidates,
+    arm_forward,
+    checked_values,
+    range_excess,
+    rotation_angle,
+    validate_poses,
+)
+from torchseam.sim.joint import BRANCH_LENGTH_MM, PipeJoint
+
+__all__ = ["Reason", "ReachResult", "PoseVerdict", "ReachGate", "nominal_torch_poses"]
+
+
+class Reason(str, Enum):
+    """Why a pose was refused (the first failing check), ``OK`` when it was not."""
+
+    OK = "ok"
+    UNREACHABLE = "unreachable"
+    AXIS_RANGE = "axis range"
+    SINGULARITY = "singularity"
+    JOINT_SPEED = "joint speed"
+    CLEARANCE = "clearance"
+
+
+@dataclass(frozen=True)
+class ReachResult:
+    """Verdicts for N poses (tensors on the robot's device and dtype).
+
+    Attributes:
+        ok: (N,) bool, the pose passed every check.
+        q_deg: (N, 6) controller joints of the chosen IK solution (meaningless where
+            ``code`` is ``UNREACHABLE``).
+        code: N :class:`Reason` codes, ``Reason.OK`` where ok.
+        reasons: N messages, ``""`` where ok, e.g. ``"axis 5 out of range (121.3 > 115)"``;
+            several failing checks are joined with ``"; "``.
+        sigma_min: (N,) smallest singular value of the scaled flange Jacobian.
+        speed_ratio: (N,) worst axis speed / allowed speed, from the previous pose that passed
+            the other checks (0 for the first pose).
+        clearance_mm: (N,) smallest torch-to-pipe clearance (``inf`` without a part).
+    """
+
+    ok: Tensor
+    q_deg: Tensor
+    code: tuple[Reason, ...]
+    reasons: tuple[str, ...]
+    sigma_min: Tensor
+    speed_ratio: Tensor
+    clearance_mm: Tensor
+
+    def __len__(self) -> int:
+        return len(self.code)
+
+    def summary(self) -> str:
+        """One line: ``"360 poses: 357 ok, 3 refused (joint speed 2, clearance 1)"``."""
+        n_ok = int(self.ok.sum())
+        counts: dict[str, int] = {}
+        for c in self.code:
+            if c is not Reason.OK:
+                counts[c.value] = counts.get(c.value, 0) + 1
+        tail = f" ({', '.join(f'{k} {v}' for k, v in counts.items())})" if counts else ""
+        return f"{len(self)} poses: {n_ok} ok, {len(self) - n_ok} refused{tail}"
+
+
+@dataclass(frozen=True)
+class PoseVerdict:
+    """Verdict for one pose (:meth:`ReachGate.step`)."""
+
+    ok: bool
+    q_deg: np.ndarray   # (6,) controller joints
+    code: Reason
+    reason: str
+
+
+@dataclass(frozen=True)
+class _Verdicts:  # numpy side of ReachResult
+    code: tuple[Reason, ...]
+    reasons: tuple[str, ...]
+    q: np.ndarray
+    sigma: np.ndarray
+    ratio: np.ndarray
+    clearance: np.ndarray
+
+
+class ReachGate:
+    """Batched reachability gate for torch TCP poses in the robot base frame (mm).
+
+    Args:
+        robot: the kinematic model (default: ``IRB1410()`` with ``config``).
+        cell: tool transform (TCP in flange) and weld speed (default ``configs/cell.yaml``).
+        part: the work piece for the clearance check; ``None`` skips that check.
+        part_pose_mm: (4, 4) pose of the joint frame {T} in the base; default the part's nominal
+            ``placement`` (the clamping error is unknown to the planner).
+        config: robot/gate configuration when ``robot`` is not given (default
+            ``configs/robot.yaml``).
+
+    Example:
+        >>> gate = ReachGate()
+        >>> T = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+        >>> T[:, :3, 3] = torch.tensor([[2000.0, 0, 500], [900.0, 0, 800]])
+        >>> gate.check(T).code[0]
+        <Reason.UNREACHABLE: 'unreachable'>
+    """
+
+    def __init__(self, robot: IRB1410 | None = None, *, cell: CellConfig | None = None,
+                 part: PartConfig | None = None, part_pose_mm: np.ndarray | None = None,
+                 config: RobotConfig | None = None) -> None:
+        self.robot = robot if robot is not None else IRB1410(config=config)
+        self.config = self.robot.config
+        self.cell = cell if cell is not None else load_cell()
+        self.tool = self.cell.tool.matrix()                   # TCP in flange, (4, 4) mm
+        self.tool_inv = np.linalg.inv(self.tool)
+        self.weld_speed_mm_s = float(self.cell.process.weld_speed_mm_s)
+        # the tracker makes at most one pose per camera frame: the shortest time between poses
+        self.min_dt_s = 1.0 / float(self.cell.process.frame_rate_hz)
+        ax = self.config.axes
+        self.allowed_speed = np.asarray(ax.max_speed_deg_s) * ax.speed_safety_factor
+        self._lo = np.asarray(ax.min_deg, dtype=float)
+        self._hi = np.asarray(ax.max_deg, dtype=float)
+        self.part = part
+        self._pipes = (_part_capsules(part, part_pose_mm, self.config.clearance.main_pipe_length_mm)
+                       if part is not None else None)
+        self._scale = np.ones((6, 1))
+        self._scale[:3] = 1.0 / self.config.singularity.length_mm
+        self._q_prev: np.ndarray | None = None
+        self._p_prev: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ batch
+    def check(self, T_tcp: Tensor | np.ndarray, *, q_start_deg: Tensor | np.ndarray | None = None,
+              dt_s: float | Tensor | np.ndarray | None = None) -> ReachResult:
+        """Check a sequence of torch TCP poses along a seam.
+
+        IK runs along the sequence (each pose seeded from its neighbour, see
+        :meth:`IRB1410.ik_path`) and every answer is verified with the chain's FK.
+
+        Args:
+            T_tcp: (N, 4, 4) torch TCP poses in the base frame, mm, in path order.
+            q_start_deg: (6,) joints to seed the first pose from (default ``home_deg``).
+            dt_s: time between consecutive poses, seconds: a number, or (N,) where ``dt_s[i]``
+                is the time from pose i-1 to pose i (``dt_s[0]`` unused). Default: TCP distance
+                over the cell's weld speed, at least one camera frame (``1 / frame_rate_hz``).
+
+        Returns:
+            :class:`ReachResult` over the N poses.
+
+        Raises:
+            RobotInputError: bad shapes, NaN, non-rigid poses, bad ``dt_s``.
+        """
+        robot = self.robot
+        T = robot._poses(T_tcp, "T_tcp").reshape(-1, 4, 4)
+        tool_inv = torch.as_tensor(self.tool_inv, dtype=robot.dtype, device=robot.device)
+        sol = robot.ik_path(T @ tool_inv, q_start_deg)
+        Tn = _np(T).astype(float)
+        dt = self._dt(Tn, dt_s)
+        v = self._judge(Tn, _np(sol.q_deg), _np(sol.reached), _np(sol.pos_err_mm),
+                        _np(sol.rot_err_deg), dt, None)
+        to = dict(dtype=robot.dtype, device=robot.device)
+        return ReachResult(torch.tensor([c is Reason.OK for c in v.code], device=robot.device),
+                           sol.q_deg, v.code, v.reasons, torch.as_tensor(v.sigma, **to),
+                           torch.as_tensor(v.ratio, **to), torch.as_tensor(v.clearance, **to))
+
+    # ------------------------------------------------------------------ incremental
+    def reset(self, q_deg: Tensor | np.ndarray | None = None,
+              tcp_position_mm: np.ndarray | None = None) -> None:
+        """Forget the previous pose; optionally start from known joints / TCP position."""
+        self._q_prev = None if q_deg is None else _np(self.robot._joints(q_deg).reshape(6)).copy()
+        self._p_prev = None if tcp_position_mm is None else np.asarray(tcp_position_mm, float)
+
+    def step(self, T_tcp: Tensor | np.ndarray, dt_s: float | None = None) -> PoseVerdict:
+        """Check the next pose of a live sequence against the last accepted one.
+
+        The IK is seeded from the last accepted joints (``home_deg`` before the first); the
+        joint speed is checked over ``dt_s`` (default: TCP distance / weld speed, at least one
+        camera frame). An accepted
+        pose becomes the new reference, a refused one does not. Runs in numpy with the
+        closed-form kinematics (checked against the chain in the tests): well under 1 ms.
+
+        Args:
+            T_tcp: (4, 4) torch TCP pose in the base frame, mm.
+            dt_s: seconds since the last accepted pose.
+        """
+        T = _np(T_tcp).astype(float)
+        validate_poses(T, "T_tcp")
+        T = T.reshape(-1, 4, 4)
+        if T.shape[0] != 1:
+            raise RobotInputError(f"T_tcp: step() takes one pose, got {T.shape[0]}")
+        robot, g = self.robot, self.robot.geometry
+        seed = (np.asarray(self.config.home_deg, float) if self._q_prev is None
+                else self._q_prev)[None]
+        T_fl = T @ self.tool_inv
+        cand, valid = arm_candidates(np, g, T_fl, seed)
+        q, idx = robot._selector(cand, valid).pick(seed)
+        T_q, J = arm_forward(np, g, q)
+        pos = np.linalg.norm(T_q[:, :3, 3] - T_fl[:, :3, 3], axis=-1)
+        rot = np.rad2deg(rotation_angle(T_q[:, :3, :3], T_fl[:, :3, :3]))
+        tol = self.config.ik
+        reached = (idx >= 0) & (pos <= tol.position_tol_mm) & (rot <= tol.orientation_tol_deg)
+        p = T[0, :3, 3]
+        if dt_s is None:
+            dist = 0.0 if self._p_prev is None else float(np.linalg.norm(p - self._p_prev))
+            dt_s = max(dist / self.weld_speed_mm_s, self.min_dt_s)
+        v = self._judge(T, q, reached, pos, rot, np.array([float(dt_s)]), self._q_prev, J)
+        ok = v.code[0] is Reason.OK
+        if ok:
+            self._q_prev, self._p_prev = q[0].copy(), p.copy()
+        return PoseVerdict(ok, q[0], v.code[0], v.reasons[0])
+
+    def __call__(self, position_mm: np.ndarray, quaternion: np.ndarray) -> tuple[bool, str]:
+        """EGM gate interface: ``(ok, reason)`` for a TCP pose (mm, quaternion w, x, y, z)."""
+        p = np.asarray(position_mm, dtype=float).reshape(3)
+        q = np.asarray(quaternion, dtype=float).reshape(4)
+        if not (np.isfinite(p).all() and np.isfinite(q).all()):
+            return False, "pose is not finite"
+        norm = float(np.linalg.norm(q))
+        if abs(norm - 1.0) > 1e-3:
+            return False, f"quaternion norm {norm:.6f} is not 1"
+        v = self.step(pose_matrix(p, q / norm))
+        return v.ok, v.reason
+
+    # ------------------------------------------------------------------ the checks
+    def _dt(self, T: np.ndarray, dt_s: float | Tensor | np.ndarray | None) -> np.ndarray:
+        n = T.shape[0]
+        if dt_s is None:
+            step = np.linalg.norm(T[1:, :3, 3] - T[:-1, :3, 3], axis=-1) / self.weld_speed_mm_s
+            step = np.maximum(step, self.min_dt_s)
+            return np.concatenate([[0.0], step])
+        dt = _np(dt_s).astype(float)
+        if dt.ndim == 0:
+            dt = np.full(n, float(dt))
+        if dt.shape != (n,):
+            raise RobotInputError(f"dt_s: expected a number or shape ({n},), got {dt.shape}")
+        if not np.isfinite(dt).all() or (dt < 0).any():
+            raise RobotInputError("dt_s: times must be finite and >= 0")
+        return dt
+
+    def _judge(self, T: np.ndarray, q: np.ndarray, reached: np.ndarray, pos_err: np.ndarray,
+               rot_err: np.ndarray, dt: np.ndarray, q_prev: np.ndarray | None,
+               J: np.ndarray | None = None) -> _Verdicts:
+        """All checks on N poses (numpy): T (N, 4, 4) TCP, q (N, 6) chosen joints."""
+        cfg, g = self.config, self.robot.geometry
+        n = T.shape[0]
+        msgs: list[list[tuple[Reason, str]]] = [[] for _ in range(n)]
+
+        # 1. unreachable
+        for i in np.flatnonzero(~reached):
+            msgs[i].append((Reason.UNREACHABLE, self._unreachable(T[i], pos_err[i], rot_err[i])))
+
+        # 2. axis ranges (coupled axis 3 as configured)
+        diff = self.robot.axis3_difference
+        excess = range_excess(q, self._lo, self._hi, diff)
+        values = checked_values(q, diff)
+        for i, k in zip(*np.nonzero((np.abs(excess) > 1e-9) & reached[:, None]), strict=True):
+            name = "axis 3 - axis 2" if (k == 2 and diff) else f"axis {k + 1}"
+            above = excess[i, k] > 0
+            lim = self._hi[k] if above else self._lo[k]
+            msgs[i].append((Reason.AXIS_RANGE, f"{name} out of range ({values[i, k]:.1f} "
+                                               f"{'>' if above else '<'} {lim:g})"))
+
+        # 3. singularity margin: smallest singular value of the scaled flange Jacobian
+        if J is None:
+            J = arm_forward(np, g, q)[1]
+        sigma = np.linalg.svd(J * self._scale, compute_uv=False)[:, -1]
+        for i in np.flatnonzero((sigma < cfg.singularity.min_sigma) & reached):
+            msgs[i].append((Reason.SINGULARITY, f"near singularity (sigma_min {sigma[i]:.4f} < "
+                                                f"{cfg.singularity.min_sigma:g})"))
+
+        # 5. torch vs part
+        clear = np.full(n, np.inf)
+        collide = np.zeros(n, dtype=bool)
+        clear_msgs: list[tuple[int, str]] = []
+        if self._pipes is not None:
+            per_pipe = self._clearance(T)                                      # (N, P)
+            clear = per_pipe.min(axis=1)
+            margin = cfg.clearance.margin_mm
+            collide = clear < margin
+            for i, j in zip(*np.nonzero(per_pipe < margin), strict=True):
+                c = per_pipe[i, j]
+                clear_msgs.append((i, f"torch hits {_PIPE_NAMES[j]} (clearance {c:.1f} mm)"
+                                   if c < 0 else f"torch too close to {_PIPE_NAMES[j]} "
+                                   f"(clearance {c:.1f} mm < {margin:g})"))
+
+        # 4. joint speed, from the previous pose that passed every other check (a refused pose
+        # is not where the robot will be) over the time since it
+        static_ok = np.array([not m for m in msgs]) & ~collide
+        speed, dq, has_prev = _speeds(q, static_ok, dt, q_prev)
+        ratio = (speed / self.allowed_speed).max(axis=-1)
+        for i in np.flatnonzero((ratio > 1.0) & reached & has_prev):
+            k = int(np.argmax(speed[i] / self.allowed_speed))
+            m = (f"joint speed axis {k + 1} {speed[i, k]:.1f} deg/s > "
+                 f"{self.allowed_speed[k]:.1f}")
+            if dq[i, k] > 180.0:  # not a fast move: the continuous solution left the ranges
+                m += (f" (a {dq[i, k]:.0f} deg jump: the continuous solution leaves the axis "
+                      "ranges here, the arm would have to change configuration or unwind)")
+            msgs[i].append((Reason.JOINT_SPEED, m))
+        for i, m in clear_msgs:
+            msgs[i].append((Reason.CLEARANCE, m))
+
+        code = tuple(m[0][0] if m else Reason.OK for m in msgs)
+        reasons = tuple("; ".join(t for _, t in m) for m in msgs)
+        return _Verdicts(code, reasons, q, sigma, ratio, clear)
+
+    def _unreachable(self, T_tcp: np.ndarray, pos_err: float, rot_err: float) -> str:
+        g = self.robot.geometry
+        T_fl = T_tcp @ self.tool_inv
+        w = T_fl[:3, 3] - g.d6 * (T_fl[:3, :3] @ g.R0.T)[:, 0]     # wrist centre
+        r, v = math.hypot(w[0], w[1]), w[2] - g.d1
+        near = min(math.hypot(r - g.a1, v), math.hypot(-r - g.a1, v))   # front / back-bend
+        far = max(math.hypot(r - g.a1, v), math.hypot(-r - g.a1, v))
+        lo, hi = abs(g.a2 - g.L3), g.a2 + g.L3
+        if near > hi:
+            return f"out of reach (wrist centre {near:.1f} mm from axis 2 > arm reach {hi:.1f})"
+        if far < lo:
+            return f"out of reach (wrist centre {far:.1f} mm from axis 2 < {lo:.1f})"
+        return f"no IK solution (residual {pos_err:.3f} mm, {rot_err:.3f} deg)"
+
+    def _clearance(self, T: np.ndarray) -> np.ndarray:
+        """(N, P) clearance (mm) of the torch capsule to each pipe capsule."""
+        tc = self.config.torch
+        z, tip = T[:, :3, 2], T[:, :3, 3]
+        a = tip - tc.tip_exclusion_mm * z
+        b = tip - tc.length_mm * z
+        A, B, rad = self._pipes
+        return _segment_distance(a[:, None], b[:, None], A[None], B[None]) - tc.radius_mm - rad
+
+
+def _speeds(q: np.ndarray, ref: np.ndarray, dt: np.ndarray, q_prev: np.ndarray | None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 6) axis speeds (deg/s) and moves (deg) from the previous pose where ``ref`` is True
+    (``q_prev`` before the first), and (N,) whether there is such a pose."""
+    n = q.shape[0]
+    last = np.maximum.accumulate(np.where(ref, np.arange(n), -1))
+    prev_idx = np.concatenate([[-1], last[:-1]])
+    t = np.cumsum(dt)
+    has_prev = prev_idx >= 0
+    pi = np.maximum(prev_idx, 0)
+    q_ref, elapsed = q[pi], t - t[pi]
+    if q_prev is not None:  # before this batch's first reference pose: the given one
+        q_ref = np.where(has_prev[:, None], q_ref, q_prev[None])
+        elapsed = np.where(has_prev, elapsed, t)
+        has_prev = np.ones(n, dtype=bool)
+    dq = np.abs(q - q_ref)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        speed = np.where(dq > 1e-9, dq / elapsed[:, None], 0.0)
+    return np.where(has_prev[:, None], speed, 0.0), dq, has_prev
+
+
+_PIPE_NAMES = ("main pipe", "branch pipe")
+
+
+def _part_capsules(part: PartConfig, pose: np.ndarray | None, main_length: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Main and branch pipe as capsules: end points (2, 3) in the base and radii (2,), mm."""
+    joint = PipeJoint(part)
+    P = np.asarray(pose, dtype=float) if pose is not None else part.placement.matrix()
+    if P.shape != (4, 4) or not np.isfinite(P).all():
+        raise RobotInputError(f"part_pose_mm: expected a finite (4, 4) pose, got {P.shape}")
+    A = np.array([[-main_length / 2, 0.0, 0.0], joint.o])
+    B = np.array([[main_length / 2, 0.0, 0.0], joint.o + BRANCH_LENGTH_MM * joint.d])
+    rad = np.array([max(joint.a, joint.b), joint.r])  # oval main pipe: its larger semi-axis
+    return A @ P[:3, :3].T + P[:3, 3], B @ P[:3, :3].T + P[:3, 3], rad
+
+
+def _segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray
+                      ) -> np.ndarray:
+    """Distance between segments p1-q1 and p2-q2 (broadcast (..., 3)); Ericson, Real-Time
+    Collision Detection, 5.1.9. Both segments must have non-zero length."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a = (d1 * d1).sum(-1)
+    e = (d2 * d2).sum(-1)
+    f = (d2 * r).sum(-1)
+    c = (d1 * r).sum(-1)
+    b = (d1 * d2).sum(-1)
+    denom = a * e - b * b
+    parallel = denom <= 1e-12 * a * e
+    s = _unit(np.where(parallel, 0.0, (b * f - c * e) / np.where(parallel, 1.0, denom)))
+    t = (b * s + f) / e
+    s = np.where(t < 0, _unit(-c / a), np.where(t > 1, _unit((b - c) / a), s))
+    t = _unit(t)
+    return np.linalg.norm((p1 + s[..., None] * d1) - (p2 + t[..., None] * d2), axis=-1)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return np.minimum(np.maximum(x, 0.0), 1.0)  # np.clip is slow on tiny arrays
+
+
+def nominal_torch_poses(part: PartConfig, n: int, *, part_pose_mm: np.ndarray | None = None,
+                        phi0: float = 0.0, dtype: torch.dtype = torch.float64) -> Tensor:
+    """Torch TCP poses once round the part's seam, for checks, tests and benchmarks.
+
+    The frames are :func:`torchseam.sim.scene.torch_frames` (tip on the seam, z into the corner
+    along the bisector of the surface normals, x along the seam: METHOD.md eq. 29) at ``n``
+    equal steps of branch angle from ``phi0``, placed in the base.
+
+    Args:
+        part: the joint geometry (its deviations included).
+        n: number of poses.
+        part_pose_mm: (4, 4) pose of {T} in the base; default the nominal placement.
+
+    Returns:
+        (n, 4, 4) TCP poses in the base frame, mm.
+    """
+    from torchseam.sim.scene import torch_frames
+
+    phi = phi0 + np.arange(n) * (2 * np.pi / n)
+    P = np.asarray(part_pose_mm, float) if part_pose_mm is not None else part.placement.matrix()
+    return torch.as_tensor(P @ torch_frames(PipeJoint(part).seam(phi)), dtype=dtype)

@@ -1,0 +1,14 @@
+"""Batched, differentiable trackers: STC, the coloured-noise EAKF and their fusion EAKF-STC.
+
+METHOD.md sections 2-4. Images are (B, H, W) grey, pixel coordinates (u, v) = (column, row).
+"""
+
+from torchseam.track._checks import TrackInputError
+from torchseam.track.config import TrackerConfig
+from torchseam.track.eakf import EAKF, EAKFState, eakf_filter
+from torchseam.track.fusion import EAKFSTC, DriftGuard, TrackResult, TrackStatus
+from torchseam.track.stc import STC, STCState, extract_windows, locate_peak, peak_quality
+
+__all__ = ["EAKF", "EAKFSTC", "STC", "DriftGuard", "EAKFState", "STCState", "TrackInputError",
+           "TrackResult", "TrackStatus", "TrackerConfig", "eakf_filter", "extract_windows",
+           "locate_peak", "peak_quality"]

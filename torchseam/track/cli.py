@@ -1,0 +1,104 @@
+"""``torchseam track`` and ``torchseam eval``: follow the feature point through a frame folder."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from torchseam.core.dataset import Dataset
+from torchseam.core.errors import TorchseamError
+from torchseam.core.report import error_stats, format_table, percentiles_ms
+from torchseam.track.peers import STATUS_NAMES, TRACKERS, make_tracker, run_tracker
+
+
+def _parse_init(text: str | None) -> np.ndarray | None:
+    if text is None:
+        return None
+    try:
+        u, v = (float(x) for x in text.split(","))
+    except ValueError:
+        raise TorchseamError(f"--init {text!r}: expected U,V (two numbers)") from None
+    if not (np.isfinite(u) and np.isfinite(v)):
+        raise TorchseamError(f"--init {text!r}: U and V must be finite")
+    return np.array([u, v])
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("frames_dir", type=Path, metavar="FRAMES_DIR",
+                   help="folder of NNNNN.png frames (the dataset format)")
+    p.add_argument("--tracker", choices=TRACKERS, default="eakf-stc",
+                   help="tracker (default eakf-stc)")
+    p.add_argument("--init", metavar="U,V",
+                   help="start point on the first frame (default: TIPM on the first frame)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch and OpenCV threads (default 1: the live loop's setting)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "track", help="track the feature point through a folder of frames",
+        description="Track the weld feature point through FRAMES_DIR (frames in file-name "
+                    "order; labels are not needed) and write frame,u,v,status per frame.")
+    _common(p)
+    p.add_argument("--out", type=Path, default=Path("track.csv"),
+                   help="output CSV (default track.csv)")
+    p.set_defaults(func=run_track)
+    e = sub.add_parser(
+        "eval", help="track a labelled folder and print the error table",
+        description="Track FRAMES_DIR and compare with its labels.csv: RMSE, max error, "
+                    "%% frames > 5 px, %% lost (> 15 px or no point), ms per frame.")
+    _common(e)
+    e.set_defaults(func=run_eval)
+
+
+def _track(args: argparse.Namespace, ds: Dataset, uv0: np.ndarray | None
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
+    tracker = make_tracker(args.tracker)
+    bar = tqdm(total=len(ds), desc=f"{args.tracker} {ds.root.name}", unit="frame", leave=False)
+    frames = (ds.read(i) for i in range(len(ds)))
+    uv, status, secs, note = run_tracker(tracker, frames, uv0,
+                                         progress=lambda k: bar.update(1))
+    bar.close()
+    return uv, status, secs, note
+
+
+def run_track(args: argparse.Namespace) -> int:
+    uv0 = _parse_init(args.init)
+    ds = Dataset.open(args.frames_dir)
+    uv, status, _, note = _track(args, ds, uv0)
+    with args.out.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["frame", "u", "v", "status"])
+        for f, (u, v), s in zip(ds.frames, uv, status, strict=True):
+            ok = np.isfinite(u) and np.isfinite(v)
+            w.writerow([int(f), f"{u:.3f}" if ok else "", f"{v:.3f}" if ok else "",
+                        STATUS_NAMES[int(s)]])
+    counts = {STATUS_NAMES[k]: int(np.sum(status == k)) for k in STATUS_NAMES}
+    print(f"{args.tracker}: {len(ds)} frames -> {args.out} (start: {note}; "
+          + ", ".join(f"{k} {n}" for k, n in counts.items()) + ")")
+    return 0
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    uv0 = _parse_init(args.init)
+    ds = Dataset.open(args.frames_dir, require_labels=True)
+    uv, status, secs, note = _track(args, ds, uv0)
+    labelled = ds.labelled
+    err = np.linalg.norm(uv - ds.labels, axis=1)[labelled]
+    s = error_stats(err)
+    p50, p99 = percentiles_ms(secs[1:] if len(secs) > 1 else secs)
+    print(f"{args.tracker} on {ds.root} ({int(labelled.sum())} of {len(ds)} frames labelled; "
+          f"start: {note})")
+    print(format_table(["tracker", "frames", "RMSE px", "max px", "> 5 px %", "lost %",
+                        "ms p50", "ms p99"],
+                       [[args.tracker, s["n"], s["rmse"], s["max"], s["pct_gt5"], s["pct_lost"],
+                         p50, p99]]))
+    return 0

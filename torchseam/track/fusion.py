@@ -1,0 +1,398 @@
+"""EAKF-STC: STC supplies the measurement, the EAKF the prediction (METHOD.md section 4).
+
+Per frame k (B sequences at once, no loop over the batch):
+
+1. crop the context window at the filter's prediction for frame k (``Phi X(k-1|k-2)``, so the
+   window follows the motion instead of lagging one frame behind it);
+2. STC detection (eq. 10-11): measurement ``z`` (sub-pixel peak) and peak quality (PSR,
+   second-peak ratio);
+3. the EAKF's innovation of the delayed update (eq. 21-25) and its normalised squared distance
+   ``d2`` (position rows, chi-square with 2 dof under the model);
+4. the drift guard (:class:`DriftGuard`) turns quality and ``d2`` into a trust in (0, 1);
+5. EAKF update with R scaled by ``s = s_max^(1 - trust)``, then prediction: the output
+   position at frame k;
+6. STC learns at the *filtered* estimate (the context is re-centred on it) with learning rate
+   ``rho * trust^p``, so a distrusted frame (glare, spatter, a vanished stripe) barely enters
+   the context model;
+7. status: ``TRACKED`` when trust >= 0.5, ``COASTING`` when not, ``LOST`` after more than
+   ``max_coast`` coasting frames in a row or when the position std exceeds ``lost_std``
+   (a trusted frame brings it back to ``TRACKED``).
+
+Drift guard (smooth, every threshold and slope a learnable tensor)::
+
+    trust = sigmoid(k_psr (log psr - log psr0)) * sigmoid(k_2 (second0 - second_ratio))
+            * sigmoid(k_g (gate - sqrt(d2)))
+    r_scale = s_max ** (1 - trust)           # 1 when trusted, s_max when not
+    rho_scale = trust ** p
+
+It is a soft AND of three tests: the peak must stand out of its sidelobe (sharpness), no other
+peak may compete with it (the multi-peak failure of METHOD.md section 2), and it must lie inside
+the filter's innovation gate. The R inflation is geometric in trust, so gradients stay useful
+across decades of R, and it enters the EAKF through its exact coloured-noise bookkeeping
+(:mod:`torchseam.track.eakf`). Everything is differentiable almost everywhere (argmax and the
+local-maximum test select, the values carry gradients).
+
+Defaults live in :class:`TrackerConfig` (one dataclass; ``TrackerConfig.from_dict`` loads a
+mapping such as a YAML section).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchseam.track._checks import (
+    TrackInputError,
+    as_float,
+    check_batch,
+    check_device,
+    check_tensor,
+)
+from torchseam.track.config import TrackerConfig
+from torchseam.track.eakf import EAKF, EAKFMatrices, EAKFState
+from torchseam.track.stc import STC, STCState
+
+_D = TrackerConfig()  # the defaults
+
+__all__ = ["DriftGuard", "EAKFSTC", "FusionState", "StepTimer", "TrackResult", "TrackStatus",
+           "TrackerConfig"]
+
+
+class TrackStatus(IntEnum):
+    """Per-frame status codes (int64 tensors hold these values)."""
+
+    TRACKED = 0
+    COASTING = 1
+    LOST = 2
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+class DriftGuard(nn.Module):
+    """Smooth trust of a measurement from peak quality and innovation (see module docstring).
+
+    Parameters (0-dim tensors, raw forms keep them in range): ``log_psr0``, ``log_psr_slope``,
+    ``logit_second0``, ``log_second_slope``, ``log_gate``, ``log_gate_slope``,
+    ``log_r_scale_max``, ``log_rho_power``.
+
+    Example:
+        >>> g = DriftGuard()
+        >>> trust, r_scale, rho_scale = g(torch.tensor([20.0, 3.0]), torch.tensor([0.2, 0.9]),
+        ...                               torch.tensor([1.0, 30.0]))
+        >>> (trust > 0.5).tolist(), bool(r_scale[1] > 100.0)
+        ([True, False], True)
+    """
+
+    def __init__(self, psr0: float = _D.psr0, psr_slope: float = _D.psr_slope,
+                 second0: float = _D.second0, second_slope: float = _D.second_slope,
+                 gate: float = _D.gate, gate_slope: float = _D.gate_slope,
+                 r_scale_max: float = _D.r_scale_max, rho_power: float = _D.rho_power,
+                 learnable: bool = _D.learnable) -> None:
+        super().__init__()
+        for name, v in (("psr0", psr0), ("psr_slope", psr_slope), ("second_slope", second_slope),
+                        ("gate", gate), ("gate_slope", gate_slope), ("rho_power", rho_power)):
+            if not v > 0:
+                raise TrackInputError(f"{name}: expected > 0, got {v}")
+        if not 0.0 < second0 < 1.0:
+            raise TrackInputError(f"second0: expected in (0, 1), got {second0}")
+        if not r_scale_max >= 1.0:
+            raise TrackInputError(f"r_scale_max: expected >= 1, got {r_scale_max}")
+        raw = {"log_psr0": math.log(psr0), "log_psr_slope": math.log(psr_slope),
+               "logit_second0": _logit(second0), "log_second_slope": math.log(second_slope),
+               "log_gate": math.log(gate), "log_gate_slope": math.log(gate_slope),
+               "log_r_scale_max": math.log(max(r_scale_max, 1.0 + 1e-6)),
+               "log_rho_power": math.log(rho_power)}
+        for name, v in raw.items():
+            t = torch.tensor(v, dtype=torch.get_default_dtype())
+            if learnable:
+                self.register_parameter(name, nn.Parameter(t))
+            else:
+                self.register_buffer(name, t)
+
+    def forward(self, psr: Tensor, second_ratio: Tensor, d2: Tensor
+                ) -> tuple[Tensor, Tensor, Tensor]:
+        """Trust, R scale and rho scale.
+
+        Args:
+            psr: (B,) peak-to-sidelobe ratio of the confidence map.
+            second_ratio: (B,) second-peak ratio in [0, 1].
+            d2: (B,) squared Mahalanobis distance of the innovation.
+
+        Returns:
+            trust (B,) in (0, 1), r_scale (B,) in [1, s_max], rho_scale (B,) in (0, 1).
+        """
+        tiny = torch.finfo(psr.dtype).tiny
+        l_psr = self.log_psr_slope.exp() * (torch.log(psr.clamp_min(tiny)) - self.log_psr0)
+        l_sec = self.log_second_slope.exp() * (torch.sigmoid(self.logit_second0) - second_ratio)
+        dist = torch.sqrt(d2 + 1e-12)
+        l_gate = self.log_gate_slope.exp() * (self.log_gate.exp() - dist)
+        trust = torch.sigmoid(l_psr) * torch.sigmoid(l_sec) * torch.sigmoid(l_gate)
+        r_scale = torch.exp(self.log_r_scale_max * (1.0 - trust))
+        rho_scale = trust ** self.log_rho_power.exp()
+        return trust, r_scale, rho_scale
+
+
+class StepTimer:
+    """Per-step wall times at negligible cost: ``perf_counter_ns`` on CPU; on CUDA a pair of
+    events per step, read (and synchronised) only when :meth:`ms` is called."""
+
+    def __init__(self, maxlen: int = 100_000) -> None:
+        self._cpu: deque[int] = deque(maxlen=maxlen)
+        self._cuda: deque[tuple[Any, Any]] = deque(maxlen=maxlen)
+        self._t0 = 0
+        self._ev: Any = None
+
+    def start(self, device: torch.device) -> None:
+        if device.type == "cuda":
+            self._ev = torch.cuda.Event(enable_timing=True)
+            self._ev.record()
+        else:
+            self._t0 = time.perf_counter_ns()
+
+    def stop(self, device: torch.device) -> None:
+        if device.type == "cuda":
+            end = torch.cuda.Event(enable_timing=True)
+            end.record()
+            self._cuda.append((self._ev, end))
+        else:
+            self._cpu.append(time.perf_counter_ns() - self._t0)
+
+    def ms(self) -> list[float]:
+        """Step times in ms, oldest first (CPU steps then CUDA steps)."""
+        out = [t * 1e-6 for t in self._cpu]
+        if self._cuda:
+            torch.cuda.synchronize()
+            out += [a.elapsed_time(b) for a, b in self._cuda]
+        return out
+
+    def clear(self) -> None:
+        self._cpu.clear()
+        self._cuda.clear()
+
+
+@dataclass
+class FusionState:
+    """State of B sequences: STC and EAKF states, cached filter matrices, status counters."""
+
+    stc: STCState
+    kf: EAKFState
+    mats: EAKFMatrices
+    coast: Tensor   # (B,) int64 consecutive coasting frames
+    status: Tensor  # (B,) int64 TrackStatus of the newest frame
+    frame: int = 0
+
+
+@dataclass
+class TrackResult:
+    """Output of :meth:`EAKFSTC.run_sequence`; every field is (B, T) or (B, T, 2)."""
+
+    uv: Tensor
+    status: Tensor
+    z: Tensor
+    trust: Tensor
+    psr: Tensor
+    second_ratio: Tensor
+    d2: Tensor
+    std: Tensor
+    extra: dict[str, Tensor] = field(default_factory=dict)
+
+
+QUALITY_KEYS = ("z", "trust", "psr", "second_ratio", "n_peaks", "peak", "d2", "r_scale",
+                "rho_scale", "std")
+
+
+class EAKFSTC(nn.Module):
+    """Batched EAKF-STC seam-feature tracker with a learnable drift guard.
+
+    Args:
+        config: a :class:`TrackerConfig` or a mapping of its fields (None: defaults).
+        **overrides: fields overriding ``config``.
+
+    Attributes:
+        stc: the :class:`~torchseam.track.stc.STC` module.
+        eakf: the :class:`~torchseam.track.eakf.EAKF` module.
+        guard: the :class:`DriftGuard`.
+        timer: :class:`StepTimer` of :meth:`step` calls (read with :meth:`timings_ms`).
+
+    Example:
+        >>> trk = EAKFSTC(window=(32, 32), target=(16, 16))
+        >>> frames = torch.rand(2, 4, 96, 128)
+        >>> with torch.inference_mode():
+        ...     trk.init(frames[:, 0], torch.tensor([[64.0, 48.0], [60.0, 40.0]]))
+        ...     uv, status, q = trk.step(frames[:, 1])
+        >>> tuple(uv.shape), tuple(status.shape), sorted(q)[:3]
+        ((2, 2), (2,), ['d2', 'n_peaks', 'peak'])
+    """
+
+    def __init__(self, config: TrackerConfig | Mapping[str, Any] | None = None,
+                 **overrides: Any) -> None:
+        super().__init__()
+        if isinstance(config, TrackerConfig):
+            cfg = dataclasses.replace(config, **overrides) if overrides else config
+        else:
+            cfg = TrackerConfig.from_dict(config, **overrides)
+        self.config = cfg
+        self.stc = STC(cfg.window, cfg.target, alpha=cfg.alpha, beta=cfg.beta, rho=cfg.rho,
+                       sigma=cfg.sigma, eps=cfg.eps, scale_update=cfg.scale_update,
+                       scale_lambda=cfg.scale_lambda, scale_frames=cfg.scale_frames,
+                       peak=cfg.peak, temperature=cfg.temperature, crop=cfg.crop,
+                       exclude=cfg.exclude, learnable=cfg.learnable)
+        self.eakf = EAKF(cfg.frame_rate, lam=cfg.lam, a=cfg.a, b=cfg.b, q=cfg.q,
+                         r=(cfg.r_pos, cfg.r_disp), p0=cfg.p0, learnable=cfg.learnable)
+        self.guard = DriftGuard(cfg.psr0, cfg.psr_slope, cfg.second0, cfg.second_slope,
+                                cfg.gate, cfg.gate_slope, cfg.r_scale_max, cfg.rho_power,
+                                learnable=cfg.learnable)
+        if cfg.max_coast < 0 or not cfg.lost_std > 0:
+            raise TrackInputError("max_coast must be >= 0 and lost_std > 0")
+        self.timer = StepTimer(cfg.timing_window)
+        self.state: FusionState | None = None
+
+    # ------------------------------------------------------------------ functional core
+    def init_state(self, frames0: Tensor, uv0: Tensor) -> FusionState:
+        """Start B sequences at ``uv0`` in ``frames0``.
+
+        Args:
+            frames0: (B, Himg, Wimg) first grey frames (full frames or crops; uint8 or float).
+            uv0: (B, 2) feature point (u, v) in those frames (e.g. TIPM on the first clean
+                frame); must be finite and inside the frame.
+
+        Returns:
+            :class:`FusionState` at frame 0 (status TRACKED).
+        """
+        check_tensor(frames0, "frames0", ("B", "Himg", "Wimg"))
+        B, hi, wi = frames0.shape
+        check_tensor(uv0, "uv0", (B, 2))
+        check_device(uv0, "uv0", self.eakf.dt)
+        uvd = uv0.detach()
+        bad = ~torch.isfinite(uvd).all(dim=1) | (uvd[:, 0] < -0.5) | (uvd[:, 0] > wi - 0.5) \
+            | (uvd[:, 1] < -0.5) | (uvd[:, 1] > hi - 0.5)
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0, 0])
+            raise TrackInputError(f"uv0: sequence {i} starts at (u, v) = "
+                                  f"({float(uvd[i, 0]):.1f}, {float(uvd[i, 1]):.1f}), outside "
+                                  f"the {wi} x {hi} frame")
+        uv0 = as_float(uv0, self.eakf.dt)
+        stc = self.stc.init_state(frames0, uv0)
+        kf = self.eakf.init_state(uv0)
+        z = torch.zeros(B, dtype=torch.long, device=uv0.device)
+        return FusionState(stc=stc, kf=kf, mats=self.eakf.matrices(), coast=z,
+                           status=z.clone(), frame=0)
+
+    def step_state(self, state: FusionState, frames: Tensor
+                   ) -> tuple[FusionState, Tensor, Tensor, dict[str, Tensor]]:
+        """One EAKF-STC step on the next frames (pure: returns a new state).
+
+        Args:
+            state: current state.
+            frames: (B, Himg, Wimg) next grey frames.
+
+        Returns:
+            (new state, uv (B, 2), status (B,) int64 :class:`TrackStatus`, quality dict of (B,)
+            tensors: ``z`` (B, 2) raw STC measurement, ``trust``, ``psr``, ``second_ratio``,
+            ``n_peaks``, ``peak``, ``d2``, ``r_scale``, ``rho_scale``, ``std`` (position std,
+            px, the larger axis)).
+        """
+        B = state.coast.shape[0]
+        check_tensor(frames, "frames", ("B", "Himg", "Wimg"))
+        check_batch(frames, "frames", B)
+        cfg, m = self.config, state.mats
+        centre = state.kf.predict_uv(m.Phi)                            # 1. prediction
+        det = self.stc.detect(state.stc, frames, centre)               # 2. measurement
+        inn = self.eakf.innovation(state.kf, det.uv, m=m)              # 3. innovation
+        q = det.quality
+        trust, r_scale, rho_scale = self.guard(q["psr"], q["second_ratio"], inn.d2_pos)  # 4.
+        kf = self.eakf.update(state.kf, inn, r_scale, m=m, keep=trust)  # 5. filter
+        uv = kf.uv
+        stc = self.stc.learn(state.stc, frames, uv, rho_scale)         # 6. re-centre, learn
+        std = kf.uv_var.detach().amax(dim=1).clamp_min(0.0).sqrt()     # 7. status
+        distrusted = trust.detach() < 0.5
+        coast = torch.where(distrusted, state.coast + 1, torch.zeros_like(state.coast))
+        lost = (coast > cfg.max_coast) | (std > cfg.lost_std)
+        status = torch.where(lost, int(TrackStatus.LOST),
+                             torch.where(distrusted, int(TrackStatus.COASTING),
+                                         int(TrackStatus.TRACKED)))
+        quality = {"z": det.uv, "trust": trust, "psr": q["psr"],
+                   "second_ratio": q["second_ratio"], "n_peaks": q["n_peaks"], "peak": q["peak"],
+                   "d2": inn.d2_pos, "r_scale": r_scale, "rho_scale": rho_scale, "std": std}
+        new = FusionState(stc=stc, kf=kf, mats=m, coast=coast, status=status,
+                          frame=state.frame + 1)
+        return new, uv, status, quality
+
+    def detach(self, state: FusionState) -> FusionState:
+        """``state`` cut from the autograd graph, with parameter-derived caches rebuilt from the
+        current parameters (truncated BPTT; also call after an optimiser step)."""
+        return FusionState(stc=self.stc.detach_state(state.stc), kf=state.kf.detach(),
+                           mats=self.eakf.matrices(), coast=state.coast,
+                           status=state.status, frame=state.frame)
+
+    # ------------------------------------------------------------------ stateful API
+    def init(self, frames0: Tensor, uv0: Tensor) -> None:
+        """Start tracking (see :meth:`init_state`); the state is kept in ``self.state``."""
+        self.state = self.init_state(frames0, uv0)
+
+    def step(self, frames: Tensor) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+        """Track the next frames (B, Himg, Wimg): returns (uv (B, 2), status (B,), quality)."""
+        if self.state is None:
+            raise TrackInputError("EAKFSTC.step: call init(frames0, uv0) first")
+        dev = self.eakf.dt.device
+        self.timer.start(dev)
+        self.state, uv, status, q = self.step_state(self.state, frames)
+        self.timer.stop(dev)
+        return uv, status, q
+
+    def detach_state(self) -> None:
+        """Cut the kept state from the graph (truncated BPTT)."""
+        if self.state is not None:
+            self.state = self.detach(self.state)
+
+    def timings_ms(self) -> list[float]:
+        """Wall time of each :meth:`step` so far, in ms."""
+        return self.timer.ms()
+
+    def run_sequence(self, frames: Tensor, uv0: Tensor, detach_every: int | None = None
+                     ) -> TrackResult:
+        """Track whole sequences (training and batched evaluation).
+
+        Args:
+            frames: (B, T, Himg, Wimg) grey frames (uint8 or float).
+            uv0: (B, 2) feature point in frame 0.
+            detach_every: cut the autograd graph every this many frames (truncated BPTT);
+                None keeps the whole graph (when gradients are enabled).
+
+        Returns:
+            :class:`TrackResult` with uv (B, T, 2) (``uv[:, 0] = uv0``), status (B, T), the raw
+            STC measurement z (B, T, 2) and per-frame trust, psr, second_ratio, d2, std (B, T)
+            (frame 0: z = uv0, trust 1, d2 0, psr/second_ratio NaN-free placeholders 0).
+        """
+        check_tensor(frames, "frames", ("B", "T", "Himg", "Wimg"))
+        if detach_every is not None and detach_every < 1:
+            raise TrackInputError(f"detach_every: expected >= 1 or None, got {detach_every}")
+        B, T = frames.shape[:2]
+        state = self.init_state(frames[:, 0], uv0)
+        uv = state.kf.uv
+        zeros = uv.new_zeros(B)
+        cols: dict[str, list[Tensor]] = {
+            "uv": [uv], "z": [uv], "status": [state.status], "trust": [zeros + 1.0],
+            "psr": [zeros], "second_ratio": [zeros], "d2": [zeros], "std": [zeros]}
+        for t in range(1, T):
+            if detach_every and t % detach_every == 0:
+                state = self.detach(state)
+            state, uv, status, q = self.step_state(state, frames[:, t])
+            cols["uv"].append(uv)
+            cols["status"].append(status)
+            for k in ("z", "trust", "psr", "second_ratio", "d2", "std"):
+                cols[k].append(q[k])
+        out = {k: torch.stack(v, dim=1) for k, v in cols.items()}
+        self.state = state
+        return TrackResult(**out)

@@ -1,0 +1,154 @@
+"""One interface over every tracker the CLI and the benchmarks compare.
+
+``FrameTracker``: ``init(frame, uv)`` on the first frame, then ``update(frame) -> (uv, status)``
+per BGR frame. Peers: TIPM on every frame, plain STC, EAKF-STC (the torch modules, B = 1), and
+OpenCV's KCF, CSRT and MOSSE (a box around the feature point; the point keeps its offset in
+the box).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Protocol
+
+import cv2
+import numpy as np
+import torch
+
+from torchseam.core.errors import TorchseamError
+from torchseam.track.fusion import EAKFSTC, TrackStatus
+from torchseam.track.stc import STC
+from torchseam.vision.tipm import Tipm, red_response
+
+TRACKERS = ("eakf-stc", "stc", "tipm", "kcf", "csrt", "mosse")
+STATUS_NAMES = {int(s): s.name.lower() for s in TrackStatus}
+OPENCV_BOX_PX = 64  # side of the box the OpenCV trackers follow (twice the target, like STC)
+
+
+class FrameTracker(Protocol):
+    name: str
+
+    def init(self, frame: np.ndarray, uv: np.ndarray) -> None: ...
+
+    def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]: ...
+
+
+def grey_tensor(frame: np.ndarray) -> torch.Tensor:
+    """(1, H, W) float32 tensor of the red-stripe response the torch trackers see."""
+    return torch.from_numpy(red_response(frame)).to(torch.float32).unsqueeze(0)
+
+
+class TipmPerFrame:
+    """TIPM on every frame: no memory; a frame without a point is LOST (NaN)."""
+
+    name = "tipm"
+
+    def __init__(self) -> None:
+        self.tipm = Tipm()
+
+    def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
+        pass
+
+    def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
+        res = self.tipm(frame)
+        return res.uv, int(TrackStatus.TRACKED if res.ok else TrackStatus.LOST)
+
+
+class TorchTracker:
+    """EAKF-STC or plain STC from :mod:`torchseam.track`, one stream (B = 1)."""
+
+    def __init__(self, name: str, module: torch.nn.Module) -> None:
+        self.name = name
+        self.module = module.eval()
+
+    @torch.inference_mode()
+    def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
+        self.module.init(grey_tensor(frame), torch.tensor(np.asarray(uv)[None],
+                                                           dtype=torch.float32))
+
+    @torch.inference_mode()
+    def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
+        out = self.module.step(grey_tensor(frame))
+        uv = out[0][0].numpy().astype(float)
+        status = int(out[1][0]) if isinstance(self.module, EAKFSTC) else int(
+            TrackStatus.TRACKED)
+        return uv, status
+
+
+class OpenCVTracker:
+    """KCF / CSRT / MOSSE following a box centred on the feature point."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        makers: dict[str, Callable[[], object]] = {
+            "kcf": cv2.TrackerKCF_create, "csrt": cv2.TrackerCSRT_create,
+            "mosse": cv2.legacy.TrackerMOSSE_create}
+        self._make = makers[name]
+        self.offset = np.zeros(2)
+        self.last = np.full(2, np.nan)
+
+    def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
+        self.tracker = self._make()
+        h = OPENCV_BOX_PX // 2
+        box = (int(round(uv[0])) - h, int(round(uv[1])) - h, OPENCV_BOX_PX, OPENCV_BOX_PX)
+        self.offset = np.asarray(uv, float) - np.array([box[0] + h, box[1] + h])
+        self.tracker.init(frame, box)
+        self.last = np.asarray(uv, float)
+
+    def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
+        ok, box = self.tracker.update(frame)
+        if not ok:
+            return self.last, int(TrackStatus.LOST)
+        x, y, w, h = box
+        self.last = np.array([x + w / 2, y + h / 2]) + self.offset
+        return self.last, int(TrackStatus.TRACKED)
+
+
+def make_tracker(name: str, model: dict | None = None) -> FrameTracker:
+    """A tracker by CLI name (see ``TRACKERS``). ``model``: EAKF-STC config overrides."""
+    if name == "eakf-stc":
+        return TorchTracker(name, EAKFSTC(model or None))
+    if name == "stc":
+        return TorchTracker(name, STC())
+    if name == "tipm":
+        return TipmPerFrame()
+    if name in ("kcf", "csrt", "mosse"):
+        return OpenCVTracker(name)
+    raise TorchseamError(f"unknown tracker {name!r}: use one of {', '.join(TRACKERS)}")
+
+
+def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
+                progress: Callable[[int], None] | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """Track an iterable of BGR frames.
+
+    Args:
+        uv0: start point on frame 0; None: TIPM on frame 0 (it must find the stripe there).
+
+    Returns:
+        ``(uv (N, 2), status (N,), seconds (N,), init_note)``; frame 0 is the start point.
+    """
+    it = iter(frames)
+    try:
+        first = next(it)
+    except StopIteration:
+        raise TorchseamError("no frames to track") from None
+    note = "given"
+    if uv0 is None:
+        res = Tipm()(first)
+        if not res.ok:
+            raise TorchseamError(f"frame 0: TIPM cannot start the tracker ({res.reason}); "
+                                 "give the start point with --init U,V")
+        uv0, note = res.uv, "TIPM on frame 0"
+    tracker.init(first, np.asarray(uv0, float))
+    uvs, stats, secs = [np.asarray(uv0, float)], [int(TrackStatus.TRACKED)], [0.0]
+    for k, frame in enumerate(it, start=1):
+        t0 = time.perf_counter()
+        uv, st = tracker.update(frame)
+        secs.append(time.perf_counter() - t0)
+        uvs.append(np.asarray(uv, float))
+        stats.append(st)
+        if progress:
+            progress(k)
+    return np.stack(uvs), np.array(stats), np.array(secs), note

@@ -1,0 +1,792 @@
+"""STC: spatio-temporal context tracking (Zhang et al., ECCV 2014), batched and differentiable.
+
+METHOD.md section 2. Everything works on (B, H, W) context windows: B sequences step together,
+with no Python loop over the batch. Small functional ops (kornia style) plus the :class:`STC`
+module that holds the learnable parameters alpha, beta, rho, sigma (positive ones stored as logs,
+rho as a logit) and runs the tracker.
+
+Window convention: a context window of size (H, W) around the centre (u, v) holds image pixel
+(row v - H//2 + i, column u - W//2 + j) at index (i, j), so the centre sits at index
+(H//2, W//2), which is where the confidence map of eq. 1 peaks. Pixel coordinates are
+(u, v) = (column, row) with pixel centres at integers (OpenCV). Offsets returned by
+:func:`locate_peak` are (du, dv) from that centre index.
+
+Equations (METHOD.md numbering), all in the ``rfft2`` half spectrum (identical to ``fft2`` for
+real signals, half the work):
+
+- eq. 1   confidence map ``c(x) = b exp(-|x / alpha|^beta)``, normalised to sum 1 (that is b);
+- eq. 4-5 context prior ``(I(z) - mean I) * w_sigma(z)``, ``w_sigma = a exp(-|z|^2 / sigma^2)``
+  times a Hamming window, normalised to sum 1 (that is a);
+- eq. 8   ``h_sc = IFFT(FFT(c) / (FFT(prior) + eps))``;
+- eq. 9   ``H_stc <- (1 - rho) H_stc + rho h_sc``, ``H_stc = h_sc`` on the first frame;
+- eq. 10  ``c_t(x) = IFFT(FFT(H_stc) FFT(prior_t))``, the location is its peak.
+
+Reference-implementation details kept (the authors' MATLAB ``STC.m``): the patch mean is
+subtracted and the window applied after it, both maps are normalised to sum 1, sigma starts at
+the mean target side, eps is added in the division, the context is re-cropped at the new
+location for learning, border pixels are replicated, and the optional scale update
+``sigma <- sigma * s`` every frame with ``s <- (1 - lambda) s + lambda mean_5 sqrt(c_max[t] /
+c_max[t-1])`` every ``num + 2`` frames (lambda = 0.25, num = 5). Deliberate differences: the
+exponents follow METHOD.md (the MATLAB has ``exp(-0.5 r / alpha)`` and ``exp(-0.5 r^2 /
+sigma^2)``, i.e. alpha and sigma^2 doubled), the Hamming window is applied on both axes (the
+MATLAB uses ``hamming`` on rows and ``hann`` on columns), and the window centre is index H//2
+(the MATLAB's is H/2 - 1, 1-based H/2): a pure convention, it moves no result.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from torchseam.track._checks import (
+    TrackInputError,
+    as_float,
+    check_batch,
+    check_choice,
+    check_device,
+    check_size,
+    check_tensor,
+)
+from torchseam.track.config import MATLAB_EPS, TrackerConfig
+
+__all__ = [
+    "PEAK_MODES",
+    "CROP_MODES",
+    "STC",
+    "STCDetection",
+    "STCState",
+    "confidence_map",
+    "context_prior",
+    "extract_windows",
+    "fourier_shift",
+    "hamming_window_2d",
+    "learn_spatial_context",
+    "locate_peak",
+    "peak_quality",
+    "stc_response",
+    "update_context_model",
+    "weight_window",
+]
+
+PEAK_MODES = ("subpixel", "soft", "argmax")
+CROP_MODES = ("nearest", "bilinear")
+_D = TrackerConfig()  # the defaults
+
+
+def _offsets(n: int, ref: Tensor) -> Tensor:
+    """Index minus centre index, ``arange(n) - n // 2``, on ``ref``'s device and dtype."""
+    return torch.arange(n, device=ref.device, dtype=ref.dtype) - (n // 2)
+
+
+def _scalar(x: float | Tensor, ref: Tensor | None = None) -> Tensor:
+    if isinstance(x, Tensor):
+        return x
+    kw = {} if ref is None else {"device": ref.device, "dtype": ref.dtype}
+    return torch.tensor(float(x), **kw)
+
+
+# --------------------------------------------------------------------------- windows and maps
+
+def hamming_window_2d(size: Sequence[int], *, device: torch.device | str | None = None,
+                      dtype: torch.dtype | None = None) -> Tensor:
+    """Separable symmetric Hamming window ``hamming(H)[:, None] * hamming(W)[None, :]``.
+
+    Args:
+        size: (H, W).
+
+    Returns:
+        (H, W) tensor, 1 at the centre for odd sizes, 0.08 at the corners.
+
+    Example:
+        >>> hamming_window_2d((5, 5))[2, 2].item()
+        1.0
+    """
+    h, w = check_size(size, "size")
+    dtype = dtype or torch.get_default_dtype()
+    wh = torch.hamming_window(h, periodic=False, device=device, dtype=dtype)
+    ww = torch.hamming_window(w, periodic=False, device=device, dtype=dtype)
+    return wh[:, None] * ww[None, :]
+
+
+def confidence_map(size: Sequence[int], alpha: float | Tensor, beta: float | Tensor, *,
+                   device: torch.device | str | None = None,
+                   dtype: torch.dtype | None = None) -> Tensor:
+    """Target confidence map of eq. 1, ``exp(-|x / alpha|^beta)`` normalised to sum 1.
+
+    Args:
+        size: (H, W); the map peaks at index (H//2, W//2).
+        alpha, beta: positive scalars (floats or 0-dim tensors; gradients flow to tensors).
+
+    Returns:
+        (H, W) tensor summing to 1.
+
+    Example:
+        >>> c = confidence_map((64, 64), 2.25, 1.0)
+        >>> tuple(c.shape), int(c.argmax()) == 32 * 64 + 32
+        ((64, 64), True)
+    """
+    h, w = check_size(size, "size")
+    ref = alpha if isinstance(alpha, Tensor) else beta if isinstance(beta, Tensor) else None
+    if ref is not None:
+        device, dtype = device or ref.device, dtype or ref.dtype
+    dtype = dtype or torch.get_default_dtype()
+    proto = torch.empty(0, device=device, dtype=dtype)
+    r2 = _offsets(h, proto)[:, None] ** 2 + _offsets(w, proto)[None, :] ** 2
+    pos = r2 > 0
+    r = torch.sqrt(torch.where(pos, r2, torch.ones_like(r2)))  # safe at 0 for the gradient
+    alpha, beta = _scalar(alpha, proto), _scalar(beta, proto)
+    e = torch.where(pos, (r / alpha) ** beta, torch.zeros_like(r))
+    c = torch.exp(-e)
+    return c / c.sum()
+
+
+def weight_window(size: Sequence[int], sigma: float | Tensor, *, hamming: bool = True,
+                  device: torch.device | str | None = None,
+                  dtype: torch.dtype | None = None) -> Tensor:
+    """Focus window of eq. 5, ``exp(-|z|^2 / sigma^2)`` times a Hamming window, sum 1.
+
+    Args:
+        size: (H, W).
+        sigma: a positive scalar (float or 0-dim tensor) or a (B,) tensor, one per sequence.
+        hamming: multiply by :func:`hamming_window_2d` (reference implementation: yes).
+
+    Returns:
+        (H, W) for a scalar sigma, (B, H, W) for a (B,) sigma; each map sums to 1.
+
+    Example:
+        >>> weight_window((64, 64), torch.tensor([16.0, 32.0])).shape
+        torch.Size([2, 64, 64])
+    """
+    h, w = check_size(size, "size")
+    if isinstance(sigma, Tensor):
+        if sigma.ndim > 1:
+            raise TrackInputError(
+                f"sigma: expected a scalar or shape (B,), got {tuple(sigma.shape)}")
+        device, dtype = device or sigma.device, dtype or sigma.dtype
+    dtype = dtype or torch.get_default_dtype()
+    proto = torch.empty(0, device=device, dtype=dtype)
+    r2 = _offsets(h, proto)[:, None] ** 2 + _offsets(w, proto)[None, :] ** 2
+    sigma = _scalar(sigma, proto)
+    s2 = (sigma**2).reshape(sigma.shape + (1, 1))
+    win = torch.exp(-r2 / s2)
+    if hamming:
+        win = win * hamming_window_2d((h, w), device=proto.device, dtype=dtype)
+    return win / win.sum(dim=(-2, -1), keepdim=True)
+
+
+def extract_windows(frames: Tensor, centres: Tensor, size: Sequence[int], *,
+                    mode: str = "nearest", dtype: torch.dtype | None = None) -> Tensor:
+    """Crop (H, W) context windows around (u, v) centres, replicating border pixels.
+
+    ``mode="nearest"``: the centre is rounded to the nearest pixel and the window is an integer
+    gather (exact pixel values, like the reference ``get_context``); no gradient w.r.t. the
+    centres. ``mode="bilinear"``: an (H+1, W+1) integer gather at ``floor(centre)`` blended with
+    the fractional offset, i.e. bilinear sampling at exactly ``centre + offset`` (what
+    ``grid_sample(align_corners=True, padding_mode="border")`` gives, without turning the whole
+    frame into floats); differentiable w.r.t. the centres and the frames. Both crop only the
+    window, so uint8 frames stay cheap: only the (B, H, W) crop is converted.
+
+    Args:
+        frames: (B, Himg, Wimg) grey frames, any real dtype (uint8 is fine).
+        centres: (B, 2) float (u, v) = (column, row) window centres; any value (outside the
+            image the window replicates the border).
+        size: (H, W) of the window.
+        mode: ``"nearest"`` or ``"bilinear"``.
+        dtype: output dtype; default the frames' dtype if floating, else the centres' dtype.
+
+    Returns:
+        (B, H, W); pixel (i, j) samples the image at (row v - H//2 + i, column u - W//2 + j).
+
+    Example:
+        >>> img = torch.arange(100.0).reshape(1, 10, 10)
+        >>> extract_windows(img, torch.tensor([[4.0, 3.0]]), (3, 3))[0]
+        tensor([[23., 24., 25.],
+                [33., 34., 35.],
+                [43., 44., 45.]])
+    """
+    check_tensor(frames, "frames", ("B", "Himg", "Wimg"))
+    check_tensor(centres, "centres", (frames.shape[0], 2))
+    check_device(centres, "centres", frames)
+    check_choice(mode, "mode", CROP_MODES)
+    h, w = check_size(size, "size")
+    if dtype is None:
+        dtype = frames.dtype if frames.is_floating_point() else (
+            centres.dtype if centres.is_floating_point() else torch.get_default_dtype())
+    B, hi, wi = frames.shape
+    bidx = torch.arange(B, device=frames.device)[:, None, None]
+    if mode == "nearest":
+        c = torch.floor(centres.detach() + 0.5).long()
+        rows = (c[:, 1:2] + torch.arange(h, device=frames.device) - h // 2).clamp_(0, hi - 1)
+        cols = (c[:, 0:1] + torch.arange(w, device=frames.device) - w // 2).clamp_(0, wi - 1)
+        return frames[bidx, rows[:, :, None], cols[:, None, :]].to(dtype)
+    c0 = torch.floor(centres.detach())
+    frac = (centres - c0).to(dtype)  # (B, 2), carries the gradient w.r.t. the centres
+    c0 = c0.long()
+    rows = (c0[:, 1:2] + torch.arange(h + 1, device=frames.device) - h // 2).clamp_(0, hi - 1)
+    cols = (c0[:, 0:1] + torch.arange(w + 1, device=frames.device) - w // 2).clamp_(0, wi - 1)
+    p = frames[bidx, rows[:, :, None], cols[:, None, :]].to(dtype)  # (B, H+1, W+1)
+    fu = frac[:, 0, None, None]
+    fv = frac[:, 1, None, None]
+    top = p[:, :-1, :-1] + fu * (p[:, :-1, 1:] - p[:, :-1, :-1])
+    bot = p[:, 1:, :-1] + fu * (p[:, 1:, 1:] - p[:, 1:, :-1])
+    return top + fv * (bot - top)
+
+
+def context_prior(windows: Tensor, weight: Tensor) -> Tensor:
+    """Context prior of eq. 4: ``(I - mean(I)) * w_sigma`` per window.
+
+    Args:
+        windows: (B, H, W) grey context windows.
+        weight: (H, W) or (B, H, W) focus window (:func:`weight_window`).
+
+    Returns:
+        (B, H, W).
+
+    Example:
+        >>> context_prior(torch.ones(2, 8, 8), weight_window((8, 8), 4.0)).abs().max().item()
+        0.0
+    """
+    check_tensor(windows, "windows", ("B", "H", "W"))
+    if weight.shape[-2:] != windows.shape[-2:] or weight.ndim not in (2, 3):
+        raise TrackInputError(f"weight: expected shape {tuple(windows.shape[-2:])} or "
+                              f"(B, {windows.shape[-2]}, {windows.shape[-1]}), "
+                              f"got {tuple(weight.shape)}")
+    return (windows - windows.mean(dim=(-2, -1), keepdim=True)) * weight
+
+
+def learn_spatial_context(conf_f: Tensor, prior_f: Tensor, eps: float = MATLAB_EPS) -> Tensor:
+    """Spatial context model of eq. 8 in the frequency domain: ``FFT(c) / (FFT(prior) + eps)``.
+
+    Args:
+        conf_f: (H, W//2+1) ``rfft2`` of the confidence map (:func:`confidence_map`).
+        prior_f: (B, H, W//2+1) ``rfft2`` of the context priors (:func:`context_prior`).
+        eps: added to the denominator (the reference adds MATLAB's eps).
+
+    Returns:
+        (B, H, W//2+1) complex, ``rfft2(h_sc)``.
+
+    Example:
+        >>> c_f = torch.fft.rfft2(confidence_map((8, 8), 2.25, 1.0))
+        >>> p_f = torch.fft.rfft2(torch.randn(1, 8, 8, dtype=torch.float64).float())
+        >>> learn_spatial_context(c_f, p_f).shape
+        torch.Size([1, 8, 5])
+    """
+    return conf_f / (prior_f + eps)
+
+
+def fourier_shift(shift: Tensor, size: Sequence[int]) -> Tensor:
+    """Phase ramp that moves a map by ``shift`` (du, dv) px when multiplied onto its rfft2.
+
+    ``irfft2(rfft2(m) * fourier_shift(d, m.shape))`` is ``m`` circularly shifted by the
+    (sub-pixel) offset d, band-limited interpolation; a zero shift gives exactly 1. The tracker
+    uses it to centre the confidence map of eq. 1 on a sub-pixel target in an integer crop.
+
+    Args:
+        shift: (B, 2) offsets (du, dv), real.
+        size: (H, W) of the maps.
+
+    Returns:
+        (B, H, W//2+1) complex.
+
+    Example:
+        >>> m = confidence_map((16, 16), 2.25, 1.0)
+        >>> r = torch.fft.irfft2(torch.fft.rfft2(m) * fourier_shift(torch.tensor([[2.0, -1.0]]),
+        ...                      (16, 16)), s=(16, 16))
+        >>> torch.allclose(r[0], m.roll((-1, 2), (0, 1)), atol=1e-6)
+        True
+    """
+    h, w = check_size(size, "size")
+    check_tensor(shift, "shift", ("B", 2))
+    fy = torch.fft.fftfreq(h, device=shift.device, dtype=shift.dtype)
+    fx = torch.fft.rfftfreq(w, device=shift.device, dtype=shift.dtype)
+    ph_y = torch.polar(torch.ones_like(shift[:, 1:2] * fy), -2.0 * math.pi * shift[:, 1:2] * fy)
+    ph_x = torch.polar(torch.ones_like(shift[:, 0:1] * fx), -2.0 * math.pi * shift[:, 0:1] * fx)
+    return ph_y[:, :, None] * ph_x[:, None, :]
+
+
+def update_context_model(H_f: Tensor, h_f: Tensor, rho: Tensor | float) -> Tensor:
+    """Temporal update of eq. 9: ``(1 - rho) H_stc + rho h_sc`` (in the frequency domain).
+
+    Args:
+        H_f: (B, H, W//2+1) current spatio-temporal model.
+        h_f: (B, H, W//2+1) spatial model of this frame (:func:`learn_spatial_context`).
+        rho: learning rate, a scalar or (B,) (e.g. scaled per sequence by the fusion's trust).
+
+    Returns:
+        (B, H, W//2+1).
+
+    Example:
+        >>> update_context_model(torch.zeros(1, 2, 2), torch.ones(1, 2, 2), 0.25).sum().item()
+        1.0
+    """
+    if isinstance(rho, Tensor) and rho.ndim == 1:
+        rho = rho[:, None, None]
+    return H_f + rho * (h_f - H_f)
+
+
+def stc_response(H_f: Tensor, prior_f: Tensor, size: Sequence[int]) -> Tensor:
+    """Confidence map of a new frame, eq. 10: ``IFFT(FFT(H_stc) FFT(prior))``.
+
+    Args:
+        H_f: (B, H, W//2+1) spatio-temporal model.
+        prior_f: (B, H, W//2+1) ``rfft2`` of the new frame's context prior.
+        size: (H, W) of the windows (needed to invert the half spectrum).
+
+    Returns:
+        (B, H, W) real confidence map; the target is at its peak.
+
+    Example:
+        >>> c = confidence_map((8, 8), 2.25, 1.0)
+        >>> p_f = torch.fft.rfft2(torch.randn(1, 8, 8))
+        >>> r = stc_response(learn_spatial_context(torch.fft.rfft2(c), p_f), p_f, (8, 8))
+        >>> torch.allclose(r[0], c, atol=1e-5)
+        True
+    """
+    return torch.fft.irfft2(H_f * prior_f, s=tuple(size))
+
+
+# --------------------------------------------------------------------------- peaks
+
+def locate_peak(response: Tensor, mode: str = "subpixel",
+                temperature: float | Tensor = 0.05) -> Tensor:
+    """Peak of (B, H, W) confidence maps as (du, dv) offsets from the centre index (H//2, W//2).
+
+    Modes:
+        ``"argmax"``: integer argmax (eq. 11, the reference); no gradient.
+        ``"subpixel"``: argmax refined by a 1-D parabola through the peak and its two neighbours
+            on each axis (neighbours wrap, like the circular map), clamped to +-0.5 px;
+            differentiable w.r.t. the map values (inference default, also fine for training).
+        ``"soft"``: soft-argmax, ``softmax(m / T)`` over the map normalised as
+            ``m = (c - mean) / (max - mean)`` (so T is scale-free: T = 0.05 puts the peak 20
+            logits above the mean); fully differentiable, the training option.
+
+    Args:
+        response: (B, H, W) confidence maps.
+        mode: see above.
+        temperature: T > 0 for ``"soft"`` (float or 0-dim tensor, learnable).
+
+    Returns:
+        (B, 2) float offsets (du, dv) in pixels.
+
+    Example:
+        >>> c = confidence_map((16, 16), 2.25, 1.0).roll((2, -3), (0, 1))[None]
+        >>> locate_peak(c, "argmax")
+        tensor([[-3.,  2.]])
+    """
+    check_tensor(response, "response", ("B", "H", "W"))
+    check_choice(mode, "mode", PEAK_MODES)
+    B, h, w = response.shape
+    flat = response.reshape(B, h * w)
+    if mode == "soft":
+        mean = flat.mean(dim=1, keepdim=True)
+        top = flat.amax(dim=1, keepdim=True)
+        m = (flat - mean) / (top - mean).clamp_min(torch.finfo(flat.dtype).tiny)
+        p = torch.softmax(m / temperature, dim=1).reshape(B, h, w)
+        du = (p.sum(dim=1) * _offsets(w, flat)).sum(dim=1)
+        dv = (p.sum(dim=2) * _offsets(h, flat)).sum(dim=1)
+        return torch.stack([du, dv], dim=1)
+    idx = flat.argmax(dim=1)
+    i, j = idx // w, idx % w
+    if mode == "argmax":
+        return torch.stack([j - w // 2, i - h // 2], dim=1).to(response.dtype)
+    # values at the peak and its 4 neighbours in one gather: centre, up, down, left, right
+    rows = torch.stack([i, i - 1, i + 1, i, i], dim=1) % h
+    cols = torch.stack([j, j, j, j - 1, j + 1], dim=1) % w
+    bidx = torch.arange(B, device=response.device)[:, None]
+    v = response[bidx, rows, cols]  # (B, 5)
+    prev = torch.stack([v[:, 3], v[:, 1]], dim=1)  # (left, up)
+    nxt = torch.stack([v[:, 4], v[:, 2]], dim=1)   # (right, down)
+    den = prev - 2.0 * v[:, :1] + nxt
+    ok = den < 0
+    d = 0.5 * (prev - nxt) / torch.where(ok, den, -torch.ones_like(den))
+    d = torch.where(ok, d, torch.zeros_like(d)).clamp(-0.5, 0.5)
+    base = torch.stack([j - w // 2, i - h // 2], dim=1).to(response.dtype)
+    return base + d
+
+
+def peak_quality(response: Tensor, exclude: int = 5) -> dict[str, Tensor]:
+    """Peak-quality scores of (B, H, W) confidence maps (the drift guard's inputs).
+
+    - ``peak``: the maximum value.
+    - ``psr``: peak-to-sidelobe ratio ``(peak - mean_s) / std_s`` over the sidelobe, i.e. the
+      map outside the (2 exclude + 1)^2 square around the peak (sharpness; scale-free).
+    - ``second_ratio``: ``(c2 - mean_s) / (peak - mean_s)`` clamped to [0, 1], where c2 is the
+      highest local maximum (3x3) outside that square: ~0 for one clean peak, ~1 when another
+      peak competes (the multi-peak failure of METHOD.md section 2).
+    - ``n_peaks``: local maxima above half the peak height (counted from mean_s), the main peak
+      included (int64, no gradient).
+
+    ``peak``, ``psr`` and ``second_ratio`` are differentiable almost everywhere.
+
+    Args:
+        response: (B, H, W) confidence maps.
+        exclude: half-size of the square around the peak left out of the sidelobe.
+
+    Returns:
+        dict of (B,) tensors.
+
+    Example:
+        >>> q = peak_quality(confidence_map((32, 32), 2.25, 1.0)[None])
+        >>> bool(q["psr"] > 10), q["n_peaks"].tolist()
+        (True, [1])
+    """
+    check_tensor(response, "response", ("B", "H", "W"))
+    B, h, w = response.shape
+    flat = response.reshape(B, h * w)
+    peak, idx = flat.max(dim=1)
+    i, j = idx // w, idx % w
+    ar_h = torch.arange(h, device=response.device)
+    ar_w = torch.arange(w, device=response.device)
+    near = (((ar_h[None, :] - i[:, None]).abs() <= exclude)[:, :, None]
+            & ((ar_w[None, :] - j[:, None]).abs() <= exclude)[:, None, :])
+    far = ~near
+    farf = far.to(response.dtype)
+    n = farf.sum(dim=(1, 2)).clamp_min(1.0)
+    mean_s = (response * farf).sum(dim=(1, 2)) / n
+    dev = (response - mean_s[:, None, None]) * farf
+    var_s = (dev * dev).sum(dim=(1, 2)) / n
+    tiny = torch.finfo(response.dtype).tiny
+    height = (peak - mean_s).clamp_min(tiny)
+    psr = (peak - mean_s) / torch.sqrt(var_s.clamp_min(tiny))
+    local = response >= F.max_pool2d(response[:, None], 3, stride=1, padding=1)[:, 0]
+    cand = local & far
+    has = cand.flatten(1).any(dim=1)
+    second = torch.where(cand, response, torch.full_like(response, -torch.inf)).amax(dim=(1, 2))
+    second = torch.where(has, second, mean_s)
+    second_ratio = ((second - mean_s) / height).clamp(0.0, 1.0)
+    strong = cand & (response - mean_s[:, None, None] > 0.5 * height[:, None, None])
+    n_peaks = 1 + strong.flatten(1).sum(dim=1)
+    return {"peak": peak, "psr": psr, "second_ratio": second_ratio, "n_peaks": n_peaks}
+
+
+# --------------------------------------------------------------------------- module
+
+@dataclass
+class STCState:
+    """Per-batch tracker state (all tensors batched over B sequences).
+
+    Attributes:
+        H_f: (B, H, W//2+1) complex, rfft2 of the spatio-temporal context model H_stc.
+        pos: (B, 2) current (u, v) location.
+        sigma: (B,) current focus width (changes only with the scale update).
+        scale: (B,) scale factor s of the scale update.
+        maxconf: (B, n) the last n <= num + 1 values of c_max (scale update only).
+        frame: number of frames learned so far (the reference's 1-based frame index).
+        window: (H, W) or (B, H, W) focus window w_sigma (cached, derived from sigma).
+        conf_f: (H, W//2+1) rfft2 of the confidence map (cached, derived from alpha, beta).
+    """
+
+    H_f: Tensor
+    pos: Tensor
+    sigma: Tensor
+    scale: Tensor
+    maxconf: Tensor
+    frame: int
+    window: Tensor
+    conf_f: Tensor
+
+    def detach(self) -> STCState:
+        """A copy cut from the autograd graph (truncated BPTT). Cached parameter-derived
+        tensors must be rebuilt afterwards: use :meth:`STC.detach_state`."""
+        return STCState(**{f.name: (v.detach() if isinstance(v, Tensor) else v)
+                           for f in fields(self) for v in [getattr(self, f.name)]})
+
+
+@dataclass
+class STCDetection:
+    """Result of :meth:`STC.detect` on one frame.
+
+    Attributes:
+        uv: (B, 2) located (u, v) (crop centre + peak offset).
+        centre: (B, 2) the centre the window was cropped at (rounded in ``"nearest"`` mode).
+        response: (B, H, W) confidence map (eq. 10).
+        quality: :func:`peak_quality` of the response.
+    """
+
+    uv: Tensor
+    centre: Tensor
+    response: Tensor
+    quality: dict[str, Tensor]
+
+
+class STC(nn.Module):
+    """Batched spatio-temporal context tracker (METHOD.md section 2).
+
+    Functional core: :meth:`init_state`, :meth:`detect` (eq. 10-11), :meth:`learn` (eq. 8-9,
+    scale update), :meth:`track` (plain STC: detect at the last location, learn at the new one).
+    Stateful convenience: :meth:`init`, :meth:`step`; whole sequences: :meth:`forward`.
+
+    Parameters (0-dim; ``nn.Parameter`` when ``learnable`` else buffers), read through the
+    properties ``alpha``, ``beta``, ``rho``, ``sigma``, ``temperature``: stored as
+    ``log_alpha``, ``log_beta``, ``logit_rho``, ``log_sigma``, ``log_temperature`` so that
+    gradient steps keep them positive (rho in (0, 1)).
+
+    For inference wrap the calls in ``torch.inference_mode()`` (no autograd bookkeeping).
+
+    Args:
+        window: (H, W) context window, twice the target (METHOD.md).
+        target: (h, w) target size; sigma defaults to its mean side.
+        alpha, beta: confidence map shape (eq. 1); paper 2.25, 1.
+        rho: learning rate (eq. 9); paper 0.075.
+        sigma: initial focus width (eq. 5); default ``mean(target)``.
+        eps: added in the eq. 8 division.
+        scale_update: enable the reference's scale update (lambda ``scale_lambda`` over
+            ``scale_frames`` frames).
+        peak: ``"subpixel"`` | ``"soft"`` | ``"argmax"`` (:func:`locate_peak`).
+        temperature: soft-argmax temperature.
+        crop: ``"nearest"`` | ``"bilinear"`` (:func:`extract_windows`).
+        exclude: half-size of the peak area left out of the sidelobe (:func:`peak_quality`).
+        learnable: register alpha, beta, rho, sigma, temperature as parameters.
+
+    Example:
+        >>> frames = torch.rand(2, 5, 120, 160)
+        >>> uv, q = STC(window=(32, 32), target=(16, 16))(frames, torch.tensor([[80., 60.]] * 2))
+        >>> tuple(uv.shape), tuple(q["psr"].shape)
+        ((2, 5, 2), (2, 5))
+    """
+
+    def __init__(self, window: Sequence[int] = _D.window, target: Sequence[int] = _D.target, *,
+                 alpha: float = _D.alpha, beta: float = _D.beta, rho: float = _D.rho,
+                 sigma: float | None = _D.sigma, eps: float = _D.eps,
+                 scale_update: bool = _D.scale_update, scale_lambda: float = _D.scale_lambda,
+                 scale_frames: int = _D.scale_frames, peak: str = _D.peak,
+                 temperature: float = _D.temperature, crop: str = _D.crop,
+                 exclude: int = _D.exclude, learnable: bool = _D.learnable) -> None:
+        super().__init__()
+        self.window_size = check_size(window, "window")
+        self.target_size = tuple(int(t) for t in target)
+        if len(self.target_size) != 2 or min(self.target_size) < 1:
+            raise TrackInputError(f"target: expected (h, w), two positive integers, got {target!r}")
+        self.peak = check_choice(peak, "peak", PEAK_MODES)
+        self.crop = check_choice(crop, "crop", CROP_MODES)
+        if sigma is None:
+            sigma = float(sum(target)) / len(target)
+        for name, val in (("alpha", alpha), ("beta", beta), ("sigma", sigma),
+                          ("temperature", temperature)):
+            if not val > 0:
+                raise TrackInputError(f"{name}: expected > 0, got {val}")
+        if not eps >= 0:
+            raise TrackInputError(f"eps: expected >= 0, got {eps}")
+        if not 0.0 < rho < 1.0:
+            raise TrackInputError(f"rho: expected in (0, 1), got {rho}")
+        if not 0.0 <= scale_lambda <= 1.0 or scale_frames < 1:
+            raise TrackInputError("scale_lambda must lie in [0, 1] and scale_frames be >= 1")
+        self.eps = float(eps)
+        self.scale_update = bool(scale_update)
+        self.scale_lambda = float(scale_lambda)
+        self.scale_frames = int(scale_frames)
+        self.exclude = int(exclude)
+        raw = {"log_alpha": math.log(alpha), "log_beta": math.log(beta),
+               "logit_rho": math.log(rho / (1.0 - rho)), "log_sigma": math.log(sigma),
+               "log_temperature": math.log(temperature)}
+        for name, v in raw.items():
+            t = torch.tensor(v, dtype=torch.get_default_dtype())
+            if learnable:
+                self.register_parameter(name, nn.Parameter(t))
+            else:
+                self.register_buffer(name, t)
+        self.state: STCState | None = None
+
+    # ------------------------------------------------------------------ parameters
+    @property
+    def alpha(self) -> Tensor:
+        return self.log_alpha.exp()
+
+    @property
+    def beta(self) -> Tensor:
+        return self.log_beta.exp()
+
+    @property
+    def rho(self) -> Tensor:
+        return torch.sigmoid(self.logit_rho)
+
+    @property
+    def sigma(self) -> Tensor:
+        return self.log_sigma.exp()
+
+    @property
+    def temperature(self) -> Tensor:
+        return self.log_temperature.exp()
+
+    def extra_repr(self) -> str:
+        return (f"window={self.window_size}, target={self.target_size}, peak={self.peak!r}, "
+                f"crop={self.crop!r}, scale_update={self.scale_update}")
+
+    # ------------------------------------------------------------------ functional core
+    def _check_frames(self, frames: Tensor, name: str, batch: int | None = None) -> Tensor:
+        check_tensor(frames, name, ("B", "Himg", "Wimg"))
+        check_device(frames, name, self.log_alpha)
+        if batch is not None:
+            check_batch(frames, name, batch)
+        return frames
+
+    def _window(self, sigma: Tensor) -> Tensor:
+        ref = self.log_alpha
+        return weight_window(self.window_size, sigma, device=ref.device, dtype=ref.dtype)
+
+    def _prior_f(self, frames: Tensor, centres: Tensor, window: Tensor) -> tuple[Tensor, Tensor]:
+        win = extract_windows(frames, centres, self.window_size, mode=self.crop,
+                              dtype=self.log_alpha.dtype)
+        return torch.fft.rfft2(context_prior(win, window)), win
+
+    def init_state(self, frames0: Tensor, uv0: Tensor) -> STCState:
+        """Learn the first model (H_stc = h_sc, eq. 9) on ``frames0`` at ``uv0``.
+
+        Args:
+            frames0: (B, Himg, Wimg) first grey frames (or crops containing the target).
+            uv0: (B, 2) initial (u, v) of the target (e.g. from TIPM).
+
+        Returns:
+            The :class:`STCState` after frame 1.
+        """
+        self._check_frames(frames0, "frames0")
+        B = frames0.shape[0]
+        check_tensor(uv0, "uv0", (B, 2))
+        check_device(uv0, "uv0", self.log_alpha)
+        ref = self.log_alpha
+        uv0 = as_float(uv0, ref)
+        sigma = self.sigma.expand(B)
+        window = self._window(sigma if self.scale_update else self.sigma)
+        conf_f = torch.fft.rfft2(confidence_map(self.window_size, self.alpha, self.beta))
+        state = STCState(H_f=conf_f.new_zeros((B,) + conf_f.shape), pos=uv0, sigma=sigma,
+                         scale=torch.ones(B, device=ref.device, dtype=ref.dtype),
+                         maxconf=uv0.new_zeros((B, 0)), frame=0, window=window, conf_f=conf_f)
+        return self.learn(state, frames0, uv0)
+
+    def detect(self, state: STCState, frames: Tensor, centre: Tensor | None = None
+               ) -> STCDetection:
+        """Confidence map (eq. 10) of ``frames`` around ``centre`` and its peak (eq. 11).
+
+        Args:
+            state: current state.
+            frames: (B, Himg, Wimg) new grey frames.
+            centre: (B, 2) where to crop; default ``state.pos`` (plain STC).
+
+        Returns:
+            :class:`STCDetection` with ``uv`` (B, 2), ``response`` (B, H, W) and quality.
+        """
+        B = state.pos.shape[0]
+        self._check_frames(frames, "frames", B)
+        centre = state.pos if centre is None else centre
+        check_tensor(centre, "centre", (B, 2))
+        prior_f, _ = self._prior_f(frames, centre, state.window)
+        resp = stc_response(state.H_f, prior_f, self.window_size)
+        off = locate_peak(resp, self.peak, self.log_temperature.exp())
+        base = torch.floor(centre.detach() + 0.5) if self.crop == "nearest" else centre
+        base = as_float(base, resp)
+        return STCDetection(uv=base + off, centre=base, response=resp,
+                            quality=peak_quality(resp, self.exclude))
+
+    def learn(self, state: STCState, frames: Tensor, centre: Tensor,
+              rho_scale: Tensor | None = None) -> STCState:
+        """Learn h_sc at ``centre`` (eq. 8) and update H_stc (eq. 9); the reference's scale
+        update when enabled.
+
+        Args:
+            state: current state.
+            frames: (B, Himg, Wimg) grey frames (the same frame that was just detected in).
+            centre: (B, 2) target location to learn at (the window is re-cropped there).
+            rho_scale: optional (B,) factor in [0, 1] on rho (the fusion slows learning on
+                distrusted frames); the first frame ignores it (H_stc = h_sc).
+
+        Returns:
+            The new state (``pos`` = ``centre``).
+        """
+        B = state.pos.shape[0]
+        self._check_frames(frames, "frames", B)
+        check_tensor(centre, "centre", (B, 2))
+        prior_f, _ = self._prior_f(frames, centre, state.window)
+        f = state.frame + 1  # the reference's 1-based frame index
+        scale, maxconf = state.scale, state.maxconf
+        if self.scale_update and f > 1:
+            mc = stc_response(state.H_f, prior_f, self.window_size).amax(dim=(1, 2))
+            maxconf = torch.cat([maxconf, mc[:, None]], dim=1)[:, -(self.scale_frames + 1):]
+            if f % (self.scale_frames + 2) == 0:
+                m = maxconf.clamp_min(torch.finfo(mc.dtype).tiny)
+                s = torch.sqrt(m[:, 1:] / m[:, :-1]).mean(dim=1)
+                scale = (1.0 - self.scale_lambda) * scale + self.scale_lambda * s
+        conf_f = state.conf_f
+        if self.crop == "nearest":  # target at centre - round(centre) in the window
+            conf_f = conf_f * fourier_shift(centre - torch.floor(centre.detach() + 0.5),
+                                            self.window_size)
+        h_f = learn_spatial_context(conf_f, prior_f, self.eps)
+        if f == 1:
+            H_f = h_f
+        else:
+            rho = self.rho if rho_scale is None else self.rho * rho_scale
+            H_f = update_context_model(state.H_f, h_f, rho)
+        sigma, window = state.sigma, state.window
+        if self.scale_update:  # sigma <- sigma * s at the start of the next frame
+            sigma = sigma * scale
+            window = self._window(sigma)
+        return STCState(H_f=H_f, pos=centre, sigma=sigma, scale=scale, maxconf=maxconf,
+                        frame=f, window=window, conf_f=state.conf_f)
+
+    def track(self, state: STCState, frames: Tensor
+              ) -> tuple[STCState, Tensor, dict[str, Tensor]]:
+        """One plain-STC step: detect around ``state.pos``, learn at the new location.
+
+        Args:
+            state: current state.
+            frames: (B, Himg, Wimg) new grey frames.
+
+        Returns:
+            (new state, uv (B, 2), quality dict of (B,) tensors).
+        """
+        det = self.detect(state, frames)
+        return self.learn(state, frames, det.uv), det.uv, det.quality
+
+    def detach_state(self, state: STCState) -> STCState:
+        """Cut ``state`` from the graph and rebuild its cached window / confidence spectrum
+        from the current parameters (call between truncated-BPTT chunks and after an
+        optimiser step)."""
+        s = state.detach()
+        s.sigma = s.sigma * (self.sigma / self.sigma.detach())  # keep the scale history
+        s.window = self._window(s.sigma if self.scale_update else self.sigma)
+        s.conf_f = torch.fft.rfft2(confidence_map(self.window_size, self.alpha, self.beta))
+        return s
+
+    # ------------------------------------------------------------------ stateful API
+    def init(self, frames0: Tensor, uv0: Tensor) -> None:
+        """Start tracking B sequences (see :meth:`init_state`); keeps the state."""
+        self.state = self.init_state(frames0, uv0)
+
+    def step(self, frames: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """Track one frame (plain STC); returns (uv (B, 2), quality dict of (B,))."""
+        if self.state is None:
+            raise TrackInputError("STC.step: call init(frames0, uv0) first")
+        self.state, uv, q = self.track(self.state, frames)
+        return uv, q
+
+    def forward(self, frames: Tensor, uv0: Tensor, detach_every: int | None = None
+                ) -> tuple[Tensor, dict[str, Tensor]]:
+        """Plain STC over whole sequences.
+
+        Args:
+            frames: (B, T, Himg, Wimg) grey frames.
+            uv0: (B, 2) target location in frame 0.
+            detach_every: cut the graph every this many frames (truncated BPTT).
+
+        Returns:
+            uv (B, T, 2) with ``uv[:, 0] = uv0``; quality dict of (B, T) tensors (frame 0: the
+            quality of the model's response to its own training frame).
+        """
+        check_tensor(frames, "frames", ("B", "T", "Himg", "Wimg"))
+        B, T = frames.shape[:2]
+        state = self.init_state(frames[:, 0], uv0)
+        prior0, _ = self._prior_f(frames[:, 0], state.pos, state.window)
+        q0 = peak_quality(stc_response(state.H_f, prior0, self.window_size), self.exclude)
+        uvs, qs = [state.pos], [q0]
+        for t in range(1, T):
+            if detach_every and t % detach_every == 0:
+                state = self.detach_state(state)
+            state, uv, q = self.track(state, frames[:, t])
+            uvs.append(uv)
+            qs.append(q)
+        return torch.stack(uvs, dim=1), {k: torch.stack([q[k] for q in qs], dim=1) for k in q0}
+
