@@ -253,8 +253,9 @@ def test_pose_mode_guards_every_target():
         assert link.stats.refused[reason] == 1
 
     refused("step_too_large", FB_POS + [4.0, 0, 0], static=False)
-    turned = np.array([0.0, math.sin(math.radians(1.0)), math.cos(math.radians(1.0)), 0.0])
-    refused("rotation_step_too_large", FB_POS + [1.5, 0, 0], turned, static=False)  # 2 deg
+    half = math.radians(link.config.safety.max_step_deg + 1.0) / 2  # 1 deg past the limit
+    turned = np.array([0.0, math.sin(half), math.cos(half), 0.0])
+    refused("rotation_step_too_large", FB_POS + [1.5, 0, 0], turned, static=False)
     refused("bad_quaternion", FB_POS + [1.5, 0, 0], FB_QUAT * 0.9)
     refused("non_finite", FB_POS + [1.5, math.nan, 0])
     refused("gate", FB_POS + [1.5, 60.0, 0])

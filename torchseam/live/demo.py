@@ -63,7 +63,7 @@ class DemoResult:
 
 
 def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: float, seed: int,
-             faults: tuple[str, ...] = (), segments: str = "abcdef", tracker: str = "eakf-stc",
+             faults: tuple[str, ...] = (), segments: str = "abcdef", tracker: str = "anchored",
              video: cv2.VideoWriter | None = None, progress=None,
              length_mm: float | None = None) -> DemoResult:
     """Weld the ring; returns everything the report needs. ``length_mm`` welds only the first

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from torchseam.core.config import CONFIG_DIR, CellConfig, load_config
+from torchseam.core.transforms import quat_to_matrix
 from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
 from torchseam.live.locate import Location, SeamLocator
 from torchseam.plan.path import LookAheadBuffer, PlanConfig, load_plan_config
@@ -201,6 +202,10 @@ class LiveLoop:
         if nxt is None:
             return self._hold("nothing located a step ahead of the torch")
         ip, tangent, arms = nxt
+        if tangent is None:
+            # too little of the seam seen to fit its direction (the start of a segment): keep
+            # the torch's present travel direction rather than guess from a chord
+            tangent = quat_to_matrix(self.last_q.numpy())[:, 0]
         if self.last_trusted is None or self._beyond(ip, self.last_trusted, tangent,
                                                       self.cfg.max_blind_mm):
             return self._hold(f"no trusted measurement within {self.cfg.max_blind_mm:g} mm "

@@ -48,7 +48,7 @@ class SegmentRun:
 
 
 def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: float, seed: int,
-             tracker: str = "eakf-stc", segments: list[int] | None = None,
+             tracker: str = "anchored", segments: list[int] | None = None,
              progress: Callable[[int], None] | None = None) -> list[SegmentRun]:
     """Weld the ring in open loop; returns one :class:`SegmentRun` per segment.
 
@@ -118,6 +118,8 @@ def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: f
         if nxt is None:
             break
         ip, tangent, arm_dirs = nxt
+        if tangent is None:
+            tangent = (ip - cp) / np.linalg.norm(ip - cp)
         travelled += float(np.linalg.norm(ip - cp))
         run.command_t.append(min(buf.points, key=lambda L: np.linalg.norm(L.p - ip)).t_s)
         ips.append(ip)

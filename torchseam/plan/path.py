@@ -162,8 +162,8 @@ class LookAheadBuffer:
 
     def next_command(self, cp: np.ndarray, step_mm: float
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """IPI step from cp: ``(ip (3,), tangent (3,), arm_dirs (2, 3))`` or None when nothing
-        is located a step ahead yet.
+        """IPI step from cp: ``(ip (3,), tangent (3,) or None, arm_dirs (2, 3))`` or None when
+        nothing is located a step ahead yet (tangent None: too few points around np to fit).
 
         np is the first buffered point at least one step from cp (smoothed); points the torch
         has passed are dropped. ``arm_dirs`` are the smoothed unit arm directions at np, for the
@@ -177,6 +177,4 @@ class LookAheadBuffer:
         if target is None:
             return None
         p_np, tangent, arm_dirs = self.fit(target)
-        if tangent is None:  # too little seen yet: head for the located point
-            tangent = (p_np - cp) / np.linalg.norm(p_np - cp)
         return ipi_step(cp, p_np, step_mm), tangent, arm_dirs

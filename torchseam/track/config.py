@@ -57,6 +57,8 @@ class TrackerConfig:
     second_slope: float = 15.0
     gate: float = 4.0                        # Mahalanobis gate (sigmas)
     gate_slope: float = 2.0                  # per sigma
+    spread0: float = 1.0                     # gate size (px) with no penalty ...
+    spread_slope: float = 2.0                # ... and the penalty's log slope (PDA: 2)
     r_scale_max: float = 1.0e4               # R inflation of a fully distrusted measurement
     rho_power: float = 2.0                   # rho scale = trust ** rho_power
     # --- status

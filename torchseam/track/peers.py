@@ -1,9 +1,10 @@
 """One interface over every tracker the CLI and the benchmarks compare.
 
 ``FrameTracker``: ``init(frame, uv)`` on the first frame, then ``update(frame) -> (uv, status)``
-per BGR frame. Peers: TIPM on every frame, plain STC, EAKF-STC (the torch modules, B = 1), and
-OpenCV's KCF, CSRT and MOSSE (a box around the feature point; the point keeps its offset in
-the box).
+per BGR frame. Peers: TIPM on every frame, plain STC, EAKF-STC (the torch modules, B = 1),
+``anchored`` (EAKF-STC re-anchored by TIPM whenever TIPM finds a clean corner next to it: the
+live loop's default, see :class:`AnchoredTracker`), and OpenCV's KCF, CSRT and MOSSE (a box
+around the feature point; the point keeps its offset in the box).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from torchseam.track.fusion import EAKFSTC, TrackStatus
 from torchseam.track.stc import STC
 from torchseam.vision.tipm import Tipm, red_response
 
-TRACKERS = ("eakf-stc", "stc", "tipm", "kcf", "csrt", "mosse")
+TRACKERS = ("eakf-stc", "anchored", "stc", "tipm", "kcf", "csrt", "mosse")
 STATUS_NAMES = {int(s): s.name.lower() for s in TrackStatus}
 OPENCV_BOX_PX = 64  # side of the box the OpenCV trackers follow (twice the target, like STC)
 
@@ -105,10 +106,58 @@ class OpenCVTracker:
         return self.last, int(TrackStatus.TRACKED)
 
 
+class AnchoredTracker:
+    """EAKF-STC with TIPM as an absolute anchor (the paper's division of labour, per frame).
+
+    Each frame EAKF-STC tracks; TIPM then looks for the stripe corner in a window around the
+    tracked point. When it finds a clean corner (its own residual and corner-angle tests)
+    within ``gate_px`` of the track, that point is the output and, if the two disagree by more
+    than ``reanchor_px``, EAKF-STC is re-initialised on it. Under arc light TIPM mostly finds
+    nothing usable and EAKF-STC carries the track alone. Why: in closed loop every tracking
+    error moves the robot, which moves the image; a purely relative tracker can walk away
+    with its own error, an absolute detection cannot.
+    """
+
+    name = "anchored"
+
+    def __init__(self, model: dict | None = None, window_px: int = 110, gate_px: float = 12.0,
+                 reanchor_px: float = 1.5) -> None:
+        self.inner = TorchTracker("eakf-stc", EAKFSTC(model or None))
+        self.tipm = Tipm()
+        self.window_px, self.gate_px, self.reanchor_px = window_px, gate_px, reanchor_px
+
+    def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
+        self.inner.init(frame, uv)
+
+    def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
+        uv, status = self.inner.update(frame)
+        if not np.all(np.isfinite(uv)):
+            return uv, status
+        h, w = frame.shape[:2]
+        x0 = int(np.clip(uv[0] - self.window_px, 0, w - 1))
+        y0 = int(np.clip(uv[1] - self.window_px, 0, h - 1))
+        roi = np.ascontiguousarray(frame[y0:int(uv[1]) + self.window_px + 1,
+                                         x0:int(uv[0]) + self.window_px + 1])
+        if roi.shape[0] < 16 or roi.shape[1] < 16:
+            return uv, status
+        res = self.tipm(roi)
+        if not res.ok:
+            return uv, status
+        anchor = res.uv + (x0, y0)
+        gap = float(np.linalg.norm(anchor - uv))
+        if gap > self.gate_px:
+            return uv, status  # TIPM found some other corner (spatter, a reflection)
+        if gap > self.reanchor_px:
+            self.inner.init(frame, anchor)
+        return anchor, int(TrackStatus.TRACKED)
+
+
 def make_tracker(name: str, model: dict | None = None) -> FrameTracker:
     """A tracker by CLI name (see ``TRACKERS``). ``model``: EAKF-STC config overrides."""
     if name == "eakf-stc":
         return TorchTracker(name, EAKFSTC(model or None))
+    if name == "anchored":
+        return AnchoredTracker(model)
     if name == "stc":
         return TorchTracker(name, STC())
     if name == "tipm":
