@@ -104,7 +104,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
         n_max = int((approach + seg_len) / (proc.weld_speed_mm_s * dt) * 1.6) + 50
         fault_at = int((approach + 0.5 * seg_len) / (proc.weld_speed_mm_s * dt))
         travelled, prev = 0.0, start
-        first = True
+        first, last_msg = True, ""
         for k in range(n_max):
             T_B_W = simcell.tcp_pose()
             travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
@@ -128,9 +128,10 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             else:
                 rep = loop.on_frame(None if "dropped-frames" in active else frame, T_B_F,
                                     T_B_W, clock.t)
-                if rep.message and (not res.messages or res.messages[-1] != rep.message):
+                if rep.message and rep.message != last_msg:
                     res.messages.append(f"[{seg.name} t={clock.t:.2f}s] {rep.state.value}: "
                                         f"{rep.message}")
+                last_msg = rep.message
             loc = rep.location if rep else None
             res.frames.append(_record(seg.name, truth, loc, rep, ref, clock.t, T_B_W,
                                       ",".join(active)))
@@ -166,7 +167,7 @@ def _record(seg, truth, loc, rep, ref: _SeamRef, t, T_B_W, fault) -> FrameRecord
     nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
     return FrameRecord(
         seg, t, truth.arc_on, loc.uv if loc else nan2, truth.uv,
-        int(loc.status) if loc else int(TrackStatus.TRACKED),
+        int(loc.status) if loc else int(TrackStatus.LOST),
         rep.state.value if rep else LoopState.STARTING.value,
         loc.p if loc else nan3, truth.seam_B, ref.distance(t, T_B_W[:3, 3]), fault)
 

@@ -43,6 +43,7 @@ class LiveConfig:
     max_blind_mm: float        # travel allowed past the last trusted measurement
     max_turn_deg: float        # largest torch rotation between two targets
     max_offset_mm: float       # largest distance of a target from the programmed path
+    max_frame_gap_ms: float    # no camera frame for longer than this: hold
     timing_window: int         # per-stage timings kept (bounded)
 
 
@@ -143,6 +144,7 @@ class LiveLoop:
         self.last_q: torch.Tensor | None = None
         self.last_trusted: np.ndarray | None = None
         self.fresh_t = float("-inf")   # time of the newest frame the tracker followed
+        self.last_frame_t = float("inf")  # time of the newest frame that arrived
         self.commands: list[Command] = []
         self.message = ""
 
@@ -150,6 +152,7 @@ class LiveLoop:
     def start(self, frame: np.ndarray, T_B_W: np.ndarray) -> None:
         """Start on a clean frame with the torch at ``T_B_W``: TIPM finds the stripe."""
         self.locator.start(frame)
+        self.last_frame_t = float("-inf")
         self.target = np.asarray(T_B_W, float)[:3, 3].copy()
         self.last_q = quaternions(torch.tensor(np.asarray(T_B_W, float)[None, :3, :3]))[0]
         self.state = LoopState.TRACKING
@@ -167,11 +170,21 @@ class LiveLoop:
         loc = None
         if frame is None:
             self.stats.dropped_frames += 1
+            gap_ms = (t_s - self.last_frame_t) * 1e3
+            if gap_ms > self.cfg.max_frame_gap_ms and self.state not in (
+                    LoopState.DONE, LoopState.STARTING):
+                self._hold(f"no camera frame for {self.cfg.max_frame_gap_ms:g}+ ms: holding")
+                self.stats.add_time("frame->command", (time.perf_counter() - t0) * 1e3,
+                                    self.cfg.timing_window)
+                return StepReport(self.state, None, None, self.message)
         else:
+            self.last_frame_t = t_s
             loc = self.locator.step(frame, T_B_F)
             for k, v in loc.timings_ms.items():
                 self.stats.add_time(k, v, self.cfg.timing_window)
-            if np.all(np.isfinite(loc.p)) and loc.status != TrackStatus.LOST:
+            # a point counts as located only with the stripe seen around it (ECAL's arms):
+            # a coasting filter's guess over a dark or blinded frame is not a seam point
+            if np.all(np.isfinite(loc.p)) and loc.status != TrackStatus.LOST and loc.arms_ok:
                 self.buffer.push(loc.p, loc.q, t_s)
                 self.fresh_t = t_s
                 if loc.status == TrackStatus.TRACKED:
@@ -237,8 +250,9 @@ class LiveLoop:
             self.last_q = q
             self._set_state(loc)
         else:
-            self.stats.refused[getattr(verdict, "reason", "refused")] += 1
-            self._hold(f"link refused the pose: {reason}")
+            key = getattr(verdict, "reason", "refused")
+            self.stats.refused[key] += 1
+            self._hold(f"link refused the pose ({key})")  # the detail is in the link's log
         return cmd
 
     @staticmethod

@@ -113,9 +113,10 @@ class AnchoredTracker:
     tracked point. When it finds a clean corner (its own residual and corner-angle tests)
     within ``gate_px`` of the track, that point is the output and, if the two disagree by more
     than ``reanchor_px``, EAKF-STC is re-initialised on it. Under arc light TIPM mostly finds
-    nothing usable and EAKF-STC carries the track alone. Why: in closed loop every tracking
-    error moves the robot, which moves the image; a purely relative tracker can walk away
-    with its own error, an absolute detection cannot.
+    nothing usable and EAKF-STC carries the track alone. When EAKF-STC declares the track
+    lost (the laser went off, a long flash), TIPM searches the whole frame and restarts it.
+    Why: in closed loop every tracking error moves the robot, which moves the image; a purely
+    relative tracker can walk away with its own error, an absolute detection cannot.
     """
 
     name = "anchored"
@@ -131,7 +132,12 @@ class AnchoredTracker:
 
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
         uv, status = self.inner.update(frame)
-        if not np.all(np.isfinite(uv)):
+        if status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
+            # re-acquire: look for the stripe corner in the whole frame
+            res = self.tipm(frame)
+            if res.ok:
+                self.inner.init(frame, res.uv)
+                return res.uv, int(TrackStatus.TRACKED)
             return uv, status
         h, w = frame.shape[:2]
         x0 = int(np.clip(uv[0] - self.window_px, 0, w - 1))
