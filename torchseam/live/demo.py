@@ -82,6 +82,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     clock = SimClock()
     dt = 1.0 / proc.frame_rate_hz
     latency: dict[str, list[float]] = {}
+    unsafe = 0
     for seg in six_segments():
         if seg.name not in segments:
             continue
@@ -137,7 +138,8 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                                       ",".join(active)))
             if video is not None:
                 ov = _overlay(frame, truth, loc, rep, seg.name)
-                video.write(cv2.resize(ov, (ov.shape[1] // 2 * 2, ov.shape[0] // 2 * 2)))
+                video.write(cv2.resize(ov, (ov.shape[1] // 2, ov.shape[0] // 2),
+                                       interpolation=cv2.INTER_AREA))
             simcell.advance(dt)
             if progress:
                 progress(1)
@@ -155,11 +157,10 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
         res.paths.setdefault("nominal", []).append(
             scene.nominal_tcp(s0 + np.arange(0.0, seg_len, proc.step_mm))[:, :3, 3])
         res.paths.setdefault("true seam", []).append(_true_curve(scene, clock.t, s0, seg_len))
-        res.summary.setdefault("unsafe", 0)
-        res.summary["unsafe"] += _unsafe(loop, gate, egm.safety.max_step_mm)
+        unsafe += _unsafe(loop, gate, egm.safety.max_step_mm)
     res.latency = {k: (float(np.percentile(v, 50)), float(np.percentile(v, 99)))
                    for k, v in latency.items() if v}
-    res.summary.update(_summary(res, part))
+    res.summary = _summary(res, unsafe)
     return res
 
 
@@ -209,7 +210,7 @@ def _unsafe(loop: LiveLoop, gate: ReachGate, max_step: float) -> int:
     return int(bad.sum() + (~verdict.ok.numpy()).sum() + (steps > max_step + 1e-9).sum())
 
 
-def _summary(res: DemoResult, part: PartConfig) -> dict:
+def _summary(res: DemoResult, unsafe: int) -> dict:
     fr = [f for f in res.frames if f.arc_on and not f.fault]
     pix = np.array([np.linalg.norm(f.uv - f.uv_true) for f in fr if np.all(np.isfinite(f.uv))])
     loc = np.array([np.linalg.norm(f.p - f.p_true) for f in fr if np.all(np.isfinite(f.p))])
@@ -233,7 +234,7 @@ def _summary(res: DemoResult, part: PartConfig) -> dict:
         "latency_p50_ms": lat[0], "latency_p99_ms": lat[1],
         "poses_sent": len(res.sent), "poses_refused": int(sum(res.refused.values())),
         "refused_reasons": dict(res.refused),
-        "unsafe_poses_sent": int(res.summary.get("unsafe", 0)),
+        "unsafe_poses_sent": int(unsafe),
         "frames": len(res.frames),
     }
 
