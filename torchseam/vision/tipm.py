@@ -138,9 +138,12 @@ class Tipm:
         mask = np.zeros_like(binary)
         if len(keep) == 0:
             return red, mask, "no stripe found (only small blobs)"
-        lut = np.zeros(n, np.uint8)
-        lut[keep] = 255
-        mask[roi] = np.take(lut, lab)
+        if len(keep) == n - 1:
+            mask = binary  # every blob is large enough: nothing to filter
+        else:
+            lut = np.zeros(n, np.uint8)
+            lut[keep] = 255
+            mask[roi] = np.take(lut, lab)
         mask = cv2.dilate(mask, self._kernel)
         return red, mask, ""
 
@@ -167,11 +170,12 @@ class Tipm:
             v, u = np.nonzero(skel)
             order = np.argsort(u, kind="stable")
             return np.stack([u[order], v[order]], axis=1).astype(float)
-        ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
-        y0, y1, x0, x1 = ys[0], ys[-1] + 1, xs[0], xs[-1] + 1
-        w = red[y0:y1, x0:x1].astype(np.float32) * (mask[y0:y1, x0:x1] > 0)
-        s0 = w.sum(axis=0)
-        s1 = (w * np.arange(y0, y1, dtype=np.float32)[:, None]).sum(axis=0)
+        x0, y0, bw, bh = cv2.boundingRect(mask)
+        r, m = red[y0:y0 + bh, x0:x0 + bw], mask[y0:y0 + bh, x0:x0 + bw]
+        w = cv2.bitwise_and(r, r, mask=m).astype(np.float32)
+        # column sums of w and of row * w in one small matrix product
+        rows = np.stack([np.ones(bh, np.float32), np.arange(y0, y0 + bh, dtype=np.float32)])
+        s0, s1 = rows @ w
         cols = np.nonzero(s0 > 0)[0]
         return np.stack([cols + x0, s1[cols] / s0[cols]], axis=1).astype(float)
 
@@ -240,16 +244,17 @@ class Tipm:
                 res = y[good] - np.polynomial.polynomial.polyval(x[good], coef)
             arms.append(coef)
             rms_all.append(float(np.sqrt(np.mean(res**2))))
-        diff = arms[0] - arms[1]
-        if abs(diff[2]) > 1e-12:
-            roots = np.roots(diff[::-1])
-        elif abs(diff[1]) > 1e-12:
-            roots = np.array([-diff[0] / diff[1]])
+        c0, c1, c2 = arms[0] - arms[1]
+        if abs(c2) > 1e-12:
+            disc = c1 * c1 - 4 * c2 * c0
+            if disc < 0:
+                return "no corner: the arms do not meet"
+            sq = np.sqrt(disc)
+            roots = np.array([(-c1 - sq) / (2 * c2), (-c1 + sq) / (2 * c2)])
+        elif abs(c1) > 1e-12:
+            roots = np.array([-c0 / c1])
         else:
             return "no corner: the arms are parallel"
-        roots = roots[np.isreal(roots)].real
-        if len(roots) == 0:
-            return "no corner: the arms do not meet"
         x = float(roots[np.argmin(np.abs(roots))])
         if abs(x) > cfg.fit_window_px:
             return "no corner: the arms meet far from the stripe"
@@ -257,9 +262,15 @@ class Tipm:
 
 
 def _quadfit(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Least-squares (a, b, c) of y = a + b x + c x^2 (x is centred on the corner already)."""
-    A = np.stack([np.ones_like(x), x, x * x], axis=1)
-    return np.linalg.lstsq(A, y, rcond=None)[0]
+    """Least-squares (a, b, c) of y = a + b x + c x^2 (x is centred on the corner already),
+    from the normal equations: a 3x3 solve, far cheaper than a general lstsq per arm."""
+    x2 = x * x
+    M = np.array([[len(x), x.sum(), x2.sum()],
+                  [0.0, 0.0, (x2 * x).sum()],
+                  [0.0, 0.0, (x2 * x2).sum()]])
+    M[1, 0], M[1, 1], M[2, 0], M[2, 1] = M[0, 1], M[0, 2], M[0, 2], M[1, 2]
+    rhs = np.array([y.sum(), (x * y).sum(), (x2 * y).sum()])
+    return np.linalg.solve(M, rhs)
 
 
 def _best_split(u: np.ndarray, v: np.ndarray, min_pts: int) -> float | None:
