@@ -162,9 +162,8 @@ def test_equals_numpy_kalman_filter_on_a_constructed_case(with_scale: bool) -> N
         uv, var = eakf_filter(torch.tensor(z[b:b + 1]), dt, pt["lam"], pt["a"], pt["b"],
                               pt["q"], pt["r"], pt["p0"],
                               torch.tensor(scale[b:b + 1]) if with_scale else None)
-        # Joseph-form covariance here, textbook there: equal up to the latter's rounding
-        np.testing.assert_allclose(uv[0].numpy(), ref["uv"], rtol=0, atol=1e-6)
-        np.testing.assert_allclose(var[0].numpy(), ref["var"], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(uv[0].numpy(), ref["uv"], rtol=0, atol=1e-8)
+        np.testing.assert_allclose(var[0].numpy(), ref["var"], rtol=1e-8, atol=1e-10)
 
 
 def test_module_batches_sequences_and_exposes_the_stacked_state() -> None:
@@ -181,11 +180,11 @@ def test_module_batches_sequences_and_exposes_the_stacked_state() -> None:
             state = f.step(state, torch.tensor(z[:, k]))
     x8, P8 = state.flat()
     for b in range(4):
-        ref = np_eakf(z[b], 0.04, p["lam"], p["a"], p["b"], p["q"], p["r"], p["p0"].reshape(-1))
-        np.testing.assert_allclose(uv[b].numpy(), ref["uv"], atol=1e-6)
-        # Joseph form here, textbook (I - K H*) P there: equal to rounding of the latter
-        np.testing.assert_allclose(P8[b].numpy(), ref["P"][-1], rtol=1e-6, atol=1e-6)
-        np.testing.assert_allclose(x8[b].numpy()[[0, 4]], ref["uv"][-1], atol=1e-6)
+        ref = np_eakf(z[b], float(f.dt), p["lam"], p["a"], p["b"], p["q"], p["r"],
+                      p["p0"].reshape(-1))
+        np.testing.assert_allclose(uv[b].numpy(), ref["uv"], atol=1e-8)
+        np.testing.assert_allclose(P8[b].numpy(), ref["P"][-1], rtol=1e-8, atol=1e-8)
+        np.testing.assert_allclose(x8[b].numpy()[[0, 4]], ref["uv"][-1], atol=1e-8)
 
 
 def test_reduces_to_the_ordinary_filter_when_a_b_lambda_are_zero() -> None:

@@ -95,6 +95,7 @@ def test_batched_stc_equals_per_sequence_numpy(scale_update: bool) -> None:
     frames = torch.tensor(np.stack([s[0] for s in seqs]))
     uv0 = torch.tensor(np.stack([s[1][0] for s in seqs]))
     stc = STC(size, (12, 18), peak="argmax", scale_update=scale_update).double()
+    stc.requires_grad_(False)
     with torch.no_grad():
         state = stc.init_state(frames[:, 0], uv0)
         pos, resp, models = [state.pos], [], [state.H_f]
@@ -264,7 +265,7 @@ def test_parameters_stay_positive_and_receive_gradients() -> None:
     with torch.no_grad():
         stc.log_alpha.fill_(-50.0)
         stc.logit_rho.fill_(80.0)
-    assert float(stc.alpha) > 0 and 0 < float(stc.rho) <= 1
+        assert float(stc.alpha) > 0 and 0 < float(stc.rho) <= 1
 
 
 def test_truncated_bptt_and_float32_default() -> None:

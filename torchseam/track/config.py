@@ -59,8 +59,11 @@ class TrackerConfig:
     gate_slope: float = 2.0                  # per sigma
     spread0: float = 1.0                     # gate size (px) with no penalty ...
     spread_slope: float = 2.0                # ... and the penalty's log slope (PDA: 2)
-    r_scale_max: float = 1.0e4               # R inflation of a fully distrusted measurement
-    rho_power: float = 2.0                   # rho scale = trust ** rho_power
+    r_scale_max: float = 1.0e3               # R inflation of a fully distrusted measurement
+    r_trust: float = 0.65                    # log R scale = log r_scale_max * ...
+    r_slope: float = 8.0                    # ... sigmoid(r_slope (r_trust - trust))
+    learn_trust: float = 0.75                # rho scale = sigmoid(learn_slope (trust - this))
+    learn_slope: float = 20.0
     # --- status
     max_coast: int = 15                      # coasting frames before LOST
     lost_std: float = 10.0                   # position std (px) beyond which LOST

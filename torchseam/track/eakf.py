@@ -181,7 +181,6 @@ class EAKFInnovation:
         S: (B, 2, 2, 2) innovation covariance with the new frame's scale at 1 (the gate's).
         d2_pos: (B,) squared Mahalanobis distance of the position innovations,
             ``sum_axis nu_pos^2 / S_pos`` (chi-square, 2 dof, under the model).
-        d2: (B,) full squared Mahalanobis distance ``sum_axis nu^T S^-1 nu`` (4 dof).
         dz_given: whether the displacement was measured separately.
     """
 
@@ -191,16 +190,27 @@ class EAKFInnovation:
     HPHt: Tensor
     S: Tensor
     d2_pos: Tensor
-    d2: Tensor
     dz_given: bool
+
+    def d2(self) -> Tensor:
+        """(B,) full squared Mahalanobis distance ``sum_axis nu^T S^-1 nu`` (4 dof)."""
+        return (self.nu[..., None, :] @ _inv2(self.S) @ self.nu[..., :, None])[..., 0, 0].sum(-1)
+
+
+_ADJ: dict[tuple, tuple[Tensor, Tensor]] = {}
 
 
 def _inv2(S: Tensor) -> Tensor:
-    """Inverse of (..., 2, 2) matrices in closed form (cheaper than a LAPACK call)."""
-    a, b, c, d = S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1]
-    det = a * d - b * c
-    return torch.stack([torch.stack([d, -b], -1), torch.stack([-c, a], -1)], -2) / det[
-        ..., None, None]
+    """Inverse of (..., 2, 2) matrices in closed form (adjugate / determinant: a handful of
+    element-wise ops, cheaper than a LAPACK call on tiny batches)."""
+    key = (S.device, S.dtype)
+    if key not in _ADJ:
+        _ADJ[key] = (torch.tensor([3, 1, 2, 0], device=S.device),
+                     torch.tensor([1.0, -1.0, -1.0, 1.0], device=S.device, dtype=S.dtype))
+    perm, sign = _ADJ[key]
+    f = S.reshape(S.shape[:-2] + (4,))
+    det = f[..., 0] * f[..., 3] - f[..., 1] * f[..., 2]
+    return (f.index_select(-1, perm) * sign / det[..., None]).reshape(S.shape)
 
 
 def eakf_init(z0: Tensor, p0: Tensor) -> EAKFState:
@@ -257,13 +267,13 @@ def eakf_innovation(state: EAKFState, m: EAKFMatrices, z: Tensor,
     nu = Zs - (m.H_star @ state.x[..., None])[..., 0]  # eq. 25
     PHt = state.P @ m.H_star.transpose(-1, -2)
     HPHt = m.H_star @ PHt
-    s_new = torch.ones_like(Z_new)
-    if dz is None:
-        s_new = torch.stack([s_new[..., 0], torch.maximum(s_new[..., 1], state.s_ref)], -1)
+    if dz is None:  # the gate's S: this frame trusted (s = 1), the displacement as bad as z(k)
+        s_new = torch.stack([torch.ones_like(z), state.s_ref.clamp_min(1.0)], -1)
+    else:
+        s_new = torch.ones_like(Z_new)
     S = HPHt + torch.diag_embed(m.R * (s_new + m.psi**2 * (state.s - 1.0)))
     d2_pos = (nu[..., 0] ** 2 / S[..., 0, 0]).sum(dim=-1)
-    d2 = (nu[..., None, :] @ _inv2(S) @ nu[..., :, None])[..., 0, 0].sum(dim=-1)
-    return EAKFInnovation(Z_new=Z_new, nu=nu, PHt=PHt, HPHt=HPHt, S=S, d2_pos=d2_pos, d2=d2,
+    return EAKFInnovation(Z_new=Z_new, nu=nu, PHt=PHt, HPHt=HPHt, S=S, d2_pos=d2_pos,
                           dz_given=dz is not None)
 
 
@@ -289,24 +299,22 @@ def eakf_update(state: EAKFState, m: EAKFMatrices, inn: EAKFInnovation,
     """
     B = state.x.shape[0]
     if r_scale is None:
-        s_new = torch.ones_like(inn.Z_new)
+        sc = torch.ones_like(inn.Z_new[..., 0])
     else:
         if r_scale.shape not in ((B,), (B, 2)):
             raise TrackInputError(f"r_scale: expected shape ({B},) or ({B}, 2), "
                                   f"got {tuple(r_scale.shape)}")
         r_scale = as_float(r_scale, state.x)
         sc = (r_scale[:, None] if r_scale.ndim == 1 else r_scale).expand(B, 2)
-        s_new = torch.stack([sc, sc], dim=-1)
-    s_ref = s_new[..., 0]
-    if not inn.dz_given:  # displacement z(k+1) - z(k) is as bad as the worse of the two
-        s_new = torch.stack([s_new[..., 0], torch.maximum(s_new[..., 1], state.s_ref)], -1)
+    if inn.dz_given:
+        s_new = sc[..., None].expand(B, 2, 2)
+    else:  # displacement z(k+1) - z(k) is as bad as the worse of the two
+        s_new = torch.stack([sc, torch.maximum(sc, state.s_ref)], -1)
     R_eff = m.R * (s_new + m.psi**2 * (state.s - 1.0))  # (B, 2, 2) diagonal of R_eff
     S = inn.HPHt + torch.diag_embed(R_eff)  # eq. 25
     K = inn.PHt @ _inv2(S)  # (B, 2, 4, 2)
     x_post = state.x + (K @ inn.nu[..., None])[..., 0]  # eq. 25
-    A = torch.eye(4, dtype=K.dtype, device=K.device) - K @ m.H_star
-    KR = K * R_eff[..., None, :]
-    P_post = A @ state.P @ A.transpose(-1, -2) + KR @ K.transpose(-1, -2)  # Joseph form
+    P_post = state.P - K @ inn.PHt.transpose(-1, -2)  # (I - K H*) P, K optimal
     x = (m.Phi @ x_post[..., None])[..., 0]  # eq. 26
     P = m.Phi @ P_post @ m.Phi.transpose(-1, -2) + m.GQG
     P = 0.5 * (P + P.transpose(-1, -2))
@@ -317,7 +325,7 @@ def eakf_update(state: EAKFState, m: EAKFMatrices, inn: EAKFInnovation,
         drop = (1.0 - as_float(keep, state.x))[:, None, None]
         Z_keep = inn.Z_new - drop * inn.nu  # Z - nu is the predicted Z(k+1)
         s_keep = s_new - drop * (s_new - 1.0)
-    return EAKFState(x=x, P=P, Z=Z_keep, s=s_keep, s_ref=s_ref, k=state.k + 1, x_post=x_post,
+    return EAKFState(x=x, P=P, Z=Z_keep, s=s_keep, s_ref=sc, k=state.k + 1, x_post=x_post,
                      P_post=P_post)
 
 

@@ -3,17 +3,22 @@
 Per frame k (B sequences at once, no loop over the batch):
 
 1. crop the context window at the filter's prediction for frame k (``Phi X(k-1|k-2)``, so the
-   window follows the motion instead of lagging one frame behind it);
+   window follows the motion instead of lagging one frame behind it; clamped into the frame);
 2. STC detection (eq. 10-11): measurement ``z`` (sub-pixel peak) and peak quality (PSR,
    second-peak ratio);
 3. the EAKF's innovation of the delayed update (eq. 21-25) and its normalised squared distance
    ``d2`` (position rows, chi-square with 2 dof under the model);
 4. the drift guard (:class:`DriftGuard`) turns quality and ``d2`` into a trust in (0, 1);
-5. EAKF update with R scaled by ``s = s_max^(1 - trust)``, then prediction: the output
-   position at frame k;
+5. EAKF update with R scaled by ``r_scale`` (below), then prediction: the output
+   position at frame k. The measurement kept for the next equivalent observation
+   ``Z(k+1) - Psi Z(k)`` is blended toward its prediction by ``1 - trust`` (``keep`` of
+   :func:`~torchseam.track.eakf.eakf_update`), so a rejected outlier does not leak into the
+   next update through Psi nor widen the next gate;
 6. STC learns at the *filtered* estimate (the context is re-centred on it) with learning rate
-   ``rho * trust^p``, so a distrusted frame (glare, spatter, a vanished stripe) barely enters
-   the context model;
+   ``rho * sigmoid(k_l (trust - t_l))``, so a distrusted frame (glare, spatter, a vanished
+   stripe) does not enter the context model: STC's h_sc of a structureless (noise) window is
+   huge (``FFT(c) / FFT(prior)`` with a small ``FFT(prior)``), so even a few percent of it
+   would swamp H_stc, hence a sharp, not proportional, switch;
 7. status: ``TRACKED`` when trust >= 0.5, ``COASTING`` when not, ``LOST`` after more than
    ``max_coast`` coasting frames in a row or when the position std exceeds ``lost_std``
    (a trusted frame brings it back to ``TRACKED``).
@@ -21,14 +26,20 @@ Per frame k (B sequences at once, no loop over the batch):
 Drift guard (smooth, every threshold and slope a learnable tensor)::
 
     trust = sigmoid(k_psr (log psr - log psr0)) * sigmoid(k_2 (second0 - second_ratio))
-            * sigmoid(k_g (gate - sqrt(d2)))
-    r_scale = s_max ** (1 - trust)           # 1 when trusted, s_max when not
-    rho_scale = trust ** p
+            * sigmoid(k_g (gate - sqrt(d2)) - k_s log(spread / spread0))
+    r_scale = s_max ** sigmoid(k_r (t_r - trust))   # ~1 when trusted, ~s_max when not
+    rho_scale = sigmoid(k_l (trust - t_l))   # learning only on clearly trusted frames
 
 It is a soft AND of three tests: the peak must stand out of its sidelobe (sharpness), no other
 peak may compete with it (the multi-peak failure of METHOD.md section 2), and it must lie inside
-the filter's innovation gate. The R inflation is geometric in trust, so gradients stay useful
-across decades of R, and it enters the EAKF through its exact coloured-noise bookkeeping
+the filter's innovation gate. ``spread = det(S_pos)^(1/4)`` is the gate's size in px: as in
+probabilistic data association, the likelihood ratio of "target here" against "clutter anywhere
+in the window" is ``A / (2 pi sqrt(det S)) exp(-d2 / 2)``, so a wide gate (after coasting, when
+P has grown) is worth less (k_s = 2 is that ratio's own exponent). Without this term the gate
+accepts anything once P has grown, which is exactly when clutter is most likely to be taken.
+The R inflation is a sigmoid of trust in log space (a measurement at trust 0.3 must not pull
+a filter whose P has grown while coasting), so gradients stay useful across decades of R, and
+it enters the EAKF through its exact coloured-noise bookkeeping
 (:mod:`torchseam.track.eakf`). Everything is differentiable almost everywhere (argmax and the
 local-maximum test select, the values carry gradients).
 
@@ -59,7 +70,7 @@ from torchseam.track._checks import (
 )
 from torchseam.track.config import TrackerConfig
 from torchseam.track.eakf import EAKF, EAKFMatrices, EAKFState
-from torchseam.track.stc import STC, STCState
+from torchseam.track.stc import STC, STCState, _cached
 
 _D = TrackerConfig()  # the defaults
 
@@ -84,12 +95,13 @@ class DriftGuard(nn.Module):
 
     Parameters (0-dim tensors, raw forms keep them in range): ``log_psr0``, ``log_psr_slope``,
     ``logit_second0``, ``log_second_slope``, ``log_gate``, ``log_gate_slope``,
-    ``log_r_scale_max``, ``log_rho_power``.
+    ``log_spread0``, ``log_spread_slope``, ``log_r_scale_max``, ``logit_r_trust``,
+    ``log_r_slope``, ``logit_learn_trust``, ``log_learn_slope``.
 
     Example:
         >>> g = DriftGuard()
         >>> trust, r_scale, rho_scale = g(torch.tensor([20.0, 3.0]), torch.tensor([0.2, 0.9]),
-        ...                               torch.tensor([1.0, 30.0]))
+        ...                               torch.tensor([1.0, 30.0]), torch.tensor([0.8, 0.8]))
         >>> (trust > 0.5).tolist(), bool(r_scale[1] > 100.0)
         ([True, False], True)
     """
@@ -97,22 +109,31 @@ class DriftGuard(nn.Module):
     def __init__(self, psr0: float = _D.psr0, psr_slope: float = _D.psr_slope,
                  second0: float = _D.second0, second_slope: float = _D.second_slope,
                  gate: float = _D.gate, gate_slope: float = _D.gate_slope,
-                 r_scale_max: float = _D.r_scale_max, rho_power: float = _D.rho_power,
+                 spread0: float = _D.spread0, spread_slope: float = _D.spread_slope,
+                 r_scale_max: float = _D.r_scale_max, r_trust: float = _D.r_trust,
+                 r_slope: float = _D.r_slope, learn_trust: float = _D.learn_trust,
+                 learn_slope: float = _D.learn_slope,
                  learnable: bool = _D.learnable) -> None:
         super().__init__()
         for name, v in (("psr0", psr0), ("psr_slope", psr_slope), ("second_slope", second_slope),
-                        ("gate", gate), ("gate_slope", gate_slope), ("rho_power", rho_power)):
+                        ("gate", gate), ("gate_slope", gate_slope), ("spread0", spread0),
+                        ("spread_slope", spread_slope), ("r_slope", r_slope),
+                        ("learn_slope", learn_slope)):
             if not v > 0:
                 raise TrackInputError(f"{name}: expected > 0, got {v}")
-        if not 0.0 < second0 < 1.0:
-            raise TrackInputError(f"second0: expected in (0, 1), got {second0}")
+        for name, v in (("second0", second0), ("r_trust", r_trust),
+                        ("learn_trust", learn_trust)):
+            if not 0.0 < v < 1.0:
+                raise TrackInputError(f"{name}: expected in (0, 1), got {v}")
         if not r_scale_max >= 1.0:
             raise TrackInputError(f"r_scale_max: expected >= 1, got {r_scale_max}")
         raw = {"log_psr0": math.log(psr0), "log_psr_slope": math.log(psr_slope),
                "logit_second0": _logit(second0), "log_second_slope": math.log(second_slope),
                "log_gate": math.log(gate), "log_gate_slope": math.log(gate_slope),
+               "log_spread0": math.log(spread0), "log_spread_slope": math.log(spread_slope),
                "log_r_scale_max": math.log(max(r_scale_max, 1.0 + 1e-6)),
-               "log_rho_power": math.log(rho_power)}
+               "logit_r_trust": _logit(r_trust), "log_r_slope": math.log(r_slope),
+               "logit_learn_trust": _logit(learn_trust), "log_learn_slope": math.log(learn_slope)}
         for name, v in raw.items():
             t = torch.tensor(v, dtype=torch.get_default_dtype())
             if learnable:
@@ -120,26 +141,56 @@ class DriftGuard(nn.Module):
             else:
                 self.register_buffer(name, t)
 
-    def forward(self, psr: Tensor, second_ratio: Tensor, d2: Tensor
-                ) -> tuple[Tensor, Tensor, Tensor]:
+    def natural(self) -> dict[str, Tensor]:
+        """The parameters in natural units, by :class:`TrackerConfig` field name (for logs)."""
+        return {"psr0": self.log_psr0.exp(), "psr_slope": self.log_psr_slope.exp(),
+                "second0": torch.sigmoid(self.logit_second0),
+                "second_slope": self.log_second_slope.exp(), "gate": self.log_gate.exp(),
+                "gate_slope": self.log_gate_slope.exp(), "spread0": self.log_spread0.exp(),
+                "spread_slope": self.log_spread_slope.exp(),
+                "r_scale_max": self.log_r_scale_max.exp(),
+                "r_trust": torch.sigmoid(self.logit_r_trust),
+                "r_slope": self.log_r_slope.exp(),
+                "learn_trust": torch.sigmoid(self.logit_learn_trust),
+                "learn_slope": self.log_learn_slope.exp()}
+
+    def constants(self) -> Tensor:
+        """The natural-unit parameters stacked (13,): k_psr, log psr0, k_2, second0, k_g, gate,
+        k_s, log spread0, log s_max, k_l, t_l, k_r, t_r. Build once per sequence and pass to
+        :meth:`forward`."""
+        return torch.stack([
+            self.log_psr_slope.exp(), self.log_psr0, self.log_second_slope.exp(),
+            torch.sigmoid(self.logit_second0), self.log_gate_slope.exp(), self.log_gate.exp(),
+            self.log_spread_slope.exp(), self.log_spread0, self.log_r_scale_max,
+            self.log_learn_slope.exp(), torch.sigmoid(self.logit_learn_trust),
+            self.log_r_slope.exp(), torch.sigmoid(self.logit_r_trust)])
+
+    def forward(self, psr: Tensor, second_ratio: Tensor, d2: Tensor, spread: Tensor,
+                c: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """Trust, R scale and rho scale.
 
         Args:
             psr: (B,) peak-to-sidelobe ratio of the confidence map.
             second_ratio: (B,) second-peak ratio in [0, 1].
             d2: (B,) squared Mahalanobis distance of the innovation.
+            spread: (B,) size of the innovation gate in px, ``det(S_pos)^(1/4)`` (the geometric
+                mean of the two axes' innovation std).
+            c: :meth:`constants` (computed here when None).
 
         Returns:
             trust (B,) in (0, 1), r_scale (B,) in [1, s_max], rho_scale (B,) in (0, 1).
         """
+        c = self.constants() if c is None else c
         tiny = torch.finfo(psr.dtype).tiny
-        l_psr = self.log_psr_slope.exp() * (torch.log(psr.clamp_min(tiny)) - self.log_psr0)
-        l_sec = self.log_second_slope.exp() * (torch.sigmoid(self.logit_second0) - second_ratio)
-        dist = torch.sqrt(d2 + 1e-12)
-        l_gate = self.log_gate_slope.exp() * (self.log_gate.exp() - dist)
-        trust = torch.sigmoid(l_psr) * torch.sigmoid(l_sec) * torch.sigmoid(l_gate)
-        r_scale = torch.exp(self.log_r_scale_max * (1.0 - trust))
-        rho_scale = trust ** self.log_rho_power.exp()
+        feats = torch.stack([torch.log(psr.clamp_min(tiny)), second_ratio,
+                             torch.sqrt(d2 + 1e-12), torch.log(spread.clamp_min(tiny))])
+        # logits of the three tests, (3, B): slope * (value - threshold), signs folded in
+        l_psr = c[0] * (feats[0] - c[1])
+        l_sec = c[2] * (c[3] - feats[1])
+        l_gate = c[4] * (c[5] - feats[2]) - c[6] * (feats[3] - c[7])
+        trust = torch.sigmoid(torch.stack([l_psr, l_sec, l_gate])).prod(dim=0)
+        r_scale = torch.exp(c[8] * torch.sigmoid(c[11] * (c[12] - trust)))
+        rho_scale = torch.sigmoid(c[9] * (trust - c[10]))
         return trust, r_scale, rho_scale
 
 
@@ -188,6 +239,7 @@ class FusionState:
     stc: STCState
     kf: EAKFState
     mats: EAKFMatrices
+    guard: Tensor   # (13,) DriftGuard.constants()
     coast: Tensor   # (B,) int64 consecutive coasting frames
     status: Tensor  # (B,) int64 TrackStatus of the newest frame
     frame: int = 0
@@ -251,7 +303,9 @@ class EAKFSTC(nn.Module):
         self.eakf = EAKF(cfg.frame_rate, lam=cfg.lam, a=cfg.a, b=cfg.b, q=cfg.q,
                          r=(cfg.r_pos, cfg.r_disp), p0=cfg.p0, learnable=cfg.learnable)
         self.guard = DriftGuard(cfg.psr0, cfg.psr_slope, cfg.second0, cfg.second_slope,
-                                cfg.gate, cfg.gate_slope, cfg.r_scale_max, cfg.rho_power,
+                                cfg.gate, cfg.gate_slope, cfg.spread0, cfg.spread_slope,
+                                cfg.r_scale_max, cfg.r_trust, cfg.r_slope, cfg.learn_trust,
+                                cfg.learn_slope,
                                 learnable=cfg.learnable)
         if cfg.max_coast < 0 or not cfg.lost_std > 0:
             raise TrackInputError("max_coast must be >= 0 and lost_std > 0")
@@ -286,8 +340,8 @@ class EAKFSTC(nn.Module):
         stc = self.stc.init_state(frames0, uv0)
         kf = self.eakf.init_state(uv0)
         z = torch.zeros(B, dtype=torch.long, device=uv0.device)
-        return FusionState(stc=stc, kf=kf, mats=self.eakf.matrices(), coast=z,
-                           status=z.clone(), frame=0)
+        return FusionState(stc=stc, kf=kf, mats=self.eakf.matrices(),
+                           guard=self.guard.constants(), coast=z, status=z.clone(), frame=0)
 
     def step_state(self, state: FusionState, frames: Tensor
                    ) -> tuple[FusionState, Tensor, Tensor, dict[str, Tensor]]:
@@ -307,34 +361,38 @@ class EAKFSTC(nn.Module):
         check_tensor(frames, "frames", ("B", "Himg", "Wimg"))
         check_batch(frames, "frames", B)
         cfg, m = self.config, state.mats
-        centre = state.kf.predict_uv(m.Phi)                            # 1. prediction
+        hi, wi = frames.shape[-2:]
+        pred = state.kf.predict_uv(m.Phi)                              # 1. prediction
+        bound = _cached(("bound", wi, hi, pred.device, pred.dtype),
+                        lambda: pred.new_tensor([wi - 1.0, hi - 1.0]))
+        centre = torch.minimum(pred.clamp_min(0.0), bound)
         det = self.stc.detect(state.stc, frames, centre)               # 2. measurement
         inn = self.eakf.innovation(state.kf, det.uv, m=m)              # 3. innovation
         q = det.quality
-        trust, r_scale, rho_scale = self.guard(q["psr"], q["second_ratio"], inn.d2_pos)  # 4.
+        spread = (inn.S[..., 0, 0].prod(dim=-1)).clamp_min(0.0) ** 0.25
+        trust, r_scale, rho_scale = self.guard(q["psr"], q["second_ratio"], inn.d2_pos,
+                                               spread, state.guard)    # 4. drift guard
         kf = self.eakf.update(state.kf, inn, r_scale, m=m, keep=trust)  # 5. filter
         uv = kf.uv
         stc = self.stc.learn(state.stc, frames, uv, rho_scale)         # 6. re-centre, learn
         std = kf.uv_var.detach().amax(dim=1).clamp_min(0.0).sqrt()     # 7. status
-        distrusted = trust.detach() < 0.5
-        coast = torch.where(distrusted, state.coast + 1, torch.zeros_like(state.coast))
+        distrusted = (trust.detach() < 0.5).long()  # TRACKED 0 / COASTING 1
+        coast = (state.coast + 1) * distrusted
         lost = (coast > cfg.max_coast) | (std > cfg.lost_std)
-        status = torch.where(lost, int(TrackStatus.LOST),
-                             torch.where(distrusted, int(TrackStatus.COASTING),
-                                         int(TrackStatus.TRACKED)))
+        status = torch.where(lost, int(TrackStatus.LOST), distrusted)
         quality = {"z": det.uv, "trust": trust, "psr": q["psr"],
                    "second_ratio": q["second_ratio"], "n_peaks": q["n_peaks"], "peak": q["peak"],
                    "d2": inn.d2_pos, "r_scale": r_scale, "rho_scale": rho_scale, "std": std}
-        new = FusionState(stc=stc, kf=kf, mats=m, coast=coast, status=status,
-                          frame=state.frame + 1)
+        new = FusionState(stc=stc, kf=kf, mats=m, guard=state.guard, coast=coast,
+                          status=status, frame=state.frame + 1)
         return new, uv, status, quality
 
     def detach(self, state: FusionState) -> FusionState:
         """``state`` cut from the autograd graph, with parameter-derived caches rebuilt from the
         current parameters (truncated BPTT; also call after an optimiser step)."""
         return FusionState(stc=self.stc.detach_state(state.stc), kf=state.kf.detach(),
-                           mats=self.eakf.matrices(), coast=state.coast,
-                           status=state.status, frame=state.frame)
+                           mats=self.eakf.matrices(), guard=self.guard.constants(),
+                           coast=state.coast, status=state.status, frame=state.frame)
 
     # ------------------------------------------------------------------ stateful API
     def init(self, frames0: Tensor, uv0: Tensor) -> None:

@@ -1,0 +1,216 @@
+"""EAKF-STC (METHOD.md section 4) on synthetic laser-stripe sequences with known ground truth."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchseam.core.errors import TorchseamError
+from torchseam.track import EAKFSTC, STC, DriftGuard, TrackerConfig, TrackStatus
+from torchseam.track._synth import VStripeSequence, v_stripe_sequence
+
+# heavy clutter near the corner (a quarter of the frames with bright blobs, a quarter with
+# spatter streaks) and two stretches where the stripe vanishes
+HEAVY = dict(noise_sigma=8.0, blob_prob=0.25, streak_prob=0.25, vanish=((40, 45), (85, 89)))
+
+
+@pytest.fixture(scope="module")
+def heavy() -> VStripeSequence:
+    return v_stripe_sequence(6, 120, seed=0, **HEAVY)
+
+
+@pytest.fixture(scope="module")
+def heavy_runs(heavy: VStripeSequence) -> tuple:
+    with torch.inference_mode():
+        fused = EAKFSTC().run_sequence(heavy.frames, heavy.uv[:, 0])
+        plain, _ = STC()(heavy.frames, heavy.uv[:, 0])
+    return fused, plain
+
+
+def _err(uv: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    return (uv - truth).norm(dim=-1)
+
+
+def test_stays_on_the_stripe_under_clutter_where_plain_stc_drifts(heavy, heavy_runs) -> None:
+    fused, plain = heavy_runs
+    e, e_stc = _err(fused.uv, heavy.uv), _err(plain, heavy.uv)
+    rmse = float(e.pow(2).mean().sqrt())
+    assert rmse < 1.5
+    assert float(e.flatten().quantile(0.95)) < 3.0
+    assert float(e.max()) < 8.0
+    # plain STC learns the clutter and the empty frames and walks off the stripe
+    assert float(e_stc.pow(2).mean().sqrt()) > 10 * rmse
+    assert int((e_stc.amax(dim=1) > 15.0).sum()) >= 4
+    # the raw STC measurement inside the fusion is often far off: the guard is doing the work
+    assert float((_err(fused.z, heavy.uv) > 5.0).float().mean()) > 0.1
+
+
+def test_coasts_through_a_vanished_stripe_and_returns_to_tracked(heavy, heavy_runs) -> None:
+    fused, _ = heavy_runs
+    status, vanished = fused.status, ~heavy.visible
+    assert float((status[vanished] != TrackStatus.TRACKED).float().mean()) > 0.9
+    e = _err(fused.uv, heavy.uv)
+    for end in (45, 89):
+        back = status[:, end:end + 5] == TrackStatus.TRACKED
+        assert bool(back.any(dim=1).all()), f"not tracked again within 5 frames of {end}"
+        assert float(e[:, end + 8:end + 12].max()) < 5.0
+    assert float((status[heavy.visible] == TrackStatus.TRACKED).float().mean()) > 0.6
+
+
+def test_clean_sequence_is_tracked_to_subpixel_accuracy() -> None:
+    seq = v_stripe_sequence(4, 100, seed=1, noise_sigma=6.0)
+    with torch.inference_mode():
+        res = EAKFSTC().run_sequence(seq.frames, seq.uv[:, 0])
+    e = _err(res.uv, seq.uv)
+    assert float(e.pow(2).mean().sqrt()) < 0.8 and float(e.max()) < 2.0
+    assert float((res.status == TrackStatus.TRACKED).float().mean()) > 0.98
+
+
+def test_long_dropout_goes_lost_then_reacquires() -> None:
+    seq = v_stripe_sequence(4, 100, seed=2, noise_sigma=6.0, vanish=((30, 55),), amplitude=6.0)
+    with torch.inference_mode():
+        res = EAKFSTC(max_coast=5).run_sequence(seq.frames, seq.uv[:, 0])
+    assert bool((res.status[:, 30:55] == TrackStatus.LOST).any(dim=1).all())
+    assert bool((res.status[:, :30] == TrackStatus.TRACKED).all())
+    assert float((res.status[:, -20:] == TrackStatus.TRACKED).float().mean()) > 0.9
+    assert float(_err(res.uv[:, -20:], seq.uv[:, -20:]).max()) < 2.0
+
+
+def test_step_api_equals_run_sequence_and_records_timings() -> None:
+    seq = v_stripe_sequence(2, 15, seed=3, noise_sigma=8.0, blob_prob=0.3)
+    trk = EAKFSTC()
+    with torch.inference_mode():
+        res = trk.run_sequence(seq.frames, seq.uv[:, 0])
+        trk.init(seq.frames[:, 0].round().to(torch.uint8), seq.uv[:, 0])  # uint8 frames too
+        trk.init(seq.frames[:, 0], seq.uv[:, 0])
+        outs = [trk.step(seq.frames[:, t]) for t in range(1, 15)]
+    uv = torch.stack([o[0] for o in outs], dim=1)
+    torch.testing.assert_close(uv, res.uv[:, 1:])
+    torch.testing.assert_close(torch.stack([o[1] for o in outs], 1), res.status[:, 1:])
+    q = outs[-1][2]
+    assert {"z", "trust", "psr", "second_ratio", "n_peaks", "d2", "r_scale", "std"} <= set(q)
+    assert q["z"].shape == (2, 2) and q["trust"].shape == (2,)
+    ms = trk.timings_ms()
+    assert len(ms) == 14 and all(0.0 < t < 1000.0 for t in ms)
+
+
+def test_guard_is_monotone_and_bounded() -> None:
+    g = DriftGuard()
+    n = 50
+    base = dict(psr=torch.full((n,), 20.0), second_ratio=torch.full((n,), 0.2),
+                d2=torch.full((n,), 1.0), spread=torch.full((n,), 0.8))
+    sweeps = {"psr": (torch.linspace(2, 40, n), +1), "second_ratio": (torch.linspace(0, 1, n), -1),
+              "d2": (torch.linspace(0, 100, n), -1), "spread": (torch.linspace(0.3, 10, n), -1)}
+    with torch.no_grad():
+        for name, (values, sign) in sweeps.items():
+            kw = dict(base, **{name: values})
+            trust, r_scale, rho_scale = g(**kw)
+            d = sign * trust.diff()
+            assert bool((d >= -1e-7).all()) and float(d.sum()) > 0.15, name
+            assert bool(((trust > 0) & (trust < 1)).all())
+            assert bool((r_scale >= 1).all() and (r_scale <= 1e3 * 1.0001).all())
+            # learning follows trust, sharply: nothing is learnt from a rejected frame
+            assert bool((rho_scale[trust < 0.3] < 0.01).all())
+            assert bool((rho_scale[trust > 0.95] > 0.9).all())
+
+
+def test_guard_can_be_fitted_by_gradient_descent() -> None:
+    # labelled measurements: good ones sharp, single-peaked, inside the gate; bad ones not
+    gen = torch.Generator().manual_seed(0)
+    n = 400
+    good = torch.rand(n, generator=gen) < 0.6
+
+    def u(lo: float, hi: float) -> torch.Tensor:
+        return lo + (hi - lo) * torch.rand(n, generator=gen)
+
+    psr = torch.where(good, u(8, 38), u(3, 7))
+    sec = torch.where(good, u(0, 0.4), u(0.5, 1))
+    d2 = torch.where(good, u(0, 4), u(4, 44))
+    spread = torch.full((n,), 0.8)
+    g = DriftGuard(psr0=30.0, second0=0.1, gate=1.0)  # a deliberately bad start
+    opt = torch.optim.Adam(g.parameters(), lr=0.05)
+
+    def loss_fn() -> torch.Tensor:
+        trust, _, _ = g(psr, sec, d2, spread)
+        return torch.nn.functional.binary_cross_entropy(trust.clamp(1e-6, 1 - 1e-6), good.float())
+
+    start = float(loss_fn().detach())
+    for _ in range(150):
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        trust, _, _ = g(psr, sec, d2, spread)
+    assert float(loss_fn().detach()) < 0.3 * start
+    assert float(((trust > 0.5) == good).float().mean()) > 0.95
+
+
+def test_gradients_reach_all_parameters_through_truncated_bptt() -> None:
+    seq = v_stripe_sequence(2, 13, size=(72, 96), seed=4, noise_sigma=8.0, blob_prob=0.5,
+                            amplitude=8.0)
+    trk = EAKFSTC(window=(32, 32), target=(16, 16)).double()
+    res = trk.run_sequence(seq.frames.double(), seq.uv[:, 0].double(), detach_every=4)
+    loss = (res.uv - seq.uv.double()).pow(2).sum(dim=-1).mean()
+    loss.backward()
+    grads = {n: p.grad for n, p in trk.named_parameters()
+             if n != "stc.log_temperature"}  # the soft-argmax's, unused by the subpixel peak
+    assert all(g is not None and bool(torch.isfinite(g).all()) for g in grads.values()), [
+        n for n, g in grads.items() if g is None or not bool(torch.isfinite(g).all())]
+    moved = {n for n, g in grads.items() if float(g.abs().sum()) > 0}
+    for name in ("stc.log_alpha", "stc.log_sigma", "eakf.lam_raw", "eakf.a_raw", "eakf.log_q",
+                 "eakf.log_r", "guard.log_psr0", "guard.log_gate", "guard.logit_second0"):
+        assert name in moved, name
+    with pytest.raises(TorchseamError, match="detach_every"):
+        trk.run_sequence(seq.frames.double(), seq.uv[:, 0].double(), detach_every=0)
+
+
+def test_config_defaults_round_trip_and_overrides() -> None:
+    cfg = TrackerConfig()
+    assert (cfg.alpha, cfg.beta, cfg.rho) == (2.25, 1.0, 0.075)  # the paper's
+    assert cfg.window == (64, 64) and cfg.target == (32, 32)
+    assert TrackerConfig.from_dict(cfg.to_dict()) == cfg
+    assert TrackerConfig.from_dict({"window": [48, 40]}).window == (48, 40)
+    with pytest.raises(TorchseamError, match="'gatee'"):
+        TrackerConfig.from_dict({"gatee": 3.0})
+    trk = EAKFSTC({"rho": 0.05, "frame_rate": 50.0}, gate=3.0).requires_grad_(False)
+    assert float(trk.stc.rho) == pytest.approx(0.05, rel=1e-5)
+    assert float(trk.eakf.dt) == pytest.approx(0.02)
+    assert float(trk.guard.log_gate.exp()) == pytest.approx(3.0, rel=1e-5)
+    assert float(trk.stc.sigma) == pytest.approx(32.0, rel=1e-5)  # mean target side
+    assert trk.stc.window_size == (64, 64)
+    with torch.no_grad():  # every guard default reaches the module, in natural units
+        for name, value in DriftGuard().natural().items():
+            assert float(value) == pytest.approx(getattr(cfg, name), rel=1e-5), name
+
+
+def test_bad_inputs_raise_clear_errors() -> None:
+    trk = EAKFSTC(window=(32, 32), target=(16, 16))
+    frames = torch.zeros(2, 60, 80)
+    with pytest.raises(TorchseamError, match="outside the 80 x 60 frame"):
+        trk.init(frames, torch.tensor([[10.0, 10.0], [85.0, 10.0]]))
+    with pytest.raises(TorchseamError, match="outside"):
+        trk.init(frames, torch.tensor([[10.0, 10.0], [math.nan, 10.0]]))
+    with pytest.raises(TorchseamError, match=r"uv0: expected shape \(2, 2\)"):
+        trk.init(frames, torch.zeros(3, 2))
+    with pytest.raises(TorchseamError, match="init"):
+        EAKFSTC().step(frames)
+    trk.init(frames, torch.full((2, 2), 20.0))
+    with pytest.raises(TorchseamError, match=r"frames: expected shape \(B, Himg, Wimg\)"):
+        trk.step(torch.zeros(60, 80))
+    with pytest.raises(TorchseamError, match="batch size 2"):
+        trk.step(torch.zeros(3, 60, 80))
+    with pytest.raises(TorchseamError, match="unknown field"):
+        EAKFSTC(windoww=(32, 32))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_runs_on_cuda_like_on_cpu() -> None:
+    seq = v_stripe_sequence(3, 20, seed=5, noise_sigma=8.0, blob_prob=0.3)
+    with torch.inference_mode():
+        cpu = EAKFSTC().double().run_sequence(seq.frames.double(), seq.uv[:, 0].double())
+        gpu = EAKFSTC().double().cuda().run_sequence(seq.frames.double().cuda(),
+                                                     seq.uv[:, 0].double().cuda())
+    torch.testing.assert_close(gpu.uv.cpu(), cpu.uv, atol=1e-6, rtol=0)
