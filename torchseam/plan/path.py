@@ -141,7 +141,7 @@ class LookAheadBuffer:
     def fit(self, k: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """Smoothed point, unit tangent and mean unit arm directions (2, 3) at buffered point
         ``k``: a local quadratic over the points within ``smooth_mm`` of it, parameterised by
-        frame time; arm directions averaged over the same points (NaN if none had arms). The
+        frame time; the median arm directions over the same points (NaN if none had arms). The
         tangent is None when fewer than 4 points support the fit (the seam seen at one spot
         only, e.g. before the robot moves)."""
         s = np.array([loc.s_mm for loc in self.points])
@@ -149,7 +149,9 @@ class LookAheadBuffer:
         arms = np.stack([self.points[i].q - self.points[i].p for i in sel])   # (n, 2, 3)
         arms = arms / np.linalg.norm(arms, axis=2, keepdims=True)
         good = np.all(np.isfinite(arms), axis=(1, 2))
-        mean = arms[good].mean(axis=0) if good.any() else np.full((2, 3), np.nan)
+        # the median, not the mean: one ECAL crossing taken on a spatter streak must not tilt
+        # the torch
+        mean = np.median(arms[good], axis=0) if good.any() else np.full((2, 3), np.nan)
         mean = mean / np.linalg.norm(mean, axis=1, keepdims=True)
         if len(sel) < 4:
             return self.points[k].p, None, mean
