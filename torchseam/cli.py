@@ -17,6 +17,7 @@ COMMAND_MODULES = (
     "torchseam.sim.cli",       # simulate
     "torchseam.vision.cli",    # detect
     "torchseam.track.cli",     # track, eval
+    "torchseam.fit.cli",       # train
     "torchseam.geometry.calib_cli",  # calibrate
     "torchseam.live.ring_cli",  # ring
     "torchseam.robot.cli",     # robot fk | ik | check | sim-controller

@@ -123,7 +123,7 @@ class AnchoredTracker:
 
     def __init__(self, model: dict | None = None, window_px: int = 110, gate_px: float = 12.0,
                  reanchor_px: float = 1.5) -> None:
-        self.inner = TorchTracker("eakf-stc", EAKFSTC(model or None))
+        self.inner = TorchTracker("eakf-stc", fitted_eakf_stc(model))
         self.tipm = Tipm()
         self.window_px, self.gate_px, self.reanchor_px = window_px, gate_px, reanchor_px
 
@@ -158,10 +158,21 @@ class AnchoredTracker:
         return anchor, int(TrackStatus.TRACKED)
 
 
+def fitted_eakf_stc(model: dict | None = None) -> EAKFSTC:
+    """EAKF-STC with the fitted parameters of ``models/`` when present (else the paper's
+    defaults, with a warning)."""
+    from torchseam.fit.model_io import load_fitted  # the fitting stage owns the model file
+
+    module = EAKFSTC(model or None)
+    load_fitted(module)
+    return module
+
+
 def make_tracker(name: str, model: dict | None = None) -> FrameTracker:
-    """A tracker by CLI name (see ``TRACKERS``). ``model``: EAKF-STC config overrides."""
+    """A tracker by CLI name (see ``TRACKERS``). ``model``: EAKF-STC config overrides. The
+    EAKF-STC trackers load ``models/eakf_stc.safetensors`` by default."""
     if name == "eakf-stc":
-        return TorchTracker(name, EAKFSTC(model or None))
+        return TorchTracker(name, fitted_eakf_stc(model))
     if name == "anchored":
         return AnchoredTracker(model)
     if name == "stc":
