@@ -405,9 +405,14 @@ def report_markdown(doc: dict[str, Any]) -> str:
     return "\n".join(out) + "\n"
 
 
+#: the files that define the EAKF-STC module (and so what its parameters mean)
+_TRACKER_FILES = ("_checks.py", "config.py", "stc.py", "eakf.py", "fusion.py")
+
+
 def _tracker_fingerprint() -> dict[str, str]:
     """Which tracker code the parameters were fitted for: the git commit (when in a checkout)
-    and a hash of the tracker's source files (a changed tracker needs a new fit)."""
+    and a hash of the module's source files ``torchseam/track/{_checks,config,stc,eakf,
+    fusion}.py`` (a changed tracker needs a new fit)."""
     import hashlib
     import subprocess
 
@@ -415,8 +420,10 @@ def _tracker_fingerprint() -> dict[str, str]:
 
     root = Path(trk.__file__).resolve().parent
     h = hashlib.sha1()
-    for f in sorted(root.glob("*.py")):
-        h.update(f.name.encode() + f.read_bytes())
+    for name in _TRACKER_FILES:
+        f = root / name
+        if f.is_file():
+            h.update(name.encode() + f.read_bytes())
     out = {"sha1": h.hexdigest()[:16]}
     try:
         out["git"] = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
