@@ -46,14 +46,21 @@ class TipmConfig:
     max_saturated_fraction: float
 
 
-def red_response(frame: np.ndarray, with_green: bool = False):
+def red_response(frame: np.ndarray, with_green: bool = False,
+                 out: list[np.ndarray] | None = None):
     """Red-stripe response ``R - max(G, B)`` (H, W) uint8 of a BGR frame.
 
     The 650 nm stripe is red; arc light bright enough to saturate the sensor is white. This is
     also the grey image the trackers work on. With ``with_green`` also returns the G channel.
+    ``out``: three (H, W) uint8 buffers to reuse (B, G, R planes; the response goes into the
+    first), because allocating fresh frame-sized planes costs more than the arithmetic.
     """
-    b, g, r = cv2.split(frame)
-    red = cv2.subtract(r, cv2.max(g, b))
+    if out is None:
+        b, g, r = cv2.split(frame)
+        red = cv2.subtract(r, cv2.max(g, b))
+    else:
+        b, g, r = cv2.split(frame, out)
+        red = cv2.subtract(r, cv2.max(g, b, dst=b), dst=b)
     return (red, g) if with_green else red
 
 
@@ -110,28 +117,51 @@ class Tipm:
         self.centre_line = centre_line
         k = 2 * self.cfg.dilate_px + 1
         self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        self._ws: dict[tuple, np.ndarray] = {}  # reused frame-sized planes (see _plane)
+
+    def _plane(self, name: str, shape: tuple[int, int]) -> np.ndarray:
+        """A reused uint8 work plane: fresh frame-sized arrays cost page faults on every frame,
+        more than TIPM's arithmetic."""
+        key = (name, shape)
+        buf = self._ws.get(key)
+        if buf is None:
+            if len(self._ws) > 64:  # ROI sizes vary at the image border: keep the cache small
+                self._ws.clear()
+            buf = self._ws[key] = np.empty(shape, np.uint8)
+        return buf
 
     # ------------------------------------------------------------------ stages
     def stripe_mask(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
-        """Red response (float32), filtered + dilated mask (uint8), and a failure reason."""
+        """Red response (H, W) uint8, filtered + dilated mask (H, W) uint8, failure reason.
+
+        The red response lives in a work plane of this ``Tipm``: valid until its next call.
+        """
         cfg = self.cfg
-        red, g = red_response(frame, with_green=True)
+        hw = frame.shape[:2]
+        planes = [self._plane(c, hw) for c in "bgr"]
+        red, g = red_response(frame, with_green=True, out=planes)
         # the stripe saturates R only; white arc light saturates G as well
-        if cv2.countNonZero(cv2.compare(g, 250, cv2.CMP_GE)) > (
-                cfg.max_saturated_fraction * red.size):
+        sat = cv2.compare(g, 250, cv2.CMP_GE, dst=planes[2])
+        if cv2.countNonZero(sat) > cfg.max_saturated_fraction * red.size:
             return red, np.zeros_like(red), "frame saturated by arc light"
         # ridge: red minus its local vertical mean, so broad red glare does not pass as stripe
-        ridge = cv2.subtract(red, cv2.blur(red, (1, cfg.ridge_px)))
+        # (a 3-column box runs 3x faster but lets more spatter through under heavy arc)
+        ridge = cv2.blur(red, (1, cfg.ridge_px), dst=planes[1])
+        ridge = cv2.subtract(red, ridge, dst=ridge)
         # relative to the strongest ridge: a brighter spatter streak only raises the threshold
         # to rel_threshold * 255, still well below a lit stripe
         peak = cv2.minMaxLoc(ridge)[1]
         thr = max(cfg.min_red, cfg.rel_threshold * peak)
-        _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY)
+        _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY, dst=planes[2])
         bx, by, bw, bh = cv2.boundingRect(binary)
         if bw == 0:
-            return red, binary, "no stripe found (no red pixels above threshold)"
-        # label only the box that holds anything (the stripe is a thin band)
-        roi = (slice(by, by + bh), slice(bx, bx + bw))
+            return red, np.zeros_like(red), "no stripe found (no red pixels above threshold)"
+        # label and dilate only the box that holds anything (the stripe is a thin band), with a
+        # margin for the dilation
+        d = cfg.dilate_px
+        h, w = binary.shape
+        roi = (slice(max(by - d, 0), min(by + bh + d, h)),
+               slice(max(bx - d, 0), min(bx + bw + d, w)))
         n, lab, stats, _ = cv2.connectedComponentsWithStats(binary[roi], connectivity=8,
                                                             ltype=cv2.CV_16U)
         keep = np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= cfg.min_area)[0] + 1
@@ -139,12 +169,13 @@ class Tipm:
         if len(keep) == 0:
             return red, mask, "no stripe found (only small blobs)"
         if len(keep) == n - 1:
-            mask = binary  # every blob is large enough: nothing to filter
+            box = binary[roi]  # every blob is large enough: nothing to filter
         else:
-            lut = np.zeros(n, np.uint8)
+            lut = np.zeros(max(n, 256), np.uint8)
             lut[keep] = 255
-            mask[roi] = np.take(lut, lab)
-        mask = cv2.dilate(mask, self._kernel)
+            # cv2.LUT needs 8-bit labels; with <= 256 labels (nearly always) it is 5x np.take
+            box = cv2.LUT(lab.astype(np.uint8), lut[:256]) if n <= 256 else np.take(lut, lab)
+        mask[roi] = cv2.dilate(box, self._kernel)
         return red, mask, ""
 
     def mask_around(self, frame: np.ndarray, uv: np.ndarray, radius: int
@@ -225,52 +256,52 @@ class Tipm:
     def _fit_arms(self, pts: np.ndarray, u0: float
                   ) -> tuple[list[np.ndarray], float, float] | str:
         """Quadratic fit of each arm beside column ``u0``; returns (arms, rms, x of the meeting
-        point relative to ``u0``) or the reason it fails."""
+        point relative to ``u0``) or the reason it fails. ``pts`` is sorted by u, so each arm's
+        window is a slice (this runs up to three times per frame: keep it lean)."""
         cfg = self.cfg
+        u = pts[:, 0]
+        windows = ((u0 - cfg.fit_window_px, u0 - cfg.corner_gap_px),
+                   (u0 + cfg.corner_gap_px, u0 + cfg.fit_window_px))
         arms, rms_all = [], []
-        for side in (-1, 1):
-            du = (pts[:, 0] - u0) * side
-            sel = (du >= cfg.corner_gap_px) & (du <= cfg.fit_window_px)
-            if sel.sum() < cfg.min_points_per_arm:
-                return (f"no corner: the {'left' if side < 0 else 'right'} arm has only "
-                        f"{int(sel.sum())} points")
-            x, y = pts[sel, 0] - u0, pts[sel, 1]
-            coef = _quadfit(x, y)
-            res = y - np.polynomial.polynomial.polyval(x, coef)
-            # one robust pass: drop points far off the fit (spatter touching the stripe)
-            good = np.abs(res) < max(3 * np.std(res), 0.5)
-            if good.sum() >= cfg.min_points_per_arm and not good.all():
-                coef = _quadfit(x[good], y[good])
-                res = y[good] - np.polynomial.polynomial.polyval(x[good], coef)
+        for name, (lo, hi) in zip(("left", "right"), windows, strict=True):
+            i0, i1 = np.searchsorted(u, (lo, hi + 1e-9))
+            if i1 - i0 < cfg.min_points_per_arm:
+                return f"no corner: the {name} arm has only {int(i1 - i0)} points"
+            x, y = u[i0:i1] - u0, pts[i0:i1, 1]
+            coef, res = _quadfit(x, y)
+            # one robust pass: drop points far off the fit (spatter touching the stripe); the
+            # residuals of a fit with an intercept have zero mean, so their std is their RMS
+            good = np.abs(res) < max(3 * np.sqrt(res @ res / len(res)), 0.5)
+            n_good = np.count_nonzero(good)
+            if cfg.min_points_per_arm <= n_good < len(x):
+                coef, res = _quadfit(x[good], y[good])
             arms.append(coef)
-            rms_all.append(float(np.sqrt(np.mean(res**2))))
+            rms_all.append(float(np.sqrt(res @ res / len(res))))
         c0, c1, c2 = arms[0] - arms[1]
         if abs(c2) > 1e-12:
             disc = c1 * c1 - 4 * c2 * c0
             if disc < 0:
                 return "no corner: the arms do not meet"
             sq = np.sqrt(disc)
-            roots = np.array([(-c1 - sq) / (2 * c2), (-c1 + sq) / (2 * c2)])
+            roots = ((-c1 - sq) / (2 * c2), (-c1 + sq) / (2 * c2))
+            x = float(min(roots, key=abs))
         elif abs(c1) > 1e-12:
-            roots = np.array([-c0 / c1])
+            x = float(-c0 / c1)
         else:
             return "no corner: the arms are parallel"
-        x = float(roots[np.argmin(np.abs(roots))])
         if abs(x) > cfg.fit_window_px:
             return "no corner: the arms meet far from the stripe"
         return arms, max(rms_all), x
 
 
-def _quadfit(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Least-squares (a, b, c) of y = a + b x + c x^2 (x is centred on the corner already),
-    from the normal equations: a 3x3 solve, far cheaper than a general lstsq per arm."""
-    x2 = x * x
-    M = np.array([[len(x), x.sum(), x2.sum()],
-                  [0.0, 0.0, (x2 * x).sum()],
-                  [0.0, 0.0, (x2 * x2).sum()]])
-    M[1, 0], M[1, 1], M[2, 0], M[2, 1] = M[0, 1], M[0, 2], M[0, 2], M[1, 2]
-    rhs = np.array([y.sum(), (x * y).sum(), (x2 * y).sum()])
-    return np.linalg.solve(M, rhs)
+def _quadfit(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares (a, b, c) of y = a + b x + c x^2 (x is centred on the corner already) and
+    the residuals, from the 3x3 normal equations: far cheaper than a general lstsq per arm."""
+    V = np.empty((len(x), 3))
+    V[:, 0], V[:, 1] = 1.0, x
+    np.multiply(x, x, out=V[:, 2])
+    coef = np.linalg.solve(V.T @ V, V.T @ y)
+    return coef, y - V @ coef
 
 
 def _best_split(u: np.ndarray, v: np.ndarray, min_pts: int) -> float | None:
@@ -282,10 +313,9 @@ def _best_split(u: np.ndarray, v: np.ndarray, min_pts: int) -> float | None:
     vc = v - v.mean()
 
     def sse(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        # SSE of a line fit to every prefix, from cumulative moments
+        # SSE of a line fit to every prefix, from cumulative moments (one cumsum for all five)
         k = np.arange(1, len(x) + 1, dtype=float)
-        sx, sy = np.cumsum(x), np.cumsum(y)
-        sxx, sxy, syy = np.cumsum(x * x), np.cumsum(x * y), np.cumsum(y * y)
+        sx, sy, sxx, sxy, syy = np.cumsum(np.stack((x, y, x * x, x * y, y * y)), axis=1)
         vx = sxx - sx * sx / k
         cxy = sxy - sx * sy / k
         vy = syy - sy * sy / k
