@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,7 +22,7 @@ import torch
 
 from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
 from torchseam.core.transforms import apply, invert
-from torchseam.live.loop import LiveLoop, LoopState
+from torchseam.live.loop import LiveLoop, LoopState, StepReport
 from torchseam.live.simcell import LockstepCell, SimClock
 from torchseam.plan.path import load_plan_config, six_segments
 from torchseam.robot.egm import EgmLink
@@ -51,6 +53,62 @@ class FrameRecord:
 
 
 @dataclass
+class DemoEvent:
+    """What an observer of :func:`run_demo` sees once per frame (the console, say).
+
+    ``frame`` is the BGR camera frame (H, W, 3) uint8 (the loop's input, do not modify);
+    ``report`` is ``None`` on the start frame; ``loop`` / ``link`` are the live objects of the
+    running segment, to read state and statistics from (not to drive).
+    """
+
+    seg: str
+    k: int
+    frame: np.ndarray
+    record: FrameRecord
+    report: StepReport | None
+    T_B_W: np.ndarray
+    loop: LiveLoop
+    link: EgmLink
+
+
+class DemoControl:
+    """Operator control of a running :func:`run_demo`, safe to use from another thread.
+
+    ``hold()`` pauses the weld at the next frame (the simulated cell waits with the loop: no
+    new target, no motion) until ``resume()``; ``stop()`` ends it (the result holds what was
+    welded so far, ``summary["stopped"]`` is True).
+    """
+
+    def __init__(self) -> None:
+        self._run = threading.Event()
+        self._run.set()
+        self._stop = threading.Event()
+
+    def hold(self) -> None:
+        self._run.clear()
+
+    def resume(self) -> None:
+        self._run.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._run.set()
+
+    @property
+    def held(self) -> bool:
+        return not self._run.is_set()
+
+    @property
+    def stopped(self) -> bool:
+        return self._stop.is_set()
+
+    def checkpoint(self) -> bool:
+        """Block while held; True when the weld must stop."""
+        self._run.wait()
+        return self._stop.is_set()
+
+
+@dataclass
 class DemoResult:
     frames: list[FrameRecord] = field(default_factory=list)
     sent: list[tuple[str, np.ndarray, np.ndarray, float]] = field(default_factory=list)
@@ -65,9 +123,12 @@ class DemoResult:
 def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: float, seed: int,
              faults: tuple[str, ...] = (), segments: str = "abcdef", tracker: str = "anchored",
              video: cv2.VideoWriter | None = None, progress=None,
-             length_mm: float | None = None) -> DemoResult:
+             length_mm: float | None = None,
+             observer: Callable[[DemoEvent], None] | None = None,
+             control: DemoControl | None = None) -> DemoResult:
     """Weld the ring; returns everything the report needs. ``length_mm`` welds only the first
-    mm of each segment (quick runs and tests)."""
+    mm of each segment (quick runs and tests). ``observer`` is called once per frame with a
+    :class:`DemoEvent`; ``control`` lets an operator hold, resume or stop the weld."""
     plan = load_plan_config()
     egm = load_egm_config()
     proc = cell.process
@@ -83,8 +144,9 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     dt = 1.0 / proc.frame_rate_hz
     latency: dict[str, list[float]] = {}
     unsafe = 0
+    stopped = False
     for seg in six_segments():
-        if seg.name not in segments:
+        if seg.name not in segments or stopped:
             continue
         scene = Scene(part, seg.rotation_deg)
         gate = ReachGate(cell=cell, part=part, part_pose_mm=scene.T_B_Tnom)
@@ -107,6 +169,10 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
         travelled, prev = 0.0, start
         first, last_msg = True, ""
         for k in range(n_max):
+            if control is not None and control.checkpoint():
+                stopped = True
+                res.messages.append(f"[{seg.name} t={clock.t:.2f}s] stopped by the operator")
+                break
             T_B_W = simcell.tcp_pose()
             travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
             prev = T_B_W[:3, 3]
@@ -136,6 +202,8 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             loc = rep.location if rep else None
             res.frames.append(_record(seg.name, truth, loc, rep, ref, clock.t, T_B_W,
                                       ",".join(active)))
+            if observer is not None:
+                observer(DemoEvent(seg.name, k, frame, res.frames[-1], rep, T_B_W, loop, link))
             if video is not None:
                 ov = _overlay(frame, truth, loc, rep, seg.name)
                 video.write(cv2.resize(ov, (ov.shape[1] // 2, ov.shape[0] // 2),
@@ -161,6 +229,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     res.latency = {k: (float(np.percentile(v, 50)), float(np.percentile(v, 99)))
                    for k, v in latency.items() if v}
     res.summary = _summary(res, unsafe)
+    res.summary["stopped"] = stopped
     return res
 
 
