@@ -332,6 +332,21 @@ def test_gradcheck_wrt_lambda_a_b_q_r() -> None:
         assert g is not None and bool(torch.isfinite(g).all()) and float(g.abs().sum()) > 0, name
 
 
+def test_gradients_still_flow_after_a_run_in_inference_mode() -> None:
+    """The live loop runs the filter under inference_mode; a later training run in the same
+    process must still get gradients (regression: a cache filled with inference tensors)."""
+    from torchseam.track import eakf as eakf_mod
+
+    eakf_mod._ADJ.clear()
+    z = torch.cumsum(torch.randn(2, 8, 2, generator=torch.Generator().manual_seed(3)), 1)
+    f = EAKF(25.0)
+    with torch.inference_mode():
+        f(z)
+    uv, _ = f(z)
+    uv.pow(2).sum().backward()
+    assert f.lam_raw.grad is not None and bool(torch.isfinite(f.lam_raw.grad).all())
+
+
 def test_parameters_stay_in_range() -> None:
     f = EAKF()
     with torch.no_grad():

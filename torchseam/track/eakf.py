@@ -205,8 +205,11 @@ def _inv2(S: Tensor) -> Tensor:
     element-wise ops, cheaper than a LAPACK call on tiny batches)."""
     key = (S.device, S.dtype)
     if key not in _ADJ:
-        _ADJ[key] = (torch.tensor([3, 1, 2, 0], device=S.device),
-                     torch.tensor([1.0, -1.0, -1.0, 1.0], device=S.device, dtype=S.dtype))
+        # made outside inference mode even when first called inside it: an inference tensor
+        # in the cache would break every later call that needs gradients (training)
+        with torch.inference_mode(False):
+            _ADJ[key] = (torch.tensor([3, 1, 2, 0], device=S.device),
+                         torch.tensor([1.0, -1.0, -1.0, 1.0], device=S.device, dtype=S.dtype))
     perm, sign = _ADJ[key]
     f = S.reshape(S.shape[:-2] + (4,))
     det = f[..., 0] * f[..., 3] - f[..., 1] * f[..., 2]
