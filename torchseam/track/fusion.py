@@ -409,6 +409,52 @@ class EAKFSTC(nn.Module):
         self.timer.stop(dev)
         return uv, status, q
 
+    def reanchor(self, frames: Tensor, uv: Tensor, rate: float | Tensor = 1.0) -> None:
+        """Move the kept state onto an absolute fix ``uv`` of the feature point (TIPM's corner
+        in a clean moment) without restarting: the filter's positions (now and the frame
+        before) and its kept measurement shift together, so velocity and covariance survive;
+        STC re-learns its context at ``uv`` with weight ``rate`` (1: the model is replaced, its
+        drift forgotten). A restart (:meth:`init`) would instead throw away the velocity and
+        open the gate wide for the next frames, when spatter is most likely to be taken.
+
+        Args:
+            frames: (B, Himg, Wimg) the frames the fix was found in (the newest step's).
+            uv: (B, 2) the fix.
+            rate: STC learning weight in (0, 1].
+
+        Example:
+            >>> trk = EAKFSTC(window=(32, 32), target=(16, 16))
+            >>> f = torch.rand(1, 96, 128)
+            >>> with torch.inference_mode():
+            ...     trk.init(f, torch.tensor([[64.0, 48.0]]))
+            ...     trk.reanchor(f, torch.tensor([[66.0, 47.0]]))
+            >>> trk.state.kf.uv.tolist()
+            [[66.0, 47.0]]
+        """
+        if self.state is None:
+            raise TrackInputError("EAKFSTC.reanchor: call init(frames0, uv0) first")
+        s = self.state
+        B = s.coast.shape[0]
+        check_tensor(frames, "frames", ("B", "Himg", "Wimg"))
+        check_batch(frames, "frames", B)
+        check_tensor(uv, "uv", (B, 2))
+        uv = as_float(uv, s.kf.x)
+        if not bool(torch.isfinite(uv).all()):
+            raise TrackInputError("reanchor: uv must be finite")
+        d = uv - s.kf.uv
+        shift = torch.zeros_like(s.kf.x)
+        shift[..., 0], shift[..., 2] = d, d   # u(k) and u(k-1): the velocity is kept
+        kf = dataclasses.replace(s.kf, x=s.kf.x + shift)
+        zshift = torch.zeros_like(s.kf.Z)
+        zshift[..., 0] = d                    # the kept position measurement, not its step
+        kf.Z = s.kf.Z + zshift
+        if s.kf.x_post is not None:
+            kf.x_post = s.kf.x_post + shift
+        rate_t = torch.as_tensor(rate, dtype=uv.dtype, device=uv.device).expand(B)
+        stc = self.stc.learn(s.stc, frames, uv, rate_t / self.stc.rho)
+        z = torch.zeros_like(s.coast)
+        self.state = dataclasses.replace(s, stc=stc, kf=kf, coast=z, status=z.clone())
+
     def detach_state(self) -> None:
         """Cut the kept state from the graph (truncated BPTT)."""
         if self.state is not None:
