@@ -96,6 +96,27 @@ def test_step_api_equals_run_sequence_and_records_timings() -> None:
     assert len(ms) == 14 and all(0.0 < t < 1000.0 for t in ms)
 
 
+def test_reanchor_moves_onto_the_fix_and_keeps_the_velocity() -> None:
+    """A drifted track moved onto the true point by reanchor() tracks from there (and its
+    filter velocity is the one it had, not zero as after a restart)."""
+    seq = v_stripe_sequence(2, 60, seed=4, noise_sigma=6.0)
+    trk = EAKFSTC()
+    with torch.inference_mode():
+        trk.init(seq.frames[:, 0], seq.uv[:, 0] + torch.tensor([4.0, -3.0]))  # a bad start
+        for t in range(1, 30):
+            trk.step(seq.frames[:, t])
+        vel = trk.state.kf.x[..., 1].clone()
+        assert float(_err(trk.state.kf.uv, seq.uv[:, 29]).min()) > 2.0  # it kept the offset
+        trk.reanchor(seq.frames[:, 29], seq.uv[:, 29])
+        torch.testing.assert_close(trk.state.kf.uv, seq.uv[:, 29])
+        torch.testing.assert_close(trk.state.kf.x[..., 1], vel)
+        outs = [trk.step(seq.frames[:, t])[0] for t in range(30, 60)]
+    e = _err(torch.stack(outs, 1), seq.uv[:, 30:])
+    assert float(e.max()) < 2.0  # the clean-sequence bound of a fresh start (5 px before)
+    with pytest.raises(TorchseamError, match="finite"):
+        trk.reanchor(seq.frames[:, 59], torch.full((2, 2), float("nan")))
+
+
 def test_guard_is_monotone_and_bounded() -> None:
     g = DriftGuard()
     n = 50
