@@ -10,6 +10,7 @@ Units are the cell's: mm, degrees, pixels; quaternions in ABB order (w, x, y, z)
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
 import math
 import os
 import typing
@@ -34,13 +35,22 @@ class ConfigError(TorchseamError, ValueError):
 
 
 def _spec(n: int | None = None, lo: float | None = None, hi: float | None = None,
-          lo_open: bool = False, unit: bool = False) -> dict[str, Any]:
-    """Field constraints: fixed length ``n``, bounds ``lo``/``hi``, unit-norm vector."""
-    return {"n": n, "lo": lo, "hi": hi, "lo_open": lo_open, "unit": unit}
+          lo_open: bool = False, unit: bool = False, choices: tuple[str, ...] | None = None,
+          ip: bool = False) -> dict[str, Any]:
+    """Field constraints: fixed length ``n``, bounds ``lo``/``hi``, unit-norm vector; for
+    ``str`` fields the allowed ``choices`` or an IP address (``ip``)."""
+    return {"n": n, "lo": lo, "hi": hi, "lo_open": lo_open, "unit": unit, "choices": choices,
+            "ip": ip}
 
 
-def _f(n: int | None = None, **kw: Any) -> Any:
+def config_field(n: int | None = None, **kw: Any) -> Any:
+    """A dataclass field with the constraints :func:`load_config` checks (see ``_spec``):
+    ``config_field(3, unit=True)``, ``config_field(lo=0.0, lo_open=True)``,
+    ``config_field(choices=("pose", "pathcorr"))``, ``config_field(ip=True)``."""
     return field(metadata=_spec(n, **kw))
+
+
+_f = config_field  # the short name used inside this module
 
 
 @dataclass(frozen=True)
@@ -228,6 +238,22 @@ def _check_number(v: Any, meta: dict[str, Any], want_int: bool) -> float | int:
     return int(v) if want_int else float(v)
 
 
+def _check_str(v: Any, meta: dict[str, Any]) -> str:
+    choices = meta.get("choices")
+    if choices is not None:
+        if v not in choices:
+            raise ValueError(f"expected one of {', '.join(choices)}, got {v!r}")
+        return str(v)
+    if meta.get("ip"):
+        try:
+            return str(ipaddress.ip_address(v if isinstance(v, str) else ""))
+        except ValueError:
+            raise ValueError(f"not an IP address: {v!r} (use e.g. 127.0.0.1)") from None
+    if not isinstance(v, str):
+        raise ValueError(f"expected a string, got {v!r}")
+    return v
+
+
 def _parse_value(tp: Any, v: Any, meta: dict[str, Any], path: str) -> Any:
     origin = typing.get_origin(tp)
     if dataclasses.is_dataclass(tp):
@@ -252,6 +278,12 @@ def _parse_value(tp: Any, v: Any, meta: dict[str, Any], path: str) -> Any:
         return {str(k): _check_number(x, {"lo": 0.0, "hi": 1.0}, False) for k, x in v.items()}
     if tp in (int, float):
         return _check_number(v, meta, tp is int)
+    if tp is bool:
+        if not isinstance(v, bool):
+            raise ValueError(f"expected true or false, got {v!r}")
+        return v
+    if tp is str:
+        return _check_str(v, meta)
     raise TypeError(f"unsupported config type {tp!r} at {path}")  # programming error
 
 
@@ -292,18 +324,21 @@ def load_config(cls: type[T], path: str | os.PathLike[str]) -> T:
         ConfigError: ``"<file>: <field>: <problem>"`` for a missing file, bad YAML or bad field.
     """
     p = Path(path)
+    return from_dict(cls, read_yaml(p), str(p))
+
+
+def read_yaml(path: str | os.PathLike[str]) -> Any:
+    """The parsed YAML of ``path``; :class:`ConfigError` naming the file when it cannot be read
+    or parsed."""
+    p = Path(path)
     try:
         text = p.read_text()
     except OSError as e:
         raise ConfigError(f"{p}: cannot read config ({e.strerror or e})") from None
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise ConfigError(f"{p}: not valid YAML ({e})") from None
-    try:
-        return _parse_dataclass(cls, data, "")
-    except ConfigError as e:
-        raise ConfigError(f"{p}: {e}") from None
 
 
 def load_cell(path: str | os.PathLike[str] | None = None) -> CellConfig:

@@ -30,9 +30,8 @@ import itertools
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -48,6 +47,7 @@ from torchseam.core.config import (
     Pose,
     load_config,
 )
+from torchseam.core.config import config_field as _m
 from torchseam.core.errors import TorchseamError
 from torchseam.core.transforms import invert, matrix_to_quat, pose_matrix
 
@@ -62,12 +62,6 @@ class CalibrationError(TorchseamError):
 
 
 # --------------------------------------------------------------------------- settings
-
-def _m(n: int | None = None, lo: float | None = None, hi: float | None = None,
-       lo_open: bool = False) -> Any:
-    """Field with the constraints core's config parser checks (length, bounds)."""
-    return field(metadata={"n": n, "lo": lo, "hi": hi, "lo_open": lo_open, "unit": False})
-
 
 @dataclass(frozen=True)
 class BoardSpec:

@@ -1,24 +1,19 @@
 """Typed configuration of the robot model and the reachability gate (``configs/robot.yaml``).
 
-The numeric sections load through :func:`torchseam.core.config.from_dict` (same validation and
-``"<file>: <field>: <problem>"`` messages as every other config). Core's loader reads numbers
-only, so the two choice fields (``axis3_range_applies_to``, ``ik_method``) are checked here and
-added on top.
+Loads through :func:`torchseam.core.config.load_config` (same validation and
+``"<file>: <field>: <problem>"`` messages as every other config).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-import yaml
+from torchseam.core.config import CONFIG_DIR, ConfigError, from_dict, load_config
+from torchseam.core.config import config_field as _f
 
-from torchseam.core.config import CONFIG_DIR, ConfigError, _f, from_dict
-
-#: Allowed values of the string fields, first one is the documented default.
+#: Allowed values of the string fields.
 CHOICES: dict[str, tuple[str, ...]] = {
     "axis3_range_applies_to": ("controller", "difference"),
     "ik_method": ("analytic", "numeric"),
@@ -77,17 +72,7 @@ class IKConfig:
 
 
 @dataclass(frozen=True)
-class _RobotNumbers:
-    axes: AxesConfig
-    home_deg: tuple[float, ...] = _f(6)
-    singularity: SingularityConfig
-    torch: TorchShape
-    clearance: ClearanceConfig
-    ik: IKConfig
-
-
-@dataclass(frozen=True)
-class RobotConfig(_RobotNumbers):
+class RobotConfig:
     """The whole ``configs/robot.yaml``.
 
     Example:
@@ -96,14 +81,16 @@ class RobotConfig(_RobotNumbers):
         (115.0, 'controller')
     """
 
-    axis3_range_applies_to: str = "controller"
-    ik_method: str = "analytic"
+    axes: AxesConfig
+    home_deg: tuple[float, ...] = _f(6)
+    singularity: SingularityConfig
+    torch: TorchShape
+    clearance: ClearanceConfig
+    ik: IKConfig
+    axis3_range_applies_to: str = _f(choices=CHOICES["axis3_range_applies_to"])
+    ik_method: str = _f(choices=CHOICES["ik_method"])
 
     def _check(self) -> None:
-        for name, choices in CHOICES.items():
-            if getattr(self, name) not in choices:
-                raise ValueError(f"{name}: expected one of {', '.join(choices)}, "
-                                 f"got {getattr(self, name)!r}")
         lo, hi = self.axes.min_deg, self.axes.max_deg
         bad = [i for i in range(6) if not lo[i] <= self.home_deg[i] <= hi[i]]
         if bad:
@@ -111,32 +98,16 @@ class RobotConfig(_RobotNumbers):
                              f"its range {lo[bad[0]]}..{hi[bad[0]]}")
 
     def __post_init__(self) -> None:
-        try:
-            self._check()
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
+        # also for objects made in code (dataclasses.replace): a choice field must be valid
+        for name, choices in CHOICES.items():
+            if getattr(self, name) not in choices:
+                raise ConfigError(f"{name}: expected one of {', '.join(choices)}, "
+                                  f"got {getattr(self, name)!r}")
 
 
 def robot_config_from_dict(data: Any, source: str = "<dict>") -> RobotConfig:
     """Validate a parsed ``robot.yaml`` mapping (raises :class:`ConfigError` naming the field)."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"{source}: top level: expected a mapping, got {data!r}")
-    data = dict(data)
-    strings: dict[str, str] = {}
-    for name, choices in CHOICES.items():
-        if name not in data:
-            raise ConfigError(f"{source}: {name}: missing")
-        value = data.pop(name)
-        if value not in choices:
-            raise ConfigError(f"{source}: {name}: expected one of {', '.join(choices)}, "
-                              f"got {value!r}")
-        strings[name] = value
-    numbers = from_dict(_RobotNumbers, data, source)
-    fields = {f.name: getattr(numbers, f.name) for f in dataclasses.fields(_RobotNumbers)}
-    try:
-        return RobotConfig(**fields, **strings)
-    except ConfigError as e:
-        raise ConfigError(f"{source}: {e}") from None
+    return from_dict(RobotConfig, data, source)
 
 
 def load_robot(path: str | os.PathLike[str] | None = None) -> RobotConfig:
@@ -145,13 +116,4 @@ def load_robot(path: str | os.PathLike[str] | None = None) -> RobotConfig:
     Raises:
         ConfigError: ``"<file>: <field>: <problem>"`` for a missing file, bad YAML or bad field.
     """
-    p = Path(path) if path is not None else CONFIG_DIR / "robot.yaml"
-    try:
-        text = p.read_text()
-    except OSError as e:
-        raise ConfigError(f"{p}: cannot read config ({e.strerror or e})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{p}: not valid YAML ({e})") from None
-    return robot_config_from_dict(data, str(p))
+    return load_config(RobotConfig, path if path is not None else CONFIG_DIR / "robot.yaml")

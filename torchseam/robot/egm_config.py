@@ -1,9 +1,7 @@
 """Typed configuration of the EGM link and the simulated controller (``configs/egm.yaml``).
 
-The numeric sections load with core's :func:`~torchseam.core.config.from_dict` (same checks and
-messages as every other config). Core's loader reads numbers only, so the few text fields
-(addresses and the mode) are checked here, with errors in the same ``<file>: <field>: <problem>``
-form.
+Loads through :func:`torchseam.core.config.load_config` (same checks and
+``<file>: <field>: <problem>`` messages as every other config).
 """
 
 from __future__ import annotations
@@ -11,12 +9,10 @@ from __future__ import annotations
 import ipaddress
 import os
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-import yaml
-
-from torchseam.core.config import CONFIG_DIR, ConfigError, _f, from_dict
+from torchseam.core.config import CONFIG_DIR, from_dict, load_config
+from torchseam.core.config import config_field as _f
 
 #: EGM modes: position guidance (``EgmSensor``) or path correction (``EgmSensorPathCorr``).
 MODES = ("pose", "pathcorr")
@@ -26,10 +22,10 @@ MODES = ("pose", "pathcorr")
 class EgmNetwork:
     """Where the sensor listens and whom it accepts datagrams from."""
 
-    host: str = "127.0.0.1"
-    port: int = 6510
-    controller_host: str = "127.0.0.1"
-    controller_port: int = 6511  # 0: lock onto the first valid sender's port
+    host: str = _f(ip=True)
+    port: int = _f(lo=0, hi=65535)
+    controller_host: str = _f(ip=True)
+    controller_port: int = _f(lo=0, hi=65535)  # 0: lock onto the first valid sender's port
 
     @property
     def is_loopback(self) -> bool:
@@ -84,75 +80,15 @@ class EgmConfig:
     """The whole ``configs/egm.yaml``."""
 
     network: EgmNetwork
-    mode: str
+    mode: str = _f(choices=MODES)
     link: EgmLinkConfig
     safety: EgmSafety
     sim_controller: SimControllerConfig
 
 
-def _ip(value: Any, where: str) -> str:
-    if not isinstance(value, str):
-        raise ConfigError(f"{where}: expected an IP address, got {value!r}")
-    try:
-        return str(ipaddress.ip_address(value))
-    except ValueError:
-        raise ConfigError(f"{where}: not an IP address: {value!r} (use e.g. 127.0.0.1)") from None
-
-
-def _port(value: Any, where: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 65535:
-        raise ConfigError(f"{where}: expected a port number 0..65535, got {value!r}")
-    return value
-
-
-def _network(data: Any) -> EgmNetwork:
-    if not isinstance(data, dict):
-        raise ConfigError(f"network: expected a mapping, got {data!r}")
-    known = ("host", "port", "controller_host", "controller_port")
-    unknown = sorted(set(data) - set(known))
-    if unknown:
-        raise ConfigError(f"network.{unknown[0]}: unknown field (expected one of "
-                          f"{', '.join(known)})")
-    for name in known:
-        if name not in data:
-            raise ConfigError(f"network.{name}: missing")
-    return EgmNetwork(host=_ip(data["host"], "network.host"),
-                      port=_port(data["port"], "network.port"),
-                      controller_host=_ip(data["controller_host"], "network.controller_host"),
-                      controller_port=_port(data["controller_port"], "network.controller_port"))
-
-
-def _section(cls: type[Any], data: dict[str, Any], name: str) -> Any:
-    if name not in data:
-        raise ConfigError(f"{name}: missing")
-    try:
-        return from_dict(cls, data[name], source=name)
-    except ConfigError as e:
-        # from_dict writes "<source>: <field>: ..."; make it "<section>.<field>: ..."
-        msg = str(e)
-        prefix = f"{name}: "
-        if msg.startswith(prefix) and ":" in msg[len(prefix):]:
-            msg = f"{name}.{msg[len(prefix):]}"
-        raise ConfigError(msg) from None
-
-
-def egm_config_from_dict(data: Any) -> EgmConfig:
+def egm_config_from_dict(data: Any, source: str = "<dict>") -> EgmConfig:
     """Validate a parsed ``egm.yaml`` mapping (raises :class:`ConfigError` naming the field)."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"top level: expected a mapping, got {data!r}")
-    known = [f for f in EgmConfig.__dataclass_fields__]
-    unknown = sorted(set(data) - set(known))
-    if unknown:
-        raise ConfigError(f"{unknown[0]}: unknown field (expected one of {', '.join(known)})")
-    if "network" not in data:
-        raise ConfigError("network: missing")
-    mode = data.get("mode")
-    if mode not in MODES:
-        raise ConfigError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
-    return EgmConfig(network=_network(data["network"]), mode=mode,
-                     link=_section(EgmLinkConfig, data, "link"),
-                     safety=_section(EgmSafety, data, "safety"),
-                     sim_controller=_section(SimControllerConfig, data, "sim_controller"))
+    return from_dict(EgmConfig, data, source)
 
 
 def load_egm_config(path: str | os.PathLike[str] | None = None) -> EgmConfig:
@@ -161,16 +97,4 @@ def load_egm_config(path: str | os.PathLike[str] | None = None) -> EgmConfig:
     Raises:
         ConfigError: ``"<file>: <field>: <problem>"``.
     """
-    p = Path(path) if path is not None else CONFIG_DIR / "egm.yaml"
-    try:
-        text = p.read_text()
-    except OSError as e:
-        raise ConfigError(f"{p}: cannot read config ({e.strerror or e})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{p}: not valid YAML ({e})") from None
-    try:
-        return egm_config_from_dict(data)
-    except ConfigError as e:
-        raise ConfigError(f"{p}: {e}") from None
+    return load_config(EgmConfig, path if path is not None else CONFIG_DIR / "egm.yaml")
