@@ -170,17 +170,20 @@ class AnchoredTracker:
 
 def fitted_eakf_stc(model: dict | None = None) -> EAKFSTC:
     """EAKF-STC with the fitted parameters of ``models/`` when present (else the paper's
-    defaults, with a warning)."""
+    defaults, with a warning). An explicit ``model`` configuration (TrackerConfig fields) is
+    taken as given: the fitted file would silently overwrite the values asked for."""
+    if model:
+        return EAKFSTC(model)
     from torchseam.fit.model_io import load_fitted  # the fitting stage owns the model file
 
-    module = EAKFSTC(model or None)
+    module = EAKFSTC()
     load_fitted(module)
     return module
 
 
 def make_tracker(name: str, model: dict | None = None) -> FrameTracker:
-    """A tracker by CLI name (see ``TRACKERS``). ``model``: EAKF-STC config overrides. The
-    EAKF-STC trackers load ``models/eakf_stc.safetensors`` by default."""
+    """A tracker by CLI name (see ``TRACKERS``). The EAKF-STC trackers load
+    ``models/eakf_stc.safetensors`` unless ``model`` (a TrackerConfig mapping) is given."""
     if name == "eakf-stc":
         return TorchTracker(name, fitted_eakf_stc(model))
     if name == "anchored":
