@@ -36,8 +36,9 @@ class FrameTracker(Protocol):
 
 
 def grey_tensor(frame: np.ndarray) -> torch.Tensor:
-    """(1, H, W) float32 tensor of the red-stripe response the torch trackers see."""
-    return torch.from_numpy(red_response(frame)).to(torch.float32).unsqueeze(0)
+    """(1, H, W) uint8 tensor of the red-stripe response the torch trackers see (they convert
+    only the context windows they crop to float, not the whole frame)."""
+    return torch.from_numpy(red_response(frame)).unsqueeze(0)
 
 
 class TipmPerFrame:
