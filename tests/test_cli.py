@@ -54,10 +54,19 @@ def test_demo_runs_as_installed_command(tmp_path):
 
     out = tmp_path / "demo"
     r = subprocess.run([sys.executable, "-m", "torchseam.cli", "demo", "--segments", "a",
-                        "--length-mm", "16", "--noise", "clean", "--no-video", "--out",
+                        "--length-mm", "16", "--noise", "clean", "--out",
                         str(out)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     s = json.loads((out / "summary.json").read_text())
+    # the video (written on its own thread) holds every frame of the weld
+    import cv2
+
+    cap = cv2.VideoCapture(str(out / "weld.mp4"))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    cap.release()
+    assert n == s["frames"]
     for key in ("seam_rmse_mm", "seam_max_mm", "nominal_rmse_mm", "pixel_rmse_px",
                 "latency_p99_ms", "poses_sent", "poses_refused", "unsafe_poses_sent"):
         assert key in s

@@ -8,14 +8,18 @@ from torchseam.live.demo import FAULT_FRAMES, run_demo
 LENGTH_MM = 24.0  # weld only the start of segment a (the fault lands in its middle)
 
 
-def _run(cell, part, noise, faults=(), level=0.3):
+def _run(cell, part, noise, faults=(), level=0.3, observer=None):
     return run_demo(cell, part, noise, level, seed=1, faults=faults, segments="a",
-                    length_mm=LENGTH_MM)
+                    length_mm=LENGTH_MM, observer=observer)
 
 
 @pytest.fixture(scope="module")
 def baseline(cell, part, noise):
-    return _run(cell, part, noise)
+    seen = []   # (maxlen, len) of the loop's command history at every frame
+    res = _run(cell, part, noise, observer=lambda ev: seen.append(
+        (ev.loop.commands.maxlen, len(ev.loop.commands))))
+    res.history_seen = seen
+    return res
 
 
 def _after_fault(res):
@@ -61,3 +65,81 @@ def test_link_faults_do_not_move_the_robot_off_the_seam(cell, part, noise, fault
     assert any(f.state == "tracking" for f in after)
     errs = np.array([f.torch_err_mm for f in res.frames if f.arc_on])
     assert errs.max() < 0.3
+
+
+def test_loop_history_is_bounded_and_the_demo_keeps_every_pose(baseline):
+    from torchseam.live.loop import History, load_live_config
+
+    h = History(maxlen=3)
+    for i in range(5):
+        h.append(i)
+    assert list(h) == [2, 3, 4] and h[1:] == [3, 4] and h[-1] == 4 and h[5:] == []
+    cfg = load_live_config()
+    seen = baseline.history_seen
+    assert len(seen) == len(baseline.frames)
+    assert all(m == cfg.history and n <= cfg.history for m, n in seen)
+    # the demo keeps its own record of every pose sent (the loop's history is bounded)
+    assert baseline.summary["poses_sent"] == len(baseline.sent) >= LENGTH_MM / 2
+
+
+def test_numpy_torch_frame_matches_the_torch_one():
+    import torch
+
+    from torchseam.core.transforms import matrix_to_quat
+    from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
+    from torchseam.live.loop import _rot, frame_from_arms
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        p, a1, a2 = rng.normal(size=3) * 300, rng.normal(size=3) * 5, rng.normal(size=3) * 5
+        t = rng.normal(size=3)
+        P = torch.tensor(p)[None]
+        R, ok = torch_frame(P, P + torch.tensor(a1)[None], P + torch.tensor(a2)[None],
+                            tangent=torch.tensor(t)[None])
+        Rn, okn = frame_from_arms(p, p + a1, p + a2, t)
+        assert okn == bool(ok[0])
+        np.testing.assert_allclose(Rn, R[0].numpy(), atol=1e-12)
+        Rt = tilt(R, 4.0, -6.0)[0].numpy()
+        np.testing.assert_allclose(Rn @ _rot(0, 4.0) @ _rot(1, -6.0), Rt, atol=1e-12)
+        np.testing.assert_allclose(matrix_to_quat(Rt), quaternions(torch.tensor(Rt[None]))[0],
+                                   atol=1e-12)
+    # collinear arms: no frame
+    p = np.zeros(3)
+    assert not frame_from_arms(p, p + [0, 1.0, 0], p + [0, 2.0, 0], np.array([1.0, 0, 0]))[1]
+
+
+def test_sim_controller_lockstep_cycle(cell):
+    import dataclasses
+
+    from torchseam.live.simcell import SimClock
+    from torchseam.robot.egm import EgmLink
+    from torchseam.robot.egm_config import load_egm_config
+    from torchseam.robot.sim_controller import SimController
+
+    egm = dataclasses.replace(load_egm_config(), mode="pose")
+    ctrl = SimController(egm, mode="pose", tool=cell.tool.matrix(),
+                         bind_address=("127.0.0.1", 0))
+    try:
+        clock = SimClock()
+        link = EgmLink(egm, clock=clock, bind=False)
+        sender = ("127.0.0.1", egm.network.controller_port or 6511)
+        T0 = ctrl.tcp_pose()
+        ctrl.rest_at(ctrl.q)
+        from torchseam.core.transforms import matrix_to_quat
+
+        goal = T0[:3, 3] + np.array([0.0, 0.0, 0.5])
+        assert link.set_target(goal, matrix_to_quat(T0[:3, :3]), measured_at=0.0).ok
+
+        def wire(data: bytes) -> bytes | None:
+            return link.handle_datagram(data, sender)
+
+        assert ctrl.step_lockstep(None) == "silent"        # a silent cycle sends nothing
+        assert ctrl.step_lockstep(lambda d: None) == "no_reply"  # a lost datagram
+        for _ in range(40):
+            clock.t += ctrl.period
+            assert ctrl.step_lockstep(wire) == ""
+        np.testing.assert_allclose(ctrl.tcp_pose()[:3, 3], goal, atol=0.05)
+        st = ctrl.stats
+        assert st.cycles == 42 and st.sent == 41 and st.replies == 40
+    finally:
+        ctrl.stop()

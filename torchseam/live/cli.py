@@ -1,8 +1,10 @@
-"""``torchseam demo``: the closed-loop weld of the simulated T joint, with a report folder."""
+"""``torchseam demo`` (the closed-loop weld of the simulated T joint, with a report folder) and
+``torchseam replay`` (recorded frames through the live loop, open loop)."""
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from pathlib import Path
 
@@ -41,6 +43,115 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--length-mm", type=float, default=None,
                    help="weld only this much of each segment (quick runs)")
     p.set_defaults(func=run)
+
+    r = sub.add_parser(
+        "replay", help="feed recorded frames (folder or video) through the live loop, open loop",
+        description="Open-loop replay: feed a recorded frame folder (dataset format) or a video "
+                    "file through the same live loop the demo runs (tracking, triangulation, "
+                    "ECAL, IPI plan) and print the per-stage latency and, with labels.csv, the "
+                    "pixel error. Nothing is sent to a robot. Torch poses come from the "
+                    "folder's meta.json when it has them; otherwise --pose (default: the "
+                    "flange at the base origin, so 3D points are in the flange frame).")
+    r.add_argument("source", type=Path, help="frame folder (00000.png ...) or video file")
+    r.add_argument("--tracker", choices=TRACKERS, default="anchored",
+                   help="feature-point tracker (default anchored)")
+    r.add_argument("--init", default=None, metavar="U,V",
+                   help="start pixel (default: TIPM on the first frame, which must be arc-off)")
+    r.add_argument("--pose", default=None, metavar="X,Y,Z,Q1,Q2,Q3,Q4",
+                   help="torch pose for frames without one (mm, quaternion w,x,y,z)")
+    r.add_argument("--fps", type=float, default=None,
+                   help="frame rate for time stamps the source lacks (default: the file's, "
+                        "else 25)")
+    r.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
+    r.add_argument("--out", type=Path, default=None,
+                   help="CSV of frame,t_s,u,v,status,x,y,z per frame")
+    r.set_defaults(func=run_replay_cmd)
+
+
+def _floats(text: str, n: int, what: str) -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise TorchseamError(f"{what} {text!r}: expected {n} comma-separated numbers") from None
+    if len(vals) != n or not all(math.isfinite(v) for v in vals):
+        raise TorchseamError(f"{what} {text!r}: expected {n} finite comma-separated numbers")
+    return vals
+
+
+def run_replay_cmd(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from torchseam.core.transforms import pose_matrix
+    from torchseam.live.loop import run_replay
+    from torchseam.live.sources import open_source
+    from torchseam.track.fusion import TrackStatus
+    from torchseam.track.peers import STATUS_NAMES, make_tracker
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    if args.max_frames is not None and args.max_frames < 2:
+        raise TorchseamError(f"--max-frames must be >= 2, got {args.max_frames}")
+    if args.fps is not None and not args.fps > 0:
+        raise TorchseamError(f"--fps must be > 0, got {args.fps}")
+    uv0 = np.array(_floats(args.init, 2, "--init")) if args.init else None
+    pose = None
+    if args.pose:
+        v = _floats(args.pose, 7, "--pose")
+        q = np.array(v[3:])
+        if not np.linalg.norm(q) > 0:
+            raise TorchseamError("--pose: the quaternion is zero")
+        pose = pose_matrix(np.array(v[:3]), q / np.linalg.norm(q))
+    cell = load_cell()
+    source = open_source(args.source, (cell.camera.width, cell.camera.height), args.fps)
+    truth = None
+    meta = getattr(getattr(source, "ds", None), "meta", None)
+    if meta and isinstance(meta.get("frames"), list):
+        truth = {int(e["frame"]): np.asarray(e["seam_mm"], float)
+                 for e in meta["frames"] if "seam_mm" in e and "frame" in e}
+    t0 = time.perf_counter()
+    with source:
+        res = run_replay(cell, source, make_tracker(args.tracker), pose, uv0,
+                         max_frames=args.max_frames, truth=truth)
+    wall = time.perf_counter() - t0
+    n = len(res.index)
+    lost = int(np.sum(res.status == int(TrackStatus.LOST)))
+    located = int(np.sum(np.isfinite(res.p).all(axis=1)))
+    print(f"replay of {args.source}: {n + 1} frames (start frame {res.start_index}), tracker "
+          f"{args.tracker}, {wall:.1f} s; torch poses "
+          + ("from the recording" if res.poses_known else
+             ("from --pose" if pose is not None else "not recorded: flange at the base origin "
+              "(3D points in the flange frame)")))
+    rows = [["frames tracked / lost", f"{n - lost} / {lost}", ""],
+            ["3D seam points located", located, ""],
+            ["poses planned (open loop, not sent)", len(res.commands), ""]]
+    err = res.pixel_errors()
+    if len(err):
+        rows += [["feature point vs label, RMSE", float(np.sqrt(np.mean(err**2))), "px"],
+                 ["feature point vs label, max", float(err.max()), "px"],
+                 ["frames > 5 px off", f"{100.0 * np.mean(err > 5):.1f} %", ""]]
+    d = np.linalg.norm(res.p - res.p_true, axis=1)
+    d = d[np.isfinite(d)]
+    if len(d):
+        rows.append(["located 3D seam point, RMSE", float(np.sqrt(np.mean(d**2))), "mm"])
+    for k, (a, b) in res.latency.items():
+        rows.append([f"{k} p50 / p99", f"{a:.2f} / {b:.2f}", "ms"])
+    rows.append(["read a frame (source, not in the loop) p50 / p99",
+                 f"{res.read_ms[0]:.2f} / {res.read_ms[1]:.2f}", "ms"])
+    print(format_table(["figure", "value", "unit"], rows))
+    for m in res.messages[:8]:
+        print("  " + m)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with args.out.open("w") as fh:
+            fh.write("frame,t_s,u,v,status,x,y,z\n")
+            for i in range(n):
+                u, v = res.uv[i]
+                x, y, z = res.p[i]
+                fh.write(f"{res.index[i]},{res.t_s[i]:.6f},{u:.4f},{v:.4f},"
+                         f"{STATUS_NAMES.get(int(res.status[i]), res.status[i])},"
+                         f"{x:.4f},{y:.4f},{z:.4f}\n")
+        print(f"per-frame track: {args.out}")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:

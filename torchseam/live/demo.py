@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import queue
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ import torch
 
 from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
 from torchseam.core.transforms import apply, invert
-from torchseam.live.loop import LiveLoop, LoopState, StepReport
+from torchseam.live.loop import Command, LiveLoop, LoopState, StepReport
 from torchseam.live.simcell import LockstepCell, SimClock
 from torchseam.plan.path import load_plan_config, six_segments
 from torchseam.robot.egm import EgmLink
@@ -145,92 +146,141 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     latency: dict[str, list[float]] = {}
     unsafe = 0
     stopped = False
-    for seg in six_segments():
-        if seg.name not in segments or stopped:
-            continue
-        scene = Scene(part, seg.rotation_deg)
-        gate = ReachGate(cell=cell, part=part, part_pose_mm=scene.T_B_Tnom)
-        link = EgmLink(egm, gate=gate, clock=clock, bind=False)
-        s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
-        seg_len = (float(scene.s_at(np.array([seg.phi_end]))[0]) - s0) % scene.seam_length_mm
-        if length_mm is not None:
-            seg_len = min(seg_len, length_mm)
-        approach = proc.look_ahead_mm + plan.approach_mm
-        T0 = scene.nominal_tcp(np.array([s0 - approach]))[0]
-        simcell = LockstepCell(cell, egm, link, clock, T0, robot=gate.robot)
-        renderer = SensorRenderer(cell, scene, noise, level, seed * 10 + seg.index)
-        ref = _SeamRef(scene)
-        nominal = scene.nominal_tcp(s0 - approach + np.arange(
-            0.0, approach + seg_len + 10.0, 0.5))[:, :3, 3]
-        loop = LiveLoop(cell, make_tracker(tracker), link, plan, nominal=nominal)
-        start = T0[:3, 3]
-        n_max = int((approach + seg_len) / (proc.weld_speed_mm_s * dt) * 1.6) + 50
-        fault_at = int((approach + 0.5 * seg_len) / (proc.weld_speed_mm_s * dt))
-        travelled, prev = 0.0, start
-        first, last_msg = True, ""
-        for k in range(n_max):
-            if control is not None and control.checkpoint():
-                stopped = True
-                res.messages.append(f"[{seg.name} t={clock.t:.2f}s] stopped by the operator")
-                break
-            T_B_W = simcell.tcp_pose()
-            travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
-            prev = T_B_W[:3, 3]
-            if travelled >= approach + seg_len:
-                break
-            arc_on = travelled >= approach
-            active = [f for f in faults if fault_at <= k < fault_at + FAULT_FRAMES]
-            frame, truth = renderer.render(T_B_W, clock.t, arc_on=arc_on,
-                                           laser_on="laser-off" not in active,
-                                           force_flash="arc-flash" in active)
-            if "packet-loss" in active:
-                simcell.faults.drop_cycles = 10
-            if "controller-silence" in active:
-                simcell.faults.silent_cycles = 10
-            T_B_F = simcell.flange_pose()
-            if first:
-                loop.start(frame, T_B_W)
-                first = False
-                rep = None
-            else:
-                rep = loop.on_frame(None if "dropped-frames" in active else frame, T_B_F,
-                                    T_B_W, clock.t)
-                if rep.message and rep.message != last_msg:
-                    res.messages.append(f"[{seg.name} t={clock.t:.2f}s] {rep.state.value}: "
-                                        f"{rep.message}")
-                last_msg = rep.message
-            loc = rep.location if rep else None
-            res.frames.append(_record(seg.name, truth, loc, rep, ref, clock.t, T_B_W,
-                                      ",".join(active)))
-            if observer is not None:
-                observer(DemoEvent(seg.name, k, frame, res.frames[-1], rep, T_B_W, loop, link))
-            if video is not None:
-                ov = _overlay(frame, truth, loc, rep, seg.name)
-                video.write(cv2.resize(ov, (ov.shape[1] // 2, ov.shape[0] // 2),
-                                       interpolation=cv2.INTER_AREA))
-            simcell.advance(dt)
-            if progress:
-                progress(1)
-        loop.finish()
-        for name, (_, _) in loop.latency_ms().items():
-            latency.setdefault(name, []).extend(loop.stats.timings_ms[name])
-        for c in loop.commands:
-            if c.ok:
+    writer = _VideoThread(video) if video is not None else None
+    try:
+        for seg in six_segments():
+            if seg.name not in segments or stopped:
+                continue
+            scene = Scene(part, seg.rotation_deg)
+            gate = ReachGate(cell=cell, part=part, part_pose_mm=scene.T_B_Tnom)
+            link = EgmLink(egm, gate=gate, clock=clock, bind=False)
+            s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
+            seg_len = (float(scene.s_at(np.array([seg.phi_end]))[0]) - s0) % scene.seam_length_mm
+            if length_mm is not None:
+                seg_len = min(seg_len, length_mm)
+            approach = proc.look_ahead_mm + plan.approach_mm
+            T0 = scene.nominal_tcp(np.array([s0 - approach]))[0]
+            simcell = LockstepCell(cell, egm, link, clock, T0, robot=gate.robot)
+            renderer = SensorRenderer(cell, scene, noise, level, seed * 10 + seg.index)
+            ref = _SeamRef(scene)
+            nominal = scene.nominal_tcp(s0 - approach + np.arange(
+                0.0, approach + seg_len + 10.0, 0.5))[:, :3, 3]
+            loop = LiveLoop(cell, make_tracker(tracker), link, plan, nominal=nominal)
+            start = T0[:3, 3]
+            n_max = int((approach + seg_len) / (proc.weld_speed_mm_s * dt) * 1.6) + 50
+            fault_at = int((approach + 0.5 * seg_len) / (proc.weld_speed_mm_s * dt))
+            travelled, prev = 0.0, start
+            first, last_msg = True, ""
+            commands: list[Command] = []   # every pose handed to the link (the loop keeps few)
+            for k in range(n_max):
+                if control is not None and control.checkpoint():
+                    stopped = True
+                    res.messages.append(f"[{seg.name} t={clock.t:.2f}s] stopped by the operator")
+                    break
+                T_B_W = simcell.tcp_pose()
+                travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
+                prev = T_B_W[:3, 3]
+                if travelled >= approach + seg_len:
+                    break
+                arc_on = travelled >= approach
+                active = [f for f in faults if fault_at <= k < fault_at + FAULT_FRAMES]
+                frame, truth = renderer.render(T_B_W, clock.t, arc_on=arc_on,
+                                               laser_on="laser-off" not in active,
+                                               force_flash="arc-flash" in active)
+                if "packet-loss" in active:
+                    simcell.faults.drop_cycles = 10
+                if "controller-silence" in active:
+                    simcell.faults.silent_cycles = 10
+                T_B_F = simcell.flange_pose()
+                if first:
+                    loop.start(frame, T_B_W)
+                    first = False
+                    rep = None
+                else:
+                    rep = loop.on_frame(None if "dropped-frames" in active else frame, T_B_F,
+                                        T_B_W, clock.t)
+                    if rep.command is not None:
+                        commands.append(rep.command)
+                    if rep.message and rep.message != last_msg:
+                        res.messages.append(f"[{seg.name} t={clock.t:.2f}s] {rep.state.value}: "
+                                            f"{rep.message}")
+                    last_msg = rep.message
+                loc = rep.location if rep else None
+                res.frames.append(_record(seg.name, truth, loc, rep, ref, clock.t, T_B_W,
+                                          ",".join(active)))
+                if observer is not None:
+                    observer(DemoEvent(seg.name, k, frame, res.frames[-1], rep, T_B_W, loop, link))
+                if writer is not None:
+                    writer.put(frame, truth, loc, rep, seg.name)
+                simcell.advance(dt)
+                if progress:
+                    progress(1)
+            loop.finish()
+            simcell.close()
+            for name, times in loop.stats.timings_ms.items():
+                latency.setdefault(name, []).extend(times)
+            sent = [c for c in commands if c.ok]
+            for c in sent:
                 res.sent.append((seg.name, c.p, c.q, c.seen_t_s))
-        for r, n in loop.stats.refused.items():
-            res.refused[r] = res.refused.get(r, 0) + n
-        res.quats[seg.name] = np.array([c.q for c in loop.commands if c.ok])
-        res.paths.setdefault("tracked", []).append(np.array([c.p for c in loop.commands
-                                                             if c.ok]))
-        res.paths.setdefault("nominal", []).append(
-            scene.nominal_tcp(s0 + np.arange(0.0, seg_len, proc.step_mm))[:, :3, 3])
-        res.paths.setdefault("true seam", []).append(_true_curve(scene, clock.t, s0, seg_len))
-        unsafe += _unsafe(loop, gate, egm.safety.max_step_mm)
+            for r, n in loop.stats.refused.items():
+                res.refused[r] = res.refused.get(r, 0) + n
+            res.quats[seg.name] = np.array([c.q for c in sent])
+            res.paths.setdefault("tracked", []).append(np.array([c.p for c in sent]))
+            res.paths.setdefault("nominal", []).append(
+                scene.nominal_tcp(s0 + np.arange(0.0, seg_len, proc.step_mm))[:, :3, 3])
+            res.paths.setdefault("true seam", []).append(_true_curve(scene, clock.t, s0, seg_len))
+            unsafe += _unsafe(sent, gate, egm.safety.max_step_mm)
+    finally:
+        if writer is not None:
+            writer.close()
     res.latency = {k: (float(np.percentile(v, 50)), float(np.percentile(v, 99)))
                    for k, v in latency.items() if v}
     res.summary = _summary(res, unsafe)
     res.summary["stopped"] = stopped
     return res
+
+
+class _VideoThread:
+    """Draws, scales and encodes the video on a second thread (OpenCV releases the GIL while
+    it works), fed through a bounded queue: when the encoder falls behind, the weld waits for
+    it (every frame is kept) instead of frames piling up in memory.
+
+    Args:
+        video: an open ``cv2.VideoWriter`` for half-size frames.
+        maxsize: frames queued at most.
+    """
+
+    def __init__(self, video: cv2.VideoWriter, maxsize: int = 8) -> None:
+        self.video = video
+        self.queue: queue.Queue[tuple | None] = queue.Queue(maxsize)
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, name="demo-video", daemon=True)
+        self.thread.start()
+
+    def put(self, frame: np.ndarray, truth, loc, rep, seg: str) -> None:
+        """Queue one frame (BGR (H, W, 3) uint8, not modified) with what to draw on it."""
+        if self.error is not None:
+            raise RuntimeError(f"writing the video failed: {self.error!r}")
+        self.queue.put((frame, truth, loc, rep, seg))
+
+    def _run(self) -> None:
+        while True:
+            item = self.queue.get()
+            if item is None:
+                return
+            if self.error is not None:
+                continue  # keep draining so that put() never blocks for ever
+            try:
+                ov = _overlay(*item)
+                self.video.write(cv2.resize(ov, (ov.shape[1] // 2, ov.shape[0] // 2),
+                                            interpolation=cv2.INTER_AREA))
+            except Exception as e:  # reported to the weld thread by the next put()
+                self.error = e
+
+    def close(self) -> None:
+        """Write what is queued and stop the thread."""
+        self.queue.put(None)
+        self.thread.join()
 
 
 def _record(seg, truth, loc, rep, ref: _SeamRef, t, T_B_W, fault) -> FrameRecord:
@@ -265,9 +315,9 @@ def _true_curve(scene: Scene, t: float, s0: float, seg_len: float) -> np.ndarray
     return apply(scene.part_pose(t), scene.true_joint.seam(phi).point)
 
 
-def _unsafe(loop: LiveLoop, gate: ReachGate, max_step: float) -> int:
-    """Re-check every pose the link accepted with a fresh gate: count the ones it refuses."""
-    sent = [c for c in loop.commands if c.ok]
+def _unsafe(sent: list[Command], gate: ReachGate, max_step: float) -> int:
+    """Re-check every pose the link accepted (``sent``, in order) with a fresh gate: count
+    the ones it refuses, non-finite ones and steps longer than ``max_step`` mm."""
     if not sent:
         return 0
     from torchseam.core.transforms import pose_matrix

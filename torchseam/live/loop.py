@@ -16,21 +16,24 @@ trusted measurements return.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter, deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import Enum
+from itertools import islice
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar, overload
 
 import numpy as np
-import torch
 
 from torchseam.core.config import CONFIG_DIR, CellConfig, load_config
-from torchseam.core.transforms import quat_to_matrix
-from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
+from torchseam.core.transforms import matrix_to_quat, quat_to_matrix
+from torchseam.geometry.torch_frame import MIN_ARM_MM, MIN_SIN
 from torchseam.live.locate import Location, SeamLocator
 from torchseam.plan.path import LookAheadBuffer, PlanConfig, load_plan_config
+from torchseam.robot.egm import Verdict
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import FrameTracker
 
@@ -45,22 +48,95 @@ class LiveConfig:
     max_offset_mm: float       # largest distance of a target from the programmed path
     max_frame_gap_ms: float    # no camera frame for longer than this: hold
     timing_window: int         # per-stage timings kept (bounded)
+    history: int               # commands kept in LiveLoop.commands (bounded; oldest dropped)
+
+    def _check(self) -> None:
+        if self.timing_window < 1 or self.history < 1:
+            raise ValueError("timing_window and history must be >= 1")
 
 
-def _turn_limited(q_prev: torch.Tensor | None, q: torch.Tensor, max_deg: float
-                  ) -> torch.Tensor:
-    """Slerp from ``q_prev`` towards ``q`` by at most ``max_deg`` (quaternions w, x, y, z,
-    same hemisphere): the torch turns to a newly seen frame over several steps."""
+_T = TypeVar("_T")
+
+
+class History(deque[_T]):
+    """A bounded history (a ``deque`` with ``maxlen``) that also takes slices, as a list does:
+    ``history[k:]`` is a list of the entries from position ``k`` on."""
+
+    def __init__(self, items: Iterable[_T] = (), maxlen: int | None = None) -> None:
+        super().__init__(items, maxlen)
+
+    @overload
+    def __getitem__(self, i: int) -> _T: ...
+    @overload
+    def __getitem__(self, i: slice) -> list[_T]: ...
+    def __getitem__(self, i: int | slice) -> _T | list[_T]:  # noqa: E301
+        if isinstance(i, slice):
+            start, stop, step = i.indices(len(self))
+            if step == 1:
+                return list(islice(self, start, max(start, stop)))
+            return list(self)[i]
+        return super().__getitem__(i)
+
+
+def _turn_limited(q_prev: np.ndarray | None, q: np.ndarray, max_deg: float) -> np.ndarray:
+    """Slerp from ``q_prev`` towards ``q`` by at most ``max_deg`` (quaternions (4,) w, x, y,
+    z, same hemisphere): the torch turns to a newly seen frame over several steps."""
     if q_prev is None:
         return q
-    d = float(torch.clamp(torch.dot(q_prev, q), -1.0, 1.0))
-    ang = 2.0 * float(np.degrees(np.arccos(abs(d))))
+    d = min(1.0, max(-1.0, float(q_prev @ q)))
+    half = math.acos(abs(d))
+    ang = 2.0 * math.degrees(half)
     if ang <= max_deg:
         return q
     f = max_deg / ang
-    half = np.arccos(abs(d))
-    out = (np.sin((1 - f) * half) * q_prev + np.sign(d) * np.sin(f * half) * q) / np.sin(half)
-    return out / out.norm()
+    out = (math.sin((1 - f) * half) * q_prev
+           + math.copysign(1.0, d) * math.sin(f * half) * q) / math.sin(half)
+    return out / np.linalg.norm(out)
+
+
+def _rot(axis: int, deg: float) -> np.ndarray:
+    """(3, 3) rotation by ``deg`` about coordinate axis ``axis`` (0 x, 1 y, 2 z)."""
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    M = np.eye(3)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    M[i, i], M[i, j], M[j, i], M[j, j] = c, -s, s, c
+    return M
+
+
+def frame_from_arms(p: np.ndarray, q1: np.ndarray, q2: np.ndarray, tangent: np.ndarray
+                    ) -> tuple[np.ndarray, bool]:
+    """The torch frame of :func:`torchseam.geometry.torch_frame.torch_frame` with a seam
+    tangent (Omega perpendicular to the seam, px along the tangent), for one point in numpy.
+
+    The live loop plans one pose per step; the torch version pays ~1.5 ms of per-call tensor
+    overhead on these 3-vectors, this one ~30 us (``tests/test_live.py`` holds the two to the
+    same numbers).
+
+    Args:
+        p: (3,) weld point; q1, q2: (3,) a point on each stripe arm; tangent: (3,) the seam's
+            direction of travel (need not be unit). All mm, base frame.
+
+    Returns:
+        ``(R, ok)``: (3, 3) rotation with columns (wx, wy, wz) and whether the points define a
+        frame (coincident or collinear arms: ``ok`` False and the identity).
+    """
+    t = tangent / max(float(np.linalg.norm(tangent)), 1e-12)
+    u1, u2 = q1 - p, q2 - p
+    u1 = u1 - (u1 @ t) * t
+    u2 = u2 - (u2 @ t) * t
+    n1, n2 = float(np.linalg.norm(u1)), float(np.linalg.norm(u2))
+    cross = np.cross(u1, u2)
+    nc = float(np.linalg.norm(cross))
+    sin = nc / max(n1 * n2, 1e-12)
+    if not (n1 > MIN_ARM_MM and n2 > MIN_ARM_MM and sin > MIN_SIN and math.isfinite(nc)):
+        return np.eye(3), False
+    px = cross / max(nc, 1e-12)                                        # eq. 27
+    if px @ t < 0:
+        px = -px
+    pz = u1 / max(n1, 1e-12) + u2 / max(n2, 1e-12)                     # eq. 28
+    pz = pz / max(float(np.linalg.norm(pz)), 1e-12)
+    py = np.cross(pz, px)
+    return np.stack([px, -py, -pz], axis=1), True                      # eq. 29
 
 
 def load_live_config(path: str | Path | None = None) -> LiveConfig:
@@ -141,20 +217,25 @@ class LiveLoop:
         self.stats = LoopStats()
         self.state = LoopState.STARTING
         self.target: np.ndarray | None = None
-        self.last_q: torch.Tensor | None = None
+        self.last_q: np.ndarray | None = None   # (4,) w, x, y, z of the last accepted pose
         self.last_trusted: np.ndarray | None = None
         self.fresh_t = float("-inf")   # time of the newest frame the tracker followed
         self.last_frame_t = float("inf")  # time of the newest frame that arrived
-        self.commands: list[Command] = []
+        # the recent commands (bounded: ``history`` in configs/live.yaml); a caller that needs
+        # every command collects StepReport.command itself
+        self.commands: History[Command] = History(maxlen=self.cfg.history)
         self.message = ""
+        self._tilt = (_rot(0, self.plan.work_angle_deg) @ _rot(1, self.plan.travel_angle_deg))
 
     # ------------------------------------------------------------------ lifecycle
-    def start(self, frame: np.ndarray, T_B_W: np.ndarray) -> None:
-        """Start on a clean frame with the torch at ``T_B_W``: TIPM finds the stripe."""
-        self.locator.start(frame)
+    def start(self, frame: np.ndarray, T_B_W: np.ndarray, uv0: np.ndarray | None = None
+              ) -> None:
+        """Start on a clean frame with the torch at ``T_B_W`` (4, 4) mm: TIPM finds the
+        stripe's feature point, or ``uv0`` (2,) gives it."""
+        self.locator.start(frame, uv0)
         self.last_frame_t = float("-inf")
         self.target = np.asarray(T_B_W, float)[:3, 3].copy()
-        self.last_q = quaternions(torch.tensor(np.asarray(T_B_W, float)[None, :3, :3]))[0]
+        self.last_q = matrix_to_quat(np.asarray(T_B_W, float)[:3, :3])
         self.state = LoopState.TRACKING
 
     def finish(self) -> None:
@@ -208,7 +289,7 @@ class LiveLoop:
             alive = loc is not None and loc.status != TrackStatus.LOST
             if self.last_q is not None and alive and (
                     self.state != LoopState.HOLD or loc.status == TrackStatus.TRACKED):
-                self.sink.set_target(self.target, self.last_q.numpy(), measured_at=self.fresh_t)
+                self.sink.set_target(self.target, self.last_q, measured_at=self.fresh_t)
                 self._set_state(loc)
             return None
         nxt = self.buffer.next_command(self.target, self.cell.process.step_mm)
@@ -218,7 +299,7 @@ class LiveLoop:
         if tangent is None:
             # too little of the seam seen to fit its direction (the start of a segment): keep
             # the torch's present travel direction rather than guess from a chord
-            tangent = quat_to_matrix(self.last_q.numpy())[:, 0]
+            tangent = quat_to_matrix(self.last_q)[:, 0]
         if self.last_trusted is None or self._beyond(ip, self.last_trusted, tangent,
                                                       self.cfg.max_blind_mm):
             return self._hold(f"no trusted measurement within {self.cfg.max_blind_mm:g} mm "
@@ -230,19 +311,18 @@ class LiveLoop:
                                   f"{self.cfg.max_offset_mm:g} mm): tracking suspect")
         if not np.all(np.isfinite(arms)):
             return self._hold("no arm points (ECAL) near the target: no torch frame")
-        P = torch.tensor(ip)[None]
-        R, ok = torch_frame(P, P + torch.tensor(arms[0])[None], P + torch.tensor(arms[1])[None],
-                            tangent=torch.tensor(tangent)[None])
-        if not bool(ok[0]):
+        R, ok = frame_from_arms(ip, ip + arms[0], ip + arms[1], tangent)
+        if not ok:
             return self._hold("degenerate torch frame (arms collinear)")
-        R = tilt(R, self.plan.work_angle_deg, self.plan.travel_angle_deg)
-        q = _turn_limited(self.last_q, quaternions(R, previous=self.last_q)[0],
-                          self.cfg.max_turn_deg)
+        q = matrix_to_quat(R @ self._tilt)
+        if self.last_q is not None and q @ self.last_q < 0:
+            q = -q  # the sign nearest the previous pose: the controller turns the short way
+        q = _turn_limited(self.last_q, q, self.cfg.max_turn_deg)
         seen = self._seen_time(ip)
-        verdict = self.sink.set_target(ip, q.numpy(), measured_at=self.fresh_t)
+        verdict = self.sink.set_target(ip, q, measured_at=self.fresh_t)
         ok_v = bool(getattr(verdict, "ok", True))
         reason = getattr(verdict, "detail", "") or getattr(verdict, "reason", "")
-        cmd = Command(t_s, ip, q.numpy(), ok_v, reason, seen)
+        cmd = Command(t_s, ip, q, ok_v, reason, seen)
         self.commands.append(cmd)
         if ok_v:
             self.stats.sent += 1
@@ -283,3 +363,158 @@ class LiveLoop:
         """(p50, p99) per stage."""
         return {k: (float(np.percentile(v, 50)), float(np.percentile(v, 99)))
                 for k, v in self.stats.timings_ms.items() if len(v)}
+
+
+# --------------------------------------------------------------------------- open-loop replay
+
+class RecordingSink:
+    """A pose sink that moves nothing: it accepts every finite pose with a unit quaternion and
+    keeps the last ``maxlen`` (bounded). What an open-loop replay hands its poses to."""
+
+    def __init__(self, maxlen: int = 10_000) -> None:
+        self.poses: deque[tuple[np.ndarray, np.ndarray, float | None]] = deque(maxlen=maxlen)
+        self.accepted = 0
+        self.refused = 0
+
+    def set_target(self, position_mm: Any, quaternion: Any, measured_at: float | None = None
+                   ) -> Verdict:
+        p = np.asarray(position_mm, float).reshape(-1)
+        q = np.asarray(quaternion, float).reshape(-1)
+        if p.shape != (3,) or q.shape != (4,) or not (np.isfinite(p).all()
+                                                      and np.isfinite(q).all()):
+            self.refused += 1
+            return Verdict(False, "non_finite", f"bad pose {p}, {q}")
+        if abs(float(np.linalg.norm(q)) - 1.0) > 1e-6:
+            self.refused += 1
+            return Verdict(False, "bad_quaternion", f"quaternion norm {np.linalg.norm(q):.6f}")
+        self.accepted += 1
+        self.poses.append((p.copy(), q.copy(), measured_at))
+        return Verdict(True)
+
+
+@dataclass
+class ReplayResult:
+    """What an open-loop replay of recorded frames found (N frames after the start frame).
+
+    Attributes:
+        index: (N,) frame numbers; t_s: (N,) frame times; uv: (N, 2) tracked pixels;
+        status: (N,) TrackStatus; label: (N, 2) labelled pixels (NaN: none);
+        p: (N, 3) located seam points (base, mm; NaN when not located);
+        p_true: (N, 3) true seam points from the recording's meta.json (NaN: none).
+        commands: every pose handed to the sink; latency: (p50, p99) ms per loop stage;
+        read_ms: (p50, p99) of reading a frame from the source (not part of the loop);
+        poses_known: whether the source gave the torch pose of every frame.
+    """
+
+    index: np.ndarray
+    t_s: np.ndarray
+    uv: np.ndarray
+    status: np.ndarray
+    label: np.ndarray
+    p: np.ndarray
+    p_true: np.ndarray
+    commands: list[Command]
+    latency: dict[str, tuple[float, float]]
+    read_ms: tuple[float, float]
+    poses_known: bool
+    start_index: int = 0
+    messages: list[str] = field(default_factory=list)
+
+    def pixel_errors(self) -> np.ndarray:
+        """(M,) px distances tracked-to-label over the frames with a label and a track."""
+        d = np.linalg.norm(self.uv - self.label, axis=1)
+        return d[np.isfinite(d)]
+
+
+def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
+               T_B_W: np.ndarray | None = None, uv0: np.ndarray | None = None,
+               live: LiveConfig | None = None, plan: PlanConfig | None = None,
+               max_frames: int | None = None, sink: PoseSink | None = None,
+               truth: dict[int, np.ndarray] | None = None) -> ReplayResult:
+    """Feed recorded frames through a :class:`LiveLoop` (open loop: nothing moves).
+
+    Each frame's flange pose is the recorded torch pose (``Frame.T_B_W``, from a recording's
+    ``meta.json``) times the inverse tool; frames without one use ``T_B_W`` (default: the
+    flange at the base origin, so 3D points come out in the flange frame). The loop's torch is
+    an ideal follower: it sits on its last target once the recorded torch has come level with
+    it along the travel direction (without recorded poses: always), so the loop plans one IPI
+    step per step of recorded travel, as in the cell.
+
+    Args:
+        cell: calibration and process settings.
+        source: iterable of :class:`~torchseam.live.sources.Frame` (any frame source).
+        tracker: the feature-point tracker.
+        T_B_W: (4, 4) torch pose for frames that carry none.
+        uv0: (2,) start pixel (default: TIPM on the first frame, which must be arc-off).
+        max_frames: stop after this many frames.
+        sink: where poses go (default a :class:`RecordingSink`).
+        truth: frame number -> (3,) true seam point (base, mm), for the 3D error.
+
+    Raises:
+        TorchseamError: the start frame shows no usable stripe (names the frame).
+    """
+    from torchseam.core.errors import TorchseamError
+    from torchseam.core.transforms import invert
+
+    cfg = live or load_live_config()
+    loop = LiveLoop(cell, tracker, sink or RecordingSink(), plan, cfg)
+    tool_inv = invert(cell.tool.matrix())
+    fixed = (np.asarray(T_B_W, float) if T_B_W is not None else cell.tool.matrix())
+    rows: list[tuple] = []
+    commands: list[Command] = []
+    read: list[float] = []
+    messages: list[str] = []
+    poses_known, started, start_index, last_msg = True, False, 0, ""
+    it = iter(source)
+    n = 0
+    while max_frames is None or n < max_frames:
+        t0 = time.perf_counter()
+        try:
+            fr = next(it)
+        except StopIteration:
+            break
+        read.append((time.perf_counter() - t0) * 1e3)
+        n += 1
+        rec = fr.T_B_W if fr.T_B_W is not None else fixed
+        poses_known &= fr.T_B_W is not None
+        if not started:
+            try:
+                loop.start(fr.image, rec, uv0)
+            except TorchseamError as e:
+                raise TorchseamError(f"frame {fr.index}: {e}") from None
+            started, start_index = True, fr.index
+            continue
+        torch_T = np.array(rec, float)
+        if loop.target is not None and loop.last_q is not None:
+            x = quat_to_matrix(loop.last_q)[:, 0]
+            if fr.T_B_W is None or float((rec[:3, 3] - loop.target) @ x) >= 0.0:
+                torch_T[:3, 3] = loop.target
+        rep = loop.on_frame(fr.image, rec @ tool_inv, torch_T, fr.t_s)
+        if rep.command is not None:
+            commands.append(rep.command)
+        if rep.message and rep.message != last_msg:
+            messages.append(f"[frame {fr.index} t={fr.t_s:.2f}s] {rep.state.value}: "
+                            f"{rep.message}")
+        last_msg = rep.message
+        loc = rep.location
+        nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
+        rows.append((fr.index, fr.t_s, loc.uv if loc else nan2,
+                     int(loc.status) if loc else int(TrackStatus.LOST),
+                     fr.label if fr.label is not None else nan2,
+                     loc.p if loc else nan3,
+                     truth.get(fr.index, nan3) if truth else nan3))
+    if not started:
+        raise TorchseamError("the source gave no frames")
+    close = getattr(source, "close", None)
+    if close is not None:
+        close()
+
+    def col(i: int, shape: tuple[int, ...]) -> np.ndarray:
+        return (np.array([r[i] for r in rows], float) if rows
+                else np.zeros((0, *shape)))
+
+    return ReplayResult(
+        col(0, ()).astype(int), col(1, ()), col(2, (2,)), col(3, ()).astype(int),
+        col(4, (2,)), col(5, (3,)), col(6, (3,)), commands, loop.latency_ms(),
+        (float(np.percentile(read, 50)), float(np.percentile(read, 99))), poses_known,
+        start_index, messages)

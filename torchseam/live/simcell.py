@@ -17,7 +17,7 @@ import torch
 
 from torchseam.core.config import CellConfig
 from torchseam.core.transforms import invert
-from torchseam.robot.egm import EgmLink, parse_sensor
+from torchseam.robot.egm import EgmLink
 from torchseam.robot.egm_config import EgmConfig
 from torchseam.robot.sim_controller import SimController
 
@@ -67,14 +67,17 @@ class LockstepCell:
                                    torch.tensor(self.ctrl.q[None]))
         if not bool(ok[0]):
             raise RuntimeError("the segment's start pose is out of the robot's reach")
-        self.ctrl.q = q[0].numpy().astype(float)
-        self.ctrl._planned = self.tcp_pose()  # noqa: SLF001 - start at rest
+        self.ctrl.rest_at(q[0].numpy().astype(float))
         self.faults = CellFaults()
         self.sender = ("127.0.0.1", egm.network.controller_port or 6511)
 
+    def close(self) -> None:
+        """Close the controller's socket (it is never used in lockstep)."""
+        self.ctrl.stop()
+
     def tcp_pose(self) -> np.ndarray:
         """The torch's actual pose now (forward kinematics of the joints), (4, 4) mm."""
-        return self.ctrl._fk(self.ctrl.q[None])[0]  # noqa: SLF001
+        return self.ctrl.tcp_pose()
 
     def flange_pose(self) -> np.ndarray:
         return self.tcp_pose() @ self.tool_inv
@@ -85,21 +88,20 @@ class LockstepCell:
             self._cycle()
 
     def _cycle(self) -> None:
-        ctrl, f = self.ctrl, self.faults
-        q, T, T_plan = ctrl._update(self.period)  # noqa: SLF001
-        self.clock.t += self.period
+        f = self.faults
+        self.clock.t += self.period  # the link answers at the end of the cycle
         if f.silent_cycles > 0:
             f.silent_cycles -= 1
             f.silent += 1
+            self.ctrl.step_lockstep(None)
             return
-        data = ctrl._stamp(ctrl._robot_message(q, T, T_plan, 0.0))  # noqa: SLF001
+        self.ctrl.step_lockstep(self._exchange)
+
+    def _exchange(self, data: bytes) -> bytes | None:
+        """The wire between controller and link: loses the datagram during a drop fault."""
+        f = self.faults
         if f.drop_cycles > 0:
             f.drop_cycles -= 1
             f.dropped += 1
-            return
-        reply = self.link.handle_datagram(data, self.sender)
-        if reply is None:
-            return
-        msg, why = parse_sensor(reply, "pose")
-        if msg is not None:
-            ctrl._apply_reply(msg)  # noqa: SLF001
+            return None
+        return self.link.handle_datagram(data, self.sender)

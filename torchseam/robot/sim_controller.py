@@ -430,6 +430,57 @@ class SimController:
         with self._lock:
             self.received.append((time.monotonic(), msg))
 
+    # ------------------------------------------------------------------ lockstep
+
+    def rest_at(self, q_deg: np.ndarray) -> None:
+        """Put the robot at joints ``q_deg`` (6,) deg, at rest: the planned pose is the pose
+        there and no target is pending (a closed-loop simulation starts a segment this way)."""
+        q = np.asarray(q_deg, dtype=float).reshape(-1)
+        if q.shape != (6,) or not np.isfinite(q).all():
+            raise EgmError(f"rest_at needs 6 finite joint angles, got {q_deg!r}")
+        self.q = q.copy()
+        self._planned = self._fk(self.q[None])[0]
+        self._target = None
+
+    def step_lockstep(self, exchange: Callable[[bytes], bytes | None] | None) -> str:
+        """One control cycle in lockstep with a simulation clock: no socket, no waiting.
+
+        Moves the model by one period (as :meth:`run` does every tick); then, unless
+        ``exchange`` is None (the controller is silent this cycle and sends nothing), stamps
+        this cycle's ``EgmRobot`` and hands its wire bytes to ``exchange``, which returns the
+        sensor's reply bytes, or None when the datagram or its reply was lost. A reply is
+        validated and applied as one read from the socket would be.
+
+        Args:
+            exchange: ``bytes -> bytes | None``, the sensor side (e.g.
+                :meth:`~torchseam.robot.egm.EgmLink.handle_datagram` with a sender address).
+
+        Returns:
+            "" when a valid reply was applied, else why not: ``"silent"``, ``"no_reply"`` or
+            the reason the reply failed validation.
+        """
+        q, T, T_plan = self._update(self.period)
+        with self._lock:
+            self._stats.cycles += 1
+        if exchange is None:
+            return "silent"
+        data = self._stamp(self._robot_message(q, T, T_plan, 0.0))
+        with self._lock:
+            self._stats.sent += 1
+            self._stats.expected += 1
+        reply = exchange(data)
+        if reply is None:
+            return "no_reply"
+        msg, why = parse_sensor(reply, self.mode, self._max_reply)
+        if msg is None:
+            with self._lock:
+                self._stats.rejected[why] += 1
+            return why
+        with self._lock:
+            self._stats.replies += 1
+        self._apply_reply(msg)
+        return ""
+
     # ------------------------------------------------------------------ faults
 
     def inject(self, fault: Fault | str, cycles: int = 1) -> None:

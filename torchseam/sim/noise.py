@@ -23,6 +23,15 @@ from torchseam.core.config import NoiseConfig
 ARC_BGR = np.array([0.45, 0.55, 1.0], np.float32)
 SPATTER_BGR = np.array([0.35, 0.6, 1.0], np.float32)
 STRIPE_BGR = np.array([0.18, 0.24, 1.0], np.float32)
+SPATTER_BLUR_MARGIN_PX = 8  # > the reach of the spatter blur's kernel (3 px at sigma 0.8)
+
+
+def _union(a: tuple[int, int, int, int] | None, b: tuple[int, int, int, int]
+           ) -> tuple[int, int, int, int]:
+    """Smallest box (x0, y0, x1, y1) holding boxes ``a`` (None: empty) and ``b``."""
+    if a is None:
+        return b
+    return (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
 
 
 @dataclass
@@ -101,7 +110,7 @@ class ArcNoise:
         # Arc brightness: AR(1) flicker around 1.
         self.flicker = max(0.2, 0.7 * self.flicker + 0.3 + cfg.glare.flicker * rng.standard_normal()
                            * np.sqrt(1 - 0.7**2))
-        self._paste_glare(glare, arc_uv, cfg.glare.peak * L * self.flicker)
+        self._paste_glare(glare, arc_uv, cfg.glare.peak * L * self.flicker, fresh=True)
 
         # The groove mirrors the arc: a bright band from the arc up the seam towards the stripe.
         gr = cfg.groove
@@ -126,10 +135,18 @@ class ArcNoise:
         flags.burst = self.burst_left > 0
         rate = (cfg.spatter.burst_rate if flags.burst else cfg.spatter.rate) * L
         flags.spatter = int(rng.poisson(rate))
+        box = None
         for _ in range(flags.spatter):
-            self._streak(spatter, arc_uv)
-        if flags.spatter:
-            cv2.GaussianBlur(spatter, (0, 0), 0.8, dst=spatter)
+            box = _union(box, self._streak(spatter, arc_uv))
+        if box is not None:
+            # blur only around the streaks (the rest is zero before and after; the margin
+            # exceeds the kernel's reach, so the pixels are the full-frame blur's)
+            x0, y0, x1, y1 = box
+            m = SPATTER_BLUR_MARGIN_PX
+            ys = slice(max(0, y0 - m), min(self.h, y1 + m))
+            xs = slice(max(0, x0 - m), min(self.w, x1 + m))
+            if ys.start < ys.stop and xs.start < xs.stop:
+                spatter[ys, xs] = cv2.GaussianBlur(spatter[ys, xs], (0, 0), 0.8)
 
         if rng.random() < cfg.flash.prob * L:
             flags.flash = True
@@ -154,29 +171,58 @@ class ArcNoise:
             return None
         return slice(y0, y1), slice(x0, x1)
 
-    def _paste_glare(self, img: np.ndarray, c: np.ndarray, peak: float) -> None:
-        """Add the precomputed glare template, centred (to the pixel) on the arc."""
+    def _paste_glare(self, img: np.ndarray, c: np.ndarray, peak: float,
+                     fresh: bool = False) -> None:
+        """Add the precomputed glare template, centred (to the pixel) on the arc.
+
+        ``fresh``: ``img`` is all zeros, so the product is written straight into it (the same
+        numbers as adding it, without a full-frame temporary).
+        """
         t = self._glare_t
         r = t.shape[0] // 2
         cx, cy = int(round(c[0])), int(round(c[1]))
         x0, x1 = max(0, cx - r), min(self.w, cx + r + 1)
         y0, y1 = max(0, cy - r), min(self.h, cy + r + 1)
         if x0 < x1 and y0 < y1:
-            img[y0:y1, x0:x1] += peak * t[y0 - cy + r:y1 - cy + r, x0 - cx + r:x1 - cx + r]
+            src = t[y0 - cy + r:y1 - cy + r, x0 - cx + r:x1 - cx + r]
+            if fresh:
+                # peak (a float64 scalar) times the float32 template is computed in float64 and
+                # rounded to float32 on the way out: exactly what 0 + peak * t stores
+                np.multiply(src, peak, out=img[y0:y1, x0:x1], casting="same_kind")
+            else:
+                img[y0:y1, x0:x1] += peak * src
+
+    def _axes(self, roi: tuple[slice, slice]) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel x (1, w) and y (h, 1) coordinates of a ROI, float32 (broadcast, not tiled)."""
+        return (self._xx[0, roi[1]][None, :], self._yy[roi[0], 0][:, None])
 
     def _blob(self, img: np.ndarray, ref: np.ndarray, amp: float) -> None:
+        # The same arithmetic, element for element, as on full (h, w) coordinate grids, but
+        # the coordinates broadcast from a row and a column and the work arrays are reused in
+        # place: a third of the time, bit-identical pixels.
         cx, cy, ra, rb, ang = ref[:5]
         roi = self._roi(cx, cy, 3 * ra)
         if roi is None:
             return
-        dx, dy = self._xx[roi] - cx, self._yy[roi] - cy
+        xs, ys = self._axes(roi)
+        dx, dy = xs - cx, ys - cy
         ca, sa = np.cos(ang), np.sin(ang)
-        p, q = (ca * dx + sa * dy) / ra, (-sa * dx + ca * dy) / rb
-        img[roi] += amp * np.exp(-0.5 * (p * p + q * q))
+        p = np.add(ca * dx, sa * dy)
+        np.divide(p, ra, out=p)
+        q = np.add(-sa * dx, ca * dy)
+        np.divide(q, rb, out=q)
+        np.multiply(p, p, out=p)
+        np.multiply(q, q, out=q)
+        np.add(p, q, out=p)
+        np.multiply(p, -0.5, out=p)
+        np.exp(p, out=p)
+        np.multiply(p, amp, out=p)
+        img[roi] += p
 
     def _band(self, img: np.ndarray, p0: np.ndarray, p1: np.ndarray, width: float,
               amp: float) -> None:
-        """Gaussian band along the segment p0-p1, fading towards p1."""
+        """Gaussian band along the segment p0-p1, fading towards p1 (bit-identical to the
+        full-grid arithmetic; see :meth:`_blob`)."""
         d = p1 - p0
         length = float(np.hypot(*d))
         if length < 1.0 or amp <= 0:
@@ -184,12 +230,29 @@ class ArcNoise:
         roi = self._roi(*(0.5 * (p0 + p1)), 0.5 * length + 3 * width)
         if roi is None:
             return
-        dx, dy = self._xx[roi] - p0[0], self._yy[roi] - p0[1]
-        t = np.clip((dx * d[0] + dy * d[1]) / length**2, 0.0, 1.0)
-        ex, ey = dx - t * d[0], dy - t * d[1]
-        img[roi] += amp * (1.0 - 0.6 * t) * np.exp(-(ex * ex + ey * ey) / (2 * width**2))
+        xs, ys = self._axes(roi)
+        dx, dy = xs - p0[0], ys - p0[1]
+        t = np.add(dx * d[0], dy * d[1])
+        np.divide(t, length**2, out=t)
+        np.clip(t, 0.0, 1.0, out=t)
+        ex = np.multiply(t, d[0])
+        np.subtract(dx, ex, out=ex)
+        ey = np.multiply(t, d[1])
+        np.subtract(dy, ey, out=ey)
+        np.multiply(ex, ex, out=ex)
+        np.multiply(ey, ey, out=ey)
+        np.add(ex, ey, out=ex)
+        np.negative(ex, out=ex)
+        np.divide(ex, 2 * width**2, out=ex)
+        np.exp(ex, out=ex)
+        np.multiply(t, 0.6, out=t)
+        np.subtract(1.0, t, out=t)
+        np.multiply(t, amp, out=t)
+        np.multiply(t, ex, out=t)
+        img[roi] += t
 
-    def _streak(self, img: np.ndarray, arc: np.ndarray) -> None:
+    def _streak(self, img: np.ndarray, arc: np.ndarray) -> tuple[int, int, int, int]:
+        """Draw one spatter streak; returns the box (x0, y0, x1, y1) it may touch."""
         rng, sp = self.rng, self.cfg.spatter
         # droplets fly out of the arc, mostly upwards (towards the stripe) and sideways
         ang = rng.uniform(np.pi, 2 * np.pi) if rng.random() < 0.8 else rng.uniform(0, np.pi)
@@ -198,8 +261,14 @@ class ArcNoise:
         length = rng.uniform(*sp.length_px)
         dirn = ang + rng.normal(0, 0.3)
         end = start + length * np.array([np.cos(dirn), np.sin(dirn)])
-        cv2.line(img, tuple(int(v) for v in start * 16), tuple(int(v) for v in end * 16),
-                 float(rng.uniform(*sp.brightness)), int(rng.integers(1, 3)), cv2.LINE_8, 4)
+        p0, p1 = tuple(int(v) for v in start * 16), tuple(int(v) for v in end * 16)
+        value = float(rng.uniform(*sp.brightness))   # drawn in this order: same random stream
+        thick = int(rng.integers(1, 3))
+        cv2.line(img, p0, p1, value, thick, cv2.LINE_8, 4)
+        # the pixels the line can touch (end points in 1/16 px, plus its thickness)
+        r = thick + 1
+        return (min(p0[0], p1[0]) // 16 - r, min(p0[1], p1[1]) // 16 - r,
+                max(p0[0], p1[0]) // 16 + r + 1, max(p0[1], p1[1]) // 16 + r + 1)
 
     def sensor_sigma(self) -> float:
         """Grey-level read noise std at this level."""

@@ -22,6 +22,7 @@ ARM_DISTANCE_MM = 5.0  # truth points on each stripe arm lie this far (3D) from 
 STRIPE_SIGMA_PX = 1.8  # Gaussian cross-section of the imaged stripe (about 0.35 mm on the part)
 STRIPE_PEAK = 235.0    # red-channel grey level of a stripe lit head-on
 SPLAT_STEP_PX = 0.25   # spacing of splatted samples along the imaged stripe
+BLUR_MARGIN_PX = 16    # stripe box margin for the blur: > the Gaussian kernel's radius (7 px)
 
 
 @dataclass
@@ -166,8 +167,8 @@ class LaserSensor:
                        phi_hint: float | None) -> np.ndarray:
         """Where the seam crosses the laser plane: the crossing nearest ``phi_hint`` (or, with
         no hint, the camera)."""
-        phi = np.linspace(0.0, 2 * np.pi, 721)
-        f = joint.seam(phi).point @ n - d
+        phi, grid = _seam_grid(joint)
+        f = grid @ n - d
         idx = np.nonzero(np.sign(f[1:]) != np.sign(f[:-1]))[0]
         if len(idx) == 0:
             raise ValueError("the laser plane does not cross the seam")
@@ -231,13 +232,36 @@ class LaserSensor:
             arc = arc - arc[k0]
             for a0, a1 in gaps:
                 weight[(arc >= a0) & (arc <= a1)] *= 0.04
-        img = _splat(pts, weight, w, h)
-        img = cv2.GaussianBlur(img, (0, 0), STRIPE_SIGMA_PX)
-        img *= STRIPE_PEAK * np.sqrt(2 * np.pi) * STRIPE_SIGMA_PX
+        img, box = _splat(pts, weight, w, h)
         # grainy laser speckle on the surface: a random crop of a fixed speckle field
         dy, dx = rng.integers(0, 32, 2)
-        img *= self._grain[dy:dy + h, dx:dx + w]
+        if box is None:
+            return img
+        # Blur, scale and speckle only where the stripe is (its bounding box plus more than
+        # the kernel's reach): everything outside is zero before and after, and inside the
+        # box the filter sees the same pixels, so the result is the full-frame one.
+        m = BLUR_MARGIN_PX
+        x0, y0, x1, y1 = box
+        ys, xs = slice(max(0, y0 - m), min(h, y1 + m)), slice(max(0, x0 - m), min(w, x1 + m))
+        sub = cv2.GaussianBlur(img[ys, xs], (0, 0), STRIPE_SIGMA_PX)
+        sub *= STRIPE_PEAK * np.sqrt(2 * np.pi) * STRIPE_SIGMA_PX
+        sub *= self._grain[dy:dy + h, dx:dx + w][ys, xs]
+        img[ys, xs] = sub
         return img
+
+
+_GRID_PHI = np.linspace(0.0, 2 * np.pi, 721)
+
+
+def _seam_grid(joint: PipeJoint) -> tuple[np.ndarray, np.ndarray]:
+    """The seam sampled every half degree, (721,) angles and (721, 3) points, computed once per
+    joint (a joint does not change) and kept on it."""
+    grid = getattr(joint, "_sensor_seam_grid", None)
+    if grid is None:
+        grid = joint.seam(_GRID_PHI).point
+        grid.setflags(write=False)
+        joint._sensor_seam_grid = grid  # noqa: SLF001 - a cache on the immutable joint
+    return _GRID_PHI, grid
 
 
 def _refine_root(f, lo: float, hi: float, n: int = 33, rounds: int = 4) -> float:
@@ -254,13 +278,18 @@ def _refine_root(f, lo: float, hi: float, n: int = 33, rounds: int = 4) -> float
     return float(lo - ylo * (hi - lo) / (yhi - ylo)) if yhi != ylo else float(lo)
 
 
-def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int) -> np.ndarray:
-    """Bilinear splat of weighted points into a float32 (h, w) image (keeps the centroid)."""
+def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int
+           ) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
+    """Bilinear splat of weighted points into a float32 (h, w) image (keeps the centroid).
+
+    Returns the image and the box ``(x0, y0, x1, y1)`` (end-exclusive, inside the image)
+    that holds every non-zero pixel, or None when nothing landed in the image.
+    """
     img = np.zeros((h, w), np.float32)
     inside = ((pts[:, 0] > -1) & (pts[:, 0] < w) & (pts[:, 1] > -1) & (pts[:, 1] < h))
     pts, weight = pts[inside], weight[inside]
     if len(pts) == 0:
-        return img
+        return img, None
     x0 = np.floor(pts[:, 0]).astype(int)
     y0 = np.floor(pts[:, 1]).astype(int)
     fx = pts[:, 0] - x0
@@ -278,7 +307,7 @@ def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int) -> np.ndarray:
     sx, sy = max(0, -bx), max(0, -by)
     ex, ey = min(bw, w - bx), min(bh, h - by)
     img[by + sy:by + ey, bx + sx:bx + ex] = acc[sy:ey, sx:ex]
-    return img
+    return img, (int(bx + sx), int(by + sy), int(bx + ex), int(by + ey))
 
 
 def camera_pose(cell: CellConfig, T_B_W: np.ndarray) -> np.ndarray:

@@ -85,6 +85,7 @@ class SensorRenderer:
         self.background = _background(self.rng, w, h)
         self.read_noise = [self.rng.standard_normal((h + 16, w + 16, 3), dtype=np.float32)
                            for _ in range(4)]
+        self._tmp = np.empty((h, w, 3), np.float32)
         self.k = 0
 
     def render(self, T_B_W: np.ndarray, t_s: float, arc_on: bool = True, laser_on: bool = True,
@@ -119,7 +120,9 @@ class SensorRenderer:
         img += self.background
         dy, dx = rng.integers(0, 16, 2)
         sigma = src.sensor_sigma() if arc_on else self.sigma_clean
-        img += sigma * self.read_noise[self.k % 4][dy:dy + h, dx:dx + w]
+        # sigma * noise into a reused buffer, then added: the same numbers, no temporaries
+        np.multiply(self.read_noise[self.k % 4][dy:dy + h, dx:dx + w], sigma, out=self._tmp)
+        img += self._tmp
         frame = np.clip(img, 0, 255, out=img).astype(np.uint8)
         truth = FrameTruth(
             index=self.k, t_s=t_s, uv=view.seam_uv, visible=view.visible and laser_on,
