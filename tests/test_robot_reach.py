@@ -82,6 +82,26 @@ def test_step_by_step_matches_the_batch(gate, ring):
     assert np.median(times) < 5e-3
 
 
+def test_a_re_sent_target_is_not_re_solved_but_a_new_one_is(gate, ring, monkeypatch):
+    from torchseam.core.transforms import matrix_to_quat
+
+    gate.reset()
+    T = ring[0].numpy()
+    p, q = T[:3, 3].copy(), matrix_to_quat(T[:3, :3])
+    assert gate(p, q) == (True, "")
+    calls = []
+    real_step = gate.step
+    monkeypatch.setattr(gate, "step", lambda *a, **k: calls.append(1) or real_step(*a, **k))
+    for _ in range(5):  # the loop re-sends its target every frame to feed the watchdog
+        assert gate(p, q) == (True, "")
+    assert calls == []
+    # a pose 2.5 m away is a new pose: solved, and refused
+    ok, why = gate(np.array([2500.0, 0.0, 500.0]), q)
+    assert not ok and "out of reach" in why and calls == [1]
+    # after a refusal the last accepted pose is still the reference, but not short-cut
+    assert gate(p, q) == (True, "") and calls == [1, 1]
+
+
 def _cpu_time(f):
     t0 = time.process_time()
     f()
