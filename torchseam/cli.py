@@ -22,6 +22,7 @@ COMMAND_MODULES = (
     "torchseam.live.ring_cli",  # ring
     "torchseam.robot.cli",     # robot fk | ik | check | sim-controller
     "torchseam.live.cli",      # demo
+    "torchseam.console.cli",   # console
 )
 
 

@@ -1,0 +1,206 @@
+"""Does watching the weld slow it? The live loop's latency with the console open vs without.
+
+    .venv/bin/python bench/console.py [--repeats 3] [--segments a] [--length-mm 40]
+                                      [--clients 2] [--browser]
+
+Each repeat welds the same short simulated weld (``run_demo``, unpaced) twice, in alternating
+order: ``off`` calls :func:`run_demo` directly (no observer, no server); ``on`` runs it through
+the console (observer, ring buffers, publisher, JPEG encoding) with ``--clients`` headless
+WebSocket clients (in a child process, as a browser is) reading the whole stream, plus, with
+``--browser``, the page itself open in headless Chromium (Debian's ``/usr/bin/chromium``,
+through Playwright). Columns: the loop's
+frame -> command latency p50 / p99 (``DemoResult.summary``), wall time and wall ms per frame
+(render + loop + simulated controller + observer), the JPEG frames and updates the clients got.
+The last table holds the medians over the repeats and the ratio on / off; the target is within
+10 %. One short weld first warms up (not counted). The machine's load average is printed: on a
+shared 2-core machine single runs are noisy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import json
+import multiprocessing as mp
+import os
+import platform
+import time
+import urllib.request
+
+import aiohttp
+import cv2
+import numpy as np
+import torch
+
+from torchseam.console.config import load_console_config
+from torchseam.console.sim import simulated_console
+from torchseam.core.config import load_cell, load_noise, load_part
+from torchseam.core.report import format_table
+from torchseam.live.demo import run_demo
+
+
+def _read_stream(url: str, n: int, stop, counts) -> None:
+    """Child process: ``n`` WebSocket clients reading every message until ``stop`` is set;
+    ``counts`` gets [JPEG frames, JSON updates, bytes, clients connected]."""
+
+    async def one(s: aiohttp.ClientSession) -> None:
+        async with s.ws_connect(url) as ws:
+            with counts.get_lock():
+                counts[3] += 1
+            while not stop.is_set():
+                try:
+                    msg = await ws.receive(timeout=0.5)
+                except asyncio.TimeoutError:
+                    continue
+                if msg.type not in (aiohttp.WSMsgType.BINARY, aiohttp.WSMsgType.TEXT):
+                    break
+                with counts.get_lock():
+                    counts[0 if msg.type == aiohttp.WSMsgType.BINARY else 1] += 1
+                    counts[2] += len(msg.data)
+
+    async def main() -> None:
+        async with aiohttp.ClientSession() as s:
+            await asyncio.gather(*(one(s) for _ in range(n)))
+
+    asyncio.run(main())
+
+
+class Reader:
+    """Headless clients in a process of their own (as a browser is): read the whole stream."""
+
+    def __init__(self, url: str, n: int) -> None:
+        ctx = mp.get_context("spawn")
+        self._stop = ctx.Event()
+        self._counts = ctx.Array("q", 4)
+        self._proc = ctx.Process(target=_read_stream, daemon=True, args=(
+            url.replace("http", "ws") + "/ws", n, self._stop, self._counts))
+        self._proc.start()
+        t0 = time.monotonic()
+        while self._counts[3] < n:
+            if time.monotonic() - t0 > 60 or not self._proc.is_alive():
+                raise RuntimeError("the headless clients did not connect")
+            time.sleep(0.05)
+
+    @property
+    def jpeg(self) -> int:
+        return int(self._counts[0])
+
+    @property
+    def updates(self) -> int:
+        return int(self._counts[1])
+
+    def close(self) -> None:
+        self._stop.set()
+        self._proc.join(timeout=10)
+
+
+def run_off(cell, part, noise, level, args) -> dict:
+    t0 = time.perf_counter()
+    res = run_demo(cell, part, noise, level, args.seed, segments=args.segments,
+                   length_mm=args.length_mm)
+    return _row("off", 0, res.summary, time.perf_counter() - t0, 0, 0, float("nan"))
+
+
+def run_on(cell, part, noise, args, browser) -> dict:
+    cfg = dataclasses.replace(load_console_config(), pace=0.0)
+    con = simulated_console(cfg, cell, part, noise)
+    host, port = con.start_in_thread("127.0.0.1", 0)
+    url = f"http://{host}:{port}"
+    reader = Reader(url, args.clients) if args.clients else None
+    page = None
+    if browser is not None:
+        page = browser.new_page(viewport={"width": 1440, "height": 1000})
+        page.goto(url + "/")
+    time.sleep(1.0)  # let the page load and settle
+    params = {**con.defaults, "segments": args.segments, "length_mm": args.length_mm,
+              "noise": args.noise, "seed": args.seed}
+    req = urllib.request.Request(url + "/api/start", json.dumps(params).encode(),
+                                 {"Content-Type": "application/json"}, method="POST")
+    t0 = time.perf_counter()
+    urllib.request.urlopen(req, timeout=10).read()
+    while con.session.running or con.session.summary is None:
+        if page is not None:
+            page.wait_for_timeout(100)  # keeps the page's event loop (Playwright) served
+        else:
+            time.sleep(0.05)
+    wall = time.perf_counter() - t0
+    if reader is not None:
+        reader.close()
+    if page is not None:
+        page.close()
+    con.stop_thread()
+    frames = con.session.summary["frames"]
+    obs_us = 1e6 * con.session.observer_s / max(frames, 1)
+    mode = "on" + (" +chromium" if browser is not None else "")
+    return _row(mode, args.clients, con.session.summary, wall,
+                reader.jpeg if reader else 0, reader.updates if reader else 0, obs_us)
+
+
+def _row(mode, clients, s, wall, jpeg, updates, obs_us) -> dict:
+    return {"mode": mode, "clients": clients, "frames": s["frames"],
+            "p50": s["latency_p50_ms"], "p99": s["latency_p99_ms"], "wall": wall,
+            "ms_frame": 1e3 * wall / max(s["frames"], 1), "jpeg": jpeg, "updates": updates,
+            "observer_us": obs_us, "load": os.getloadavg()[0]}
+
+
+COLS = ("mode", "clients", "frames", "p50", "p99", "wall", "ms_frame", "jpeg", "updates",
+        "observer_us", "load")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--segments", default="a")
+    ap.add_argument("--length-mm", type=float, default=40.0)
+    ap.add_argument("--noise", default="heavy")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--clients", type=int, default=2, help="headless WebSocket clients")
+    ap.add_argument("--browser", action="store_true",
+                    help="also keep the page open in headless Chromium during 'on' runs")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    cell, part, noise = load_cell(), load_part(), load_noise()
+    level = noise.level(args.noise)
+    print(f"console bench: segments {args.segments}, {args.length_mm:g} mm each, noise "
+          f"{args.noise}, {args.clients} WebSocket client(s)"
+          + (" + Chromium" if args.browser else "")
+          + f", {args.repeats} repeat(s); {os.cpu_count()} CPUs, Python "
+            f"{platform.python_version()}, load {os.getloadavg()[0]:.1f}")
+    pw = browser = None
+    if args.browser:
+        from playwright.sync_api import sync_playwright
+
+        pw = sync_playwright().start()
+        browser = pw.chromium.launch(executable_path="/usr/bin/chromium", headless=True)
+    run_demo(cell, part, noise, level, args.seed, segments=args.segments, length_mm=1.0)  # warm-up
+    rows = []
+    try:
+        for k in range(args.repeats):
+            order = ("off", "on") if k % 2 == 0 else ("on", "off")
+            for mode in order:
+                r = (run_off(cell, part, noise, level, args) if mode == "off"
+                     else run_on(cell, part, noise, args, browser))
+                rows.append(r)
+                print(format_table(COLS, [[r[c] for c in COLS]]).splitlines()[-1], flush=True)
+    finally:
+        if browser is not None:
+            browser.close()
+            pw.stop()
+    print("\nall runs (latency ms, wall s, ms per frame, observer us per frame, load average)")
+    print(format_table(COLS, [[r[c] for c in COLS] for r in rows]))
+    off = [r for r in rows if r["mode"] == "off"]
+    on = [r for r in rows if r["mode"] != "off"]
+    med = {m: {c: float(np.median([r[c] for r in rs])) for c in ("p50", "p99", "ms_frame")}
+           for m, rs in (("off", off), ("on", on))}
+    print("\nmedians over the repeats, and on / off")
+    print(format_table(
+        ["figure", "console off", "console on", "on / off"],
+        [[f"frame->command {c}" if c != "ms_frame" else "wall ms per frame",
+          med["off"][c], med["on"][c], med["on"][c] / med["off"][c]]
+         for c in ("p50", "p99", "ms_frame")]))
+
+
+if __name__ == "__main__":
+    main()

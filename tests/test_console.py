@@ -1,0 +1,447 @@
+"""The operator console (torchseam/console): parameters, server, streams, and the page in
+headless Chromium driving a short simulated weld.
+
+The browser test needs Debian's Chromium (``/usr/bin/chromium``): the ``chromium`` fixture
+installs it with apt-get when it is missing and fails (never skips) when it cannot.
+Set ``TORCHSEAM_SCREENSHOT=1`` to write the screenshot to ``docs/images/console.png``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import dataclasses
+import json
+import os
+import shutil
+import socket
+import subprocess
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+from types import SimpleNamespace
+
+import aiohttp
+import cv2
+import numpy as np
+import pytest
+
+from torchseam.console.config import (
+    ParamError,
+    load_console_config,
+    parse_params,
+)
+from torchseam.console.server import ConsoleServer, is_loopback, render_frame
+from torchseam.console.session import LatestFrame, RunState, WeldSession
+from torchseam.console.sim import simulated_console
+from torchseam.core.config import ConfigError
+from torchseam.live.demo import FAULTS, DemoEvent, DemoResult, FrameRecord
+from torchseam.live.loop import Command, LoopState, LoopStats, StepReport
+from torchseam.robot.egm import EgmLink
+from torchseam.robot.egm_config import load_egm_config
+from torchseam.track.peers import TRACKERS
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = Path("/usr/bin/chromium")
+GOOD = {"step_mm": 2, "look_ahead_mm": 20, "weld_speed_mm_s": 8, "segments": "a",
+        "length_mm": "", "noise": "heavy", "seed": 0, "faults": [], "tracker": "anchored"}
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    """The shipped settings, unpaced (the weld runs as fast as it can)."""
+    return dataclasses.replace(load_console_config(), pace=0.0)
+
+
+# --------------------------------------------------------------------------- a fast fake weld
+
+def fake_weld(frame_s: float = 0.004, n_frames: int = 100_000):
+    """A weld function with the real event types but no simulator: frames as fast as asked."""
+    img = np.zeros((492, 656, 3), np.uint8)
+    cv2.line(img, (0, 300), (328, 200), (0, 0, 255), 3)
+    cv2.line(img, (328, 200), (656, 300), (0, 0, 255), 3)
+    link = EgmLink(load_egm_config(), bind=False)
+
+    def weld(params, observer, control) -> DemoResult:
+        loop = SimpleNamespace(commands=[], stats=LoopStats(),
+                               nominal=np.c_[np.linspace(0, 50, 200), np.zeros((200, 2))])
+        k = 0
+        for k in range(n_frames):
+            if control.checkpoint():
+                break
+            t = 0.04 * k
+            loop.stats.frames += 1
+            loop.stats.add_time("frame->command", 1.0, 100)
+            cmd = None
+            if k % 5 == 0:
+                cmd = Command(t, np.array([t, 0, 0.0]), np.array([1, 0, 0, 0.0]), True, "", t)
+                loop.commands.append(cmd)
+            uv = np.array([328.0 + np.sin(t), 200.0])
+            rec = FrameRecord("a", t, True, uv, uv + 0.5, 0, "tracking",
+                              np.array([t, 0.1, 0]), np.array([t, 0, 0.0]), 0.1, "")
+            T = np.eye(4)
+            T[0, 3] = t
+            rep = StepReport(LoopState.TRACKING, None, cmd) if k else None
+            observer(DemoEvent("a", k, img, rec, rep, T, loop, link))
+            time.sleep(frame_s)
+        return DemoResult(summary={"frames": k, "stopped": control.stopped,
+                                   "seam_rmse_mm": 0.1})
+
+    return weld
+
+
+def fake_console(cfg, **weld_kw) -> ConsoleServer:
+    session = WeldSession(cfg, fake_weld(**weld_kw), 0.04)
+
+    def validate(raw):
+        return parse_params(raw, cfg.limits, _noise(), FAULTS, TRACKERS)
+
+    return ConsoleServer(cfg, session, validate, GOOD,
+                         {"noise": ["clean", "heavy"], "faults": list(FAULTS),
+                          "trackers": list(TRACKERS), "segments": "abcdef"}, source="fake")
+
+
+def _noise():
+    from torchseam.core.config import load_noise
+
+    return load_noise()
+
+
+@pytest.fixture()
+def served(cfg):
+    """A console with the fake weld on an ephemeral loopback port; stopped afterwards."""
+    made = []
+
+    def make(c=cfg, **kw):
+        con = fake_console(c, **kw)
+        host, port = con.start_in_thread("127.0.0.1", 0)
+        made.append(con)
+        return con, f"http://{host}:{port}"
+
+    yield make
+    for con in made:
+        if con.session.running:
+            con.session.stop()
+            con.session.join(10)
+        con.stop_thread()
+
+
+def post(url: str, body: dict | None = None, origin: str | None = None) -> tuple[int, dict]:
+    req = urllib.request.Request(url, data=json.dumps(body or {}).encode(), method="POST",
+                                 headers={"Content-Type": "application/json",
+                                          **({"Origin": origin} if origin else {})})
+    try:
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        body = e.read()
+        try:
+            return e.code, json.loads(body)
+        except json.JSONDecodeError:
+            return e.code, {"error": body.decode()}
+
+
+def wait_for(cond, timeout: float = 20.0, what: str = "condition"):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        v = cond()
+        if v:
+            return v
+        time.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+async def read_ws(url: str, n_updates: int) -> list[dict | bytes]:
+    out: list[dict | bytes] = []
+    async with aiohttp.ClientSession() as s, s.ws_connect(url.replace("http", "ws") + "/ws") \
+            as ws:
+        async for msg in ws:
+            out.append(msg.data if msg.type == aiohttp.WSMsgType.BINARY
+                       else json.loads(msg.data))
+            if sum(isinstance(m, dict) for m in out) >= n_updates:
+                break
+    return out
+
+
+# --------------------------------------------------------------------------- config and params
+
+def test_config_loads_and_bad_fields_name_the_field(cfg, tmp_path):
+    assert cfg.server.port > 0 and cfg.publish.jpeg_rate_hz > 0
+    assert cfg.limits.step_mm[0] < cfg.limits.step_mm[1]
+    text = (ROOT / "configs" / "console.yaml").read_text()
+    bad = tmp_path / "console.yaml"
+    bad.write_text(text.replace("jpeg_quality: 70", "jpeg_quality: 0"))
+    with pytest.raises(ConfigError, match="publish.jpeg_quality"):
+        load_console_config(bad)
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"step_mm": 9}, "step_mm must be in 0.5..5 mm, got 9"),
+    ({"step_mm": "two"}, "step_mm: 'two' is not a number"),
+    ({"weld_speed_mm_s": 0}, "weld_speed_mm_s must be in 1..20 mm/s, got 0"),
+    ({"look_ahead_mm": None}, "look_ahead_mm: missing"),
+    ({"length_mm": -3}, "length_mm must be in 1..400 mm, got -3"),
+    ({"segments": "axz"}, "segments must be distinct letters from abcdef"),
+    ({"noise": "loud"}, "noise: noise level 'loud'"),
+    ({"seed": 1.5}, "seed must be a whole number"),
+    ({"faults": ["meteor"]}, "faults: 'meteor' is not one of"),
+    ({"tracker": "magic"}, "tracker must be one of"),
+    ({"colour": "red"}, "colour: unknown parameter"),
+])
+def test_bad_parameters_are_refused_with_a_message(cfg, change, message):
+    with pytest.raises(ParamError, match=message.replace("(", r"\(").replace(".", r"\.")):
+        parse_params({**GOOD, **change}, cfg.limits, _noise(), FAULTS, TRACKERS)
+
+
+def test_good_parameters_parse(cfg):
+    p = parse_params({**GOOD, "segments": "ca", "length_mm": "12", "noise": "0.3",
+                      "faults": "laser-off, arc-flash", "step_mm": "1.5"},
+                     cfg.limits, _noise(), FAULTS, TRACKERS)
+    assert p.segments == "ac" and p.length_mm == 12.0 and p.noise == 0.3
+    assert p.faults == ("laser-off", "arc-flash") and p.step_mm == 1.5
+    assert parse_params(GOOD, cfg.limits, _noise(), FAULTS, TRACKERS).length_mm is None
+
+
+def test_loopback_and_cli_registration():
+    from torchseam.cli import build_parser
+
+    assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
+    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.5")
+    args = build_parser().parse_args(["console"])
+    assert args.host == "127.0.0.1" and args.source == "sim"
+
+
+def test_render_frame_is_a_jpeg_of_the_scaled_frame():
+    img = np.full((492, 656, 3), 40, np.uint8)
+    lf = LatestFrame(7, img, (300.0, 200.0), (301.0, 199.0), 1, "coasting", "a", 1.0, "hi")
+    data = render_frame(lf, 0.5, 70)
+    out = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    assert data[:2] == b"\xff\xd8" and out.shape == (246, 328, 3)
+    assert img.max() == 40  # the loop's frame is not drawn on
+
+
+# --------------------------------------------------------------------------- server and streams
+
+def test_page_is_self_contained(served):
+    _, url = served()
+    html = urllib.request.urlopen(url + "/", timeout=10).read().decode()
+    assert "<canvas" in html and "/ws" in html
+    for ref in ('src="http', "src='http", 'href="http', "@import", "//cdn"):
+        assert ref not in html  # nothing fetched from elsewhere: the cell PC may be offline
+
+
+def test_start_validation_conflicts_and_actions(served):
+    con, url = served()
+    status, body = post(url + "/api/hold")
+    assert status == 409 and body["error"] == "hold: no weld is running"
+    status, body = post(url + "/api/start", {**GOOD, "step_mm": 9})
+    assert status == 400 and body["error"] == "step_mm must be in 0.5..5 mm, got 9"
+    assert con.session.state == RunState.IDLE
+    status, body = post(url + "/api/start", GOOD, origin="http://evil.example")
+    assert status == 403 and not con.session.running
+    status, body = post(url + "/api/start", GOOD)
+    assert status == 200 and body["ok"]
+    status, body = post(url + "/api/start", GOOD)
+    assert status == 409 and "a weld is running" in body["error"]
+    wait_for(lambda: con.session.latest is not None, what="the first frame")
+
+    assert post(url + "/api/hold")[0] == 200
+    time.sleep(0.2)
+    seq = con.session.latest.seq
+    time.sleep(0.4)
+    assert con.session.latest.seq == seq, "frames went on while held"
+    assert con.session.status()["held"]
+    assert post(url + "/api/resume")[0] == 200
+    wait_for(lambda: con.session.latest.seq > seq, what="frames after resume")
+    assert post(url + "/api/stop")[0] == 200
+    assert con.session.join(10)
+    assert con.session.state == RunState.STOPPED and con.session.summary["stopped"]
+    texts = [m[3] for m in con.session.messages]
+    assert any("start refused: step_mm" in t for t in texts)
+    assert any("held by the operator" in t for t in texts)
+
+
+def test_second_client_gets_the_history_and_does_not_disturb_the_weld(served):
+    con, url = served()
+    assert post(url + "/api/start", GOOD)[0] == 200
+    wait_for(lambda: con.session.latest and con.session.latest.seq > 60, what="60 frames")
+    first = asyncio.run(read_ws(url, 4))
+    hello = first[0]
+    assert hello["type"] == "hello" and hello["status"]["state"] == "running"
+    n0 = len(hello["frames"]["t"])
+    assert n0 >= 60 and len(hello["commands"]["t"]) >= 10 and "a" in hello["nominal"]
+    assert any(isinstance(m, bytes) and m[:2] == b"\xff\xd8" for m in first), "no JPEG frame"
+    updates = [m for m in first[1:] if isinstance(m, dict)]
+    assert all(m["type"] == "update" for m in updates)
+    # updates carry only what is new, continuing the snapshot's sequence
+    seqs = hello["frames"]["seq"] + [s for m in updates for s in m["frames"]["seq"]]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    weld_id, seq_before = con.session.weld_id, con.session.latest.seq
+    second = asyncio.run(read_ws(url, 2))  # a reload / a second tab
+    assert second[0]["weld_id"] == weld_id and len(second[0]["frames"]["t"]) > n0
+    assert con.session.running and con.session.weld_id == weld_id
+    assert con.session.latest.seq > seq_before and con.session.state == RunState.RUNNING
+    state = json.loads(urllib.request.urlopen(url + "/api/state", timeout=10).read())
+    assert state["type"] == "hello" and len(state["frames"]["t"]) > n0
+
+
+def test_history_and_observer_stay_small(cfg, served):
+    small = dataclasses.replace(cfg, history=dataclasses.replace(
+        cfg.history, frames=50, commands=10, messages=5))
+    con, url = served(small, frame_s=0.0005)
+    assert post(url + "/api/start", GOOD)[0] == 200
+    wait_for(lambda: con.session.latest and con.session.latest.seq > 2000, what="2000 frames")
+    for k in range(20):
+        con.session.log(f"line {k}")
+    hello = asyncio.run(read_ws(url, 1))[0]
+    assert len(hello["frames"]["t"]) == 50 and len(hello["commands"]["t"]) == 10
+    assert len(hello["messages"]) == 5
+    per_frame_us = 1e6 * con.session.observer_s / con.session.latest.seq
+    assert per_frame_us < 500, f"observer takes {per_frame_us:.0f} us per frame"
+
+
+def _raw_ws_client(url: str) -> socket.socket:
+    """A WebSocket client that completes the handshake and then never reads (a stuck tab)."""
+    host, port = url.removeprefix("http://").split(":")
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s.connect((host, int(port)))
+    key = base64.b64encode(os.urandom(16)).decode()
+    s.sendall((f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
+               f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+               "Sec-WebSocket-Version: 13\r\n\r\n").encode())
+    return s
+
+
+def test_a_client_that_never_reads_is_dropped_and_does_not_slow_the_weld(cfg, served):
+    fast = dataclasses.replace(cfg, server=dataclasses.replace(cfg.server, send_timeout_s=1.0),
+                               publish=dataclasses.replace(cfg.publish, rate_hz=30.0,
+                                                           jpeg_rate_hz=30.0, jpeg_scale=1.0,
+                                                           jpeg_quality=95))
+    con, url = served(fast, frame_s=0.002)
+    assert post(url + "/api/start", GOOD)[0] == 200
+    wait_for(lambda: con.session.latest is not None, what="the first frame")
+    t0, f0 = time.monotonic(), con.session.latest.seq
+    time.sleep(1.0)
+    rate_alone = (con.session.latest.seq - f0) / (time.monotonic() - t0)
+    stuck = _raw_ws_client(url)
+    try:
+        wait_for(lambda: len(con.clients) == 1, what="the stuck client to connect")
+        t0, f0 = time.monotonic(), con.session.latest.seq
+        wait_for(lambda: con.dropped_clients == 1, timeout=60, what="the stuck client's drop")
+        rate_stuck = (con.session.latest.seq - f0) / (time.monotonic() - t0)
+        assert not con.clients
+    finally:
+        stuck.close()
+    assert rate_stuck > 0.5 * rate_alone, (rate_alone, rate_stuck)
+    assert any("too slow" in m[3] for m in con.session.messages)
+
+
+# --------------------------------------------------------------------------- the browser
+
+@pytest.fixture(scope="session")
+def chromium() -> Path:
+    """Debian's Chromium; installed with apt-get when missing (root), else the test fails."""
+    if not CHROMIUM.exists():
+        apt = shutil.which("apt-get")
+        if apt is None or os.geteuid() != 0:
+            pytest.fail(f"{CHROMIUM} is missing and cannot be installed here (needs root and "
+                        "apt-get): run `apt-get install -y chromium` first")
+        env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+        for cmd in ([apt, "update", "-q"], [apt, "install", "-y", "-q", "chromium"]):
+            r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
+            if r.returncode != 0:
+                pytest.fail(f"`{' '.join(cmd)}` failed while installing Chromium for the "
+                            f"console test:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}")
+        if not CHROMIUM.exists():
+            pytest.fail(f"apt-get installed chromium but {CHROMIUM} is still missing")
+    return CHROMIUM
+
+
+def test_page_runs_and_watches_a_simulated_weld(chromium, cfg, tmp_path):
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.fail("the console test needs Playwright: pip install -e '.[dev]'")
+    con = simulated_console(cfg)
+    host, port = con.start_in_thread("127.0.0.1", 0)
+    url = f"http://{host}:{port}/"
+    shot = (ROOT / "docs" / "images" / "console.png" if os.environ.get("TORCHSEAM_SCREENSHOT")
+            else tmp_path / "console.png")
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=str(chromium), headless=True)
+            page = browser.new_page(viewport={"width": 1440, "height": 1000})
+            page.set_default_timeout(30_000)
+            page.goto(url)
+            state = page.locator("#run-state")
+            page.wait_for_function("document.querySelector('#run-state').dataset.state"
+                                   " === 'idle'")
+
+            def num(sel: str, attr: str | None = None) -> float:
+                v = (page.get_attribute(sel, attr) if attr else page.inner_text(sel))
+                return float(v) if v not in (None, "", "-") else -1.0
+
+            # a bad value is refused, visibly, and nothing starts
+            page.fill("#p-step", "9")
+            page.click("#btn-start")
+            page.wait_for_function("document.querySelector('#param-error').textContent"
+                                   ".includes('step_mm must be in 0.5..5 mm')")
+            assert state.get_attribute("data-state") == "idle"
+            # a short simulated weld: segment a, 40 mm (stopped before its end)
+            page.fill("#p-step", "2")
+            page.fill("#p-seg", "a")
+            page.fill("#p-len", "40")
+            page.click("#btn-start")
+            page.wait_for_function("document.querySelector('#run-state').dataset.state"
+                                   " === 'running'")
+            page.wait_for_function("+document.querySelector('#frames-shown').textContent > 0",
+                                   timeout=30_000)
+            src0 = page.get_attribute("#frame", "src")
+            uv0 = num("#plot-uv", "data-points")
+            page.wait_for_function(
+                f"document.querySelector('#frame').src !== {json.dumps(src0)} && "
+                f"+document.querySelector('#plot-uv').dataset.points > {uv0}", timeout=30_000)
+            assert num("#plot-err", "data-points") > 0 and num("#seam3d", "data-points") > 0
+
+            page.click("#btn-hold")
+            page.wait_for_function("document.querySelector('#run-state').dataset.state"
+                                   " === 'held'")
+            time.sleep(0.5)  # the frame in flight when hold was pressed
+            held_at = num("#frame-seq")
+            time.sleep(1.5)
+            assert num("#frame-seq") == held_at, "the frame counter moved while held"
+            assert con.session.control.held
+
+            # a reload joins the running weld without touching it
+            points = num("#plot-uv", "data-points")
+            page.reload()
+            page.wait_for_function(f"+document.querySelector('#plot-uv').dataset.points"
+                                   f" >= {points}")
+            assert state.get_attribute("data-state") == "held"
+            assert con.session.running and num("#frame-seq") == held_at
+
+            page.click("#btn-resume")
+            page.wait_for_function(f"+document.querySelector('#frame-seq').textContent"
+                                   f" > {held_at}", timeout=30_000)
+            # the screenshot a little into the weld, arc on, poses going out
+            page.wait_for_function("+document.querySelector('#frame-seq').textContent > 200"
+                                   " && +document.querySelector('#plot-q').dataset.points > 5",
+                                   timeout=90_000)
+            page.screenshot(path=str(shot), full_page=True)
+            page.click("#btn-stop")
+            page.wait_for_function("['stopped', 'finished'].includes(document.querySelector("
+                                   "'#run-state').dataset.state)", timeout=30_000)
+            browser.close()
+    except Exception as e:
+        raise AssertionError(f"{e}\nconsole status: {con.session.status()}\nlast messages: "
+                             f"{[m[3] for m in con.session.messages][-8:]}") from e
+    finally:
+        if con.session.running:
+            con.session.stop()
+        con.session.join(30)
+        con.stop_thread()
+    assert shot.stat().st_size > 10_000
+    assert any("held by the operator" in m[3] for m in con.session.messages)
+    assert con.session.summary is not None and con.session.summary["stopped"]

@@ -1,0 +1,81 @@
+"""``torchseam console``: the operator console, a local web page to run and watch the weld."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+from pathlib import Path
+
+import cv2
+import torch
+
+from torchseam.console.config import DEFAULT_HOST
+from torchseam.core.errors import TorchseamError
+
+#: Frame sources the console can drive. Recorded folders and cameras need the live loop's
+#: frame-source classes (not written yet); until then only the simulated cell.
+SOURCES = ("sim",)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "console", help="operator console: a local web page to run and watch the weld",
+        description="Serve the operator console: one page with the camera frame, the 3D seam "
+                    "and torch pose, error and quaternion plots, the EGM link state, the weld "
+                    "parameters, start / hold / resume / stop and the message log. It drives "
+                    "the same closed loop as `torchseam demo`. Binds to loopback unless --host "
+                    "says otherwise.")
+    p.add_argument("--host", default=DEFAULT_HOST,
+                   help=f"address to bind (default {DEFAULT_HOST}: this machine only)")
+    p.add_argument("--port", type=int, default=None,
+                   help="port (default configs/console.yaml server.port; 0: any free port)")
+    p.add_argument("--config", type=Path, help="console config (default configs/console.yaml)")
+    p.add_argument("--source", choices=SOURCES, default="sim",
+                   help="what feeds the loop: sim (the simulated cell; recorded folders and "
+                        "cameras come with the live loop's frame sources)")
+    p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
+    p.add_argument("--noise", default="heavy", help="initial arc-noise level on the page")
+    p.add_argument("--segments", default="abcdef", help="initial segments on the page")
+    p.add_argument("--length-mm", type=float, default=None,
+                   help="initial length per segment on the page (default: whole segments)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from torchseam.console.config import ParamError, load_console_config
+    from torchseam.console.server import is_loopback
+    from torchseam.console.sim import simulated_console
+    from torchseam.core.config import load_part
+
+    torch.set_num_threads(1)   # as `torchseam demo`: small ops, one thread is fastest
+    cv2.setNumThreads(1)
+    cfg = load_console_config(args.config)
+    port = cfg.server.port if args.port is None else args.port
+    if not 0 <= port <= 65535:
+        raise TorchseamError(f"--port must be in 0..65535, got {port}")
+    try:
+        console = simulated_console(cfg, part=load_part(args.part), defaults={
+            "noise": args.noise, "segments": args.segments, "length_mm": args.length_mm})
+    except ParamError as e:
+        raise TorchseamError(str(e)) from None
+    if not is_loopback(args.host):
+        print(f"WARNING: the console is bound to {args.host}, not loopback: anyone who can "
+              "reach this machine can start and stop the weld", flush=True)
+    asyncio.run(_serve(console, args.host, port))
+    return 0
+
+
+async def _serve(console, host: str, port: int) -> None:
+    try:
+        h, p = await console.start(host, port)
+    except OSError as e:
+        raise TorchseamError(f"cannot serve on {host}:{port}: {e.strerror or e}") from None
+    shown = f"[{h}]" if ":" in h else h
+    print(f"torchseam console on http://{shown}:{p}/  (Ctrl-C stops)", flush=True)
+    try:
+        await asyncio.Event().wait()
+    finally:
+        if console.session.running:
+            console.session.stop()
+            console.session.join(timeout=30)
+        await console.close()

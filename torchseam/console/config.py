@@ -1,0 +1,185 @@
+"""Console settings (``configs/console.yaml``) and the operator's weld parameters.
+
+:class:`ConsoleConfig` is loaded and validated like every other config. :class:`WeldParams` is
+what the page's parameter form sends; :func:`parse_params` checks it against
+``ConsoleConfig.limits`` and raises :class:`ParamError` with a message the page shows as it is
+(``step_mm must be in 0.5..5 mm, got 9``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from torchseam.core.config import CONFIG_DIR, CellConfig, NoiseConfig, _f, load_config
+from torchseam.core.errors import TorchseamError
+
+#: Address the console binds to unless ``--host`` says otherwise: this machine only.
+DEFAULT_HOST = "127.0.0.1"
+#: Segment letters of the ring (see :func:`torchseam.plan.path.six_segments`).
+SEGMENT_LETTERS = "abcdef"
+
+
+@dataclass(frozen=True)
+class ServerSettings:
+    port: int = _f(lo=0, hi=65535)
+    max_clients: int = _f(lo=1)
+    send_timeout_s: float = _f(lo=0.0, lo_open=True)
+    heartbeat_s: float = _f(lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class PublishSettings:
+    rate_hz: float = _f(lo=0.0, lo_open=True, hi=60.0)
+    jpeg_rate_hz: float = _f(lo=0.0, lo_open=True, hi=60.0)
+    jpeg_quality: int = _f(lo=1, hi=100)
+    jpeg_scale: float = _f(lo=0.0, lo_open=True, hi=1.0)
+    link_stats_hz: float = _f(lo=0.0, lo_open=True, hi=60.0)
+
+
+@dataclass(frozen=True)
+class HistorySettings:
+    frames: int = _f(lo=1)
+    commands: int = _f(lo=1)
+    messages: int = _f(lo=1)
+    latency: int = _f(lo=1)
+    nominal_points: int = _f(lo=2)
+
+
+@dataclass(frozen=True)
+class ParamLimits:
+    """Inclusive ``[lo, hi]`` of each numeric weld parameter."""
+
+    step_mm: tuple[float, ...] = _f(2, lo=0.0, lo_open=True)
+    look_ahead_mm: tuple[float, ...] = _f(2, lo=0.0, lo_open=True)
+    weld_speed_mm_s: tuple[float, ...] = _f(2, lo=0.0, lo_open=True)
+    length_mm: tuple[float, ...] = _f(2, lo=0.0, lo_open=True)
+    seed: tuple[int, ...] = _f(2, lo=0)
+
+    def _check(self) -> None:
+        for f in dataclasses.fields(self):
+            lo, hi = getattr(self, f.name)
+            if lo > hi:
+                raise ValueError(f"{f.name}: lower bound {lo} above upper bound {hi}")
+
+
+@dataclass(frozen=True)
+class ConsoleConfig:
+    """The operator console (``configs/console.yaml``)."""
+
+    server: ServerSettings
+    publish: PublishSettings
+    history: HistorySettings
+    limits: ParamLimits
+    pace: float = _f(lo=0.0)
+
+
+def load_console_config(path: str | Path | None = None) -> ConsoleConfig:
+    """The console settings (default ``configs/console.yaml``)."""
+    return load_config(ConsoleConfig, path or CONFIG_DIR / "console.yaml")
+
+
+# --------------------------------------------------------------------------- weld parameters
+
+class ParamError(TorchseamError, ValueError):
+    """A weld parameter from the page is missing or out of range (the message says which)."""
+
+
+@dataclass(frozen=True)
+class WeldParams:
+    """One weld as the operator set it up (``length_mm`` None: whole segments)."""
+
+    step_mm: float
+    look_ahead_mm: float
+    weld_speed_mm_s: float
+    segments: str
+    length_mm: float | None
+    noise: float
+    seed: int
+    faults: tuple[str, ...]
+    tracker: str
+
+    def apply(self, cell: CellConfig) -> CellConfig:
+        """``cell`` with this weld's process settings."""
+        proc = dataclasses.replace(cell.process, step_mm=self.step_mm,
+                                   look_ahead_mm=self.look_ahead_mm,
+                                   weld_speed_mm_s=self.weld_speed_mm_s)
+        return dataclasses.replace(cell, process=proc)
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["faults"] = list(self.faults)
+        return d
+
+
+def _number(raw: dict[str, Any], name: str, limits: tuple[float, ...], unit: str,
+            integer: bool = False) -> float:
+    v = raw.get(name)
+    if isinstance(v, str):
+        v = v.strip()
+        try:
+            v = float(v) if v else None
+        except ValueError:
+            raise ParamError(f"{name}: {raw.get(name)!r} is not a number") from None
+    if v is None:
+        raise ParamError(f"{name}: missing")
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ParamError(f"{name}: {v!r} is not a number")
+    lo, hi = limits
+    span = f"{lo:g}..{hi:g}" + (f" {unit}" if unit else "")
+    if integer and not float(v).is_integer():
+        raise ParamError(f"{name} must be a whole number in {span}, got {v:g}")
+    if not lo <= v <= hi:
+        raise ParamError(f"{name} must be in {span}, got {v:g}")
+    return int(v) if integer else float(v)
+
+
+def parse_params(raw: dict[str, Any], limits: ParamLimits, noise: NoiseConfig,
+                 faults: tuple[str, ...], trackers: tuple[str, ...]) -> WeldParams:
+    """Check the page's parameter form. Raises :class:`ParamError` naming the field."""
+    if not isinstance(raw, dict):
+        raise ParamError("parameters: expected a JSON object")
+    known = {f.name for f in dataclasses.fields(WeldParams)}
+    unknown = sorted(set(raw) - known)
+    if unknown:
+        raise ParamError(f"{unknown[0]}: unknown parameter (expected {', '.join(sorted(known))})")
+    missing = [n for n in ("step_mm", "look_ahead_mm", "weld_speed_mm_s", "segments", "noise",
+                           "seed", "tracker") if n not in raw]
+    if missing:
+        raise ParamError(f"{missing[0]}: missing")
+    segs = str(raw.get("segments", "")).strip().lower()
+    if not segs or set(segs) - set(SEGMENT_LETTERS) or len(set(segs)) != len(segs):
+        raise ParamError(f"segments must be distinct letters from {SEGMENT_LETTERS}, "
+                         f"got {raw.get('segments')!r}")
+    length = raw.get("length_mm")
+    if length is None or (isinstance(length, str) and not length.strip()):
+        length_mm = None
+    else:
+        length_mm = _number(raw, "length_mm", limits.length_mm, "mm")
+    try:
+        level = noise.level(raw.get("noise", ""))
+    except ValueError as e:
+        raise ParamError(f"noise: {e}") from None
+    fl = raw.get("faults", [])
+    if isinstance(fl, str):
+        fl = [f for f in fl.split(",")]
+    if not isinstance(fl, (list, tuple)):
+        raise ParamError("faults: expected a list")
+    fl = tuple(str(f).strip() for f in fl if str(f).strip())
+    bad = [f for f in fl if f not in faults]
+    if bad:
+        raise ParamError(f"faults: {bad[0]!r} is not one of {', '.join(faults)}")
+    tracker = str(raw.get("tracker", ""))
+    if tracker not in trackers:
+        raise ParamError(f"tracker must be one of {', '.join(trackers)}, got {tracker!r}")
+    return WeldParams(
+        step_mm=_number(raw, "step_mm", limits.step_mm, "mm"),
+        look_ahead_mm=_number(raw, "look_ahead_mm", limits.look_ahead_mm, "mm"),
+        weld_speed_mm_s=_number(raw, "weld_speed_mm_s", limits.weld_speed_mm_s, "mm/s"),
+        segments="".join(c for c in SEGMENT_LETTERS if c in segs),
+        length_mm=length_mm, noise=level,
+        seed=int(_number(raw, "seed", limits.seed, "", integer=True)),
+        faults=fl, tracker=tracker)

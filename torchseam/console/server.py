@@ -1,0 +1,394 @@
+"""The console's web server: one page, a JSON control API and a WebSocket push stream (aiohttp).
+
+* ``GET /`` the page (``static/console.html``, self-contained: no CDN, works offline).
+* ``GET /ws`` the push stream. Text messages are JSON: first ``hello`` (settings, parameter
+  defaults and choices, and the full history from the ring buffers: a new tab or a reload
+  joins a running weld without touching it), then ``update`` at ``publish.rate_hz`` (only
+  what is newer than what this client has, plus the status and link state). Binary messages
+  are the newest camera frame as JPEG (drawn feature point and status), at most
+  ``publish.jpeg_rate_hz`` (and ``publish.rate_hz``), only when there is a new one.
+* ``POST /api/start`` (JSON weld parameters), ``/api/hold``, ``/api/resume``, ``/api/stop``:
+  200 ``{"ok": true}``, or 400 / 409 ``{"error": "..."}`` with a message for the operator.
+* ``GET /api/state`` the same snapshot as ``hello``; ``GET /frame.jpg`` the newest frame.
+
+Nothing here runs on the weld thread. One publisher task encodes the newest frame (on a worker
+thread: OpenCV releases the GIL) and wakes each client's sender; a sender sends what is new
+since its own cursor, so a slow client skips frames and merges updates instead of queueing
+them (its backlog is one cursor, never a growing queue), and a client that takes longer than
+``server.send_timeout_s`` for one message is dropped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import ipaddress
+import json
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Any
+from urllib.parse import urlsplit
+
+import cv2
+import numpy as np
+from aiohttp import WSMsgType, web
+
+from torchseam.console.config import ConsoleConfig, ParamError, WeldParams
+from torchseam.console.session import Cursor, LatestFrame, WeldSession, num
+
+#: Colours (BGR) of the tracker's status: TRACKED, COASTING, LOST (as in the demo video).
+STATUS_BGR = {0: (0, 255, 0), 1: (0, 200, 255), 2: (0, 0, 255)}
+STATUS_NAMES = {0: "tracked", 1: "coasting", 2: "lost"}
+TRUTH_BGR = (255, 160, 0)
+MARKER_PX = 14              # feature-point cross size on the (scaled) frame
+FONT_SCALE = 0.4
+
+
+def is_loopback(host: str) -> bool:
+    """True for ``localhost`` and loopback addresses."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def render_frame(lf: LatestFrame, scale: float, quality: int) -> bytes:
+    """The camera frame, shrunk by ``scale``, with the feature point (and the simulator's true
+    point), the tracker status and the loop state drawn; JPEG bytes."""
+    img = lf.image
+    if scale != 1.0:
+        img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    else:
+        img = img.copy()
+    colour = STATUS_BGR.get(lf.status, STATUS_BGR[2])
+    if lf.uv_true is not None and np.all(np.isfinite(lf.uv_true)):
+        c = tuple(int(round(x * scale)) for x in lf.uv_true)
+        cv2.circle(img, c, 3, TRUTH_BGR, 1, cv2.LINE_AA)
+    if lf.uv is not None:
+        c = tuple(int(round(x * scale)) for x in lf.uv)
+        cv2.drawMarker(img, c, colour, cv2.MARKER_CROSS, MARKER_PX, 1, cv2.LINE_AA)
+        cv2.circle(img, c, MARKER_PX // 2 + 2, colour, 1, cv2.LINE_AA)
+    h, w = img.shape[:2]
+    cv2.rectangle(img, (0, 0), (w - 1, h - 1), colour, 2)
+    text = f"{lf.seg}  {STATUS_NAMES.get(lf.status, '?')}  {lf.state}  t={lf.t_s:.2f}s"
+    cv2.putText(img, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, FONT_SCALE, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    if lf.message:
+        cv2.putText(img, lf.message[:60], (6, h - 8), cv2.FONT_HERSHEY_SIMPLEX, FONT_SCALE,
+                    (0, 200, 255), 1, cv2.LINE_AA)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+@dataclass
+class _Jpeg:
+    seq: int
+    data: bytes
+
+
+@dataclass(eq=False)
+class _Client:
+    ws: web.WebSocketResponse
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+    jpeg_seq: int = -1
+    sent: int = 0
+
+
+class ConsoleServer:
+    """HTTP + WebSocket front of a :class:`WeldSession`.
+
+    Args:
+        cfg: console settings.
+        session: the weld.
+        validate: turns the page's parameter form into :class:`WeldParams` (raises
+            :class:`ParamError` with the operator's message).
+        defaults: the form's initial values; ``choices``: lists for its selectors (noise
+            names, faults, trackers, segment letters); ``source``: what feeds the loop, shown.
+    """
+
+    def __init__(self, cfg: ConsoleConfig, session: WeldSession,
+                 validate: Callable[[dict[str, Any]], WeldParams], defaults: dict[str, Any],
+                 choices: dict[str, Any], source: str = "simulated cell") -> None:
+        self.cfg = cfg
+        self.session = session
+        self.validate = validate
+        self.defaults = defaults
+        self.choices = choices
+        self.source = source
+        self.clients: set[_Client] = set()
+        self.jpeg: _Jpeg | None = None
+        self.jpeg_count = 0
+        self.dropped_clients = 0
+        self._status: dict[str, Any] = {}
+        self._link: dict[str, Any] = {"connected": False}
+        self._link_prev: tuple[Any, int, float, float] | None = None
+        self._updates: dict[Cursor, tuple[str, Cursor]] = {}
+        self._encoder = concurrent.futures.ThreadPoolExecutor(1, "torchseam-jpeg")
+        self._publisher: asyncio.Task | None = None
+        self._runner: web.AppRunner | None = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.address: tuple[str, int] | None = None
+
+    # ------------------------------------------------------------------ app
+    def app(self) -> web.Application:
+        app = web.Application(client_max_size=64 * 1024)
+        app.router.add_get("/", self._page)
+        app.router.add_get("/ws", self._ws)
+        app.router.add_get("/api/state", self._state)
+        app.router.add_get("/frame.jpg", self._frame)
+        app.router.add_post("/api/start", self._start)
+        for action in ("hold", "resume", "stop"):
+            app.router.add_post(f"/api/{action}", self._action)
+        return app
+
+    async def start(self, host: str, port: int) -> tuple[str, int]:
+        """Serve on ``host:port`` (port 0: any free port) from the running event loop."""
+        self._loop = asyncio.get_running_loop()
+        self._runner = web.AppRunner(self.app(), access_log=None)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, host, port)
+        await site.start()
+        sock = site._server.sockets[0]  # noqa: SLF001 - the only way to learn an ephemeral port
+        self.address = sock.getsockname()[:2]
+        self._publisher = asyncio.create_task(self._publish())
+        return self.address
+
+    async def close(self) -> None:
+        if self._publisher is not None:
+            self._publisher.cancel()
+        for c in list(self.clients):
+            await c.ws.close()
+        if self._runner is not None:
+            await self._runner.cleanup()
+        self._encoder.shutdown(wait=False)
+
+    def start_in_thread(self, host: str, port: int) -> tuple[str, int]:
+        """Run the server on an event loop of its own thread (tests, benchmarks)."""
+        ready = threading.Event()
+        box: dict[str, Any] = {}
+
+        def main() -> None:
+            loop = asyncio.new_event_loop()
+            asyncio.set_event_loop(loop)
+            try:
+                box["addr"] = loop.run_until_complete(self.start(host, port))
+            except BaseException as e:  # noqa: BLE001 - handed to the caller
+                box["err"] = e
+                ready.set()
+                return
+            ready.set()
+            loop.run_forever()
+            loop.run_until_complete(self.close())
+            pending = asyncio.all_tasks(loop)
+            for t in pending:
+                t.cancel()
+            loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+            loop.close()
+
+        self._thread = threading.Thread(target=main, name="torchseam-console", daemon=True)
+        self._thread.start()
+        ready.wait()
+        if "err" in box:
+            raise box["err"]
+        return box["addr"]
+
+    def stop_thread(self) -> None:
+        if self._loop is not None and self._thread is not None:
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(timeout=10)
+
+    # ------------------------------------------------------------------ publisher
+    async def _publish(self) -> None:
+        pub = self.cfg.publish
+        loop = asyncio.get_running_loop()
+        next_jpeg = next_link = 0.0
+        while True:
+            now = loop.time()
+            lf = self.session.latest
+            if lf is not None and (self.jpeg is None or lf.seq != self.jpeg.seq) \
+                    and now >= next_jpeg:
+                next_jpeg = now + 1.0 / pub.jpeg_rate_hz
+                try:
+                    data = await loop.run_in_executor(self._encoder, render_frame, lf,
+                                                      pub.jpeg_scale, pub.jpeg_quality)
+                    self.jpeg = _Jpeg(lf.seq, data)
+                    self.jpeg_count += 1
+                except Exception as e:  # noqa: BLE001 - a bad frame must not end the stream
+                    self.session.log(f"frame not shown: {e}", level="error")
+            if now >= next_link:
+                next_link = now + 1.0 / pub.link_stats_hz
+                self._link = self._link_state()
+            self._status = self.session.status()
+            self._status["link"] = self._link
+            self._status["clients"] = len(self.clients)
+            self._updates = {}
+            for c in self.clients:
+                c.wake.set()
+            await asyncio.sleep(1.0 / pub.rate_hz)
+
+    def _link_state(self) -> dict[str, Any]:
+        """The EGM link's state from its (locked) counters, with cycle rates."""
+        link = self.session.link
+        if link is None:
+            return {"connected": False}
+        st = link.stats
+        lf = self.session.latest
+        t_link = lf.t_s if lf is not None else math.nan
+        wall = time.perf_counter()
+        rate = wall_rate = math.nan
+        advanced = False
+        if self._link_prev is not None:
+            prev_link, n0, t0, w0 = self._link_prev
+            dn = st.received - n0 if prev_link is link else st.received
+            advanced = dn > 0
+            if prev_link is link and t_link > t0:
+                rate = dn / (t_link - t0)
+            if wall > w0:
+                wall_rate = dn / (wall - w0)
+        self._link_prev = (link, st.received, t_link, wall)
+        ctl = self.session.control
+        running = self.session.running and not (ctl is not None and ctl.held)
+        return {"connected": bool(st.received > 0 and (advanced or not running)
+                                  and not link.holding),
+                "watchdog_holding": bool(link.holding), "received": st.received,
+                "sent": st.sent, "commands": st.commands,
+                "cycle_rate_hz": num(rate, 1), "wall_rate_hz": num(wall_rate, 1),
+                "refused": dict(st.refused), "holds": dict(st.holds),
+                "dropped": dict(st.dropped), "late_replies": st.late_replies,
+                "controller_silences": st.controller_silences,
+                "watchdog_trips": st.watchdog_trips}
+
+    # ------------------------------------------------------------------ streams
+    def hello(self) -> tuple[dict[str, Any], Any]:
+        """Settings, form defaults and the full history (what a new tab starts from), and the
+        cursor of that history."""
+        data, cursor = self.session.delta(None)
+        status = self.session.status()
+        status["link"] = self._link
+        status["clients"] = len(self.clients)
+        return {"type": "hello", "source": self.source, "defaults": self.defaults,
+                "choices": self.choices, "limits": _limits(self.cfg),
+                "history": {"frames": self.cfg.history.frames,
+                            "commands": self.cfg.history.commands,
+                            "messages": self.cfg.history.messages},
+                "status": status, **data}, cursor
+
+    async def _ws(self, request: web.Request) -> web.StreamResponse:
+        _same_origin(request)
+        if len(self.clients) >= self.cfg.server.max_clients:
+            raise web.HTTPServiceUnavailable(
+                text=f"console: {self.cfg.server.max_clients} clients already connected")
+        ws = web.WebSocketResponse(heartbeat=self.cfg.server.heartbeat_s)
+        await ws.prepare(request)
+        client = _Client(ws)
+        self.clients.add(client)
+        sender = asyncio.create_task(self._sender(client))
+        try:
+            async for msg in ws:  # the page sends nothing; control goes through /api
+                if msg.type == WSMsgType.ERROR:
+                    break
+        finally:
+            self.clients.discard(client)
+            sender.cancel()
+        return ws
+
+    async def _sender(self, client: _Client) -> None:
+        timeout = self.cfg.server.send_timeout_s
+        ws = client.ws
+        try:
+            snap, cursor = self.hello()
+            await asyncio.wait_for(ws.send_str(json.dumps(snap)), timeout)
+            while not ws.closed:
+                jpeg = self.jpeg
+                if jpeg is not None and jpeg.seq != client.jpeg_seq:
+                    await asyncio.wait_for(ws.send_bytes(jpeg.data), timeout)
+                    client.jpeg_seq = jpeg.seq
+                await client.wake.wait()
+                client.wake.clear()
+                text, cursor = self._update_for(cursor)
+                await asyncio.wait_for(ws.send_str(text), timeout)
+                client.sent += 1
+        except (asyncio.TimeoutError, ConnectionResetError):
+            self.dropped_clients += 1
+            self.session.log("a console client was too slow and was disconnected",
+                             level="warn")
+            self.clients.discard(client)
+            await ws.close()
+
+    def _update_for(self, cursor: Cursor) -> tuple[str, Cursor]:
+        """The ``update`` message for a client at ``cursor``, built once per publisher tick for
+        all clients at the same cursor (they usually are)."""
+        hit = self._updates.get(cursor)
+        if hit is None:
+            data, new = self.session.delta(cursor)
+            hit = (json.dumps({"type": "update", "status": self._status, **data}), new)
+            self._updates[cursor] = hit
+        return hit
+
+    # ------------------------------------------------------------------ HTTP
+    async def _page(self, request: web.Request) -> web.Response:
+        html = resources.files("torchseam.console").joinpath("static/console.html").read_text()
+        return web.Response(text=html, content_type="text/html",
+                            headers={"Cache-Control": "no-store"})
+
+    async def _state(self, request: web.Request) -> web.Response:
+        return web.json_response(self.hello()[0])
+
+    async def _frame(self, request: web.Request) -> web.Response:
+        if self.jpeg is None:
+            raise web.HTTPNotFound(text="no frame yet")
+        return web.Response(body=self.jpeg.data, content_type="image/jpeg",
+                            headers={"Cache-Control": "no-store"})
+
+    async def _start(self, request: web.Request) -> web.Response:
+        _same_origin(request)
+        try:
+            raw = await request.json()
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            return _error(400, "parameters: the request is not JSON")
+        try:
+            params = self.validate(raw)
+        except ParamError as e:
+            self.session.log(f"start refused: {e}", level="warn")
+            return _error(400, str(e))
+        try:
+            self.session.start(params)
+        except RuntimeError as e:
+            return _error(409, str(e))
+        return web.json_response({"ok": True, "params": params.as_dict()})
+
+    async def _action(self, request: web.Request) -> web.Response:
+        _same_origin(request)
+        action = request.path.rsplit("/", 1)[-1]
+        try:
+            getattr(self.session, action)()
+        except RuntimeError as e:
+            return _error(409, str(e))
+        return web.json_response({"ok": True, "state": self.session.state})
+
+
+def _error(status: int, text: str) -> web.Response:
+    return web.json_response({"ok": False, "error": text}, status=status)
+
+
+def _same_origin(request: web.Request) -> None:
+    """Refuse requests a page from another site makes (CSRF, cross-site WebSocket)."""
+    origin = request.headers.get("Origin")
+    if origin and urlsplit(origin).netloc != request.host:
+        raise web.HTTPForbidden(text=f"console: requests from {origin} are not accepted")
+
+
+def _limits(cfg: ConsoleConfig) -> dict[str, list[float]]:
+    lim = cfg.limits
+    return {"step_mm": list(lim.step_mm), "look_ahead_mm": list(lim.look_ahead_mm),
+            "weld_speed_mm_s": list(lim.weld_speed_mm_s), "length_mm": list(lim.length_mm),
+            "seed": list(lim.seed)}

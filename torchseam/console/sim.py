@@ -1,0 +1,64 @@
+"""The console wired to the simulated cell: the same closed-loop weld as ``torchseam demo``."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from torchseam.console.config import (
+    SEGMENT_LETTERS,
+    ConsoleConfig,
+    WeldParams,
+    load_console_config,
+    parse_params,
+)
+from torchseam.console.server import ConsoleServer
+from torchseam.console.session import WeldSession
+from torchseam.core.config import (
+    CellConfig,
+    NoiseConfig,
+    PartConfig,
+    load_cell,
+    load_noise,
+    load_part,
+)
+from torchseam.live.demo import FAULTS, DemoControl, DemoEvent, DemoResult, run_demo
+from torchseam.track.peers import TRACKERS
+
+#: Form defaults that are not in ``cell.yaml`` (the demo's own defaults).
+DEMO_DEFAULTS: dict[str, Any] = {"segments": SEGMENT_LETTERS, "length_mm": None,
+                                 "noise": "heavy", "seed": 0, "faults": [],
+                                 "tracker": "anchored"}
+
+
+def sim_weld(cell: CellConfig, part: PartConfig, noise: NoiseConfig
+             ) -> Callable[[WeldParams, Callable[[DemoEvent], None], DemoControl], DemoResult]:
+    """A weld function for :class:`WeldSession`: :func:`run_demo` with the page's parameters."""
+
+    def weld(p: WeldParams, observer: Callable[[DemoEvent], None],
+             control: DemoControl) -> DemoResult:
+        return run_demo(p.apply(cell), part, noise, p.noise, p.seed, p.faults, p.segments,
+                        p.tracker, length_mm=p.length_mm, observer=observer, control=control)
+
+    return weld
+
+
+def simulated_console(cfg: ConsoleConfig | None = None, cell: CellConfig | None = None,
+                      part: PartConfig | None = None, noise: NoiseConfig | None = None,
+                      defaults: dict[str, Any] | None = None) -> ConsoleServer:
+    """A :class:`ConsoleServer` driving the simulated cell (shipped configs by default);
+    ``defaults`` overrides the parameter form's initial values."""
+    cfg = cfg or load_console_config()
+    cell, part, noise = cell or load_cell(), part or load_part(), noise or load_noise()
+    proc = cell.process
+    form = {"step_mm": proc.step_mm, "look_ahead_mm": proc.look_ahead_mm,
+            "weld_speed_mm_s": proc.weld_speed_mm_s, **DEMO_DEFAULTS, **(defaults or {})}
+    session = WeldSession(cfg, sim_weld(cell, part, noise), 1.0 / proc.frame_rate_hz)
+
+    def validate(raw: dict[str, Any]) -> WeldParams:
+        return parse_params(raw, cfg.limits, noise, FAULTS, TRACKERS)
+
+    validate(form)  # the defaults themselves must pass (a bad --length-mm, say)
+    choices = {"noise": list(noise.levels), "faults": list(FAULTS), "trackers": list(TRACKERS),
+               "segments": SEGMENT_LETTERS}
+    return ConsoleServer(cfg, session, validate, form, choices, source="simulated cell")
