@@ -3,7 +3,8 @@
 Usage: python bench/tracking.py [--sequences 6] [--frames 300] [--levels clean,strike,heavy]
 
 For every level, the same ``--sequences`` sequences (seeds 1000+) go through TIPM per frame,
-plain STC, KCF, CSRT, MOSSE and EAKF-STC, each started on frame 0 (arc off) by TIPM. Errors are
+plain STC, KCF, CSRT, MOSSE, EAKF-STC and ``anchored`` (EAKF-STC re-anchored by TIPM, the live
+loop's default), each started on frame 0 (arc off) by TIPM. Errors are
 over the arc frames against the simulator's labels: RMSE and max (px), % frames lost (no point
 or > 15 px off), and the single-stream time per frame (BGR frame in memory -> point) p50/p99 on
 one thread. A second table times EAKF-STC batched: B sequences stepped together.
@@ -29,7 +30,7 @@ from torchseam.track.fusion import EAKFSTC
 from torchseam.track.peers import TRACKERS, make_tracker, run_tracker
 from torchseam.vision.tipm import red_response
 
-ORDER = ["tipm", "stc", "kcf", "csrt", "mosse", "eakf-stc"]
+ORDER = ["tipm", "stc", "kcf", "csrt", "mosse", "eakf-stc", "anchored"]
 
 
 def main() -> None:
