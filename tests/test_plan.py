@@ -62,3 +62,111 @@ def test_buffer_smooths_noisy_points_without_lag():
     fit = np.array([np.linalg.norm(buf.fit(k)[0] - true[k]) for k in range(20, 200)])
     assert np.sqrt(np.mean(fit**2)) < 0.5 * np.sqrt(np.mean(raw**2))
     assert LookAheadBuffer().next_command(np.zeros(3), 2.0) is None
+
+
+def test_buffer_leads_the_torch_onto_a_spot_seen_from_standing_still():
+    # the closed loop starts with the robot still: every frame sees the same spot, merged
+    # into one point 20 mm ahead of the torch; the torch must step towards it, not hold
+    buf = LookAheadBuffer(maxlen=100, smooth_mm=5.0, outlier_mm=0.2)
+    for k in range(10):
+        buf.push(np.array([20.0, 0.01 * (k % 2), 0.0]), np.full((2, 3), np.nan), k / 25)
+    assert len(buf) == 1
+    ip, tangent, _ = buf.next_command(np.zeros(3), 2.0)
+    np.testing.assert_allclose(ip, [2.0, 0.0, 0.0], atol=1e-3)
+    assert tangent is None
+
+
+def _saddle(n: int, step: float = 0.32, dense: int = 1):
+    """Points along a saddle-like 3D seam at ``step / dense`` mm spacing, with each point's
+    unit tangent and two unit arm directions (a 90-degree V across the seam): (n, 3) x 4."""
+    phi = np.arange(n * dense) * step / dense / 76.0
+    P = np.stack([76 * np.cos(phi), 76 * np.sin(phi), 8 * np.sin(2 * phi)], axis=1)
+    T = np.gradient(P, axis=0)
+    T /= np.linalg.norm(T, axis=1, keepdims=True)
+    up = np.array([0.0, 0.0, 1.0])
+    side = np.cross(T, up)
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    top = np.cross(side, T)
+    a1 = (top + side) / np.sqrt(2)
+    a2 = (top - side) / np.sqrt(2)
+    return P, T, a1, a2
+
+
+def test_buffer_flags_a_burst_of_spatter_points_and_keeps_the_seam():
+    # the tracker puts three frames in a row up an arm, 0.8-1 mm off, at the edge of the
+    # fit window: a least-squares quadratic would bend towards them and tilt the tangent
+    rng = np.random.default_rng(1)
+    P, T, a1, a2 = _saddle(200)
+    meas = P + rng.normal(0, 0.02, P.shape)
+    bad = [100, 101, 102, 130, 160]
+    for i, off in zip(bad, [0.9, 1.0, 0.8, 0.5, 1.2], strict=True):
+        meas[i] += off * a1[i]
+    buf = LookAheadBuffer(maxlen=1000, smooth_mm=5.0, outlier_mm=0.2)
+    entries = [buf.push(p, np.stack([p + 7 * a1[i], p + 7 * a2[i]]), i / 25)
+               for i, p in enumerate(meas)]
+    for k in range(90, 112):  # targets just before the burst: it sits at their window's edge
+        p, tangent, _ = buf.fit(k)
+        assert np.linalg.norm(p - P[k]) < 0.05
+        assert np.degrees(np.arccos(np.clip(tangent @ T[k], -1, 1))) < 0.5
+    assert buf.screen() == len(bad)
+    assert [i for i, e in enumerate(entries) if e.flagged] == bad
+    assert all(entries[i].residual_mm > 0.4 for i in bad)
+
+
+def test_buffer_skips_a_flagged_target_and_keeps_points_behind_the_torch():
+    P, _, a1, _ = _saddle(120)
+    dense = _saddle(120, dense=50)[0]
+    meas = P.copy()
+    meas[41] += 1.0 * a1[41]  # the first point a step ahead of cp = P[34] is off the seam
+    buf = LookAheadBuffer(maxlen=1000, smooth_mm=5.0, outlier_mm=0.2)
+    entries = [buf.push(p, np.full((2, 3), np.nan), i / 25) for i, p in enumerate(meas)]
+    ip, tangent, _ = buf.next_command(P[34], step_mm=2.0)
+    assert entries[41].flagged
+    assert np.linalg.norm(ip - P[34]) == pytest.approx(2.0, abs=1e-6)
+    # the commanded point is on the true seam (to the chord's sagitta, eq. 30 steps along the
+    # chord to np), not pulled towards the flagged point
+    assert np.linalg.norm(dense - ip, axis=1).min() < 0.01
+    # the points the torch just passed stay: the fits around the next targets need them
+    assert np.linalg.norm(buf.points[0].p - P[34]) > 5.0
+
+
+def test_buffer_torch_axis_within_a_degree_through_spatter():
+    """Plan + three-point frame against the true bisector, on located points with the heavy
+    arc's error mix: 0.03 mm noise, 3% of points 0.3-1.2 mm off (spatter), arm directions
+    with 1.5 degree noise and 5% taken on spatter."""
+    import torch
+
+    from torchseam.geometry.torch_frame import torch_frame
+
+    rng = np.random.default_rng(7)
+    P, T, a1, a2 = _saddle(500)
+    dense = _saddle(500, dense=50)[0]
+    n = len(P)
+    meas = P + rng.normal(0, 0.03, P.shape)
+    hit = rng.random(n) < 0.03
+    meas[hit] += rng.uniform(0.3, 1.2, (hit.sum(), 1)) * a1[hit]
+
+    def noisy(a: np.ndarray, deg: float) -> np.ndarray:
+        v = a + rng.normal(0, np.radians(deg), a.shape)
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    q1, q2 = noisy(a1, 1.5), noisy(a2, 1.5)
+    spat = rng.random(n) < 0.05
+    q1[spat] = noisy(a1[spat], 25.0)
+    buf = LookAheadBuffer(maxlen=1000, smooth_mm=5.0, outlier_mm=0.2)
+    for i in range(n):
+        buf.push(meas[i], np.stack([meas[i] + 7 * q1[i], meas[i] + 7 * q2[i]]), i / 25)
+    z_true = -(a1 + a2) / np.linalg.norm(a1 + a2, axis=1, keepdims=True)
+    cp, errs, pos = P[20], [], []
+    while (nxt := buf.next_command(cp, 2.0)) is not None and len(errs) < 60:
+        ip, tangent, arms = nxt
+        k = int(np.argmin(np.linalg.norm(P - ip, axis=1)))
+        pos.append(np.linalg.norm(dense - ip, axis=1).min())
+        t = torch.tensor
+        R, ok = torch_frame(t(ip)[None], t(ip + arms[0])[None], t(ip + arms[1])[None],
+                            tangent=t(tangent)[None])
+        assert ok.all()
+        errs.append(np.degrees(np.arccos(np.clip(R[0, :, 2].numpy() @ z_true[k], -1, 1))))
+        cp = ip
+    assert len(errs) == 60
+    assert max(errs) < 1.0 and max(pos) < 0.05

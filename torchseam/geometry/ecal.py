@@ -6,7 +6,9 @@ at the two boundaries of an arm: such a pair of crossings whose arc between them
 whose outer arcs are background, and whose arc length is a stripe width, is one arm crossing; its
 midpoint (refined by the grey-level centroid along the arc when an intensity image is given) is
 the arm point. Crossings from spatter and other blobs are rejected: a crossing must be a stripe
-width long and joined to the feature point by stripe along the radius. The circle grows from
+width long and joined to the feature point by stripe along the radius, and the two crossings
+of a pair must leave the corner at least ``MIN_ARM_SEPARATION_DEG`` apart (two crossings of one
+arm split by a dark streak are not the V). The circle grows from
 ``r_min`` until both arms are found and keeps growing (more leverage for the torch frame) while
 both stay clean, up to ``r_max``.
 
@@ -27,6 +29,10 @@ from torchseam.core.config import CONFIG_DIR, load_config
 
 ARC_STEP_PX = 1.5     # sampling step along the largest circle (all circles share the angles)
 RADIAL_STEP_PX = 2.0  # ring spacing of the polar resampling
+# the two arms leave the corner at least this far apart (the V of a 60-90 degree joint opens
+# well over 90 degrees in the image; two crossings of one arm are a few degrees apart)
+MIN_ARM_SEPARATION_DEG = 45.0
+MIN_EXTRAPOLATION_CIRCLES = 4  # fewer clean circles: mean arm angle, no extrapolation to r = 0
 
 
 @dataclass(frozen=True)
@@ -53,8 +59,10 @@ class EcalResult:
         angles: (2,) direction of each arm from the feature point (rad, image frame).
         radius: circle radius used (px).
         p_tangent: (2, 2) points on the arms' tangents at the corner, ``radius`` out: the
-            chord to a curved arm leans by r / (2 rho); the arm angle measured on every clean
-            circle is extrapolated linearly to r = 0. Equals ``p`` with one circle.
+            chord to a curved arm leans by r / (2 rho); with at least
+            ``MIN_EXTRAPOLATION_CIRCLES`` clean circles the arm angle measured on each is
+            extrapolated linearly to r = 0, with fewer their mean angle is used. Equals ``p``
+            with one circle.
         fallback: one arm point came from the previous frame's direction.
         rejected: crossings rejected on the circles tried (spatter, other blobs).
         reason: why not ``ok``.
@@ -209,11 +217,22 @@ class Ecal:
 
 def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref: float
                     ) -> np.ndarray:
-    """Arm directions extrapolated to the corner, as points ``r_ref`` from it, (2, 2)."""
+    """Arm directions at the corner, as points ``r_ref`` from it, (2, 2).
+
+    ``radii`` (n,), ``angles`` (n, 2): the arm angles on each clean circle. With at least
+    ``MIN_EXTRAPOLATION_CIRCLES`` circles the angle is extrapolated linearly to r = 0 (the
+    chord to a curved arm leans by r / (2 rho)); with fewer, the extrapolation from a short
+    span of radii multiplies the angle noise several times (a 3-circle fit turned the torch
+    axis by up to 17 degrees on heavy-arc frames), so the mean angle is used: its lean is
+    small at the small radii of a short span.
+    """
     out = np.empty((2, 2))
     for i in range(2):
         a = np.unwrap(angles[:, i])
-        a0 = np.polyfit(radii, a, 1)[1] if len(radii) >= 2 else a[-1]
+        if len(radii) >= MIN_EXTRAPOLATION_CIRCLES:
+            a0 = np.polyfit(radii, a, 1)[1]
+        else:
+            a0 = float(np.mean(a))
         out[i] = uv + r_ref * np.array([np.cos(a0), np.sin(a0)])
     return out
 
@@ -243,5 +262,7 @@ def _pick_pair(cands: list[tuple[float, np.ndarray]], prev: np.ndarray | None
                 if s > score:
                     best, score = (cands[i], cands[j]), s
         pair = list(best)
+    if abs(_wrap(pair[0][0] - pair[1][0])) < np.radians(MIN_ARM_SEPARATION_DEG):
+        return None  # both on one arm (a gap or a dark streak splits it): not a pair
     pair = sorted(pair, key=lambda c: c[1][0])
     return pair[0], pair[1]

@@ -26,9 +26,10 @@ from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
 from torchseam.core.transforms import apply, invert
 from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
 from torchseam.live.locate import Location, SeamLocator
-from torchseam.plan.path import LookAheadBuffer, Segment, load_plan_config, six_segments
+from torchseam.plan.path import Located, LookAheadBuffer, Segment, load_plan_config, six_segments
 from torchseam.sim.scene import Scene, torch_frames
 from torchseam.sim.sequence import FrameTruth, SequenceSpec, simulate
+from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import make_tracker
 
 
@@ -39,9 +40,11 @@ class SegmentRun:
     segment: Segment
     truths: list[FrameTruth] = field(default_factory=list)
     locations: list[Location] = field(default_factory=list)
+    entries: list[Located | None] = field(default_factory=list)   # buffer entry per frame
     commands: list[np.ndarray] = field(default_factory=list)       # (3,) ip, base mm
     rotations: list[np.ndarray] = field(default_factory=list)      # (3, 3) torch frames
     quats: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    frame_ok: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # per command
     command_t: list[float] = field(default_factory=list)
     nominal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     scene: Scene | None = None
@@ -74,7 +77,8 @@ def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                             arc_on_frame=arc_on, t0_s=t0)
         run = SegmentRun(seg, scene=scene)
         locator = SeamLocator(cell, make_tracker(tracker))
-        buf = LookAheadBuffer(maxlen=plan.buffer_points, smooth_mm=plan.smooth_mm)
+        buf = LookAheadBuffer(maxlen=plan.buffer_points, smooth_mm=plan.smooth_mm,
+                              outlier_mm=plan.outlier_mm)
         T_F_C_inv = invert(cell.hand_eye.matrix())
         for k, (img, truth) in enumerate(simulate(cell, part, noise, spec)):
             T_B_F = truth.T_B_C @ T_F_C_inv  # the robot's reported flange pose
@@ -82,16 +86,26 @@ def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                 locator.start(img)
                 loc = Location(truth.uv * np.nan, 0, np.full(3, np.nan), np.full((2, 3), np.nan),
                                False, False)
-            else:
+            entry = None
+            if k > 0:
                 loc = locator.step(img, T_B_F)
-                if np.all(np.isfinite(loc.p)):
-                    buf.push(loc.p, loc.q, truth.t_s)
+                # what the live loop takes as located: a point with the stripe seen around it
+                if np.all(np.isfinite(loc.p)) and loc.status != TrackStatus.LOST and loc.arms_ok:
+                    entry = buf.push(loc.p, loc.q, truth.t_s)
+            run.entries.append(entry)
             run.truths.append(truth)
             run.locations.append(loc)
             if progress:
                 progress(1)
         t0 += n_frames / proc.frame_rate_hz
         _plan_segment(run, buf, cell, s0, seg_len)
+        # judge the located points the plan's fits did not reach (the approach, the stripe
+        # past the segment end), for the located-point statistics
+        entries = list({id(e): e for e in run.entries if e is not None}.values())
+        judge = LookAheadBuffer(maxlen=len(entries) + 1, smooth_mm=plan.smooth_mm,
+                                outlier_mm=plan.outlier_mm)
+        judge.points.extend(entries)
+        judge.screen()
         runs.append(run)
     return runs
 
@@ -102,14 +116,12 @@ def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: f
     scene = run.scene
     assert scene is not None
     start = scene.nominal_tcp(np.array([s0]))[0][:3, 3]
-    # the torch starts where the located path passes the segment start
-    d = [np.linalg.norm(loc.p - start) for loc in buf.points]
-    if not d:
+    # the torch starts where the located path passes the segment start (the points before
+    # it stay in the buffer: the fits around the first commands need both sides)
+    if not buf.points:
         return
-    while len(buf.points) > 1 and buf.points[0] is not buf.points[int(np.argmin(d))]:
-        buf.points.popleft()
-        d.pop(0)
-    cp = buf.fit(0)[0]
+    d = [np.linalg.norm(loc.p - start) for loc in buf.points]
+    cp = buf.fit(int(np.argmin(d)))[0]
     step = cell.process.step_mm
     travelled = 0.0
     ips, tangents, arms = [], [], []
@@ -133,6 +145,12 @@ def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: f
     R, ok = torch_frame(P, P + A[:, 0], P + A[:, 1], tangent=torch.tensor(np.array(tangents)))
     plan = load_plan_config()
     R = tilt(R, plan.work_angle_deg, plan.travel_angle_deg)
+    # no torch frame (no arms near the point, degenerate arms): keep the last good one and
+    # say so (the axis error counts it as missing), never an identity or NaN pose
+    for i in range(len(R)):
+        if not bool(ok[i]) and i > 0:
+            R[i] = R[i - 1]
+    run.frame_ok = ok.numpy()
     run.commands = list(np.array(ips))
     run.rotations = list(R.numpy())
     run.quats = quaternions(R).numpy()
@@ -140,32 +158,42 @@ def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: f
 
 
 def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
-    """Per-point errors against the truth, pooled over segments (mm, px, degrees)."""
-    loc3d, pix, planned, nominal, axis = [], [], [], [], []
+    """Per-point errors against the truth, pooled over segments (mm, px, degrees).
+
+    ``located_mm`` (arc-on frames, NaN where nothing was located) and ``used`` (bool, the
+    same frames: the point went into the look-ahead buffer, with ECAL's arms around it, and
+    was not flagged as off the smooth seam through its neighbours) come per frame; the rest
+    per command.
+    """
+    loc3d, pix, used, planned, nominal, axis = [], [], [], [], [], []
     for run in runs:
         scene = run.scene
-        for t, loc in zip(run.truths, run.locations, strict=True):
+        entries = run.entries or [None] * len(run.truths)
+        for t, loc, e in zip(run.truths, run.locations, entries, strict=True):
             if not t.arc_on:
                 continue
             pix.append(np.linalg.norm(loc.uv - t.uv) if np.all(np.isfinite(loc.uv)) else np.nan)
             loc3d.append(np.linalg.norm(loc.p - t.seam_B) if np.all(np.isfinite(loc.p))
                          else np.nan)
+            used.append(e is not None and not e.flagged)
         if not run.commands:
             continue
         phis = np.linspace(0, 2 * np.pi, 20001)
         s = scene.true_joint.seam(phis)
         z_T = torch_frames(s)[:, :3, 2]
-        for ip, R, t in zip(run.commands, run.rotations, run.command_t, strict=True):
+        for ip, R, t, ok in zip(run.commands, run.rotations, run.command_t, run.frame_ok,
+                                strict=True):
             T_B_T = scene.part_pose(t)  # the part as it was when the stripe saw the point
             p_T = apply(invert(T_B_T), ip)
             k = int(np.argmin(np.linalg.norm(s.point - p_T, axis=1)))
             planned.append(np.linalg.norm(s.point[k] - p_T))
             z = T_B_T[:3, :3] @ z_T[k]
-            axis.append(np.degrees(np.arccos(np.clip(R[:, 2] @ z, -1, 1))))
+            axis.append(np.degrees(np.arccos(np.clip(R[:, 2] @ z, -1, 1))) if ok else np.nan)
         T_B_T = scene.part_pose(run.truths[len(run.truths) // 2].t_s)
         curve = apply(T_B_T, s.point)
         for p in run.nominal:
             nominal.append(np.min(np.linalg.norm(curve - p, axis=1)))
-    return {k: np.array(v) for k, v in (("located_mm", loc3d), ("pixel_px", pix),
+    return {k: np.array(v) for k, v in (("located_mm", loc3d), ("used", used),
+                                         ("pixel_px", pix),
                                          ("planned_mm", planned), ("nominal_mm", nominal),
                                          ("axis_deg", axis))}

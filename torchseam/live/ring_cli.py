@@ -61,14 +61,25 @@ def run(args: argparse.Namespace) -> int:
         return [name, unit, len(v), len(v) - len(f), float(np.sqrt(np.mean(f**2))),
                 float(f.max()), float(np.median(f))]
 
+    used = e["used"]
     rows = [row("feature point", e["pixel_px"], "px"),
             row("3D seam point (located)", e["located_mm"], "mm"),
+            row("3D seam point (used by plan)", e["located_mm"][used], "mm"),
             row("planned path (tracked)", e["planned_mm"], "mm"),
             row("nominal path (design)", e["nominal_mm"], "mm"),
             row("torch axis vs bisector", e["axis_deg"], "deg")]
     print(f"\nopen-loop ring: tracker {args.tracker}, noise {level:g}, seed {args.seed}, "
           f"segments {''.join('abcdef'[i] for i in which)}")
     print(format_table(["error of", "unit", "n", "missing", "RMSE", "max", "median"], rows))
+    loc = e["located_mm"]
+    off = ~used & np.isfinite(loc)
+    print(f"located points the plan did not use (flagged off the smooth seam, or no ECAL arms): "
+          f"{int(off.sum())} of {int(np.isfinite(loc).sum())}; of the located points > 0.3 mm "
+          f"off the true seam, {int((off & (loc > 0.3)).sum())} of {int((loc > 0.3).sum())} "
+          "were not used")
+    ax = e["axis_deg"]
+    print(f"torch axis within 1 degree of the bisector: {int((ax <= 1.0).sum())} of {len(ax)} "
+          "commands")
     jumps = [float(np.abs(np.diff(r.quats, axis=0)).max()) if len(r.quats) > 1 else 0.0
              for r in runs]
     print("largest quaternion step between 2 mm points per segment: "
@@ -76,6 +87,10 @@ def run(args: argparse.Namespace) -> int:
     quaternion_plot([(r.segment.name, r.quats) for r in runs], args.out / "quaternions.png")
     summary = {r[0]: {"unit": r[1], "n": r[2], "missing": r[3], "rmse": r[4], "max": r[5],
                       "median": r[6]} for r in rows}
+    summary["located_not_used"] = {"n": int(off.sum()), "of": int(np.isfinite(loc).sum()),
+                                   "over_0.3mm": int((off & (loc > 0.3)).sum()),
+                                   "over_0.3mm_of": int((loc > 0.3).sum())}
+    summary["axis_within_1deg"] = {"n": int((ax <= 1.0).sum()), "of": len(ax)}
     summary["quaternion_max_step"] = dict(zip([r.segment.name for r in runs], jumps,
                                               strict=True))
     (args.out / "ring.json").write_text(json.dumps(summary, indent=1))

@@ -22,6 +22,8 @@ from torchseam.core.config import CONFIG_DIR, load_config
 SEGMENTS = 6
 SEGMENT_NAMES = "abcdef"
 MERGE_MM = 0.1  # located points closer than this to the newest one are merged into it
+MSAC_HYPOTHESES = 200  # point triples tried per robust fit
+WINDOW_MARGIN_MM = 1.0  # fit candidates reach this much past smooth_mm (outliers sit aside)
 
 
 @dataclass(frozen=True)
@@ -31,6 +33,7 @@ class PlanConfig:
     segment_start_deg: float
     approach_mm: float
     smooth_mm: float
+    outlier_mm: float
     buffer_points: int
     work_angle_deg: float
     travel_angle_deg: float
@@ -86,38 +89,71 @@ class Located:
     q: np.ndarray        # (2, 3) points on the two stripe arms (NaN when ECAL found none)
     t_s: float           # time of the frame that saw it
     n: int = 1           # measurements averaged into it
+    flagged: bool = False  # off the smooth seam through its neighbours: spatter, not seam
+    residual_mm: float = float("nan")  # distance from that smooth seam (NaN: never fitted)
+    judged_mm: float = float("inf")  # how far from the centre of the fit that judged it
+
+
+@dataclass
+class SeamFit:
+    """The local seam fit at one buffered point (see :meth:`LookAheadBuffer.fit`).
+
+    Attributes:
+        p: (3,) smoothed point; tangent: (3,) unit seam tangent, or None (too few points);
+        arms: (2, 3) median unit arm directions over the inliers (NaN if none had arms);
+        used: number of inliers fitted; rejected: points of the window flagged as off-seam.
+    """
+
+    p: np.ndarray
+    tangent: np.ndarray | None
+    arms: np.ndarray
+    used: int
+    rejected: int
 
 
 class LookAheadBuffer:
     """Bounded FIFO of located seam points between the stripe and the torch.
 
     The stripe runs ahead of the torch, so when the torch reaches a located point the buffer
-    holds located points on both sides of it. That is used for the commanded point, a local
-    quadratic fit of the located points within ``smooth_mm`` of it, which averages the
-    measurement noise without lag; for the seam tangent of the torch frame
-    (:func:`~torchseam.geometry.torch_frame.torch_frame`), that fit's derivative, centred on
-    the point instead of trailing it; and for the arm directions, averaged over the same points.
+    holds located points on both sides of it (points are kept until they are ``2 smooth_mm``
+    behind the torch). That is used for the commanded point, a local quadratic fit of the
+    located points within ``smooth_mm`` of it along the seam, which averages the measurement
+    noise without lag; for the seam tangent of the torch frame
+    (:func:`~torchseam.geometry.torch_frame.torch_frame`), that fit's derivative, centred on the
+    point instead of trailing it; and for the arm directions, the median over the same points.
+
+    The fit is robust: a located point farther than ``outlier_mm`` from the smooth seam through
+    its neighbours (a feature point the tracker put on a spatter streak or up an arm) is
+    *flagged* (``Located.flagged``) and used for nothing, neither the path, the tangent nor the
+    arms. The fit's parameter is the position along the local seam direction (a robust chord),
+    not the cumulative arc length, which outliers inflate, nor frame time, which stops when the
+    robot holds.
 
     Example:
-        >>> buf = LookAheadBuffer(maxlen=100)
+        >>> buf = LookAheadBuffer(maxlen=100, outlier_mm=0.2)
         >>> for x in range(0, 30):
-        ...     buf.push(np.array([float(x), 0, 0]), np.full((2, 3), np.nan), t_s=x / 25)
+        ...     _ = buf.push(np.array([float(x), 0, 0]), np.full((2, 3), np.nan), t_s=x / 25)
         >>> ip, tangent, q = buf.next_command(np.array([0.0, 0, 0]), step_mm=2.0)
         >>> ip.round(6).tolist(), tangent.round(6).tolist()
         ([2.0, 0.0, 0.0], [1.0, 0.0, 0.0])
     """
 
-    def __init__(self, maxlen: int = 2048, smooth_mm: float = 3.0) -> None:
+    def __init__(self, maxlen: int = 2048, smooth_mm: float = 3.0,
+                 outlier_mm: float | None = None) -> None:
         self.points: deque[Located] = deque(maxlen=maxlen)
         self.smooth_mm = smooth_mm
+        # default from configs/plan.yaml, so callers that predate the setting get it too
+        self.outlier_mm = load_plan_config().outlier_mm if outlier_mm is None else outlier_mm
         self.dropped = 0  # points pushed out by a full buffer (reported, never silent)
+        self.flagged = 0  # points flagged as off the seam so far (reported, never silent)
 
     def __len__(self) -> int:
         return len(self.points)
 
-    def push(self, p: np.ndarray, q: np.ndarray, t_s: float) -> None:
-        """Add a located point (``q``: (2, 3) arm points). A point within ``MERGE_MM`` of the
-        newest one (the sensor standing still) is averaged into it instead of appended."""
+    def push(self, p: np.ndarray, q: np.ndarray, t_s: float) -> Located:
+        """Add a located point (``q``: (2, 3) arm points); returns its buffer entry. A point
+        within ``MERGE_MM`` of the newest one (the sensor standing still) is averaged into it
+        instead of appended."""
         p = np.asarray(p, float)
         if self.points and np.linalg.norm(p - self.points[-1].p) < MERGE_MM:
             last = self.points[-1]
@@ -127,56 +163,185 @@ class LookAheadBuffer:
             if np.all(np.isfinite(q)):
                 last.q = q if not np.all(np.isfinite(last.q)) else last.q + (q - last.q) / n
             last.n, last.t_s = n, t_s
-            return
+            return last
         s = 0.0 if not self.points else self.points[-1].s_mm + float(
             np.linalg.norm(p - self.points[-1].p))
         if len(self.points) == self.points.maxlen:
             self.dropped += 1
         self.points.append(Located(s, p, np.asarray(q, float), t_s))
+        return self.points[-1]
 
     def ahead_mm(self, cp: np.ndarray) -> float:
         """Distance from cp to the newest located point (what the stripe has seen ahead)."""
         return float(np.linalg.norm(self.points[-1].p - cp)) if self.points else 0.0
 
     def fit(self, k: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-        """Smoothed point, unit tangent and mean unit arm directions (2, 3) at buffered point
-        ``k``: a local quadratic over the points within ``smooth_mm`` of it, parameterised by
-        frame time; the median arm directions over the same points (NaN if none had arms). The
-        tangent is None when fewer than 4 points support the fit (the seam seen at one spot
-        only, e.g. before the robot moves)."""
-        s = np.array([loc.s_mm for loc in self.points])
-        sel = np.nonzero(np.abs(s - s[k]) <= self.smooth_mm)[0]
-        arms = np.stack([self.points[i].q - self.points[i].p for i in sel])   # (n, 2, 3)
+        """``(point (3,), unit tangent (3,) or None, arm directions (2, 3))`` of
+        :meth:`seam_fit` at buffered point ``k``."""
+        f = self.seam_fit(k)
+        return f.p, f.tangent, f.arms
+
+    def seam_fit(self, k: int) -> SeamFit:
+        """Robust local fit of the seam at buffered point ``k``.
+
+        The points within ``smooth_mm`` of point ``k`` along the local seam direction are
+        fitted with a quadratic in that position by MSAC (every triple of points proposes a
+        quadratic; the one the most points agree with to ``outlier_mm`` wins, and is refitted
+        by least squares on the points that agree). A plain least-squares start would let a
+        few consecutive spatter hits at the window's edge bend the quadratic towards them.
+        Points farther than ``outlier_mm`` from the fit are flagged (each point is judged by
+        the fit centred nearest to it) and not used. The smoothed point is the fit at point
+        ``k``'s position along the seam (smoothed over the inliers' order of arrival), the
+        tangent its derivative there, the arm directions the median over the inliers' unit arm
+        vectors. The tangent is None when fewer than
+        4 points agree (the seam seen at one spot only, e.g. before the robot moves); the
+        point is then point ``k`` itself.
+        """
+        pts = list(self.points)
+        P = np.stack([loc.p for loc in pts])                                   # (N, 3)
+        pk = P[k]
+        # candidates by distance, with a margin for points pushed off sideways by outliers
+        cand = np.flatnonzero(np.linalg.norm(P - pk, axis=1)
+                              <= self.smooth_mm + WINDOW_MARGIN_MM)
+        d = np.zeros(3)
+        if len(cand) >= 2:
+            # local seam direction: the chord between the medians of the older and the newer
+            # half of the candidates (robust to outliers, unlike cumulative arc length)
+            h = len(cand) // 2
+            d = np.median(P[cand[h:]], axis=0) - np.median(P[cand[:h]], axis=0)
+        if len(cand) < 4 or np.linalg.norm(d) < 1e-9:
+            return SeamFit(pk, None, self._arms(pts, cand), len(cand), 0)
+        d /= np.linalg.norm(d)
+        x = (P[cand] - pk) @ d
+        win = np.abs(x) <= self.smooth_mm
+        idx, x = cand[win], x[win]
+        if len(idx) < 4:
+            return SeamFit(pk, None, self._arms(pts, idx), len(idx), 0)
+        coef, r = _msac_quadratic(x, P[idx], self.outlier_mm)
+        inl = r <= self.outlier_mm
+        if inl.sum() < 4:
+            # no smooth seam through enough of these points: judge nothing, fit nothing
+            return SeamFit(pk, None, self._arms(pts, idx), len(idx), 0)
+        for i, xi, ri in zip(idx, np.abs(x), r, strict=True):
+            loc = pts[i]
+            if xi <= loc.judged_mm:  # the fit centred nearest the point judges it
+                loc.judged_mm, loc.residual_mm = float(xi), float(ri)
+                if (ri > self.outlier_mm) != loc.flagged:
+                    loc.flagged = not loc.flagged
+                    self.flagged += 1 if loc.flagged else -1
+        # where along the seam point k is: its own position, smoothed by the inliers' order
+        # of arrival (noise along the seam moves a point along the curve, not off it; the
+        # arrival order, unlike time, does not jump when the robot holds)
+        n_k = idx - k
+        B = np.stack([np.ones(len(idx)), n_k, n_k * n_k], axis=1)[inl]
+        xk = float(np.clip(np.linalg.lstsq(B, x[inl], rcond=None)[0][0], x.min(), x.max()))
+        p = coef[0] + coef[1] * xk + coef[2] * xk * xk
+        tangent = coef[1] + 2 * coef[2] * xk
+        tangent = tangent / np.linalg.norm(tangent)
+        return SeamFit(p, tangent, self._arms(pts, idx[inl]), int(inl.sum()),
+                       int((~inl).sum()))
+
+    @staticmethod
+    def _arms(pts: list[Located], idx: np.ndarray) -> np.ndarray:
+        """Median unit arm directions (2, 3) of points ``idx`` (NaN if none had arms). The
+        median, not the mean: one ECAL crossing taken on a spatter streak must not tilt the
+        torch."""
+        if len(idx) == 0:
+            return np.full((2, 3), np.nan)
+        arms = np.stack([pts[i].q - pts[i].p for i in idx])                    # (n, 2, 3)
         arms = arms / np.linalg.norm(arms, axis=2, keepdims=True)
         good = np.all(np.isfinite(arms), axis=(1, 2))
-        # the median, not the mean: one ECAL crossing taken on a spatter streak must not tilt
-        # the torch
-        mean = np.median(arms[good], axis=0) if good.any() else np.full((2, 3), np.nan)
-        mean = mean / np.linalg.norm(mean, axis=1, keepdims=True)
-        if len(sel) < 4:
-            return self.points[k].p, None, mean
-        # fit in frame time, not in the (noisy) arc length: points arrive at a steady rate
-        x = np.array([self.points[i].t_s for i in sel]) - self.points[k].t_s
-        P = np.stack([self.points[i].p for i in sel])
-        A = np.stack([np.ones_like(x), x, x * x], axis=1)
-        coef = np.linalg.lstsq(A, P, rcond=None)[0]  # (3, 3): rows c0, c1, c2
-        return coef[0], coef[1] / np.linalg.norm(coef[1]), mean
+        if not good.any():
+            return np.full((2, 3), np.nan)
+        med = np.median(arms[good], axis=0)
+        return med / np.linalg.norm(med, axis=1, keepdims=True)
+
+    def screen(self) -> int:
+        """Fit around every point no fit has judged yet (flagging outliers); returns how many
+        points are flagged. For reports: the live loop judges the points as it plans."""
+        k = 0
+        while k < len(self.points):
+            if np.isnan(self.points[k].residual_mm):
+                self.seam_fit(k)
+                if np.isnan(self.points[k].residual_mm):
+                    self.points[k].residual_mm = np.inf  # too few neighbours to judge
+            k += 1
+        return sum(loc.flagged for loc in self.points)
 
     def next_command(self, cp: np.ndarray, step_mm: float
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray] | None:
         """IPI step from cp: ``(ip (3,), tangent (3,) or None, arm_dirs (2, 3))`` or None when
         nothing is located a step ahead yet (tangent None: too few points around np to fit).
 
-        np is the first buffered point at least one step from cp (smoothed); points the torch
-        has passed are dropped. ``arm_dirs`` are the smoothed unit arm directions at np, for the
-        torch frame: ``torch_frame(ip, ip + arm_dirs[0], ip + arm_dirs[1], tangent=tangent)``.
+        np is the robust fit (:meth:`seam_fit`) at the first buffered point, from the one
+        nearest cp on, that is at least one step from cp and not flagged as off the seam. Points
+        more than ``2 smooth_mm`` behind cp are dropped (nearer ones are kept: the fit around
+        np needs points on both sides). ``arm_dirs`` are the smoothed unit arm directions at
+        np, for the torch frame:
+        ``torch_frame(ip, ip + arm_dirs[0], ip + arm_dirs[1], tangent=tangent)``.
         """
-        while len(self.points) > 1 and np.linalg.norm(self.points[1].p - cp) < step_mm and (
-                np.linalg.norm(self.points[0].p - cp) < step_mm):
-            self.points.popleft()
-        target = next((k for k, loc in enumerate(self.points)
-                       if np.linalg.norm(loc.p - cp) >= step_mm), None)
-        if target is None:
+        if not self.points:
             return None
-        p_np, tangent, arm_dirs = self.fit(target)
-        return ipi_step(cp, p_np, step_mm), tangent, arm_dirs
+        P = np.stack([loc.p for loc in self.points])
+        j = int(np.argmin(np.linalg.norm(P - cp, axis=1)))
+        behind = 0
+        while behind < j and np.linalg.norm(P[behind] - cp) > 2 * self.smooth_mm:
+            behind += 1
+        for _ in range(behind):
+            self.points.popleft()
+        P, j = P[behind:], j - behind
+        dist = np.linalg.norm(P - cp, axis=1)
+        # from the point nearest cp on (it is itself a target when cp is a step or more away,
+        # off the located path: the torch's start, the sensor having seen one spot only)
+        for k in np.flatnonzero(dist >= step_mm):
+            if k < j or self.points[k].flagged:
+                continue
+            f = self.seam_fit(int(k))
+            if self.points[k].flagged:
+                continue  # the candidate itself was off the seam: take the next one
+            return ipi_step(cp, f.p, step_mm), f.tangent, f.arms
+        return None
+
+
+def _triples(n: int) -> np.ndarray:
+    """Index triples (m, 3) proposing quadratics among n >= 3 points ordered along the seam:
+    one point from each third of the window (well-spread triples give well-conditioned
+    quadratics), all of them up to ``MSAC_HYPOTHESES``, else that many drawn with a fixed seed
+    (repeatable plans)."""
+    cuts = [0, max(1, n // 3), max(2, (2 * n) // 3), n]
+    t = np.stack(np.meshgrid(*[np.arange(cuts[i], cuts[i + 1]) for i in range(3)],
+                             indexing="ij"), axis=-1).reshape(-1, 3)
+    if len(t) > MSAC_HYPOTHESES:
+        t = t[np.random.default_rng(0).choice(len(t), MSAC_HYPOTHESES, replace=False)]
+    return t
+
+
+def _msac_quadratic(x: np.ndarray, P: np.ndarray, thr: float) -> tuple[np.ndarray, np.ndarray]:
+    """Robust quadratic P(x) = c0 + c1 x + c2 x^2 through points ``P`` (n, 3) at ``x`` (n,).
+
+    Returns ``(coef (3, 3) rows c0, c1, c2, residuals (n,))``: MSAC over point triples (cost
+    sum(min(r^2, thr^2))), then least squares on the points within ``thr`` of the winner, twice.
+    """
+    order = np.argsort(x)
+    x, P = x[order], P[order]
+    A = np.stack([np.ones_like(x), x, x * x], axis=1)                         # (n, 3)
+    t = _triples(len(x))
+    At = A[t]                                                                 # (m, 3, 3)
+    ok = np.abs(np.linalg.det(At)) > 1e-9
+    if ok.any():
+        C = np.linalg.solve(At[ok], P[t[ok]])                                 # (m, 3, 3)
+        r2 = ((P[None] - A[None] @ C) ** 2).sum(-1)                           # (m, n)
+        best = C[int(np.argmin(np.minimum(r2, thr * thr).sum(1)))]
+    else:  # points bunched at one place along the seam: no triple spans a quadratic
+        best = np.linalg.lstsq(A, P, rcond=None)[0]
+    r = np.linalg.norm(P - A @ best, axis=1)
+    for _ in range(2):
+        inl = r <= thr
+        if inl.sum() < 4:
+            break
+        best = np.linalg.lstsq(A[inl], P[inl], rcond=None)[0]
+        r = np.linalg.norm(P - A @ best, axis=1)
+    out = np.empty_like(r)
+    out[order] = r
+    return best, out
+
