@@ -35,10 +35,12 @@ class FrameTracker(Protocol):
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]: ...
 
 
-def grey_tensor(frame: np.ndarray) -> torch.Tensor:
+def grey_tensor(frame: np.ndarray, planes: list[np.ndarray] | None = None) -> torch.Tensor:
     """(1, H, W) uint8 tensor of the red-stripe response the torch trackers see (they convert
-    only the context windows they crop to float, not the whole frame)."""
-    return torch.from_numpy(red_response(frame)).unsqueeze(0)
+    only the context windows they crop to float, not the whole frame). ``planes``: three
+    reusable (H, W) uint8 buffers (see :func:`red_response`); the tensor then shares the first
+    and is valid until they are reused."""
+    return torch.from_numpy(red_response(frame, out=planes)).unsqueeze(0)
 
 
 class TipmPerFrame:
@@ -63,21 +65,27 @@ class TorchTracker:
     def __init__(self, name: str, module: torch.nn.Module) -> None:
         self.name = name
         self.module = module.eval()
+        self._planes: list[np.ndarray] = []  # reused per frame: the modules keep no frame
+
+    def _grey(self, frame: np.ndarray) -> torch.Tensor:
+        if not self._planes or self._planes[0].shape != frame.shape[:2]:
+            self._planes = [np.empty(frame.shape[:2], np.uint8) for _ in range(3)]
+        return grey_tensor(frame, self._planes)
 
     @torch.inference_mode()
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
-        self.module.init(grey_tensor(frame), torch.tensor(np.asarray(uv)[None],
+        self.module.init(self._grey(frame), torch.tensor(np.asarray(uv)[None],
                                                            dtype=torch.float32))
 
     @torch.inference_mode()
     def reanchor(self, frame: np.ndarray, uv: np.ndarray) -> None:
         """Move EAKF-STC onto an absolute fix ``uv`` of this (the newest) frame."""
-        self.module.reanchor(grey_tensor(frame), torch.tensor(np.asarray(uv)[None],
+        self.module.reanchor(self._grey(frame), torch.tensor(np.asarray(uv)[None],
                                                                dtype=torch.float32))
 
     @torch.inference_mode()
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
-        out = self.module.step(grey_tensor(frame))
+        out = self.module.step(self._grey(frame))
         uv = out[0][0].numpy().astype(float)
         status = int(out[1][0]) if isinstance(self.module, EAKFSTC) else int(
             TrackStatus.TRACKED)
