@@ -149,15 +149,17 @@ def _wrap_deg(a: float) -> float:
 
 
 def test_ecal_arm_direction_from_few_circles_is_not_extrapolated():
-    from torchseam.geometry.ecal import MIN_EXTRAPOLATION_CIRCLES, _tangent_points
+    from torchseam.geometry.ecal import _tangent_points, load_ecal_config
+
+    min_circles = load_ecal_config().min_extrapolation_circles
 
     uv = np.zeros(2)
     true = np.radians([160.0, 20.0])
     jitter = np.radians([[1.0, -1.0], [0.0, 0.0], [-1.0, 1.0], [1.0, -1.0], [0.0, 0.0]])
-    assert MIN_EXTRAPOLATION_CIRCLES > 3
+    assert min_circles > 3
     for n in (2, 3, 4, 5):
         radii = 25.0 + 10.0 * np.arange(n)
-        pts = _tangent_points(uv, radii, true + jitter[:n], 50.0)
+        pts = _tangent_points(uv, radii, true + jitter[:n], 50.0, min_circles)
         err = np.degrees(np.abs(np.arctan2(pts[:, 1], pts[:, 0]) - true))
         # a line through +-1 degree of noise on two or three close circles, extrapolated to
         # r = 0, lands 3.5-6 degrees off; the mean stays within the noise
@@ -165,5 +167,5 @@ def test_ecal_arm_direction_from_few_circles_is_not_extrapolated():
     # with enough circles the chord's lean on a curved arm is extrapolated away
     radii = 25.0 + 10.0 * np.arange(7)
     lean = true + np.radians(0.05) * radii[:, None] * np.array([1, -1])
-    pts = _tangent_points(uv, radii, lean, 50.0)
+    pts = _tangent_points(uv, radii, lean, 50.0, min_circles)
     np.testing.assert_allclose(np.arctan2(pts[:, 1], pts[:, 0]), true, atol=1e-9)

@@ -7,7 +7,7 @@ whose outer arcs are background, and whose arc length is a stripe width, is one 
 midpoint (refined by the grey-level centroid along the arc when an intensity image is given) is
 the arm point. Crossings from spatter and other blobs are rejected: a crossing must be a stripe
 width long and joined to the feature point by stripe along the radius, and the two crossings
-of a pair must leave the corner at least ``MIN_ARM_SEPARATION_DEG`` apart (two crossings of one
+of a pair must leave the corner at least ``min_arm_separation_deg`` apart (two crossings of one
 arm split by a dark streak are not the V). The circle grows from
 ``r_min`` until both arms are found and keeps growing (more leverage for the torch frame) while
 both stay clean, up to ``r_max``.
@@ -31,8 +31,6 @@ ARC_STEP_PX = 1.5     # sampling step along the largest circle (all circles shar
 RADIAL_STEP_PX = 2.0  # ring spacing of the polar resampling
 # the two arms leave the corner at least this far apart (the V of a 60-90 degree joint opens
 # well over 90 degrees in the image; two crossings of one arm are a few degrees apart)
-MIN_ARM_SEPARATION_DEG = 45.0
-MIN_EXTRAPOLATION_CIRCLES = 4  # fewer clean circles: mean arm angle, no extrapolation to r = 0
 
 
 @dataclass(frozen=True)
@@ -43,6 +41,8 @@ class EcalConfig:
     min_width_px: float
     max_width_px: float
     min_connected: float
+    min_arm_separation_deg: float  # two crossings closer than this are one arm, not a pair
+    min_extrapolation_circles: int  # fewer clean circles: mean arm angle, no extrapolation
 
 
 def load_ecal_config(path: str | Path | None = None) -> EcalConfig:
@@ -60,7 +60,7 @@ class EcalResult:
         radius: circle radius used (px).
         p_tangent: (2, 2) points on the arms' tangents at the corner, ``radius`` out: the
             chord to a curved arm leans by r / (2 rho); with at least
-            ``MIN_EXTRAPOLATION_CIRCLES`` clean circles the arm angle measured on each is
+            ``min_extrapolation_circles`` clean circles the arm angle measured on each is
             extrapolated linearly to r = 0, with fewer their mean angle is used. Equals ``p``
             with one circle.
         fallback: one arm point came from the previous frame's direction.
@@ -184,7 +184,7 @@ class Ecal:
         for r in self.circles:
             cands, rejected = self.crossings(on, val, uv, float(r))
             rejected_total += rejected
-            pair = _pick_pair(cands, prev_angles)
+            pair = _pick_pair(cands, prev_angles, self.cfg.min_arm_separation_deg)
             if pair is None:
                 if len(cands) == 1 and single is None:
                     single = (float(r), cands[0][0], cands[0][1])
@@ -199,7 +199,7 @@ class Ecal:
                               rejected=rejected_total)
         if best is not None:
             best.p_tangent = _tangent_points(uv, np.array(radii), np.array(arm_angles),
-                                             best.radius)
+                                             best.radius, self.cfg.min_extrapolation_circles)
             return best
         if single is not None and prev_angles is not None:
             r, a, p = single
@@ -215,12 +215,12 @@ class Ecal:
         return EcalResult(False, nan2, np.full(2, np.nan), reason=why)
 
 
-def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref: float
-                    ) -> np.ndarray:
+def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref: float,
+                    min_circles: int) -> np.ndarray:
     """Arm directions at the corner, as points ``r_ref`` from it, (2, 2).
 
     ``radii`` (n,), ``angles`` (n, 2): the arm angles on each clean circle. With at least
-    ``MIN_EXTRAPOLATION_CIRCLES`` circles the angle is extrapolated linearly to r = 0 (the
+    ``min_extrapolation_circles`` circles the angle is extrapolated linearly to r = 0 (the
     chord to a curved arm leans by r / (2 rho)); with fewer, the extrapolation from a short
     span of radii multiplies the angle noise several times (a 3-circle fit turned the torch
     axis by up to 17 degrees on heavy-arc frames), so the mean angle is used: its lean is
@@ -229,7 +229,7 @@ def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref
     out = np.empty((2, 2))
     for i in range(2):
         a = np.unwrap(angles[:, i])
-        if len(radii) >= MIN_EXTRAPOLATION_CIRCLES:
+        if len(radii) >= min_circles:
             a0 = np.polyfit(radii, a, 1)[1]
         else:
             a0 = float(np.mean(a))
@@ -241,8 +241,11 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
-def _pick_pair(cands: list[tuple[float, np.ndarray]], prev: np.ndarray | None
-               ) -> tuple[tuple[float, np.ndarray], tuple[float, np.ndarray]] | None:
+_Crossing = tuple[float, np.ndarray]  # (angle around the corner, pixel)
+
+
+def _pick_pair(cands: list[_Crossing], prev: np.ndarray | None, min_separation_deg: float
+               ) -> tuple[_Crossing, _Crossing] | None:
     """Two arm crossings, ordered left arm (smaller u) first."""
     if len(cands) < 2:
         return None
@@ -262,7 +265,7 @@ def _pick_pair(cands: list[tuple[float, np.ndarray]], prev: np.ndarray | None
                 if s > score:
                     best, score = (cands[i], cands[j]), s
         pair = list(best)
-    if abs(_wrap(pair[0][0] - pair[1][0])) < np.radians(MIN_ARM_SEPARATION_DEG):
+    if abs(_wrap(pair[0][0] - pair[1][0])) < np.radians(min_separation_deg):
         return None  # both on one arm (a gap or a dark streak splits it): not a pair
     pair = sorted(pair, key=lambda c: c[1][0])
     return pair[0], pair[1]
