@@ -154,6 +154,19 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _expected_frames(cell, part, args: argparse.Namespace) -> int:
+    """Frames the weld should take: approach + segment length at weld speed (the bar's 100 %)."""
+    from torchseam.plan.path import load_plan_config
+    from torchseam.sim.scene import Scene
+
+    seg_len = Scene(part).seam_length_mm / 6.0
+    if args.length_mm is not None:
+        seg_len = min(seg_len, args.length_mm)
+    approach = cell.process.look_ahead_mm + load_plan_config().approach_mm
+    per_seg = (approach + seg_len) / cell.process.weld_speed_mm_s * cell.process.frame_rate_hz
+    return int(per_seg * len(args.segments))
+
+
 def run(args: argparse.Namespace) -> int:
     from torchseam.live.demo import FAULTS, run_demo, write_report
 
@@ -182,7 +195,8 @@ def run(args: argparse.Namespace) -> int:
             raise TorchseamError(f"{args.out / 'weld.mp4'}: OpenCV cannot write MP4 here "
                                  "(use --no-video)")
     t0 = time.perf_counter()
-    bar = tqdm(desc="weld", unit="frame", total=330 * len(args.segments), mininterval=0.5)
+    bar = tqdm(desc="weld", unit="frame", total=_expected_frames(cell, part, args),
+               mininterval=0.5)
     try:
         res = run_demo(cell, part, noise, level, args.seed, faults, args.segments,
                        args.tracker, video, progress=bar.update, length_mm=args.length_mm)

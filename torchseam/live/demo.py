@@ -114,6 +114,7 @@ class DemoResult:
     frames: list[FrameRecord] = field(default_factory=list)
     sent: list[tuple[str, np.ndarray, np.ndarray, float]] = field(default_factory=list)
     refused: dict[str, int] = field(default_factory=dict)
+    watchdog_trips: int = 0
     quats: dict[str, np.ndarray] = field(default_factory=dict)
     paths: dict[str, list[np.ndarray]] = field(default_factory=dict)
     latency: dict[str, tuple[float, float]] = field(default_factory=dict)
@@ -222,8 +223,12 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             sent = [c for c in commands if c.ok]
             for c in sent:
                 res.sent.append((seg.name, c.p, c.q, c.seen_t_s))
-            for r, n in loop.stats.refused.items():
+            # the link's count: new targets and the re-sends that keep its watchdog fed
+            # (a re-send refused as stale is the link holding the robot while tracking is old)
+            link_stats = link.stats
+            for r, n in link_stats.refused.items():
                 res.refused[r] = res.refused.get(r, 0) + n
+            res.watchdog_trips += link_stats.watchdog_trips
             res.quats[seg.name] = np.array([c.q for c in sent])
             res.paths.setdefault("tracked", []).append(np.array([c.p for c in sent]))
             res.paths.setdefault("nominal", []).append(
@@ -353,6 +358,7 @@ def _summary(res: DemoResult, unsafe: int) -> dict:
         "latency_p50_ms": lat[0], "latency_p99_ms": lat[1],
         "poses_sent": len(res.sent), "poses_refused": int(sum(res.refused.values())),
         "refused_reasons": dict(res.refused),
+        "watchdog_trips": int(res.watchdog_trips),
         "unsafe_poses_sent": int(unsafe),
         "frames": len(res.frames),
     }
