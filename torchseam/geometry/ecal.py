@@ -230,7 +230,9 @@ def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref
     for i in range(2):
         a = np.unwrap(angles[:, i])
         if len(radii) >= min_circles:
-            a0 = np.polyfit(radii, a, 1)[1]
+            # intercept of the least-squares line a(r) (closed form: polyfit costs 10x more)
+            rc = radii - radii.mean()
+            a0 = a.mean() - (rc @ a) / (rc @ rc) * radii.mean()
         else:
             a0 = float(np.mean(a))
         out[i] = uv + r_ref * np.array([np.cos(a0), np.sin(a0)])
