@@ -397,8 +397,7 @@ def write_report(res: DemoResult, out: Path) -> list[Path]:
     files.append(series_plot({"torch to true seam": np.array([f.torch_err_mm for f in fr])},
                              "mm", out / "torch_error.png"))
     files.append(quaternion_plot(list(res.quats.items()), out / "quaternions.png"))
-    files.append(seam_3d_plot({k: np.concatenate(v) for k, v in res.paths.items() if v},
-                              out / "seam_3d.png"))
+    files.append(seam_3d_plot({k: v for k, v in res.paths.items() if v}, out / "seam_3d.png"))
     (out / "summary.json").write_text(json.dumps(res.summary, indent=1))
     files.append(out / "summary.json")
     (out / "messages.txt").write_text("\n".join(res.messages) + "\n")

@@ -45,13 +45,15 @@ def series_plot(series: dict[str, np.ndarray], ylabel: str, path: Path, xlabel: 
     return path
 
 
-def seam_3d_plot(paths: dict[str, np.ndarray], path: Path) -> Path:
-    """3D polylines (true seam, nominal path, tracked path), mm."""
+def seam_3d_plot(paths: dict[str, list[np.ndarray]], path: Path) -> Path:
+    """3D polylines (true seam, nominal path, tracked path), mm; each a list of (N, 3) pieces
+    (one per segment: drawn apart, the part turns between segments)."""
     fig = plt.figure(figsize=(6, 5))
     ax = fig.add_subplot(projection="3d")
-    for name, P in paths.items():
-        if len(P):
-            ax.plot(P[:, 0], P[:, 1], P[:, 2], lw=1.0, label=name)
+    for k, (name, pieces) in enumerate(paths.items()):
+        for i, P in enumerate(p for p in pieces if len(p)):
+            ax.plot(P[:, 0], P[:, 1], P[:, 2], lw=1.0, color=f"C{k}",
+                    label=name if i == 0 else None)
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
