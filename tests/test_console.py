@@ -445,3 +445,85 @@ def test_page_runs_and_watches_a_simulated_weld(chromium, cfg, tmp_path):
     assert shot.stat().st_size > 10_000
     assert any("held by the operator" in m[3] for m in con.session.messages)
     assert con.session.summary is not None and con.session.summary["stopped"]
+
+
+# --------------------------------------------------------------------------- recorded frames
+
+REPLAY_FRAMES = 20
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory, cell, part, noise):
+    """A small clean recording (dataset format with labels.csv and meta.json)."""
+    from torchseam.sim.record import write_sequence
+    from torchseam.sim.sequence import SequenceSpec
+
+    out = tmp_path_factory.mktemp("console-rec")
+    write_sequence(out, cell, part, noise, SequenceSpec(n_frames=REPLAY_FRAMES, level=0.0,
+                                                        seed=5, start_mm=40.0), progress=False)
+    return out
+
+
+def test_replay_of_a_recording_runs_through_the_session(cfg, recorded):
+    from torchseam.console.replay import replay_console
+    from torchseam.console.server import NO_CONTROLLER
+
+    con = replay_console(recorded, cfg)
+    assert str(recorded) in con.source and "open loop" in con.source
+    params = con.validate(GOOD)
+    con.session.start(params)
+    assert con.session.join(30) and con.session.state == RunState.FINISHED, \
+        [m[3] for m in con.session.messages]
+    s = con.session.summary
+    assert s["frames"] == REPLAY_FRAMES and s["stopped"] is False and s["open_loop"]
+    assert s["seam_rmse_mm"] is None and s["poses_sent"] >= 1 and s["poses_refused"] == 0
+    assert s["pixel_rmse_px"] < 2.0 and s["latency_p99_ms"] > 0
+    hist, _ = con.session.delta(None)
+    fr = hist["frames"]
+    assert len(fr["t"]) == REPLAY_FRAMES and set(fr["seg"]) == {"replay"}
+    # every frame after the start frame tracked, with its label: finite pixel errors
+    assert all(u is not None and abs(u) < 5 for u in fr["u_err"][1:])
+    assert all(v is not None and abs(v) < 5 for v in fr["v_err"][1:])
+    assert con.session.latest.uv is not None
+    assert sum(p[0] is not None for p in fr["p"]) >= REPLAY_FRAMES - 3
+    assert any(fr["p_true"][-1]) and len(hist["commands"]["t"]) >= 1
+    # the robot-link panel: a replay has no controller (no EGM link to read)
+    link = con._link_state()
+    assert link == {"connected": False, "note": NO_CONTROLLER,
+                    "sink_accepted": link["sink_accepted"], "sink_refused": 0}
+    assert link["sink_accepted"] >= 1
+
+
+def test_replay_hold_and_stop(cfg, recorded):
+    from torchseam.console.replay import replay_console
+
+    paced = dataclasses.replace(cfg, pace=1.0)   # 25 frames/s: 0.8 s for the recording
+    con = replay_console(recorded, paced)
+    con.session.start(con.validate(GOOD))
+    wait_for(lambda: con.session.latest is not None and con.session.latest.seq >= 2,
+             what="the first frames")
+    con.session.hold()
+    time.sleep(0.15)   # the frame in flight
+    seq = con.session.latest.seq
+    time.sleep(0.3)
+    assert con.session.latest.seq == seq, "frames went on while held"
+    assert con.session.status()["held"]
+    con.session.resume()
+    wait_for(lambda: con.session.latest.seq > seq, what="frames after resume")
+    con.session.hold()
+    con.session.stop()
+    assert con.session.join(10) and con.session.state == RunState.STOPPED
+    s = con.session.summary
+    assert s["stopped"] is True and 2 <= s["frames"] < REPLAY_FRAMES
+    assert s["frames"] == len(con.session.delta(None)[0]["frames"]["t"])
+
+
+def test_console_cli_names_a_missing_source(tmp_path, capsys):
+    from torchseam.cli import build_parser, main
+
+    missing = tmp_path / "no-such-recording"
+    assert main(["console", "--source", str(missing), "--port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "no such folder or video file" in err
+    assert build_parser().parse_args(["console", "--source", str(tmp_path)]).source == \
+        str(tmp_path)

@@ -12,8 +12,8 @@ import torch
 from torchseam.console.config import DEFAULT_HOST
 from torchseam.core.errors import TorchseamError
 
-#: Frame sources the console can drive. Recorded folders and cameras need the live loop's
-#: frame-source classes (not written yet); until then only the simulated cell.
+#: Named frame sources; any other ``--source`` is a recorded folder or video file path.
+#: (A camera needs a driver: a :class:`~torchseam.live.sources.FrameSource` of its own.)
 SOURCES = ("sim",)
 
 
@@ -23,16 +23,21 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Serve the operator console: one page with the camera frame, the 3D seam "
                     "and torch pose, error and quaternion plots, the EGM link state, the weld "
                     "parameters, start / hold / resume / stop and the message log. It drives "
-                    "the same closed loop as `torchseam demo`. Binds to loopback unless --host "
-                    "says otherwise.")
+                    "the same live loop as `torchseam demo` (the simulated cell, closed loop) "
+                    "or, with --source DIR|VIDEO, as `torchseam replay` (recorded frames, open "
+                    "loop). Binds to loopback unless --host says otherwise.")
     p.add_argument("--host", default=DEFAULT_HOST,
                    help=f"address to bind (default {DEFAULT_HOST}: this machine only)")
     p.add_argument("--port", type=int, default=None,
                    help="port (default configs/console.yaml server.port; 0: any free port)")
     p.add_argument("--config", type=Path, help="console config (default configs/console.yaml)")
-    p.add_argument("--source", choices=SOURCES, default="sim",
-                   help="what feeds the loop: sim (the simulated cell; recorded folders and "
-                        "cameras come with the live loop's frame sources)")
+    p.add_argument("--source", default="sim", metavar="sim|DIR|VIDEO",
+                   help="what feeds the loop: sim (default: the simulated cell, closed loop), "
+                        "or a recorded frame folder (dataset format, 00000.png ...) or video "
+                        "file, replayed open loop through the live loop as `torchseam replay` "
+                        "does: nothing moves, no controller; the page's tracker, step, "
+                        "look-ahead and speed apply, its noise, seed, faults, segments and "
+                        "length do not (a folder named sim: ./sim)")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
     p.add_argument("--noise", default="heavy", help="initial arc-noise level on the page")
     p.add_argument("--segments", default="abcdef", help="initial segments on the page")
@@ -43,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from torchseam.console.config import ParamError, load_console_config
+    from torchseam.console.replay import replay_console
     from torchseam.console.server import is_loopback
     from torchseam.console.sim import simulated_console
     from torchseam.core.config import load_part
@@ -53,9 +59,12 @@ def run(args: argparse.Namespace) -> int:
     port = cfg.server.port if args.port is None else args.port
     if not 0 <= port <= 65535:
         raise TorchseamError(f"--port must be in 0..65535, got {port}")
+    defaults = {"noise": args.noise, "segments": args.segments, "length_mm": args.length_mm}
     try:
-        console = simulated_console(cfg, part=load_part(args.part), defaults={
-            "noise": args.noise, "segments": args.segments, "length_mm": args.length_mm})
+        if args.source == "sim":
+            console = simulated_console(cfg, part=load_part(args.part), defaults=defaults)
+        else:   # a folder or video: open_source's errors name the path
+            console = replay_console(args.source, cfg, defaults=defaults)
     except ParamError as e:
         raise TorchseamError(str(e)) from None
     if not is_loopback(args.host):

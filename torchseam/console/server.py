@@ -46,6 +46,8 @@ STATUS_NAMES = {0: "tracked", 1: "coasting", 2: "lost"}
 TRUTH_BGR = (255, 160, 0)
 MARKER_PX = 14              # feature-point cross size on the (scaled) frame
 FONT_SCALE = 0.4
+#: The robot-link panel's text when the loop's poses go to no controller (a replay).
+NO_CONTROLLER = "replay: no controller"
 
 
 def is_loopback(host: str) -> bool:
@@ -240,6 +242,11 @@ class ConsoleServer:
         link = self.session.link
         if link is None:
             return {"connected": False}
+        if not hasattr(link, "stats") or not hasattr(link, "holding"):
+            # a replay's pose sink (open loop): poses are kept, nothing reaches a robot
+            return {"connected": False, "note": NO_CONTROLLER,
+                    "sink_accepted": getattr(link, "accepted", None),
+                    "sink_refused": getattr(link, "refused", None)}
         st = link.stats
         lf = self.session.latest
         t_link = lf.t_s if lf is not None else math.nan

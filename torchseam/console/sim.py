@@ -13,7 +13,7 @@ from torchseam.console.config import (
     parse_params,
 )
 from torchseam.console.server import ConsoleServer
-from torchseam.console.session import WeldSession
+from torchseam.console.session import WeldFn, WeldSession
 from torchseam.core.config import (
     CellConfig,
     NoiseConfig,
@@ -50,10 +50,20 @@ def simulated_console(cfg: ConsoleConfig | None = None, cell: CellConfig | None 
     ``defaults`` overrides the parameter form's initial values."""
     cfg = cfg or load_console_config()
     cell, part, noise = cell or load_cell(), part or load_part(), noise or load_noise()
+    return make_console(cfg, cell, noise, sim_weld(cell, part, noise),
+                        1.0 / cell.process.frame_rate_hz, "simulated cell", defaults)
+
+
+def make_console(cfg: ConsoleConfig, cell: CellConfig, noise: NoiseConfig, weld: WeldFn,
+                 frame_period_s: float, source: str,
+                 defaults: dict[str, Any] | None = None) -> ConsoleServer:
+    """A :class:`ConsoleServer` running ``weld`` with the demo's parameter form (initial
+    values from ``cell``'s process settings, overridden by ``defaults``); ``source`` is what
+    the page shows as the frame source."""
     proc = cell.process
     form = {"step_mm": proc.step_mm, "look_ahead_mm": proc.look_ahead_mm,
             "weld_speed_mm_s": proc.weld_speed_mm_s, **DEMO_DEFAULTS, **(defaults or {})}
-    session = WeldSession(cfg, sim_weld(cell, part, noise), 1.0 / proc.frame_rate_hz)
+    session = WeldSession(cfg, weld, frame_period_s)
 
     def validate(raw: dict[str, Any]) -> WeldParams:
         return parse_params(raw, cfg.limits, noise, FAULTS, TRACKERS)
@@ -61,4 +71,4 @@ def simulated_console(cfg: ConsoleConfig | None = None, cell: CellConfig | None 
     validate(form)  # the defaults themselves must pass (a bad --length-mm, say)
     choices = {"noise": list(noise.levels), "faults": list(FAULTS), "trackers": list(TRACKERS),
                "segments": SEGMENT_LETTERS}
-    return ConsoleServer(cfg, session, validate, form, choices, source="simulated cell")
+    return ConsoleServer(cfg, session, validate, form, choices, source=source)

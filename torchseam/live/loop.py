@@ -19,12 +19,12 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter, deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from enum import Enum
 from itertools import islice
 from pathlib import Path
-from typing import Any, Protocol, TypeVar, overload
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar, overload
 
 import numpy as np
 
@@ -36,6 +36,9 @@ from torchseam.plan.path import LookAheadBuffer, PlanConfig, load_plan_config
 from torchseam.robot.egm import Verdict
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import FrameTracker
+
+if TYPE_CHECKING:  # torchseam.live.demo imports this module
+    from torchseam.live.demo import DemoControl, DemoEvent
 
 
 @dataclass(frozen=True)
@@ -419,6 +422,7 @@ class ReplayResult:
     poses_known: bool
     start_index: int = 0
     messages: list[str] = field(default_factory=list)
+    stopped: bool = False      # ended early by ``control`` (run_replay's operator stop)
 
     def pixel_errors(self) -> np.ndarray:
         """(M,) px distances tracked-to-label over the frames with a label and a track."""
@@ -430,7 +434,9 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
                T_B_W: np.ndarray | None = None, uv0: np.ndarray | None = None,
                live: LiveConfig | None = None, plan: PlanConfig | None = None,
                max_frames: int | None = None, sink: PoseSink | None = None,
-               truth: dict[int, np.ndarray] | None = None) -> ReplayResult:
+               truth: dict[int, np.ndarray] | None = None,
+               observer: Callable[[DemoEvent], None] | None = None,
+               control: DemoControl | None = None) -> ReplayResult:
     """Feed recorded frames through a :class:`LiveLoop` (open loop: nothing moves).
 
     Each frame's flange pose is the recorded torch pose (``Frame.T_B_W``, from a recording's
@@ -449,6 +455,12 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
         max_frames: stop after this many frames.
         sink: where poses go (default a :class:`RecordingSink`).
         truth: frame number -> (3,) true seam point (base, mm), for the 3D error.
+        observer: called once per frame (the start frame included, with ``report`` None)
+            with a :class:`~torchseam.live.demo.DemoEvent`, as in ``run_demo``: segment
+            ``"replay"``, the frame's label as ``uv_true`` and ``truth`` as ``p_true`` (NaN
+            where unknown), ``torch_err_mm`` NaN (nothing moves), ``link`` the sink.
+        control: a :class:`~torchseam.live.demo.DemoControl`; ``checkpoint()`` runs before
+            each frame is read (hold: wait; stop: end here, ``stopped`` True).
 
     Raises:
         TorchseamError: the start frame shows no usable stripe (names the frame).
@@ -465,9 +477,18 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
     read: list[float] = []
     messages: list[str] = []
     poses_known, started, start_index, last_msg = True, False, 0, ""
+    stopped = False
+    sink = loop.sink
+    if observer is not None:
+        from torchseam.live.demo import DemoEvent, FrameRecord  # demo imports this module
+    nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
     it = iter(source)
     n = 0
     while max_frames is None or n < max_frames:
+        if control is not None and control.checkpoint():
+            stopped = True
+            messages.append(f"[frame {n}] stopped by the operator")
+            break
         t0 = time.perf_counter()
         try:
             fr = next(it)
@@ -483,6 +504,13 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
             except TorchseamError as e:
                 raise TorchseamError(f"frame {fr.index}: {e}") from None
             started, start_index = True, fr.index
+            if observer is not None:
+                rec0 = FrameRecord("replay", fr.t_s, False, nan2,
+                                   fr.label if fr.label is not None else nan2,
+                                   int(TrackStatus.LOST), LoopState.STARTING.value, nan3,
+                                   truth.get(fr.index, nan3) if truth else nan3, math.nan, "")
+                observer(DemoEvent("replay", n - 1, fr.image, rec0, None, np.array(rec, float),
+                                   loop, sink))
             continue
         torch_T = np.array(rec, float)
         if loop.target is not None and loop.last_q is not None:
@@ -497,13 +525,17 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
                             f"{rep.message}")
         last_msg = rep.message
         loc = rep.location
-        nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
         rows.append((fr.index, fr.t_s, loc.uv if loc else nan2,
                      int(loc.status) if loc else int(TrackStatus.LOST),
                      fr.label if fr.label is not None else nan2,
                      loc.p if loc else nan3,
                      truth.get(fr.index, nan3) if truth else nan3))
-    if not started:
+        if observer is not None:
+            r = rows[-1]
+            observer(DemoEvent("replay", n - 1, fr.image, FrameRecord(
+                "replay", fr.t_s, True, r[2], r[4], r[3], rep.state.value, r[5], r[6],
+                math.nan, ""), rep, torch_T, loop, sink))
+    if not started and not stopped:
         raise TorchseamError("the source gave no frames")
     close = getattr(source, "close", None)
     if close is not None:
@@ -516,5 +548,5 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
     return ReplayResult(
         col(0, ()).astype(int), col(1, ()), col(2, (2,)), col(3, ()).astype(int),
         col(4, (2,)), col(5, (3,)), col(6, (3,)), commands, loop.latency_ms(),
-        (float(np.percentile(read, 50)), float(np.percentile(read, 99))), poses_known,
-        start_index, messages)
+        (float(np.percentile(read, 50)), float(np.percentile(read, 99))) if read
+        else (math.nan, math.nan), poses_known, start_index, messages, stopped)

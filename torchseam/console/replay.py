@@ -1,0 +1,110 @@
+"""The console wired to recorded frames: a folder (dataset format) or a video file through the
+live loop, open loop, as ``torchseam replay`` runs it.
+
+Nothing moves and no controller is connected: the loop's poses go to a
+:class:`~torchseam.live.loop.RecordingSink`. The page's tracker and its step / look-ahead /
+speed (``cell.process``) apply; noise, seed, faults, segments and length are the simulator's
+and do not (the page's source line says so).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from torchseam.console.config import ConsoleConfig, WeldParams, load_console_config
+from torchseam.console.server import ConsoleServer
+from torchseam.console.sim import make_console
+from torchseam.core.config import CellConfig, NoiseConfig, load_cell, load_noise
+from torchseam.live.demo import DemoControl, DemoEvent
+from torchseam.live.loop import ReplayResult, run_replay
+from torchseam.live.sources import FolderSource, open_source
+from torchseam.track.peers import make_tracker
+
+#: Shown on the page next to the source: the form fields a replay ignores.
+IGNORED = "open loop, no controller; noise, seed, faults, segments and length do not apply"
+
+
+@dataclass
+class ReplayWeld:
+    """What a replay weld returns to :class:`~torchseam.console.session.WeldSession`: the
+    replay's result and the ``summary`` the session shows (NaN / None where not known)."""
+
+    result: ReplayResult
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def _truth(source: Any) -> dict[int, np.ndarray] | None:
+    """Frame number -> true seam point from a recording's ``meta.json`` (``seam_mm``)."""
+    meta = getattr(getattr(source, "ds", None), "meta", None)
+    if not meta or not isinstance(meta.get("frames"), list):
+        return None
+    return {int(e["frame"]): np.asarray(e["seam_mm"], float)
+            for e in meta["frames"] if "seam_mm" in e and "frame" in e} or None
+
+
+def replay_summary(res: ReplayResult) -> dict[str, Any]:
+    """The session's summary keys for an open-loop replay."""
+
+    def rms(x: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(x**2))) if len(x) else math.nan
+
+    pix = res.pixel_errors()
+    d = np.linalg.norm(res.p - res.p_true, axis=1)
+    d = d[np.isfinite(d)]
+    lat = res.latency.get("frame->command", (math.nan, math.nan))
+    return {
+        # the start frame too, when one was read (a stop before it reads none)
+        "frames": len(res.index) + (0 if math.isnan(res.read_ms[0]) else 1),
+        "seam_rmse_mm": math.nan, "seam_max_mm": math.nan,   # no torch moves in a replay
+        "located_rmse_mm": rms(d), "pixel_rmse_px": rms(pix),
+        "latency_p50_ms": lat[0], "latency_p99_ms": lat[1],
+        "poses_sent": sum(c.ok for c in res.commands),
+        "poses_refused": sum(not c.ok for c in res.commands),
+        "unsafe_poses_sent": 0, "open_loop": True, "stopped": res.stopped,
+    }
+
+
+def replay_weld(cell: CellConfig, path: str | os.PathLike[str]
+                ) -> Callable[[WeldParams, Callable[[DemoEvent], None], DemoControl], ReplayWeld]:
+    """A weld function for :class:`WeldSession`: :func:`run_replay` of ``path`` (opened anew
+    for every weld) with the page's tracker and process settings."""
+
+    def weld(p: WeldParams, observer: Callable[[DemoEvent], None],
+             control: DemoControl) -> ReplayWeld:
+        c = p.apply(cell)
+        source = open_source(path, (c.camera.width, c.camera.height))
+        with source:
+            res = run_replay(c, source, make_tracker(p.tracker), truth=_truth(source),
+                             observer=observer, control=control)
+        return ReplayWeld(res, replay_summary(res))
+
+    return weld
+
+
+def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig | None = None,
+                   cell: CellConfig | None = None, noise: NoiseConfig | None = None,
+                   defaults: dict[str, Any] | None = None) -> ConsoleServer:
+    """A :class:`ConsoleServer` replaying the recorded folder or video file at ``path``.
+
+    Raises:
+        DatasetError / FrameError: nothing readable at ``path`` (named), found here, before
+            anything is served.
+    """
+    cfg = cfg or load_console_config()
+    cell, noise = cell or load_cell(), noise or load_noise()
+    src = open_source(path, (cell.camera.width, cell.camera.height))
+    try:
+        kind = "recorded folder" if isinstance(src, FolderSource) else "video file"
+        fps = getattr(src, "fps", None)
+    finally:
+        src.close()
+    period = 1.0 / fps if fps and fps > 0 else 1.0 / cell.process.frame_rate_hz
+    return make_console(cfg, cell, noise, replay_weld(cell, path), period,
+                        f"{kind} {Path(path)} ({IGNORED})", defaults)
