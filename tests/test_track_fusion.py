@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -235,3 +237,58 @@ def test_runs_on_cuda_like_on_cpu() -> None:
         gpu = EAKFSTC().double().cuda().run_sequence(seq.frames.double().cuda(),
                                                      seq.uv[:, 0].double().cuda())
     torch.testing.assert_close(gpu.uv.cpu(), cpu.uv, atol=1e-6, rtol=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# AnchoredTracker: when a TIPM corner replaces the track (configs/anchor.yaml)
+
+class _StubInner:
+    """Stands in for the EAKF-STC stream: reports a fixed point, records re-anchoring."""
+
+    def __init__(self, uv):
+        self.uv, self.reanchored = np.asarray(uv, float), []
+
+    def update(self, frame):
+        return self.uv.copy(), int(TrackStatus.TRACKED)
+
+    def reanchor(self, frame, uv):
+        self.reanchored.append(np.asarray(uv, float))
+
+
+def _anchored_with_tipm(offset, rms):
+    from torchseam.track.peers import AnchoredTracker
+    from torchseam.vision.tipm import TipmResult
+
+    trk = AnchoredTracker()
+    trk.inner = _StubInner((200.0, 150.0))
+    w = trk.cfg.window_px  # the ROI starts window_px up-left of the track
+    trk.tipm = lambda roi: TipmResult(True, np.array([w, w], float) + offset, rms_px=rms)
+    return trk
+
+
+@pytest.mark.parametrize("offset,rms,takes", [
+    ((4.0, 0.0), 0.15, True),    # beside the track, tight fit: the corner wins, re-anchor
+    ((4.0, 0.0), 0.5, False),    # beside the track, loose fit: the track stands
+    ((1.0, 1.0), 0.5, True),     # agrees with the track: loose fit is fine, no re-anchor needed
+    ((20.0, 0.0), 0.1, False),   # beyond the gate: some other corner
+])
+def test_anchored_takes_only_trustworthy_corners(offset, rms, takes):
+    trk = _anchored_with_tipm(np.array(offset), rms)
+    frame = np.zeros((480, 640, 3), np.uint8)
+    uv, status = trk.update(frame)
+    anchor = np.array([200.0, 150.0]) + offset
+    assert status == TrackStatus.TRACKED
+    np.testing.assert_allclose(uv, anchor if takes else (200.0, 150.0))
+    gap = np.hypot(*offset)
+    assert len(trk.inner.reanchored) == int(takes and gap > trk.cfg.reanchor_px)
+
+
+def test_anchor_config_names_a_bad_field(tmp_path):
+    from torchseam.core.config import ConfigError
+    from torchseam.track.peers import load_anchor_config
+
+    text = (Path(__file__).parents[1] / "configs" / "anchor.yaml").read_text()
+    bad = tmp_path / "anchor.yaml"
+    bad.write_text(text.replace("max_rms_px: 0.3", "max_rms_px: -1"))
+    with pytest.raises(ConfigError, match="max_rms_px"):
+        load_anchor_config(bad)
