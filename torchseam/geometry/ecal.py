@@ -97,6 +97,7 @@ class Ecal:
         n = max(64, int(np.ceil(2 * np.pi * cfg.r_max_px / ARC_STEP_PX)))
         self._theta = np.arange(n) * (2 * np.pi / n)
         self._phasor = np.exp(1j * self._theta)
+        self._phasor_cum = np.concatenate([[0], np.cumsum(np.tile(self._phasor, 2))])
         # rings every RADIAL_STEP_PX out to r_max (the circles ECAL tries are among them)
         self.ring_radii = np.arange(cfg.r_max_px, 0.0, -RADIAL_STEP_PX)[::-1]
         self._ru = self.ring_radii[:, None] * np.cos(self._theta)
@@ -104,6 +105,7 @@ class Ecal:
         self.circles = self.ring_radii[np.unique(np.argmin(np.abs(
             self.ring_radii[:, None] - np.arange(cfg.r_min_px, cfg.r_max_px + 1e-9,
                                                  cfg.r_step_px)[None]), axis=0))]
+        self._circle_rows = np.searchsorted(self.ring_radii, self.circles)
 
     def polar(self, mask: np.ndarray, uv: np.ndarray, intensity: np.ndarray | None
               ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -115,50 +117,83 @@ class Ecal:
         h, w = mask.shape
         iu = np.rint(uv[0] + self._ru).astype(np.intp)
         iv = np.rint(uv[1] + self._rv).astype(np.intp)
-        inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
-        iu *= inside
-        iv *= inside
-        on = (mask[iv, iu] > 0) & inside
-        val = intensity[iv, iu].astype(float) * inside if intensity is not None else None
+        r = self.cfg.r_max_px + 1
+        inside = None
+        if not (r <= uv[0] < w - r and r <= uv[1] < h - r):  # near the border: clip, mark
+            inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
+            iu *= inside
+            iv *= inside
+        flat = iv * w + iu  # one flat gather per image (2-D fancy indexing costs more)
+        on = mask.reshape(-1)[flat] > 0
+        val = intensity.reshape(-1)[flat].astype(float) if intensity is not None else None
+        if inside is not None:
+            on &= inside
+            if val is not None:
+                val *= inside
         return on, val
 
-    def crossings(self, on: np.ndarray, val: np.ndarray | None, uv: np.ndarray, r: float
-                  ) -> tuple[list[tuple[float, np.ndarray]], int]:
-        """Accepted arm crossings on the circle of radius ``r`` of a :meth:`polar` sampling:
-        [(angle, pixel)], and the number rejected."""
+    def crossings(self, on: np.ndarray, val: np.ndarray | None, uv: np.ndarray
+                  ) -> list[tuple[list[_Crossing], int]]:
+        """Accepted arm crossings on every circle of ``self.circles`` from a :meth:`polar`
+        sampling: per circle ``([(angle, pixel)], number rejected)``.
+
+        All circles at once (this runs on every frame): runs of stripe along each circle are
+        paired rise -> fall on the ring doubled end to end (so a run over angle 0 needs no
+        special case); a run's grey-weighted circular mean angle and its connection to the
+        feature point along the radius come from cumulative sums, not per-run loops.
+        """
         cfg = self.cfg
         n = len(self._theta)
-        row = int(np.argmin(np.abs(self.ring_radii - r)))
-        r = float(self.ring_radii[row])
-        ring = on[row]
-        prev = np.empty_like(ring)
-        prev[0], prev[1:] = ring[-1], ring[:-1]
-        starts = np.flatnonzero(ring & ~prev)          # background -> stripe
-        if len(starts) == 0:
-            return [], 0
-        ends = np.flatnonzero(~ring & prev)            # stripe -> background
-        # pair each rise with the first fall after it, going round the circle
-        j = np.searchsorted(ends, starts) % len(ends)
-        lengths = (ends[j] - starts) % n
-        widths = lengths * (2 * np.pi * r / n)
-        ok = (widths >= cfg.min_width_px) & (widths <= cfg.max_width_px)
-        out, rejected = [], int((~ok).sum())
-        col = on[int(0.15 * row):row + 1]
-        for s0, length in zip(starts[ok], lengths[ok], strict=True):
-            idx = (s0 + np.arange(length)) % n
-            wts = val[row, idx] if val is not None else None
-            if wts is None or wts.sum() <= 0:
-                wts = np.ones(len(idx))
-            # circular mean of the run's angles, weighted by the grey level
-            z = wts @ self._phasor[idx]
-            ang = float(np.angle(z))
-            k = int(round(ang * n / (2 * np.pi))) % n
-            # joined to the feature point along the radius?
-            if np.count_nonzero(col[:, k]) < cfg.min_connected * len(col):
-                rejected += 1
-                continue
-            out.append((ang, uv + r * np.array([np.cos(ang), np.sin(ang)])))
-        return out, rejected
+        rows = self._circle_rows
+        ring = on[rows]                                               # (C, N)
+        prev = np.roll(ring, 1, axis=1)
+        rs, s0 = np.nonzero(ring & ~prev)                             # background -> stripe
+        out: list[tuple[list[_Crossing], int]] = [([], 0) for _ in rows]
+        if len(rs) == 0:
+            return out
+        re, e0 = np.nonzero(~ring & prev)                             # stripe -> background
+        # the first fall after each rise, going round its circle
+        ekey = np.sort(np.concatenate([re * 2 * n + e0, re * 2 * n + e0 + n]))
+        skey = rs * 2 * n + s0
+        length = ekey[np.searchsorted(ekey, skey)] - skey
+        row = rows[rs]
+        r = self.ring_radii[row]
+        width = length * (2 * np.pi / n) * r
+        ok = (width >= cfg.min_width_px) & (width <= cfg.max_width_px)
+        # grey-weighted circular mean of each run's angles (unweighted without grey levels)
+        z = self._run_sums(rs, s0, length, rows, val)
+        ang = np.angle(z)
+        k = np.rint(ang * n / (2 * np.pi)).astype(np.intp) % n
+        # joined to the feature point along the radius: stripe on >= min_connected of the rings
+        # from 0.15 r out to r at the run's angle
+        lo = (0.15 * row).astype(np.intp)
+        cum = np.concatenate([np.zeros((1, n), np.intp), np.cumsum(on, axis=0)])
+        joined = (cum[row + 1, k] - cum[lo, k]) >= cfg.min_connected * (row + 1 - lo)
+        good = ok & joined
+        px = uv + r[:, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+        rejected = np.bincount(rs[~good], minlength=len(rows))
+        for c in range(len(rows)):
+            sel = np.flatnonzero(good & (rs == c))
+            out[c] = ([(float(ang[i]), px[i]) for i in sel], int(rejected[c]))
+        return out
+
+    def _run_sums(self, rs: np.ndarray, s0: np.ndarray, length: np.ndarray,
+                  rows: np.ndarray, val: np.ndarray | None) -> np.ndarray:
+        """Sum of the unit phasors over each run (weighted by ``val`` where the run has grey
+        levels), via cumulative sums over the rings doubled end to end."""
+        phasor, ph2 = self._phasor, self._phasor_cum
+        plain = ph2[s0 + length] - ph2[s0]
+        if val is None:
+            return plain
+        v = val[rows]
+        v2 = np.concatenate([np.zeros((len(rows), 1)), np.cumsum(np.concatenate([v, v], 1), 1)],
+                            axis=1)
+        vp = v * phasor
+        vp2 = np.concatenate([np.zeros((len(rows), 1), complex),
+                              np.cumsum(np.concatenate([vp, vp], 1), 1)], axis=1)
+        wsum = v2[rs, s0 + length] - v2[rs, s0]
+        z = vp2[rs, s0 + length] - vp2[rs, s0]
+        return np.where(wsum > 0, z, plain)
 
     def __call__(self, mask: np.ndarray, uv: np.ndarray, intensity: np.ndarray | None = None,
                  prev_angles: np.ndarray | None = None) -> EcalResult:
@@ -181,8 +216,7 @@ class Ecal:
         single: tuple[float, float, np.ndarray] | None = None
         radii, arm_angles, rejected_total = [], [], 0
         on, val = self.polar(mask, uv, intensity)
-        for r in self.circles:
-            cands, rejected = self.crossings(on, val, uv, float(r))
+        for r, (cands, rejected) in zip(self.circles, self.crossings(on, val, uv), strict=True):
             rejected_total += rejected
             pair = _pick_pair(cands, prev_angles, self.cfg.min_arm_separation_deg)
             if pair is None:
