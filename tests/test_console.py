@@ -527,3 +527,25 @@ def test_console_cli_names_a_missing_source(tmp_path, capsys):
     assert str(missing) in err and "no such folder or video file" in err
     assert build_parser().parse_args(["console", "--source", str(tmp_path)]).source == \
         str(tmp_path)
+
+
+def test_a_camera_source_runs_and_its_end_is_reported(cfg, recorded, tmp_path):
+    import cv2
+
+    from torchseam.console.replay import replay_console
+
+    # OpenCV opens a stream by name like a device: a video of the recording plays the camera
+    video = tmp_path / "camera.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (656, 492))
+    for i in range(REPLAY_FRAMES):
+        w.write(cv2.imread(str(recorded / f"{i:05d}.png")))
+    w.release()
+    con = replay_console(f"camera:{video}", cfg)
+    assert con.source.startswith("live camera") and "open loop" in con.source
+    con.session.start(con.validate(GOOD))
+    assert con.session.join(60)
+    # the stream ending is an error of the camera, named, not a silent finish
+    assert con.session.state == RunState.FAILED
+    assert any("stream ended" in m[3] for m in con.session.messages)
+    frames = con.session.delta(None)[0]["frames"]
+    assert len(frames["t"]) >= 2   # the camera's frames went through the loop

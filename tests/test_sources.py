@@ -14,6 +14,7 @@ from torchseam.core.errors import DatasetError, FrameError
 from torchseam.live.loop import RecordingSink, run_replay
 from torchseam.live.sources import (
     BaseSource,
+    CameraSource,
     FolderSource,
     Frame,
     FrameSource,
@@ -125,6 +126,33 @@ def test_video_source_names_bad_input(tmp_path, video):
         next(iter(VideoSource(video, size=(320, 240))))
     with pytest.raises(DatasetError, match="no such folder or video file"):
         open_source(tmp_path / "nothing")
+
+
+def test_camera_source_streams_with_host_time_and_ends_with_a_named_error(video):
+    # OpenCV opens a stream given by name like a device; the video plays the camera here
+    cam = CameraSource(str(video), size=(656, 492), max_failed_reads=3)
+    frames = []
+    with pytest.raises(FrameError, match=r"no frame in 3 reads after frame 23 .*stream ended"):
+        for f in cam:
+            frames.append(f)
+    cam.close()
+    assert [f.index for f in frames] == list(range(N_FRAMES))
+    t = np.array([f.t_s for f in frames])
+    assert t[0] == 0.0 and np.all(np.diff(t) > 0)          # host clock, from the first frame
+    with pytest.raises(FrameError, match="frame 0: frame is 656 x 492"):
+        next(iter(CameraSource(str(video), size=(320, 240))))
+
+
+def test_open_source_takes_cameras_and_names_bad_ones(video):
+    src = open_source(f"camera:{video}")
+    assert isinstance(src, ThreadedSource) and isinstance(src.source, CameraSource)
+    with src, pytest.raises(FrameError, match="stream ended"):
+        for _ in src:
+            pass
+    with pytest.raises(FrameError, match="camera 97: cannot be opened"):
+        open_source("camera:97")
+    with pytest.raises(FrameError, match="give the camera as camera:N"):
+        open_source("camera:")
 
 
 class _Burst(BaseSource):

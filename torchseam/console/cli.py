@@ -12,8 +12,8 @@ import torch
 from torchseam.console.config import DEFAULT_HOST
 from torchseam.core.errors import TorchseamError
 
-#: Named frame sources; any other ``--source`` is a recorded folder or video file path.
-#: (A camera needs a driver: a :class:`~torchseam.live.sources.FrameSource` of its own.)
+#: Named frame sources; any other ``--source`` is a recorded folder, a video file, or a
+#: camera (``camera:N``, a stream URL; see :func:`~torchseam.live.sources.open_source`).
 SOURCES = ("sim",)
 
 
@@ -24,19 +24,20 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "and torch pose, error and quaternion plots, the EGM link state, the weld "
                     "parameters, start / hold / resume / stop and the message log. It drives "
                     "the same live loop as `torchseam demo` (the simulated cell, closed loop) "
-                    "or, with --source DIR|VIDEO, as `torchseam replay` (recorded frames, open "
-                    "loop). Binds to loopback unless --host says otherwise.")
+                    "or, with --source DIR|VIDEO|camera:N, as `torchseam replay` (recorded or "
+                    "live frames, open loop). Binds to loopback unless --host says otherwise.")
     p.add_argument("--host", default=DEFAULT_HOST,
                    help=f"address to bind (default {DEFAULT_HOST}: this machine only)")
     p.add_argument("--port", type=int, default=None,
                    help="port (default configs/console.yaml server.port; 0: any free port)")
     p.add_argument("--config", type=Path, help="console config (default configs/console.yaml)")
-    p.add_argument("--source", default="sim", metavar="sim|DIR|VIDEO",
+    p.add_argument("--source", default="sim", metavar="sim|DIR|VIDEO|camera:N|URL",
                    help="what feeds the loop: sim (default: the simulated cell, closed loop), "
-                        "or a recorded frame folder (dataset format, 00000.png ...) or video "
-                        "file, replayed open loop through the live loop as `torchseam replay` "
-                        "does: nothing moves, no controller; the page's tracker, step, "
-                        "look-ahead and speed apply, its noise, seed, faults, segments and "
+                        "or a recorded frame folder (dataset format, 00000.png ...), video "
+                        "file or live camera (camera:N, a stream URL), run open loop through "
+                        "the live loop as `torchseam replay` does: nothing moves, no "
+                        "controller; the page's tracker, step, look-ahead and speed apply, "
+                        "its noise, seed, faults, segments and "
                         "length do not (a folder named sim: ./sim)")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
     p.add_argument("--noise", default="heavy", help="initial arc-noise level on the page")

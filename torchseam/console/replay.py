@@ -24,7 +24,7 @@ from torchseam.console.sim import make_console
 from torchseam.core.config import CellConfig, NoiseConfig, load_cell, load_noise
 from torchseam.live.demo import DemoControl, DemoEvent
 from torchseam.live.loop import ReplayResult, run_replay
-from torchseam.live.sources import FolderSource, open_source
+from torchseam.live.sources import CameraSource, FolderSource, open_source
 from torchseam.track.peers import make_tracker
 
 #: Shown on the page next to the source: the form fields a replay ignores.
@@ -91,7 +91,8 @@ def replay_weld(cell: CellConfig, path: str | os.PathLike[str]
 def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig | None = None,
                    cell: CellConfig | None = None, noise: NoiseConfig | None = None,
                    defaults: dict[str, Any] | None = None) -> ConsoleServer:
-    """A :class:`ConsoleServer` replaying the recorded folder or video file at ``path``.
+    """A :class:`ConsoleServer` running the recorded folder, video file or live camera at
+    ``path`` (see :func:`~torchseam.live.sources.open_source`) open loop.
 
     Raises:
         DatasetError / FrameError: nothing readable at ``path`` (named), found here, before
@@ -101,10 +102,13 @@ def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig | None = Non
     cell, noise = cell or load_cell(), noise or load_noise()
     src = open_source(path, (cell.camera.width, cell.camera.height))
     try:
-        kind = "recorded folder" if isinstance(src, FolderSource) else "video file"
-        fps = getattr(src, "fps", None)
+        inner = getattr(src, "source", src)  # a camera comes wrapped in a ThreadedSource
+        kind, name = {FolderSource: ("recorded folder", str(Path(path))),
+                      CameraSource: ("live camera", str(path))}.get(
+            type(inner), ("video file", str(Path(path))))
+        fps = getattr(inner, "fps", None)
     finally:
         src.close()
     period = 1.0 / fps if fps and fps > 0 else 1.0 / cell.process.frame_rate_hz
     return make_console(cfg, cell, noise, replay_weld(cell, path), period,
-                        f"{kind} {Path(path)} ({IGNORED})", defaults)
+                        f"{kind} {name} ({IGNORED})", defaults)

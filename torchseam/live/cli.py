@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "pixel error. Nothing is sent to a robot. Torch poses come from the "
                     "folder's meta.json when it has them; otherwise --pose (default: the "
                     "flange at the base origin, so 3D points are in the flange frame).")
-    r.add_argument("source", type=Path, help="frame folder (00000.png ...) or video file")
+    r.add_argument("source", help="frame folder (00000.png ...), video file, or a live "
+                                  "camera: camera:N (device index) or a stream URL")
     r.add_argument("--tracker", choices=TRACKERS, default="anchored",
                    help="feature-point tracker (default anchored)")
     r.add_argument("--init", default=None, metavar="U,V",

@@ -9,6 +9,8 @@ A source is anything that iterates :class:`Frame` objects and can be closed
   Time stamps and torch poses come from ``meta.json`` when it has them.
 * :class:`VideoSource`: a video file through ``cv2.VideoCapture`` (time stamps from the
   container, or the frame rate).
+* :class:`CameraSource`: a live camera OpenCV can open (device index, stream URL); time
+  stamps from the host clock. :func:`open_source` takes ``camera:N`` or a URL.
 * :class:`SimulatedSource`: the simulator (:func:`torchseam.sim.sequence.simulate`), with the
   true feature pixel and torch pose on every frame.
 * :class:`ThreadedSource`: reads another source on a thread into a bounded queue and drops the
@@ -25,6 +27,7 @@ import math
 import os
 import queue
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -242,6 +245,74 @@ class VideoSource(BaseSource):
             self._cap = None
 
 
+class CameraSource(BaseSource):
+    """Live frames of a camera OpenCV can open: a device index (a UVC / V4L2 camera: ``0``)
+    or a stream URL (``rtsp://...``, ``http://...``). A GigE Vision camera with a vendor SDK
+    needs its own driver (a :class:`BaseSource` subclass, see its example).
+
+    Args:
+        device: device index or URL.
+        size: (width, height): asked of the camera, and every frame must have it (a camera
+            that ignores the request gives a named :class:`FrameError` on its first frame,
+            rather than a calibration silently applied to the wrong image size).
+        fps: frame rate to ask of the camera (None: its default).
+        max_failed_reads: consecutive failed reads after which the camera counts as gone
+            (unplugged, stream ended): the source ends with an error naming it. Single
+            failed reads are skipped: the live loop sees a late frame and holds if too late.
+
+    Time stamps: the host's monotonic clock at each read, from the first frame (a live
+    camera has no file time); ``Frame.index`` counts the frames delivered.
+
+    Raises:
+        FrameError: the camera cannot be opened (named), a frame has the wrong format, or
+            the camera stops delivering.
+    """
+
+    def __init__(self, device: int | str, size: tuple[int, int] | None = None,
+                 fps: float | None = None, max_failed_reads: int = 25) -> None:
+        self.device = device
+        self.name = f"camera {device!r}"
+        self.size = size
+        self.max_failed_reads = int(max_failed_reads)
+        self._cap: Any = cv2.VideoCapture(device)
+        if not self._cap.isOpened():
+            self._cap.release()
+            raise FrameError(f"{self.name}: cannot be opened (no such device, in use by "
+                             "another program, or no OpenCV backend for it)")
+        if size is not None:
+            self._cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
+            self._cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
+        if fps:
+            self._cap.set(cv2.CAP_PROP_FPS, float(fps))
+        cam_fps = float(self._cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        self.fps = float(fps) if fps else (cam_fps if 0 < cam_fps < 1e4 else 25.0)
+
+    def __iter__(self) -> Iterator[Frame]:
+        cap = self._cap
+        if cap is None:
+            raise FrameError(f"{self.name}: the camera source is closed")
+        k, failed, t0 = 0, 0, None
+        while True:
+            ok, img = cap.read()
+            t = time.monotonic()
+            if not ok:
+                failed += 1
+                if failed >= self.max_failed_reads:
+                    raise FrameError(f"{self.name}: no frame in {failed} reads after frame "
+                                     f"{k - 1} (unplugged, or the stream ended)")
+                continue
+            failed = 0
+            t0 = t if t0 is None else t0
+            img = check_frame(img, self.size, f"{self.name}: frame {k}")
+            yield Frame(img, t - t0, k)
+            k += 1
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
 class SimulatedSource(BaseSource):
     """The simulator as a frame source (open loop: the torch follows the nominal path).
 
@@ -340,19 +411,31 @@ class ThreadedSource(BaseSource):
 
 
 def open_source(path: str | os.PathLike[str], size: tuple[int, int] | None = None,
-                fps: float | None = None) -> FolderSource | VideoSource:
-    """A folder -> :class:`FolderSource`, a file -> :class:`VideoSource`.
+                fps: float | None = None) -> FolderSource | VideoSource | ThreadedSource:
+    """A folder -> :class:`FolderSource`, a file -> :class:`VideoSource`, ``camera:N`` or a
+    stream URL (``rtsp://...``) -> :class:`CameraSource` read by a :class:`ThreadedSource`
+    (a live camera does not wait for the loop: the newest frame is the one to track).
 
     Raises:
         DatasetError / FrameError: nothing at ``path``, or it cannot be read (named).
     """
+    text = os.fspath(path)
+    if text.startswith("camera:"):
+        dev = text[len("camera:"):]
+        if not dev:
+            raise FrameError(f"{text!r}: give the camera as camera:N (a device index) or a "
+                             "stream URL")
+        return ThreadedSource(CameraSource(int(dev) if dev.isdigit() else dev, size, fps))
+    if "://" in text:
+        return ThreadedSource(CameraSource(text, size, fps))
     p = Path(path)
     if p.is_dir():
         return FolderSource(p, size, fps or 25.0)
     if p.is_file():
         return VideoSource(p, size, fps)
-    raise DatasetError(f"{p}: no such folder or video file")
+    raise DatasetError(f"{p}: no such folder or video file (a camera: camera:N or a stream "
+                       "URL)")
 
 
-__all__ = ["BaseSource", "Frame", "FolderSource", "FrameSource", "SimulatedSource",
+__all__ = ["BaseSource", "CameraSource", "Frame", "FolderSource", "FrameSource", "SimulatedSource",
            "ThreadedSource", "VideoSource", "open_source"]
