@@ -110,5 +110,7 @@ def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig | None = Non
     finally:
         src.close()
     period = 1.0 / fps if fps and fps > 0 else 1.0 / cell.process.frame_rate_hz
+    if kind == "live camera":
+        period = 0.0  # a camera paces itself; pacing on top would only drop frames
     return make_console(cfg, cell, noise, replay_weld(cell, path), period,
                         f"{kind} {name} ({IGNORED})", defaults)
