@@ -492,6 +492,10 @@ def test_replay_of_a_recording_runs_through_the_session(cfg, recorded):
     assert link == {"connected": False, "note": NO_CONTROLLER,
                     "sink_accepted": link["sink_accepted"], "sink_refused": 0}
     assert link["sink_accepted"] >= 1
+    # the log speaks of what a replay has: no segments, no torch-vs-seam error
+    log = [m[3] for m in con.session.messages]
+    assert any("started (open loop): tracker" in m for m in log)
+    assert any("finished:" in m and "pixel RMSE" in m and "torch vs seam" not in m for m in log)
 
 
 def test_replay_hold_and_stop(cfg, recorded):

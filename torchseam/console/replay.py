@@ -113,4 +113,4 @@ def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig | None = Non
     if kind == "live camera":
         period = 0.0  # a camera paces itself; pacing on top would only drop frames
     return make_console(cfg, cell, noise, replay_weld(cell, path), period,
-                        f"{kind} {name} ({IGNORED})", defaults)
+                        f"{kind} {name} ({IGNORED})", defaults, open_loop=True)

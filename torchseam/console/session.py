@@ -105,10 +105,14 @@ class WeldSession:
         cfg: console settings (ring-buffer sizes, pacing).
         weld: runs one weld (see :data:`WeldFn`); the CLI passes the simulated cell.
         frame_period_s: the camera's frame period (pacing; ``cfg.pace`` scales it).
+        open_loop: the weld replays frames (a recording, a camera): nothing moves, and the
+            simulator's segments, length and faults do not apply (the log says what does).
     """
 
-    def __init__(self, cfg: ConsoleConfig, weld: WeldFn, frame_period_s: float) -> None:
+    def __init__(self, cfg: ConsoleConfig, weld: WeldFn, frame_period_s: float,
+                 open_loop: bool = False) -> None:
         self.cfg = cfg
+        self.open_loop = open_loop
         self._weld = weld
         self._period = frame_period_s / cfg.pace if cfg.pace > 0 else 0.0
         self.lock = threading.Lock()
@@ -155,11 +159,14 @@ class WeldSession:
             self.control = PacedControl(self._period)
             self._thread = threading.Thread(target=self._run, args=(params, self.control),
                                             name="torchseam-weld", daemon=True)
-        self.log(f"weld {self.weld_id} started: segments {params.segments}, step "
-                 f"{params.step_mm:g} mm, look-ahead {params.look_ahead_mm:g} mm, speed "
-                 f"{params.weld_speed_mm_s:g} mm/s"
-                 + (f", {params.length_mm:g} mm per segment" if params.length_mm else "")
-                 + (f", faults {', '.join(params.faults)}" if params.faults else ""))
+        plan = (f"step {params.step_mm:g} mm, look-ahead {params.look_ahead_mm:g} mm, speed "
+                f"{params.weld_speed_mm_s:g} mm/s")
+        if self.open_loop:
+            self.log(f"weld {self.weld_id} started (open loop): tracker {params.tracker}, {plan}")
+        else:
+            self.log(f"weld {self.weld_id} started: segments {params.segments}, {plan}"
+                     + (f", {params.length_mm:g} mm per segment" if params.length_mm else "")
+                     + (f", faults {', '.join(params.faults)}" if params.faults else ""))
         self._thread.start()
 
     def hold(self) -> None:
@@ -206,10 +213,12 @@ class WeldSession:
         with self.lock:
             self.summary = s
             self.state = RunState.STOPPED if s.get("stopped") else RunState.FINISHED
+        accuracy = (f"pixel RMSE {s.get('pixel_rmse_px')} px, located RMSE "
+                    f"{s.get('located_rmse_mm')} mm" if s.get("open_loop") else
+                    f"torch vs seam RMSE {s.get('seam_rmse_mm')} mm")
         self.log(f"weld {'stopped' if s.get('stopped') else 'finished'}: {s.get('frames')} "
-                 f"frames, torch vs seam RMSE {s.get('seam_rmse_mm')} mm, poses sent "
-                 f"{s.get('poses_sent')}, refused {s.get('poses_refused')}, frame->command "
-                 f"p99 {s.get('latency_p99_ms')} ms")
+                 f"frames, {accuracy}, poses sent {s.get('poses_sent')}, refused "
+                 f"{s.get('poses_refused')}, frame->command p99 {s.get('latency_p99_ms')} ms")
 
     # ------------------------------------------------------------------ the observer
     def observe(self, ev: DemoEvent) -> None:

@@ -56,14 +56,15 @@ def simulated_console(cfg: ConsoleConfig | None = None, cell: CellConfig | None 
 
 def make_console(cfg: ConsoleConfig, cell: CellConfig, noise: NoiseConfig, weld: WeldFn,
                  frame_period_s: float, source: str,
-                 defaults: dict[str, Any] | None = None) -> ConsoleServer:
+                 defaults: dict[str, Any] | None = None,
+                 open_loop: bool = False) -> ConsoleServer:
     """A :class:`ConsoleServer` running ``weld`` with the demo's parameter form (initial
     values from ``cell``'s process settings, overridden by ``defaults``); ``source`` is what
-    the page shows as the frame source."""
+    the page shows as the frame source, ``open_loop`` says it replays frames."""
     proc = cell.process
     form = {"step_mm": proc.step_mm, "look_ahead_mm": proc.look_ahead_mm,
             "weld_speed_mm_s": proc.weld_speed_mm_s, **DEMO_DEFAULTS, **(defaults or {})}
-    session = WeldSession(cfg, weld, frame_period_s)
+    session = WeldSession(cfg, weld, frame_period_s, open_loop)
 
     def validate(raw: dict[str, Any]) -> WeldParams:
         return parse_params(raw, cfg.limits, noise, FAULTS, TRACKERS)
