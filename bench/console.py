@@ -8,9 +8,11 @@ order: ``off`` calls :func:`run_demo` directly (no observer, no server); ``on`` 
 the console (observer, ring buffers, publisher, JPEG encoding) with ``--clients`` headless
 WebSocket clients (in a child process, as a browser is) reading the whole stream, plus, with
 ``--browser``, the page itself open in headless Chromium (Debian's ``/usr/bin/chromium``,
-through Playwright). Columns: the loop's
+through Playwright), and a third run per repeat, ``off +blank``: no console, Chromium open on an
+empty page (is it the browser being there, or what our page does?). Columns: the loop's
 frame -> command latency p50 / p99 (``DemoResult.summary``), wall time and wall ms per frame
-(render + loop + simulated controller + observer), the JPEG frames and updates the clients got.
+(render + loop + simulated controller + observer), the JPEG frames and updates the clients got,
+and the CPU seconds Chromium's processes used during the weld (``/proc``; Linux).
 The last table holds the medians over the repeats and the ratio on / off; the target is within
 10 %. One short weld first warms up (not counted). The machine's load average is printed: on a
 shared 2-core machine single runs are noisy.
@@ -95,11 +97,40 @@ class Reader:
         self._proc.join(timeout=10)
 
 
-def run_off(cell, part, noise, level, args) -> dict:
+def chromium_cpu_s() -> float:
+    """CPU seconds (user + system) of the running Chromium processes, from ``/proc``."""
+    total, tick = 0.0, os.sysconf("SC_CLK_TCK")
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        try:
+            with open(f"/proc/{pid}/comm") as f:
+                if not f.read().startswith("chrom"):
+                    continue
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+        except (OSError, IndexError, ValueError):
+            continue  # the process ended meanwhile
+    return total
+
+
+def run_off(cell, part, noise, level, args, browser=None) -> dict:
+    page = None
+    if browser is not None:  # Chromium there, on an empty page: its cost without our page
+        page = browser.new_page(viewport={"width": 1440, "height": 1000})
+        page.goto("about:blank")
+        time.sleep(1.0)
+    cpu0 = chromium_cpu_s()
     t0 = time.perf_counter()
     res = run_demo(cell, part, noise, level, args.seed, segments=args.segments,
                    length_mm=args.length_mm)
-    return _row("off", 0, res.summary, time.perf_counter() - t0, 0, 0, float("nan"))
+    wall = time.perf_counter() - t0
+    cpu = chromium_cpu_s() - cpu0
+    if page is not None:
+        page.close()
+    return _row("off" if page is None else "off +blank", 0, res.summary, wall, 0, 0,
+                float("nan"), cpu)
 
 
 def run_on(cell, part, noise, args, browser) -> dict:
@@ -113,6 +144,7 @@ def run_on(cell, part, noise, args, browser) -> dict:
         page = browser.new_page(viewport={"width": 1440, "height": 1000})
         page.goto(url + "/")
     time.sleep(1.0)  # let the page load and settle
+    cpu0 = chromium_cpu_s()
     params = {**con.defaults, "segments": args.segments, "length_mm": args.length_mm,
               "noise": args.noise, "seed": args.seed}
     req = urllib.request.Request(url + "/api/start", json.dumps(params).encode(),
@@ -125,6 +157,7 @@ def run_on(cell, part, noise, args, browser) -> dict:
         else:
             time.sleep(0.05)
     wall = time.perf_counter() - t0
+    cpu = chromium_cpu_s() - cpu0
     if reader is not None:
         reader.close()
     if page is not None:
@@ -134,18 +167,18 @@ def run_on(cell, part, noise, args, browser) -> dict:
     obs_us = 1e6 * con.session.observer_s / max(frames, 1)
     mode = "on" + (" +chromium" if browser is not None else "")
     return _row(mode, args.clients, con.session.summary, wall,
-                reader.jpeg if reader else 0, reader.updates if reader else 0, obs_us)
+                reader.jpeg if reader else 0, reader.updates if reader else 0, obs_us, cpu)
 
 
-def _row(mode, clients, s, wall, jpeg, updates, obs_us) -> dict:
+def _row(mode, clients, s, wall, jpeg, updates, obs_us, browser_cpu) -> dict:
     return {"mode": mode, "clients": clients, "frames": s["frames"],
             "p50": s["latency_p50_ms"], "p99": s["latency_p99_ms"], "wall": wall,
             "ms_frame": 1e3 * wall / max(s["frames"], 1), "jpeg": jpeg, "updates": updates,
-            "observer_us": obs_us, "load": os.getloadavg()[0]}
+            "observer_us": obs_us, "browser_cpu_s": browser_cpu, "load": os.getloadavg()[0]}
 
 
 COLS = ("mode", "clients", "frames", "p50", "p99", "wall", "ms_frame", "jpeg", "updates",
-        "observer_us", "load")
+        "observer_us", "browser_cpu_s", "load")
 
 
 def main() -> None:
@@ -178,9 +211,10 @@ def main() -> None:
     rows = []
     try:
         for k in range(args.repeats):
-            order = ("off", "on") if k % 2 == 0 else ("on", "off")
-            for mode in order:
+            order = ["off", "on"] + (["blank"] if browser is not None else [])
+            for mode in order if k % 2 == 0 else order[::-1]:
                 r = (run_off(cell, part, noise, level, args) if mode == "off"
+                     else run_off(cell, part, noise, level, args, browser) if mode == "blank"
                      else run_on(cell, part, noise, args, browser))
                 rows.append(r)
                 print(format_table(COLS, [[r[c] for c in COLS]]).splitlines()[-1], flush=True)
@@ -190,15 +224,21 @@ def main() -> None:
             pw.stop()
     print("\nall runs (latency ms, wall s, ms per frame, observer us per frame, load average)")
     print(format_table(COLS, [[r[c] for c in COLS] for r in rows]))
-    off = [r for r in rows if r["mode"] == "off"]
-    on = [r for r in rows if r["mode"] != "off"]
+    groups = {"off": [r for r in rows if r["mode"] == "off"],
+              "on": [r for r in rows if r["mode"].startswith("on")],
+              "blank": [r for r in rows if r["mode"] == "off +blank"]}
+    groups = {m: rs for m, rs in groups.items() if rs}
     med = {m: {c: float(np.median([r[c] for r in rs])) for c in ("p50", "p99", "ms_frame")}
-           for m, rs in (("off", off), ("on", on))}
-    print("\nmedians over the repeats, and on / off")
+           for m, rs in groups.items()}
+    blank = "blank" in med
+    print("\nmedians over the repeats, and on / off"
+          + (" (blank: no console, Chromium on an empty page)" if blank else ""))
     print(format_table(
-        ["figure", "console off", "console on", "on / off"],
+        ["figure", "console off", "console on", "on / off"]
+        + (["blank Chromium", "blank / off"] if blank else []),
         [[f"frame->command {c}" if c != "ms_frame" else "wall ms per frame",
           med["off"][c], med["on"][c], med["on"][c] / med["off"][c]]
+         + ([med["blank"][c], med["blank"][c] / med["off"][c]] if blank else [])
          for c in ("p50", "p99", "ms_frame")]))
 
 
