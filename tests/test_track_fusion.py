@@ -255,32 +255,102 @@ class _StubInner:
         self.reanchored.append(np.asarray(uv, float))
 
 
-def _anchored_with_tipm(offset, rms):
-    from torchseam.track.peers import AnchoredTracker
+def _corner(uv, rms, slopes=(-0.3, 0.3)):
+    """A TipmResult of straight arms with ``slopes`` meeting at ``uv`` (ROI px)."""
     from torchseam.vision.tipm import TipmResult
+
+    arms = tuple(np.array([uv[1], s, 0.0]) for s in slopes)
+    return TipmResult(True, np.asarray(uv, float), arms=arms, u0=float(uv[0]), rms_px=rms)
+
+
+def _anchored_with_tipm(offsets, rms):
+    """AnchoredTracker on a stub EAKF-STC fixed at (200, 150) and a stub TIPM returning the
+    corner at ``offsets[k]`` from the true point (200, 150) on call k."""
+    from torchseam.track.peers import AnchoredTracker
 
     trk = AnchoredTracker()
     trk.inner = _StubInner((200.0, 150.0))
-    w = trk.cfg.window_px  # the ROI starts window_px up-left of the track
-    trk.tipm = lambda roi: TipmResult(True, np.array([w, w], float) + offset, rms_px=rms)
+    trk.x = None
+    calls = iter(offsets)
+
+    class StubTipm:
+        """TIPM's stages as the tracker calls them on its window."""
+
+        def stripe_mask(self, roi):
+            z = np.zeros(roi.shape[:2], np.uint8)
+            return z, z, ""
+
+        def centre(self, red, mask):
+            return None
+
+        def corner(self, pts, mask=None, prior=None):
+            trk.priors.append(prior)
+            # the ROI starts window_px up-left of the filtered point
+            return _corner(np.array([200.0, 150.0]) + next(calls) - trk.roi_origin(), rms)
+
+    trk.priors = []
+    trk.roi_origin = lambda: np.floor(trk.x) - trk.cfg.window_px
+    trk.tipm = StubTipm()
     return trk
 
 
-@pytest.mark.parametrize("offset,rms,takes", [
-    ((4.0, 0.0), 0.15, True),    # beside the track, tight fit: the corner wins, re-anchor
-    ((4.0, 0.0), 0.5, False),    # beside the track, loose fit: the track stands
-    ((1.0, 1.0), 0.5, True),     # agrees with the track: loose fit is fine, no re-anchor needed
-    ((20.0, 0.0), 0.1, False),   # beyond the gate: some other corner
-])
-def test_anchored_takes_only_trustworthy_corners(offset, rms, takes):
-    trk = _anchored_with_tipm(np.array(offset), rms)
+def test_anchored_fix_pulls_the_point_and_reanchors_eakf_stc():
+    trk = _anchored_with_tipm([np.array([3.0, 0.0])] * 6, rms=0.15)
     frame = np.zeros((480, 640, 3), np.uint8)
-    uv, status = trk.update(frame)
-    anchor = np.array([200.0, 150.0]) + offset
-    assert status == TrackStatus.TRACKED
-    np.testing.assert_allclose(uv, anchor if takes else (200.0, 150.0))
-    gap = np.hypot(*offset)
-    assert len(trk.inner.reanchored) == int(takes and gap > trk.cfg.reanchor_px)
+    out = [trk.update(frame)[0] for _ in range(6)]
+    # a tight fix 3 px beside EAKF-STC wins (EAKF-STC is a weak measurement) and EAKF-STC is
+    # moved onto the filtered point
+    assert abs(out[-1][0] - 203.0) < 0.3 and abs(out[-1][1] - 150.0) < 0.1
+    assert len(trk.inner.reanchored) >= 1
+    # once a fix was taken, TIPM fits the arms with that fix's shape as a prior
+    assert trk.priors[0] is None and trk.priors[-1] is not None
+    np.testing.assert_allclose(trk.priors[-1][:, :2], [[-0.3, 0.0], [0.3, 0.0]])
+
+
+def test_anchored_refuses_a_lone_far_fix_but_two_clean_agreeing_ones_restart_it():
+    frame = np.zeros((480, 640, 3), np.uint8)
+    on, far = np.zeros(2), np.array([6.0, 0.0])
+    trk = _anchored_with_tipm([on] * 5 + [far, on], rms=0.15)
+    out = [trk.update(frame)[0] for _ in range(7)]
+    assert abs(out[5][0] - 200.0) < 0.5          # one frame's jump of 6 px: refused
+    trk = _anchored_with_tipm([on] * 5 + [far, far], rms=0.15)
+    out = [trk.update(frame)[0] for _ in range(7)]
+    assert abs(out[5][0] - 200.0) < 0.5
+    assert abs(out[6][0] - 206.0) < 0.3          # confirmed by a second clean fix
+    trk = _anchored_with_tipm([on] * 5 + [far, far], rms=0.5)
+    out = [trk.update(frame)[0] for _ in range(7)]
+    assert abs(out[6][0] - 200.0) < 1.5          # loose fits never outvote the filter
+
+
+def test_corner_covariance_is_weak_along_a_shallow_stripe():
+    from torchseam.track.peers import corner_cov
+
+    C = corner_cov(_corner((100.0, 100.0), 0.2, slopes=(-0.3, 0.3)), 0.5, 0.1)
+    assert C[0, 0] > 10 * C[1, 1]                 # 147 deg corner: weak along u
+    C2 = corner_cov(_corner((100.0, 100.0), 0.2, slopes=(-1.0, 1.0)), 0.5, 0.1)
+    assert C2[0, 0] < C[0, 0] / 5                 # a sharper corner pins u down
+
+
+def test_tipm_arm_prior_keeps_the_corner_where_an_arm_has_a_gap():
+    """A left arm with a gap next to the corner and a short bent stretch beyond it: the free
+    quadratic slides the corner along the stripe, the prior of the previous shape does not."""
+    from torchseam.vision.tipm import Tipm
+
+    u = np.arange(0.0, 241.0)
+    v = 100.0 + 0.3 * np.abs(u - 120.0)            # a 147 deg corner at (120, 100)
+    rng = np.random.default_rng(0)
+    v = v + rng.normal(0, 0.15, len(u))
+    left = (u >= 60) & (u < 85)                    # left arm only 35-60 px from the corner
+    v[left] -= 0.002 * (u[left] - 60) ** 2        # bent by spatter touching the stripe
+    keep = left | (u > 120)
+    pts = np.stack([u[keep], v[keep]], axis=1)
+    tipm = Tipm()
+    free = tipm.corner(pts)
+    prior = np.array([[-0.3, 0.0, 1e4, 1e9], [0.3, 0.0, 1e4, 1e9]])
+    held = tipm.corner(pts, prior=prior)
+    assert free.ok and held.ok
+    assert np.linalg.norm(free.uv - (120, 100)) > 1.0
+    assert np.linalg.norm(held.uv - (120, 100)) < 0.5 * np.linalg.norm(free.uv - (120, 100))
 
 
 def test_anchor_config_names_a_bad_field(tmp_path):

@@ -15,6 +15,12 @@ fitted with a quadratic ``v = a + b u + c u^2`` over a window next to the corner
 few columns at the corner where the two arms blur together), and the feature point is where the
 two quadratics meet. A frame without a usable stripe gives ``ok=False`` and a reason, never a
 garbage point.
+
+Arm prior (optional, for a tracker that has seen the previous frames): each arm's slope at the
+corner and its curvature change little from frame to frame, while an arm with a gap next to the
+corner or spatter on it lets a free quadratic bend and slide the corner several px along the
+stripe. ``prior`` (see :func:`arm_shape`) adds ridge terms pulling slope and curvature toward the
+previous frame's (a MAP fit); without it the fit is the plain least squares.
 """
 
 from __future__ import annotations
@@ -211,17 +217,23 @@ class Tipm:
         return np.stack([cols + x0, s1[cols] / s0[cols]], axis=1).astype(float)
 
     # ------------------------------------------------------------------ main
-    def __call__(self, frame: np.ndarray) -> TipmResult:
-        """Find the feature point in one BGR (H, W, 3) uint8 frame."""
+    def __call__(self, frame: np.ndarray, prior: np.ndarray | None = None) -> TipmResult:
+        """Find the feature point in one BGR (H, W, 3) uint8 frame (``prior``: see
+        :meth:`corner`)."""
         check_frame(frame)
         red, mask, why = self.stripe_mask(frame)
         if why:
             return _fail(why, mask)
         pts = self.centre(red, mask)
-        return self.corner(pts, mask)
+        return self.corner(pts, mask, prior)
 
-    def corner(self, pts: np.ndarray, mask: np.ndarray | None = None) -> TipmResult:
-        """Feature point from centre-line points (N, 2), sorted by u."""
+    def corner(self, pts: np.ndarray, mask: np.ndarray | None = None,
+               prior: np.ndarray | None = None) -> TipmResult:
+        """Feature point from centre-line points (N, 2), sorted by u.
+
+        ``prior``: (2, 4) rows (slope at the corner, curvature, weight of the slope, weight of
+        the curvature) for the left and right arm; a weight is the squared point noise over the
+        prior's variance (px^2 per slope^2, resp. per curvature^2). None: plain fit."""
         cfg = self.cfg
         if len(pts) < 2 * cfg.min_points_per_arm:
             return _fail(f"no stripe found ({len(pts)} centre-line points)", mask, pts)
@@ -232,7 +244,7 @@ class Tipm:
         # next to it, move to where they meet, and refit there until the corner stays put.
         u0 = split
         for it in range(3):
-            fit = self._fit_arms(pts, u0)
+            fit = self._fit_arms(pts, u0, prior)
             if isinstance(fit, str):
                 return _fail(fit, mask, pts)
             arms, rms, x = fit  # arms are centred on u0; they meet at u0 + x
@@ -253,11 +265,12 @@ class Tipm:
         return TipmResult(True, np.array([u0 + x, v]), "", pts, (arms[0], arms[1]), u0, corner,
                           rms, mask)
 
-    def _fit_arms(self, pts: np.ndarray, u0: float
+    def _fit_arms(self, pts: np.ndarray, u0: float, prior: np.ndarray | None = None
                   ) -> tuple[list[np.ndarray], float, float] | str:
         """Quadratic fit of each arm beside column ``u0``; returns (arms, rms, x of the meeting
         point relative to ``u0``) or the reason it fails. ``pts`` is sorted by u, so each arm's
-        window is a slice (this runs up to three times per frame: keep it lean)."""
+        window is a slice (this runs up to three times per frame: keep it lean). ``prior``: see
+        :meth:`corner` (the slope is taken at ``u0``, which converges onto the corner)."""
         cfg = self.cfg
         u = pts[:, 0]
         windows = ((u0 - cfg.fit_window_px, u0 - cfg.corner_gap_px),
@@ -268,13 +281,14 @@ class Tipm:
             if i1 - i0 < cfg.min_points_per_arm:
                 return f"no corner: the {name} arm has only {int(i1 - i0)} points"
             x, y = u[i0:i1] - u0, pts[i0:i1, 1]
-            coef, res = _quadfit(x, y)
+            arm_prior = None if prior is None else prior[len(arms)]
+            coef, res = _quadfit(x, y, arm_prior)
             # one robust pass: drop points far off the fit (spatter touching the stripe); the
             # residuals of a fit with an intercept have zero mean, so their std is their RMS
             good = np.abs(res) < max(3 * np.sqrt(res @ res / len(res)), 0.5)
             n_good = np.count_nonzero(good)
             if cfg.min_points_per_arm <= n_good < len(x):
-                coef, res = _quadfit(x[good], y[good])
+                coef, res = _quadfit(x[good], y[good], arm_prior)
             arms.append(coef)
             rms_all.append(float(np.sqrt(res @ res / len(res))))
         c0, c1, c2 = arms[0] - arms[1]
@@ -294,14 +308,31 @@ class Tipm:
         return arms, max(rms_all), x
 
 
-def _quadfit(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _quadfit(x: np.ndarray, y: np.ndarray, prior: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares (a, b, c) of y = a + b x + c x^2 (x is centred on the corner already) and
-    the residuals, from the 3x3 normal equations: far cheaper than a general lstsq per arm."""
+    the residuals, from the 3x3 normal equations: far cheaper than a general lstsq per arm.
+    ``prior`` (b0, c0, w_b, w_c) adds w_b (b - b0)^2 + w_c (c - c0)^2 to the squared error."""
     V = np.empty((len(x), 3))
     V[:, 0], V[:, 1] = 1.0, x
     np.multiply(x, x, out=V[:, 2])
-    coef = np.linalg.solve(V.T @ V, V.T @ y)
+    A, r = V.T @ V, V.T @ y
+    if prior is not None:
+        b0, c0, wb, wc = prior
+        A[1, 1] += wb
+        A[2, 2] += wc
+        r[1] += wb * b0
+        r[2] += wc * c0
+    coef = np.linalg.solve(A, r)
     return coef, y - V @ coef
+
+
+def arm_shape(res: TipmResult) -> np.ndarray:
+    """(2, 2) slope at the corner and curvature of the left and right arm of a found corner
+    (what :meth:`Tipm.corner` takes as a prior)."""
+    assert res.arms is not None
+    x = res.uv[0] - res.u0
+    return np.array([[a[1] + 2 * a[2] * x, a[2]] for a in res.arms])
 
 
 def _best_split(u: np.ndarray, v: np.ndarray, min_pts: int) -> float | None:
