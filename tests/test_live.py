@@ -143,3 +143,32 @@ def test_sim_controller_lockstep_cycle(cell):
         assert st.cycles == 42 and st.sent == 41 and st.replies == 40
     finally:
         ctrl.stop()
+
+
+def test_locator_takes_the_trackers_stripe_window_when_it_covers_ecals(cell, part, noise):
+    from torchseam.live.locate import SeamLocator
+    from torchseam.sim.sequence import SequenceSpec, simulate
+    from torchseam.vision.tipm import Tipm
+
+    frame, truth = next(iter(simulate(cell, part, noise, SequenceSpec(n_frames=1, level=0.0,
+                                                                      seed=3))))
+
+    class Lender:
+        name, stripe = "lender", None
+
+    loc = SeamLocator(cell, Lender())
+    uv = np.asarray(truth.uv, float)
+    own = loc._stripe(frame, uv)                      # nothing lent: made here
+    red, mask, (x0, y0) = Tipm().mask_around(frame, uv + (7, -5), loc._roi + 20)
+    Lender.stripe = (red, mask, (x0, y0))             # a wider window around a nearby point
+    r2, m2, (u0, v0) = loc._stripe(frame, uv)
+    assert (u0, v0) == own[2] and m2.shape == own[1].shape
+    np.testing.assert_array_equal(r2, red[v0 - y0:v0 - y0 + m2.shape[0],
+                                          u0 - x0:u0 - x0 + m2.shape[1]])
+    # the stripe found in either window is the same stripe (thresholds are per window)
+    assert (m2 > 0).sum() > 0.8 * (own[1] > 0).sum() and ((m2 > 0) & (own[1] > 0)).sum() > \
+        0.8 * (own[1] > 0).sum()
+    Lender.stripe = (red[:50, :50], mask[:50, :50], (x0, y0))   # does not cover: not used
+    r3, m3, corner3 = loc._stripe(frame, uv)
+    assert corner3 == own[2] and m3.shape == own[1].shape
+    np.testing.assert_array_equal(m3, own[1])
