@@ -69,11 +69,16 @@ class TorchTracker:
         self.name = name
         self.module = module.eval()
         self._planes: list[np.ndarray] = []  # reused per frame: the modules keep no frame
+        self._last: tuple[np.ndarray, torch.Tensor] | None = None  # (frame, its grey tensor)
 
-    def _grey(self, frame: np.ndarray) -> torch.Tensor:
+    def _grey(self, frame: np.ndarray, reuse: bool = False) -> torch.Tensor:
+        if reuse and self._last is not None and self._last[0] is frame:
+            return self._last[1]  # re-anchoring on the frame just tracked: already converted
         if not self._planes or self._planes[0].shape != frame.shape[:2]:
             self._planes = [np.empty(frame.shape[:2], np.uint8) for _ in range(3)]
-        return grey_tensor(frame, self._planes)
+        grey = grey_tensor(frame, self._planes)
+        self._last = (frame, grey)
+        return grey
 
     @torch.inference_mode()
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
@@ -83,7 +88,7 @@ class TorchTracker:
     @torch.inference_mode()
     def reanchor(self, frame: np.ndarray, uv: np.ndarray) -> None:
         """Move EAKF-STC onto an absolute fix ``uv`` of this (the newest) frame."""
-        self.module.reanchor(self._grey(frame), torch.tensor(np.asarray(uv)[None],
+        self.module.reanchor(self._grey(frame, reuse=True), torch.tensor(np.asarray(uv)[None],
                                                                dtype=torch.float32))
 
     @torch.inference_mode()
