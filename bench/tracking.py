@@ -3,7 +3,7 @@
 Usage: python bench/tracking.py [--sequences 6] [--frames 300] [--levels clean,strike,heavy]
 
 For every level, the same ``--sequences`` sequences (seeds 1000+) go through TIPM per frame,
-plain STC, KCF, CSRT, MOSSE, EAKF-STC and ``anchored`` (EAKF-STC re-anchored by TIPM, the live
+plain STC, KCF, CSRT, MOSSE, EAKF-STC and ``anchored`` (EAKF-STC fused with TIPM, the live
 loop's default), each started on frame 0 (arc off) by TIPM. Errors are
 over the arc frames against the simulator's labels: RMSE and max (px), % frames lost (no point
 or > 15 px off), and the single-stream time per frame (BGR frame in memory -> point) p50/p99 on

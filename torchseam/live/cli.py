@@ -39,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "comma-separate to combine")
     p.add_argument("--segments", default="abcdef", help="which segments (default abcdef)")
     p.add_argument("--tracker", choices=TRACKERS, default="anchored",
-                   help="feature-point tracker (default anchored: EAKF-STC re-anchored by TIPM)")
+                   help="feature-point tracker (default anchored: EAKF-STC fused with TIPM)")
     p.add_argument("--length-mm", type=float, default=None,
                    help="weld only this much of each segment (quick runs)")
     p.set_defaults(func=run)

@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--noise", default="heavy", help="arc-noise level (default heavy)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--tracker", choices=TRACKERS, default="anchored",
-                   help="feature-point tracker (default anchored: EAKF-STC re-anchored by TIPM)")
+                   help="feature-point tracker (default anchored: EAKF-STC fused with TIPM)")
     p.add_argument("--segments", default="abcdef", help="which segments (default abcdef)")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
     p.add_argument("--out", type=Path, default=Path("ring_out"),
