@@ -169,3 +169,25 @@ def test_ecal_arm_direction_from_few_circles_is_not_extrapolated():
     lean = true + np.radians(0.05) * radii[:, None] * np.array([1, -1])
     pts = _tangent_points(uv, radii, lean, 50.0, min_circles)
     np.testing.assert_allclose(np.arctan2(pts[:, 1], pts[:, 0]), true, atol=1e-9)
+
+
+def test_expected_pixel_follows_the_camera(cell, part, noise):
+    """The stripe's crossing with the seam line through points seen before, projected from the
+    camera's pose now, lands on the true feature pixel: closer than last frame's pixel does."""
+    truths = [t for _, t in simulate(cell, part, noise,
+                                     SequenceSpec(n_frames=14, level=0.0, seed=2))]
+    tri = FastTriangulator(cell)
+    F_C = invert(cell.hand_eye.matrix())
+    errs, stays = [], []
+    for k in range(8, 14):
+        uv = tri.expect(truths[k - 8].seam_B, truths[k - 1].seam_B, truths[k].T_B_C @ F_C)
+        errs.append(np.linalg.norm(uv - truths[k].uv))
+        stays.append(np.linalg.norm(truths[k - 1].uv - truths[k].uv))
+    assert max(errs) < 0.5, errs
+    assert np.mean(errs) < 0.5 * np.mean(stays)
+    # a seam line lying in the laser plane has no crossing
+    p = truths[0].seam_B
+    T = truths[0].T_B_C @ F_C
+    n_B = (T @ cell.hand_eye.matrix())[:3, :3] @ np.asarray(cell.laser_plane.normal)
+    along = np.cross(n_B, [0.0, 0.0, 1.0])
+    assert tri.expect(p, p + along, T) is None

@@ -322,6 +322,22 @@ def test_anchored_takes_a_far_clean_fix_at_once_and_refuses_far_loose_ones():
     assert all(abs(o[0] - 200.0) < 1.5 for o in out[5:])
 
 
+def test_anchored_takes_the_robots_motion_as_its_prediction():
+    frame = np.zeros((480, 640, 3), np.uint8)
+    on, moved = np.zeros(2), np.array([6.0, 0.0])
+    # the image jumps 6 px (the torch turned) and TIPM's fit there is loose (arc light)
+    trk = _anchored_with_tipm([on] * 5 + [moved], rms=0.5)
+    out = [trk.update(frame)[0] for _ in range(5)]
+    trk.expect(np.array([205.5, 150.0]))           # the robot's motion says where to look
+    out.append(trk.update(frame)[0])
+    assert abs(out[5][0] - 206.0) < 1.0            # taken: it is where it was expected
+    trk = _anchored_with_tipm([on] * 5 + [moved], rms=0.5)
+    out = [trk.update(frame)[0] for _ in range(6)]
+    assert abs(out[5][0] - 200.0) < 1.5            # no expectation: refused, as before
+    trk.expect(None)                               # no idea: nothing changes
+    assert trk._expected is None
+
+
 def test_corner_covariance_is_weak_along_a_shallow_stripe():
     from torchseam.track.peers import corner_cov
 

@@ -100,3 +100,25 @@ class FastTriangulator:
             X = ray * np.where(np.abs(denom) > 1e-9, self.d / denom, np.nan)[:, None]
         T = np.asarray(T_B_F, float) @ self.T_F_C
         return X @ T[:3, :3].T + T[:3, 3]
+
+    def expect(self, p_a: np.ndarray, p_b: np.ndarray, T_B_F: np.ndarray) -> np.ndarray | None:
+        """Where the stripe should cross the seam in a frame taken with the flange at ``T_B_F``:
+        the seam taken as the line through the base points ``p_a`` -> ``p_b`` (mm), cut with
+        the laser plane there and projected (2,) px; None when the line runs in the plane.
+
+        In closed loop the image jumps when the torch turns to a new target; the robot's own
+        pose says by how much, before the frame is even looked at.
+        """
+        T = np.asarray(T_B_F, float) @ self.T_F_C
+        R, t = T[:3, :3], T[:3, 3]
+        A = (np.asarray(p_a, float) - t) @ R   # camera frame (R^T (p - t))
+        D = (np.asarray(p_b, float) - t) @ R - A
+        den = float(self.n @ D)
+        if abs(den) < 1e-9:
+            return None
+        X = A + (self.d - float(self.n @ A)) / den * D
+        if X[2] <= 0:
+            return None  # behind the camera
+        uv, _ = cv2.projectPoints(X.reshape(1, 1, 3), np.zeros(3), np.zeros(3), self.K,
+                                  self.dist)
+        return uv.reshape(2)

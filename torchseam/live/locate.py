@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,6 +20,9 @@ from torchseam.geometry.triangulate import FastTriangulator
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import FrameTracker
 from torchseam.vision.tipm import Tipm
+
+EXPECT_POINTS = 40     # recent located points kept for the expected pixel (~1.5 s at 25 Hz)
+EXPECT_SPAN_MM = 1.0   # the seam's local direction from two of them at least this far apart
 
 
 @dataclass
@@ -50,6 +54,7 @@ class SeamLocator:
         self.tri = FastTriangulator(cell)
         self.prev_angles: np.ndarray | None = None
         self._roi = int(self.ecal.cfg.r_max_px) + 8
+        self._seen: deque[np.ndarray] = deque(maxlen=EXPECT_POINTS)  # recent located points
 
     def start(self, frame: np.ndarray, uv0: np.ndarray | None = None) -> np.ndarray:
         """Initialise on a clean frame (TIPM when ``uv0`` is None). Returns the start pixel."""
@@ -60,7 +65,19 @@ class SeamLocator:
             uv0 = res.uv
         self.tracker.init(frame, np.asarray(uv0, float))
         self.prev_angles = None
+        self._seen.clear()
         return np.asarray(uv0, float)
+
+    def _expect(self, T_B_F: np.ndarray) -> np.ndarray | None:
+        """The feature pixel this frame should show, from the seam seen so far and the camera's
+        pose now (:meth:`FastTriangulator.expect`), or None (too little seam seen)."""
+        if len(self._seen) < 2:
+            return None
+        p_b = self._seen[-1]
+        for p_a in reversed(self._seen):
+            if np.linalg.norm(p_b - p_a) >= EXPECT_SPAN_MM:
+                return self.tri.expect(p_a, p_b, T_B_F)
+        return None
 
     def _stripe(self, frame: np.ndarray, uv: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
@@ -83,6 +100,9 @@ class SeamLocator:
     def step(self, frame: np.ndarray, T_B_F: np.ndarray) -> Location:
         """Locate the seam in ``frame`` taken with the flange at ``T_B_F`` (4, 4) mm."""
         t0 = time.perf_counter()
+        expect = getattr(self.tracker, "expect", None)
+        if expect is not None:  # a tracker that takes the robot's motion into account
+            expect(self._expect(T_B_F))
         uv, status = self.tracker.update(frame)
         t1 = time.perf_counter()
         nan3, q = np.full(3, np.nan), np.full((2, 3), np.nan)
@@ -100,6 +120,8 @@ class SeamLocator:
             self.prev_angles = arms.angles
             pix += list(arms.p_tangent + (x0, y0))
         X = self.tri(np.stack(pix), T_B_F)
+        if np.all(np.isfinite(X[0])) and status == TrackStatus.TRACKED:
+            self._seen.append(X[0])
         if arms_ok:
             q = X[1:3]
         t3 = time.perf_counter()

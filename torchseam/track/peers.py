@@ -210,6 +210,15 @@ class AnchoredTracker:
         # this frame's TIPM window: (red response, stripe mask, (x0, y0) of the window) or None;
         # valid until the next update (the arrays are TIPM's reused planes)
         self.stripe: tuple[np.ndarray, np.ndarray, tuple[int, int]] | None = None
+        self._expected: np.ndarray | None = None  # the next frame's pixel from the robot's motion
+
+    def expect(self, uv: np.ndarray | None) -> None:
+        """Where the feature point should be in the next frame, from the robot's motion (the
+        live loop knows the camera's pose and the seam seen so far): it replaces the filter's
+        random-walk prediction for that frame. In closed loop the image jumps 5-10 px when the
+        torch turns to a new target, which a random walk cannot follow. None: no idea."""
+        self._expected = None if uv is None or not np.all(np.isfinite(uv)) else np.asarray(
+            uv, float)
 
     def _restart(self, uv: np.ndarray, P: np.ndarray, shape: np.ndarray | None) -> None:
         self.x, self.P = np.asarray(uv, float).copy(), P
@@ -256,6 +265,7 @@ class AnchoredTracker:
 
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
         self.stripe = None
+        expected, self._expected = self._expected, None  # for this frame only
         uv, status = self.inner.update(frame)
         if self.x is None:
             self._restart(uv, self.Q.copy(), None)
@@ -270,6 +280,8 @@ class AnchoredTracker:
         cfg = self.cfg
         self.age += 1
         self.P = self.P + self.Q
+        if expected is not None:
+            self.x = expected
         h, w = frame.shape[:2]
         cu, cv = self.x  # the filter's prediction: EAKF-STC can be the one that ran off
         x0 = int(np.clip(cu - cfg.window_px, 0, w - 1))
