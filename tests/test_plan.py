@@ -170,3 +170,31 @@ def test_buffer_torch_axis_within_a_degree_through_spatter():
         cp = ip
     assert len(errs) == 60
     assert max(errs) < 1.0 and max(pos) < 0.05
+
+
+def test_buffer_arms_prefer_measured_over_guessed():
+    """ECAL's occluded-arm fallback repeats an old direction: where enough points had both arms
+    measured, the guessed ones do not tilt the torch; a few measured among many guessed do not
+    outvote them."""
+    x = np.arange(0.0, 20.0, 0.25)
+    true_arm = np.array([0.0, 0.6, 0.8])
+    stale = np.array([0.0, 0.8, 0.6])   # ~16 degrees off: an old direction repeated
+
+    def buffer(guessed_every: int) -> LookAheadBuffer:
+        buf = LookAheadBuffer(maxlen=200, smooth_mm=3.0, outlier_mm=0.2)
+        for i, xi in enumerate(x):
+            p = np.array([xi, 0.0, 0.0])
+            g = i % guessed_every != 0   # guessed on all but every guessed_every-th point
+            a = stale if g else true_arm
+            buf.push(p, np.stack([p + 5 * a, p + 5 * np.array([0.0, -0.6, 0.8])]), i / 25,
+                     guessed=bool(g))
+        return buf
+
+    def arm_angle(buf: LookAheadBuffer, guess: np.ndarray) -> float:
+        arms = buf.fit(40)[2]
+        return float(np.degrees(np.arccos(np.clip(arms[0] @ guess, -1, 1))))
+
+    # one point in 2 measured: the measured direction wins, though it is not the majority
+    assert arm_angle(buffer(2), true_arm) < 0.5
+    # one in 20 measured (1-2 of the ~24 in the window): too few, the median of all stands
+    assert arm_angle(buffer(20), stale) < 0.5

@@ -269,7 +269,7 @@ class LiveLoop:
             # a point counts as located only with the stripe seen around it (ECAL's arms):
             # a coasting filter's guess over a dark or blinded frame is not a seam point
             if np.all(np.isfinite(loc.p)) and loc.status != TrackStatus.LOST and loc.arms_ok:
-                self.buffer.push(loc.p, loc.q, t_s)
+                self.buffer.push(loc.p, loc.q, t_s, guessed=loc.arms_fallback)
                 self.fresh_t = t_s
                 if loc.status == TrackStatus.TRACKED:
                     self.last_trusted = loc.p

@@ -91,7 +91,7 @@ def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                 loc = locator.step(img, T_B_F)
                 # what the live loop takes as located: a point with the stripe seen around it
                 if np.all(np.isfinite(loc.p)) and loc.status != TrackStatus.LOST and loc.arms_ok:
-                    entry = buf.push(loc.p, loc.q, truth.t_s)
+                    entry = buf.push(loc.p, loc.q, truth.t_s, guessed=loc.arms_fallback)
             run.entries.append(entry)
             run.truths.append(truth)
             run.locations.append(loc)

@@ -23,6 +23,7 @@ from torchseam.core.config import CONFIG_DIR, load_config
 SEGMENTS = 6
 SEGMENT_NAMES = "abcdef"
 MERGE_MM = 0.1  # located points closer than this to the newest one are merged into it
+MIN_MEASURED_ARMS = 3  # measured arms needed to outvote ECAL's guessed (fallback) ones
 MSAC_HYPOTHESES = 200  # point triples tried per robust fit
 WINDOW_MARGIN_MM = 1.0  # fit candidates reach this much past smooth_mm (outliers sit aside)
 
@@ -93,6 +94,7 @@ class Located:
     flagged: bool = False  # off the smooth seam through its neighbours: spatter, not seam
     residual_mm: float = float("nan")  # distance from that smooth seam (NaN: never fitted)
     judged_mm: float = float("inf")  # how far from the centre of the fit that judged it
+    guessed: bool = False  # one arm point was ECAL's fallback (the previous frame's direction)
 
 
 @dataclass
@@ -151,10 +153,10 @@ class LookAheadBuffer:
     def __len__(self) -> int:
         return len(self.points)
 
-    def push(self, p: np.ndarray, q: np.ndarray, t_s: float) -> Located:
-        """Add a located point (``q``: (2, 3) arm points); returns its buffer entry. A point
-        within ``MERGE_MM`` of the newest one (the sensor standing still) is averaged into it
-        instead of appended."""
+    def push(self, p: np.ndarray, q: np.ndarray, t_s: float, guessed: bool = False) -> Located:
+        """Add a located point (``q``: (2, 3) arm points; ``guessed``: one of them is ECAL's
+        occluded-arm fallback); returns its buffer entry. A point within ``MERGE_MM`` of the
+        newest one (the sensor standing still) is averaged into it instead of appended."""
         p = np.asarray(p, float)
         if self.points and np.linalg.norm(p - self.points[-1].p) < MERGE_MM:
             last = self.points[-1]
@@ -169,7 +171,7 @@ class LookAheadBuffer:
             np.linalg.norm(p - self.points[-1].p))
         if len(self.points) == self.points.maxlen:
             self.dropped += 1
-        self.points.append(Located(s, p, np.asarray(q, float), t_s))
+        self.points.append(Located(s, p, np.asarray(q, float), t_s, guessed=guessed))
         return self.points[-1]
 
     def ahead_mm(self, cp: np.ndarray) -> float:
@@ -246,7 +248,9 @@ class LookAheadBuffer:
     def _arms(pts: list[Located], idx: np.ndarray) -> np.ndarray:
         """Median unit arm directions (2, 3) of points ``idx`` (NaN if none had arms). The
         median, not the mean: one ECAL crossing taken on a spatter streak must not tilt the
-        torch."""
+        torch. Arms ECAL measured on both sides win over guessed ones (its occluded-arm
+        fallback repeats an older direction: on a heavy-arc ring those were 4-7 degrees off
+        while the measured ones were within about 1) when there are enough of them."""
         if len(idx) == 0:
             return np.full((2, 3), np.nan)
         arms = np.stack([pts[i].q - pts[i].p for i in idx])                    # (n, 2, 3)
@@ -254,6 +258,9 @@ class LookAheadBuffer:
         good = np.all(np.isfinite(arms), axis=(1, 2))
         if not good.any():
             return np.full((2, 3), np.nan)
+        measured = good & ~np.array([pts[i].guessed for i in idx])
+        if measured.sum() >= max(MIN_MEASURED_ARMS, good.sum() // 3):
+            good = measured  # (a few measured among many guessed: spatter may have made them)
         med = np.median(arms[good], axis=0)
         return med / np.linalg.norm(med, axis=1, keepdims=True)
 
