@@ -191,3 +191,21 @@ def test_expected_pixel_follows_the_camera(cell, part, noise):
     n_B = (T @ cell.hand_eye.matrix())[:3, :3] @ np.asarray(cell.laser_plane.normal)
     along = np.cross(n_B, [0.0, 0.0, 1.0])
     assert tri.expect(p, p + along, T) is None
+
+
+def test_single_rotation_to_quaternion_matches_the_batched_scipy_path():
+    """matrix_to_quat takes a closed form for one (3, 3) matrix (the live loop's hot path):
+    the same quaternions, w >= 0, as the batched scipy path, half-turns included."""
+    from scipy.spatial.transform import Rotation
+
+    from torchseam.core.transforms import matrix_to_quat
+
+    R = np.concatenate([Rotation.random(2000, random_state=3).as_matrix(),
+                        Rotation.from_rotvec(np.pi * np.eye(3)).as_matrix(),
+                        Rotation.from_rotvec([[np.pi - 1e-7, 0, 0], [0, 1e-9, 0],
+                                              [0, 0, 0]]).as_matrix()])
+    batch = matrix_to_quat(R)
+    one = np.stack([matrix_to_quat(r) for r in R])
+    np.testing.assert_allclose(one, batch, atol=1e-12)
+    assert np.all(one[:, 0] >= 0)
+    np.testing.assert_allclose(np.linalg.norm(one, axis=1), 1.0, atol=1e-12)

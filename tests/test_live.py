@@ -172,3 +172,21 @@ def test_locator_takes_the_trackers_stripe_window_when_it_covers_ecals(cell, par
     r3, m3, corner3 = loc._stripe(frame, uv)
     assert corner3 == own[2] and m3.shape == own[1].shape
     np.testing.assert_array_equal(m3, own[1])
+
+
+def test_preparing_between_frames_changes_no_command(cell, part, noise, baseline, monkeypatch):
+    """The loop plans the next target and lets the gate check it between frames
+    (LiveLoop.prepare): the closed loop must send exactly what it sends without that."""
+    from torchseam.live.loop import LiveLoop
+    from torchseam.robot.reach import ReachGate
+
+    prepared = []
+    real = ReachGate.prepare
+    monkeypatch.setattr(ReachGate, "prepare", lambda g, p, q: prepared.append(1) or real(g, p, q))
+    with_prep = _run(cell, part, noise)
+    assert len(prepared) >= len(with_prep.sent)  # every new target was prepared ...
+    monkeypatch.setattr(LiveLoop, "prepare", lambda self: None)
+    without = _run(cell, part, noise)
+    assert len(with_prep.sent) == len(without.sent) == len(baseline.sent)
+    for a, b in zip(with_prep.sent, without.sent, strict=True):
+        assert a[0] == b[0] and np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])

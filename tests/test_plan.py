@@ -1,5 +1,7 @@
 """Six segments, the look-ahead buffer and IPI step control."""
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -198,3 +200,185 @@ def test_buffer_arms_prefer_measured_over_guessed():
     assert arm_angle(buffer(2), true_arm) < 0.5
     # one in 20 measured (1-2 of the ~24 in the window): too few, the median of all stands
     assert arm_angle(buffer(20), stale) < 0.5
+
+
+# --------------------------------------------------------------------------- prepare()
+
+def _prepared_pair(maxlen: int = 1000, n: int = 120, seed: int = 3):
+    """A buffer of the first ``n`` points of a noisy saddle seam (0.02 mm noise, arm points,
+    one point 0.8 mm up an arm inside the fit window of the target from cp = P[50]) and an
+    identical twin (deep copy) that is never prepared. Returns (buf, twin, P, T, a1, a2, meas,
+    arms) where ``arms(i, p)`` gives the (2, 3) arm points of located point p at seam index i."""
+    import copy
+
+    rng = np.random.default_rng(seed)
+    P, T, a1, a2 = _saddle(300)
+    meas = P + rng.normal(0, 0.02, P.shape)
+    meas[60] += 0.8 * a1[60]
+
+    def arms(i: int, p: np.ndarray) -> np.ndarray:
+        return np.stack([p + 7 * a1[i], p + 7 * a2[i]])
+
+    buf = LookAheadBuffer(maxlen=maxlen, smooth_mm=5.0, outlier_mm=0.2)
+    for i in range(n):
+        buf.push(meas[i], arms(i, meas[i]), i / 25)
+    return buf, copy.deepcopy(buf), P, T, a1, a2, meas, arms
+
+
+def _count_fits(buf: LookAheadBuffer, monkeypatch) -> list[int]:
+    """Record every seam fit ``buf`` runs (the work prepare() does ahead)."""
+    calls: list[int] = []
+    real = buf.seam_fit
+    monkeypatch.setattr(buf, "seam_fit", lambda k: calls.append(k) or real(k))
+    return calls
+
+
+def _assert_same_command(a, b) -> None:
+    assert a is not None and b is not None
+    for x, y in zip(a, b, strict=True):
+        assert (x is None) == (y is None)
+        if x is not None:
+            assert np.array_equal(x, y), (x, y)
+
+
+def _same_points(a: LookAheadBuffer, b: LookAheadBuffer, residuals: bool = True) -> None:
+    """Same points, same flags (and, with ``residuals``, judged by the same fits)."""
+    assert len(a) == len(b)
+    for la, lb in zip(a.points, b.points, strict=True):
+        assert np.array_equal(la.p, lb.p) and la.flagged == lb.flagged
+        if residuals:
+            assert np.array_equal(la.residual_mm, lb.residual_mm, equal_nan=True)
+    assert a.flagged == b.flagged and a.dropped == b.dropped
+
+
+def test_prepared_command_stands_while_new_points_land_far_ahead(monkeypatch):
+    buf, twin, P, _, _, _, meas, arms = _prepared_pair()
+    cp = P[50]
+    buf.prepare(cp, 2.0)
+    fits = _count_fits(buf, monkeypatch)
+    # the stripe keeps locating the seam 22-48 mm ahead of the torch
+    assert np.linalg.norm(meas[120] - cp) > 15.0
+    for b in (buf, twin):
+        for i in range(120, 200):
+            b.push(meas[i], arms(i, meas[i]), i / 25)
+    got, fresh = buf.next_command(cp, 2.0), twin.next_command(cp, 2.0)
+    _assert_same_command(got, fresh)
+    assert fits == []  # served from the preparation: no fit on the frame that sends
+    assert np.linalg.norm(got[0] - cp) == pytest.approx(2.0, abs=1e-9)
+    # the buffers agree too: the points dropped behind cp, the outlier judged and flagged
+    _same_points(buf, twin)
+    assert sum(e.flagged for e in buf.points) == 1
+    # asked anything else, it computes afresh (and agrees with the twin)
+    _assert_same_command(buf.next_command(cp, 3.0), twin.next_command(cp, 3.0))
+    _assert_same_command(buf.next_command(P[52], 2.0), twin.next_command(P[52], 2.0))
+    assert fits != []
+
+
+@pytest.mark.parametrize("kind", ["inlier", "outlier"])
+def test_prepared_command_is_dropped_when_a_point_lands_in_its_fit(monkeypatch, kind):
+    """A point pushed inside the fit window of the prepared target (0.15 mm off the seam, an
+    inlier that moves the fit and brings other arms; or 0.8 mm up an arm, an outlier to flag)
+    makes next_command compute afresh: the result and the buffer's flags are those of a twin
+    that never prepared (the inlier's result differs from the stale answer; the outlier is
+    flagged only by a fresh fit)."""
+    buf, twin, P, T, a1, a2, _, _ = _prepared_pair()
+    cp = P[50]
+    buf.prepare(cp, 2.0)
+    stale = buf.next_command(cp, 2.0)  # the prepared answer
+    k = 57  # the target np of IPI from cp: about 2 mm (6 points) ahead
+    off = 0.15 if kind == "inlier" else 0.8
+    new = P[k] + off * a1[k] + 0.1 * T[k]
+    q = np.stack([new + 7 * a1[k + 30], new + 7 * a2[k + 30]])  # other arm directions
+    for b in (buf, twin):
+        b.push(new, q, 9.0)
+    fits = _count_fits(buf, monkeypatch)
+    got, fresh = buf.next_command(cp, 2.0), twin.next_command(cp, 2.0)
+    _assert_same_command(got, fresh)
+    assert fits != []
+    # (the dropped preparation's fit judged the window's points first: their residuals are
+    # that fit's where the fresh one is centred no nearer, so only the flags are compared)
+    _same_points(buf, twin, residuals=False)
+    if kind == "inlier":
+        # the stale answer would be wrong: the new point moves the fit and the arm median
+        assert not np.allclose(stale[0], fresh[0], rtol=0, atol=1e-4)
+        assert not np.allclose(stale[2], fresh[2], rtol=0, atol=1e-4)
+    else:
+        assert buf.points[-1].flagged  # judged by the fresh fit, as in the twin
+
+
+def test_prepared_command_is_dropped_when_a_full_buffer_drops_a_point_it_used():
+    # 60 points (19 mm): the oldest lie inside the fit window of the target from P[8]
+    buf, twin, P, _, _, _, meas, arms = _prepared_pair(maxlen=60, n=60, seed=4)
+    cp = P[8]
+    buf.prepare(cp, 2.0)
+    stale = buf.next_command(cp, 2.0)
+    far = meas[150]  # far ahead of every fit, but the buffer is full: its oldest goes
+    assert np.linalg.norm(far - cp) > 40.0
+    for b in (buf, twin):
+        b.push(far, arms(150, far), 9.0)
+    assert buf.dropped == twin.dropped == 1
+    got, fresh = buf.next_command(cp, 2.0), twin.next_command(cp, 2.0)
+    _assert_same_command(got, fresh)
+    assert not np.allclose(stale[0], fresh[0], rtol=0, atol=1e-6)
+
+
+def test_prepared_command_keeps_within_the_stated_reach(monkeypatch):
+    """The kept answer survives a point just beyond ``smooth_mm + WINDOW_MARGIN_MM + MERGE_MM``
+    of the fitted point and is dropped for one just inside (sideways off a straight seam, so
+    no other point is nearer)."""
+    from torchseam.plan.path import MERGE_MM, WINDOW_MARGIN_MM
+
+    nan = np.full((2, 3), np.nan)
+    reach = 5.0 + WINDOW_MARGIN_MM + MERGE_MM
+    for scale, kept in ((1.01, True), (0.99, False)):
+        buf = LookAheadBuffer(maxlen=1000, smooth_mm=5.0, outlier_mm=0.2)
+        for i in range(100):
+            buf.push(np.array([0.25 * i, 0.0, 0.0]), nan, i / 25)
+        cp = np.array([5.0, 0.0, 0.0])
+        buf.prepare(cp, 2.0)
+        target = np.array([7.0, 0.0, 0.0])  # the first point a step from cp: its fit is used
+        fits = _count_fits(buf, monkeypatch)
+        buf.push(target + [0.0, 0.0, scale * reach], nan, 5.0)
+        buf.next_command(cp, 2.0)
+        assert (fits == []) is kept, scale
+
+
+def test_prepare_with_nothing_ahead_keeps_nothing():
+    buf = LookAheadBuffer(maxlen=10, smooth_mm=3.0, outlier_mm=0.2)
+    buf.prepare(np.zeros(3), 2.0)
+    assert buf.next_command(np.zeros(3), 2.0) is None
+    buf.push(np.array([5.0, 0, 0]), np.full((2, 3), np.nan), 0.0)  # now there is a point
+    ip, tangent, _ = buf.next_command(np.zeros(3), 2.0)
+    np.testing.assert_allclose(ip, [2.0, 0, 0])
+
+
+def test_prepared_command_is_dropped_when_a_new_point_comes_nearer_the_torch():
+    # cp off the located path (a segment start): the point nearest cp decides where the
+    # search starts, so a new nearest point changes the answer however far from the fits
+    buf = LookAheadBuffer(maxlen=100, smooth_mm=3.0, outlier_mm=0.2)
+    def arms(p):
+        return p + np.array([[-1.0, 0.0, 1.0], [1.0, 0.0, 1.0]])
+    for x in np.arange(10.0, 20.0, 0.5):
+        buf.push(np.array([x, 0.0, 0.0]), arms(np.array([x, 0.0, 0.0])), t_s=x)
+    cp = np.zeros(3)
+    buf.prepare(cp, 2.0)
+    stale = buf.next_command(cp, 2.0)
+    twin = copy.deepcopy(buf)
+    twin._ready = None  # the same points, nothing prepared
+    for b in (buf, twin):
+        b.push(np.array([0.0, 5.0, 0.0]), arms(np.array([0.0, 5.0, 0.0])), t_s=30.0)
+    got = buf.next_command(cp, 2.0)
+    _assert_same_command(got, twin.next_command(cp, 2.0))
+    assert not np.allclose(got[0], stale[0])  # the kept answer would have been wrong
+
+
+def test_searching_or_fitting_elsewhere_drops_a_prepared_command():
+    buf = LookAheadBuffer(maxlen=200, smooth_mm=3.0, outlier_mm=0.2)
+    for x in np.arange(0.0, 30.0, 0.25):
+        buf.push(np.array([x, 0.01 * x * x, 0.0]), np.full((2, 3), np.nan), t_s=x)
+    for other in (lambda b: b.next_command(np.array([12.0, 1.44, 0.0]), 2.0),
+                  lambda b: b.fit(10), lambda b: b.screen()):
+        buf.prepare(np.array([5.0, 0.25, 0.0]), 2.0)
+        assert buf._ready is not None
+        other(buf)
+        assert buf._ready is None

@@ -341,3 +341,212 @@ def test_docstring_examples_run():
     for mod in (torchseam.robot.config, torchseam.robot.kinematics, torchseam.robot.reach):
         result = doctest.testmod(mod, optionflags=doctest.ELLIPSIS)
         assert result.failed == 0 and result.attempted > 0, mod.__name__
+
+
+# --------------------------------------------------------------------------- prepare()
+
+def _pq(T) -> tuple[np.ndarray, np.ndarray]:
+    """(position (3,), quaternion (4,)) of a (4, 4) pose, as the live loop sends it."""
+    from torchseam.core.transforms import matrix_to_quat
+
+    T = np.asarray(T, float)
+    return T[:3, 3].copy(), matrix_to_quat(T[:3, :3])
+
+
+def _turned(T, deg: float) -> np.ndarray:
+    """The pose turned by ``deg`` about its own z axis (the torch axis, = axis 6)."""
+    T = np.array(T, float)
+    T[:3, :3] = T[:3, :3] @ Rotation.from_euler("z", deg, degrees=True).as_matrix()
+    return T
+
+
+def _reference(g: ReachGate) -> tuple:
+    return tuple(None if a is None else np.array(a, copy=True)
+                 for a in (g._q_prev, g._p_prev)) + (
+        None if g._last_ok is None else tuple(np.array(a) for a in g._last_ok),)
+
+
+def _same_reference(a: tuple, b: tuple) -> bool:
+    def eq(x, y) -> bool:
+        if x is None or y is None:
+            return x is None and y is None
+        if isinstance(x, tuple):
+            return len(x) == len(y) and all(eq(u, v) for u, v in zip(x, y, strict=True))
+        return np.array_equal(x, y)
+
+    return eq(a, b)
+
+
+def _spy_steps(g: ReachGate, monkeypatch) -> list[int]:
+    calls: list[int] = []
+    real = g.step
+    monkeypatch.setattr(g, "step", lambda *a, **k: calls.append(1) or real(*a, **k))
+    return calls
+
+
+def test_prepare_is_a_dry_run_and_the_call_after_it_matches_a_gate_that_never_prepared(
+        robot, cell, part, ring):
+    """Along 40 poses of the ring, with an unreachable and a too-fast pose among them, in the
+    live loop's order (send target i, prepare i + 1, re-send i to feed the watchdog, send
+    i + 1): prepare leaves the reference alone, and every call gives the verdict and leaves the
+    reference of a gate that is never prepared."""
+    poses = [ring[i].numpy() for i in range(40)]
+    poses[10] = poses[10].copy()
+    poses[10][:3, 3] += [2000.0, 0.0, 0.0]        # unreachable
+    poses[25] = _turned(poses[24], 40.0)           # 40 deg about the torch in one frame
+    prepared = ReachGate(robot, cell=cell, part=part)
+    plain = ReachGate(robot, cell=cell, part=part)
+    verdicts = []
+    last = None
+    for i, T in enumerate(poses):
+        p, q = _pq(T)
+        before = _reference(prepared)
+        prepared.prepare(p, q)
+        assert _same_reference(_reference(prepared), before), i  # a dry run
+        assert _same_reference(_reference(prepared), _reference(plain)), i
+        if last is not None:  # the current target again, between prepare and its use
+            assert prepared(*last) == plain(*last), i
+        v = prepared(p, q)
+        assert v == plain(p, q), i
+        assert _same_reference(_reference(prepared), _reference(plain)), i
+        verdicts.append(v)
+        last = (p, q)
+    refused = [i for i, v in enumerate(verdicts) if not v[0]]
+    assert refused == [10, 25]
+    assert verdicts[10][1].startswith("out of reach")
+    assert verdicts[25][1].startswith("joint speed axis 6")
+
+
+def test_the_call_after_prepare_takes_the_prepared_verdict(robot, cell, part, ring,
+                                                           monkeypatch):
+    g = ReachGate(robot, cell=cell, part=part)
+    p0, q0 = _pq(ring[0])
+    p1, q1 = _pq(ring[1])
+    p2, q2 = _pq(ring[2])
+    assert g(p0, q0) == (True, "")
+    calls = _spy_steps(g, monkeypatch)
+    g.prepare(p1, q1)
+    assert calls == [1]  # the check ran ahead ...
+    g.prepare(p1.copy(), q1.copy())
+    assert calls == [1]  # ... once
+    assert g(p1, q1) == (True, "")
+    assert calls == [1]  # ... and not again on the control path
+    assert g(p1, q1) == (True, "") and calls == [1]  # (a re-sent target: short-cut as before)
+    # the prepared verdict is used once: the reference moved, a new pose is checked afresh
+    assert g(p2, q2) == (True, "")
+    assert calls == [1, 1]
+    # a pose other than the prepared one is checked afresh
+    g.prepare(*_pq(ring[3]))
+    assert calls == [1, 1, 1]
+    p4, q4 = _pq(ring[4])
+    assert g(p4, q4) == (True, "") and calls == [1, 1, 1, 1]
+    # a pose not finite or with a bad quaternion is not prepared (the call refuses it)
+    g.prepare(np.array([np.nan, 0, 0]), q4)
+    g.prepare(p4, 2 * q4)
+    assert calls == [1, 1, 1, 1]
+
+
+def test_a_prepared_unreachable_pose_is_still_refused(robot, cell, part, ring, monkeypatch):
+    g = ReachGate(robot, cell=cell, part=part)
+    p0, q0 = _pq(ring[0])
+    assert g(p0, q0) == (True, "")
+    ref = _reference(g)
+    calls = _spy_steps(g, monkeypatch)
+    far = p0 + [2000.0, 0.0, 0.0]
+    g.prepare(far, q0)
+    ok, why = g(far, q0)
+    assert not ok and why.startswith("out of reach")
+    assert calls == [1]  # the prepared verdict, refused
+    assert _same_reference(_reference(g)[:2], ref[:2])  # the reference did not move
+    # and the next good pose is judged from the last accepted one
+    p1, q1 = _pq(ring[1])
+    assert g(p1, q1) == (True, "") and calls == [1, 1]
+
+
+def test_a_moved_reference_makes_the_call_check_again(robot, cell, part, ring, monkeypatch):
+    """Prepared from pose A, the torch turned 6 deg is fine (150 deg/s on axis 6); once
+    another pose (turned -6 deg) is accepted in between, the same target is a 12 deg turn in
+    one frame (300 deg/s > 224): the call must check it afresh and refuse it, not hand out the
+    verdict prepared from A."""
+    A = ring[0].numpy()
+    target, other = _pq(_turned(A, 6.0)), _pq(_turned(A, -6.0))
+    g = ReachGate(robot, cell=cell, part=part)
+    assert g(*_pq(A)) == (True, "")
+    calls = _spy_steps(g, monkeypatch)
+    g.prepare(*target)
+    assert calls == [1]
+    assert g(*other) == (True, "")  # the reference moves
+    assert calls == [1, 1]
+    ok, why = g(*target)
+    assert calls == [1, 1, 1]  # checked again
+    assert not ok and why == "joint speed axis 6 300.0 deg/s > 224.0"
+    # what the prepared verdict said (from A), and what a gate that never prepared says
+    fresh = ReachGate(robot, cell=cell, part=part)
+    assert fresh(*_pq(A)) == (True, "") and fresh(*target) == (True, "")
+    plain = ReachGate(robot, cell=cell, part=part)
+    assert plain(*_pq(A)) == (True, "") and plain(*other) == (True, "")
+    assert plain(*target) == (ok, why)
+    # reset() forgets a prepared verdict too
+    g.prepare(*_pq(ring[1]))
+    g.reset()
+    n = len(calls)
+    assert g(*_pq(ring[1])) == (True, "") and len(calls) == n + 1
+
+
+def test_egm_link_prepare_hands_the_pose_to_the_gate(robot, cell, part, ring, monkeypatch):
+    import dataclasses
+
+    from torchseam.robot.egm import EgmLink
+    from torchseam.robot.egm_config import load_egm_config
+
+    cfg = load_egm_config()
+    g = ReachGate(robot, cell=cell, part=part)
+    calls = _spy_steps(g, monkeypatch)
+    p, q = _pq(ring[0])
+    link = EgmLink(dataclasses.replace(cfg, mode="pose"), bind=False, gate=g)
+    q = q * (1.0 + 2e-4)  # within the link's norm tolerance: it normalises before the gate
+    link.prepare(p.tolist(), q.tolist())  # any array-like, as set_target takes
+    assert calls == [1]
+    assert link.set_target(p, q).ok
+    assert calls == [1]  # set_target's gate call took the prepared verdict
+    # nothing was sent or stored by prepare: a prepared, never-set pose is not the target
+    p1, q1 = _pq(ring[1])
+    link.prepare(p1, q1)
+    assert calls == [1, 1]
+    np.testing.assert_array_equal(link._meas.vec, p)
+    # malformed poses are left to set_target to refuse
+    link.prepare(p1[:2], q1)
+    link.prepare(p1, np.zeros(4))
+    link.prepare(p1, np.array([np.nan, 0, 0, 1.0]))
+    assert calls == [1, 1]
+    # pathcorr mode, or a gate without prepare: nothing happens
+    p2, q2 = _pq(ring[2])
+    pc = EgmLink(dataclasses.replace(cfg, mode="pathcorr"), bind=False, gate=g)
+    pc.prepare(p2, q2)
+    assert calls == [1, 1]
+    plain = EgmLink(dataclasses.replace(cfg, mode="pose"), bind=False,
+                    gate=lambda p, q: (True, ""))
+    plain.prepare(p2, q2)
+    assert plain.set_target(p2, q2).ok
+
+
+def test_egm_link_prepare_survives_a_failing_gate(robot, cell, part, ring):
+    import dataclasses
+
+    from torchseam.robot.egm import EgmLink
+    from torchseam.robot.egm_config import load_egm_config
+
+    class Broken:
+        def prepare(self, p, q):
+            raise RuntimeError("IK library crashed")
+
+        def __call__(self, p, q):
+            raise RuntimeError("IK library crashed")
+
+    link = EgmLink(dataclasses.replace(load_egm_config(), mode="pose"), bind=False,
+                   gate=Broken())
+    p, q = _pq(ring[0])
+    link.prepare(p, q)  # advisory: a failing gate does not break the loop's idle work ...
+    v = link.set_target(p, q)
+    assert not v.ok and v.reason == "gate_error"  # ... and the pose is still refused
+    link.prepare(p, q * 1.01)  # a quaternion set_target refuses never reaches the gate

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar, overload
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from torchseam.core.config import CONFIG_DIR, CellConfig, load_config
 from torchseam.core.transforms import matrix_to_quat, quat_to_matrix
@@ -106,6 +107,13 @@ def _rot(axis: int, deg: float) -> np.ndarray:
     return M
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product of two 3-vectors (np.cross costs ~25 us a call on 3-vectors)."""
+    a0, a1, a2 = a.tolist()
+    b0, b1, b2 = b.tolist()
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
 def frame_from_arms(p: np.ndarray, q1: np.ndarray, q2: np.ndarray, tangent: np.ndarray
                     ) -> tuple[np.ndarray, bool]:
     """The torch frame of :func:`torchseam.geometry.torch_frame.torch_frame` with a seam
@@ -128,7 +136,7 @@ def frame_from_arms(p: np.ndarray, q1: np.ndarray, q2: np.ndarray, tangent: np.n
     u1 = u1 - (u1 @ t) * t
     u2 = u2 - (u2 @ t) * t
     n1, n2 = float(np.linalg.norm(u1)), float(np.linalg.norm(u2))
-    cross = np.cross(u1, u2)
+    cross = _cross(u1, u2)
     nc = float(np.linalg.norm(cross))
     sin = nc / max(n1 * n2, 1e-12)
     if not (n1 > MIN_ARM_MM and n2 > MIN_ARM_MM and sin > MIN_SIN and math.isfinite(nc)):
@@ -138,7 +146,7 @@ def frame_from_arms(p: np.ndarray, q1: np.ndarray, q2: np.ndarray, tangent: np.n
         px = -px
     pz = u1 / max(n1, 1e-12) + u2 / max(n2, 1e-12)                     # eq. 28
     pz = pz / max(float(np.linalg.norm(pz)), 1e-12)
-    py = np.cross(pz, px)
+    py = _cross(pz, px)
     return np.stack([px, -py, -pz], axis=1), True                      # eq. 29
 
 
@@ -216,6 +224,8 @@ class LiveLoop:
         self.locator = SeamLocator(cell, tracker)
         self.sink = sink
         self.nominal = None if nominal is None else np.asarray(nominal, float)
+        # nearest programmed point per target in ~10 us (a dense path has thousands)
+        self._nominal_tree = None if nominal is None else cKDTree(self.nominal)
         self.buffer = LookAheadBuffer(self.plan.buffer_points, self.plan.smooth_mm)
         self.stats = LoopStats()
         self.state = LoopState.STARTING
@@ -278,6 +288,8 @@ class LiveLoop:
         t2 = time.perf_counter()
         self.stats.add_time("plan+gate+send", (t2 - t1) * 1e3, self.cfg.timing_window)
         self.stats.add_time("frame->command", (t2 - t0) * 1e3, self.cfg.timing_window)
+        self.prepare()  # the next target, while the camera exposes the next frame
+        self.stats.add_time("prepare", (time.perf_counter() - t2) * 1e3, self.cfg.timing_window)
         return StepReport(self.state, loc, cmd, self.message)
 
     def _command(self, torch_p: np.ndarray, t_s: float, loc: Location | None) -> Command | None:
@@ -295,32 +307,10 @@ class LiveLoop:
                 self.sink.set_target(self.target, self.last_q, measured_at=self.fresh_t)
                 self._set_state(loc)
             return None
-        nxt = self.buffer.next_command(self.target, self.cell.process.step_mm)
-        if nxt is None:
-            return self._hold("nothing located a step ahead of the torch")
-        ip, tangent, arms = nxt
-        if tangent is None:
-            # too little of the seam seen to fit its direction (the start of a segment): keep
-            # the torch's present travel direction rather than guess from a chord
-            tangent = quat_to_matrix(self.last_q)[:, 0]
-        if self.last_trusted is None or self._beyond(ip, self.last_trusted, tangent,
-                                                      self.cfg.max_blind_mm):
-            return self._hold(f"no trusted measurement within {self.cfg.max_blind_mm:g} mm "
-                              "ahead: refusing to move blind")
-        if self.nominal is not None:
-            off = float(np.min(np.linalg.norm(self.nominal - ip, axis=1)))
-            if off > self.cfg.max_offset_mm:
-                return self._hold(f"target {off:.1f} mm off the programmed path (limit "
-                                  f"{self.cfg.max_offset_mm:g} mm): tracking suspect")
-        if not np.all(np.isfinite(arms)):
-            return self._hold("no arm points (ECAL) near the target: no torch frame")
-        R, ok = frame_from_arms(ip, ip + arms[0], ip + arms[1], tangent)
-        if not ok:
-            return self._hold("degenerate torch frame (arms collinear)")
-        q = matrix_to_quat(R @ self._tilt)
-        if self.last_q is not None and q @ self.last_q < 0:
-            q = -q  # the sign nearest the previous pose: the controller turns the short way
-        q = _turn_limited(self.last_q, q, self.cfg.max_turn_deg)
+        pose = self._pose(self.buffer.next_command(self.target, self.cell.process.step_mm))
+        if isinstance(pose, str):
+            return self._hold(pose)
+        ip, q = pose
         seen = self._seen_time(ip)
         verdict = self.sink.set_target(ip, q, measured_at=self.fresh_t)
         ok_v = bool(getattr(verdict, "ok", True))
@@ -337,6 +327,52 @@ class LiveLoop:
             self.stats.refused[key] += 1
             self._hold(f"link refused the pose ({key})")  # the detail is in the link's log
         return cmd
+
+    def _pose(self, nxt: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None
+              ) -> tuple[np.ndarray, np.ndarray] | str:
+        """The next target pose ``(ip (3,), q (4,))`` from the look-ahead buffer's IPI step
+        ``nxt``, or why there is none (the loop then holds with that message)."""
+        if nxt is None:
+            return "nothing located a step ahead of the torch"
+        ip, tangent, arms = nxt
+        if tangent is None:
+            # too little of the seam seen to fit its direction (the start of a segment): keep
+            # the torch's present travel direction rather than guess from a chord
+            tangent = quat_to_matrix(self.last_q)[:, 0]
+        if self.last_trusted is None or self._beyond(ip, self.last_trusted, tangent,
+                                                      self.cfg.max_blind_mm):
+            return (f"no trusted measurement within {self.cfg.max_blind_mm:g} mm "
+                    "ahead: refusing to move blind")
+        if self._nominal_tree is not None:
+            off = float(self._nominal_tree.query(ip)[0])
+            if off > self.cfg.max_offset_mm:
+                return (f"target {off:.1f} mm off the programmed path (limit "
+                        f"{self.cfg.max_offset_mm:g} mm): tracking suspect")
+        if not np.all(np.isfinite(arms)):
+            return "no arm points (ECAL) near the target: no torch frame"
+        R, ok = frame_from_arms(ip, ip + arms[0], ip + arms[1], tangent)
+        if not ok:
+            return "degenerate torch frame (arms collinear)"
+        q = matrix_to_quat(R @ self._tilt)
+        if self.last_q is not None and q @ self.last_q < 0:
+            q = -q  # the sign nearest the previous pose: the controller turns the short way
+        return ip, _turn_limited(self.last_q, q, self.cfg.max_turn_deg)
+
+    def prepare(self) -> None:
+        """Work between frames: plan the target after the current one (the look-ahead
+        buffer's seam fit) and let the sink's gate check its pose, so that the frame which
+        finds the torch at its target only has to send. Changes no decision: the buffer drops
+        the plan when a new point could change it and the gate re-checks a pose that differs
+        (:meth:`LookAheadBuffer.prepare`, :meth:`ReachGate.prepare`). ``on_frame`` calls
+        this after the frame's command is out; it is timed as the ``prepare`` stage."""
+        if self.state in (LoopState.DONE, LoopState.STARTING) or self.target is None:
+            return
+        step = self.cell.process.step_mm
+        self.buffer.prepare(self.target, step)
+        pose = self._pose(self.buffer.next_command(self.target, step))
+        ready = getattr(self.sink, "prepare", None)
+        if not isinstance(pose, str) and ready is not None:
+            ready(*pose)
 
     @staticmethod
     def _beyond(ip: np.ndarray, ref: np.ndarray, tangent: np.ndarray, margin: float) -> bool:

@@ -149,6 +149,9 @@ class LookAheadBuffer:
         self.outlier_mm = load_plan_config().outlier_mm if outlier_mm is None else outlier_mm
         self.dropped = 0  # points pushed out by a full buffer (reported, never silent)
         self.flagged = 0  # points flagged as off the seam so far (reported, never silent)
+        # next_command worked out ahead by prepare(): (cp, step, result, fitted points (n, 3),
+        # distance from cp to the nearest point then)
+        self._ready: tuple[np.ndarray, float, tuple, np.ndarray, float] | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -158,6 +161,15 @@ class LookAheadBuffer:
         occluded-arm fallback); returns its buffer entry. A point within ``MERGE_MM`` of the
         newest one (the sensor standing still) is averaged into it instead of appended."""
         p = np.asarray(p, float)
+        r = self._ready
+        if r is not None and (
+                len(self.points) == self.points.maxlen
+                or np.min(np.linalg.norm(r[3] - p, axis=1))
+                <= self.smooth_mm + WINDOW_MARGIN_MM + MERGE_MM
+                or np.linalg.norm(p - r[0]) <= r[4] + MERGE_MM):
+            # the point may enter a fit the prepared command rests on, or become the point
+            # nearest cp (which decides where the search starts)
+            self._ready = None
         if self.points and np.linalg.norm(p - self.points[-1].p) < MERGE_MM:
             last = self.points[-1]
             n = last.n + 1
@@ -181,6 +193,7 @@ class LookAheadBuffer:
     def fit(self, k: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """``(point (3,), unit tangent (3,) or None, arm directions (2, 3))`` of
         :meth:`seam_fit` at buffered point ``k``."""
+        self._ready = None  # judging points may change a prepared answer
         f = self.seam_fit(k)
         return f.p, f.tangent, f.arms
 
@@ -267,6 +280,7 @@ class LookAheadBuffer:
     def screen(self) -> int:
         """Fit around every point no fit has judged yet (flagging outliers); returns how many
         points are flagged. For reports: the live loop judges the points as it plans."""
+        self._ready = None  # judging points may change a prepared answer
         k = 0
         while k < len(self.points):
             if np.isnan(self.points[k].residual_mm):
@@ -288,8 +302,43 @@ class LookAheadBuffer:
         np, for the torch frame:
         ``torch_frame(ip, ip + arm_dirs[0], ip + arm_dirs[1], tangent=tangent)``.
         """
+        r = self._ready
+        if r is not None and r[1] == step_mm and np.array_equal(r[0], cp):
+            return r[2]
+        self._ready = None  # this search may drop points and judge others
+        return self._next_command(cp, step_mm)[0]
+
+    def prepare(self, cp: np.ndarray, step_mm: float) -> None:
+        """Work out :meth:`next_command` ``(cp, step_mm)`` now and keep it (the live loop does
+        this between camera frames, so the frame that finds the torch at cp only sends).
+        The kept answer is dropped as soon as a point is pushed within reach of a fit it
+        rests on (``smooth_mm`` and margins around each fitted point) or nearer cp than any
+        point was, when the full buffer drops its oldest, and when anything else searches or
+        fits (:meth:`next_command` elsewhere, :meth:`fit`, :meth:`screen`), so
+        :meth:`next_command` returns what it would compute itself. (One difference remains
+        after a drop: the fit it ran has judged its window's points, as a fit run then would
+        have; the fresh search starts from those judgements.) The stripe sees the seam ~20 mm
+        ahead of the torch, so in steady tracking the new points land far from the fits at cp
+        and the answer stands until the torch gets there. Edit ``points`` directly only
+        without a prepared answer."""
+        r = self._ready
+        if r is not None and r[1] == step_mm and np.array_equal(r[0], cp):
+            return
+        self._ready = None
+        out, fitted = self._next_command(cp, step_mm)
+        if out is not None:
+            near = float(np.min(np.linalg.norm(np.stack([loc.p for loc in self.points]) - cp,
+                                               axis=1)))
+            self._ready = (np.array(cp, float), step_mm, out, np.array(fitted).reshape(-1, 3),
+                           near)
+
+    def _next_command(self, cp: np.ndarray, step_mm: float
+                      ) -> tuple[tuple[np.ndarray, np.ndarray | None, np.ndarray] | None,
+                                 list[np.ndarray]]:
+        """next_command's answer and the points whose fits it ran (see prepare)."""
+        fitted: list[np.ndarray] = []
         if not self.points:
-            return None
+            return None, fitted
         P = np.stack([loc.p for loc in self.points])
         j = int(np.argmin(np.linalg.norm(P - cp, axis=1)))
         behind = 0
@@ -304,11 +353,12 @@ class LookAheadBuffer:
         for k in np.flatnonzero(dist >= step_mm):
             if k < j or self.points[k].flagged:
                 continue
+            fitted.append(P[k])
             f = self.seam_fit(int(k))
             if self.points[k].flagged:
                 continue  # the candidate itself was off the seam: take the next one
-            return ipi_step(cp, f.p, step_mm), f.tangent, f.arms
-        return None
+            return (ipi_step(cp, f.p, step_mm), f.tangent, f.arms), fitted
+        return None, fitted
 
 
 @functools.lru_cache(maxsize=256)

@@ -483,6 +483,25 @@ class EgmLink:
             verdict = self._gate(p, q)
         return self._store(verdict, p, q if verdict.ok else None, t, now)
 
+    def prepare(self, position_mm: ArrayLike, quaternion: ArrayLike) -> None:
+        """Pose mode: let the gate check a target that :meth:`set_target` will probably get
+        soon, now, off the control path (a gate with a ``prepare`` method, such as
+        :class:`~torchseam.robot.reach.ReachGate`; others ignore it). Nothing is sent or
+        stored: :meth:`set_target` still runs every check, the gate's answer for that very
+        pose just comes ready."""
+        ready = getattr(self.gate, "prepare", None)
+        if self.mode != "pose" or ready is None:
+            return
+        p = np.asarray(position_mm, dtype=float).reshape(-1)
+        q = np.asarray(quaternion, dtype=float).reshape(-1)
+        if not (p.shape == (3,) and q.shape == (4,) and np.isfinite(q).all()
+                and abs(float(np.linalg.norm(q)) - 1.0) <= _QUAT_TOL):
+            return  # set_target refuses it before the gate
+        try:
+            ready(p.copy(), q / np.linalg.norm(q))  # what set_target hands the gate
+        except Exception as e:  # noqa: BLE001 - advisory: set_target runs (and refuses) it
+            log.debug("gate prepare raised %r; set_target will check the pose", e)
+
     def set_correction(self, offset_mm: ArrayLike, measured_at: float | None = None,
                        pose: tuple[ArrayLike, ArrayLike] | None = None) -> Verdict:
         """Pathcorr mode: the seam's offset from the programmed path in the path frame, mm.
