@@ -7,7 +7,9 @@ plain STC, KCF, CSRT, MOSSE, EAKF-STC and ``anchored`` (EAKF-STC fused with TIPM
 loop's default), each started on frame 0 (arc off) by TIPM. Errors are
 over the arc frames against the simulator's labels: RMSE and max (px), % frames lost (no point
 or > 15 px off), and the single-stream time per frame (BGR frame in memory -> point) p50/p99 on
-one thread. A second table times EAKF-STC batched: B sequences stepped together.
+one thread (EAKF-STC single stream is the numpy twin of the fitted module,
+:class:`~torchseam.track.lite.LiteEAKFSTC`, as in the live loop). A second table times the torch
+module itself: one sequence (B = 1) and B sequences stepped together.
 
 Threads: torch.set_num_threads(1) and cv2.setNumThreads(1) for the single-stream figures (the
 live loop's setting: one core per camera); the batched run uses --batch-threads (default 2).
@@ -26,8 +28,7 @@ import torch
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.report import error_stats, format_table, percentiles_ms
 from torchseam.sim.sequence import SequenceSpec, simulate
-from torchseam.track.fusion import EAKFSTC
-from torchseam.track.peers import TRACKERS, make_tracker, run_tracker
+from torchseam.track.peers import TRACKERS, fitted_eakf_stc, make_tracker, run_tracker
 from torchseam.vision.tipm import red_response
 
 ORDER = ["tipm", "stc", "kcf", "csrt", "mosse", "eakf-stc", "anchored"]
@@ -90,27 +91,30 @@ def main() -> None:
 
 @torch.inference_mode()
 def batch_table(bank: list[tuple[np.ndarray, np.ndarray]], B: int, threads: int) -> None:
-    """Time EAKF-STC stepping B sequences at once (frames already grey in memory)."""
-    torch.set_num_threads(threads)
-    T = min(len(g) for g, _ in bank)
-    src = [bank[i % len(bank)][0] for i in range(B)]
-    trk = EAKFSTC()
-    uv0 = torch.tensor(np.stack([bank[i % len(bank)][1] for i in range(B)]),
-                       dtype=torch.float32)
-    frames0 = torch.from_numpy(np.stack([g[0] for g in src])).float()
-    trk.init(frames0, uv0)
-    step_s = []
-    for k in range(1, T):
-        fr = torch.from_numpy(np.stack([g[k] for g in src])).float()
-        t0 = time.perf_counter()
-        trk.step(fr)
-        step_s.append(time.perf_counter() - t0)
-    per = np.array(step_s)
-    fps = B / np.median(per)
-    print(f"\nEAKF-STC batched: B = {B}, {T - 1} steps, torch threads {threads}")
-    print(format_table(["B", "ms per step p50", "ms per step p99", "frames/s (p50)"],
-                       [[B, 1e3 * float(np.median(per)), 1e3 * float(np.percentile(per, 99)),
-                         float(fps)]]))
+    """Time the torch EAKF-STC module stepping B sequences at once (frames already grey in
+    memory), and stepping one (B = 1, one thread: what the numpy twin replaces in the
+    single-stream rows above)."""
+    rows = []
+    for b, th in ((1, 1), (B, threads)):
+        torch.set_num_threads(th)
+        T = min(len(g) for g, _ in bank)
+        src = [bank[i % len(bank)][0] for i in range(b)]
+        trk = fitted_eakf_stc()
+        uv0 = torch.tensor(np.stack([bank[i % len(bank)][1] for i in range(b)]),
+                           dtype=torch.float32)
+        trk.init(torch.from_numpy(np.stack([g[0] for g in src])).float(), uv0)
+        step_s = []
+        for k in range(1, T):
+            fr = torch.from_numpy(np.stack([g[k] for g in src])).float()
+            t0 = time.perf_counter()
+            trk.step(fr)
+            step_s.append(time.perf_counter() - t0)
+        per = np.array(step_s)
+        rows.append([b, th, 1e3 * float(np.median(per)), 1e3 * float(np.percentile(per, 99)),
+                     float(b / np.median(per))])
+    print(f"\nEAKF-STC torch module (float32), {T - 1} steps per sequence")
+    print(format_table(["B", "threads", "ms per step p50", "ms per step p99", "frames/s (p50)"],
+                       rows))
 
 
 if __name__ == "__main__":
