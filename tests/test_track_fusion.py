@@ -255,18 +255,25 @@ class _StubInner:
         self.reanchored.append(np.asarray(uv, float))
 
 
-def _corner(uv, rms, slopes=(-0.3, 0.3)):
-    """A TipmResult of straight arms with ``slopes`` meeting at ``uv`` (ROI px)."""
+def _corner(uv, rms, slopes=(-0.3, 0.3), gap_px=0.0):
+    """A TipmResult of straight arms with ``slopes`` meeting at ``uv`` (ROI px), with a
+    centre-line point in every column out to 130 px, but none within ``gap_px`` of the corner
+    on the left arm."""
     from torchseam.vision.tipm import TipmResult
 
     arms = tuple(np.array([uv[1], s, 0.0]) for s in slopes)
-    return TipmResult(True, np.asarray(uv, float), arms=arms, u0=float(uv[0]), rms_px=rms)
+    x = np.arange(-130.0, 131.0)
+    x = x[(x >= 0) | (x <= -gap_px)]
+    v = uv[1] + np.where(x < 0, slopes[0], slopes[1]) * x
+    return TipmResult(True, np.asarray(uv, float), arms=arms, u0=float(uv[0]), rms_px=rms,
+                      centre=np.stack([uv[0] + x, v], axis=1))
 
 
 def _anchored_with_tipm(offsets, rms):
     """AnchoredTracker on a stub EAKF-STC fixed at (200, 150) and a stub TIPM returning the
     corner at ``offsets[k]`` from the true point (200, 150) on call k."""
     from torchseam.track.peers import AnchoredTracker
+    from torchseam.vision.tipm import load_tipm_config
 
     trk = AnchoredTracker()
     trk.inner = _StubInner((200.0, 150.0))
@@ -275,6 +282,8 @@ def _anchored_with_tipm(offsets, rms):
 
     class StubTipm:
         """TIPM's stages as the tracker calls them on its window."""
+
+        cfg = load_tipm_config()
 
         def stripe_mask(self, roi):
             z = np.zeros(roi.shape[:2], np.uint8)
@@ -345,6 +354,28 @@ def test_corner_covariance_is_weak_along_a_shallow_stripe():
     assert C[0, 0] > 10 * C[1, 1]                 # 147 deg corner: weak along u
     C2 = corner_cov(_corner((100.0, 100.0), 0.2, slopes=(-1.0, 1.0)), 0.5, 0.1)
     assert C2[0, 0] < C[0, 0] / 5                 # a sharper corner pins u down
+
+
+def test_corner_covariance_grows_when_an_arm_stops_short_of_the_corner():
+    """An arm whose centre line ends 40 px before the corner (spatter across it) is
+    extrapolated there: its line is uncertain at the corner, so the fix is weak across that
+    arm; complete arms keep the plain covariance, and a ridge prior steadies the extrapolation."""
+    from torchseam.track.peers import corner_cov
+
+    def cov(res, prior=None):
+        return corner_cov(res, 0.5, 0.1, prior, (5.0, 120.0))
+    full = _corner((100.0, 100.0), 0.2)
+    # complete arms: the leverage ratio is 1, as without the centre-line test
+    sig2 = (0.5 * 0.2) ** 2
+    n = np.array([[0.3, 1.0], [-0.3, 1.0]]) / np.hypot(0.3, 1.0)
+    np.testing.assert_allclose(cov(full), sig2 * np.linalg.inv(n.T @ n), rtol=1e-9, atol=1e-15)
+    # the uncertain direction (along the shallow stripe) grows with the gap, fast
+    var_u = [cov(_corner((100.0, 100.0), 0.2, gap_px=g))[0, 0] for g in (0, 20, 40, 60)]
+    assert var_u[0] == pytest.approx(cov(full)[0, 0])
+    assert var_u[1] > 1.5 * var_u[0] and var_u[2] > 3 * var_u[1] and var_u[3] > 3 * var_u[2]
+    short = _corner((100.0, 100.0), 0.2, gap_px=40.0)
+    prior = np.array([[-0.3, 0.0, 1e5, 1e9], [0.3, 0.0, 1e5, 1e9]])
+    assert np.trace(cov(short, prior)) < np.trace(cov(short))  # a firm prior: less extrapolated
 
 
 def test_tipm_arm_prior_keeps_the_corner_where_an_arm_has_a_gap():

@@ -22,7 +22,10 @@ from torchseam.track.peers import FrameTracker
 from torchseam.vision.tipm import Tipm
 
 EXPECT_POINTS = 40     # recent located points kept for the expected pixel (~1.5 s at 25 Hz)
-EXPECT_SPAN_MM = 1.0   # the seam's local direction from two of them at least this far apart
+EXPECT_SPAN_MM = 4.0   # the seam's local direction from two of them at least this far apart
+                       # (over 1 mm the chord carried the newest point's error into the next
+                       # expected pixel x1.15-1.35 per frame: biased runs of fixes fed
+                       # themselves on heavy-arc rings)
 
 
 @dataclass
