@@ -9,6 +9,7 @@ CSRT and MOSSE (a box around the feature point; the point keeps its offset in th
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -186,37 +187,51 @@ def corner_cov(res: TipmResult, noise: float, floor_px: float,
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     sigma = noise * max(res.rms_px, floor_px)
     gap, window = arm_cols
-    u = res.centre[:, 0] - res.u0
-    full = np.arange(np.ceil(gap), np.floor(window) + 1)
+    u = res.centre[:, 0] - res.u0  # sorted by u (TIPM's centre line is)
+    cut = np.searchsorted(u, (-window, -gap, gap, window), side="left")
+    cut[1] = np.searchsorted(u, -gap, side="right")
+    cut[3] = np.searchsorted(u, window, side="right")
+    full = _full_arm_sums(float(gap), float(window))
     var = np.empty(2)
-    for side, sign in enumerate((-1.0, 1.0)):
-        x = u[(sign * u >= gap) & (sign * u <= window)]
+    for side in range(2):
+        x = u[cut[2 * side]:cut[2 * side + 1]]
         w = (0.0, 0.0) if prior is None else (float(prior[side, 2]), float(prior[side, 3]))
         # (fewer than 3 points: TIPM gives no corner then; if it did, the arm says ~nothing)
-        ratio = (_leverage(x, xc, w) / _leverage(sign * full, xc, w) if len(x) >= 3
-                 else 1e6)
+        ratio = (_leverage(_power_sums(x), xc, w) / _leverage(full[side], xc, w)
+                 if len(x) >= 3 else 1e6)
         var[side] = sigma * sigma * max(1.0, ratio)
     n_inv = _inv2(normals)
     return (n_inv * var) @ n_inv.T
 
 
-def _leverage(x: np.ndarray, xc: float, w: tuple[float, float]) -> float:
-    """Variance, per unit point noise, of a quadratic fit to columns ``x`` (ridge weights
-    ``w`` on slope and curvature, as :func:`~torchseam.vision.tipm._quadfit`) at ``xc``:
-    ``e^T A^-1 e`` with ``e = (1, xc, xc^2)``, ``A`` the 3x3 normal matrix (power sums)."""
+def _power_sums(x: np.ndarray) -> tuple[float, float, float, float, float]:
+    """(n, sum x, sum x^2, sum x^3, sum x^4)."""
     x2 = x * x
-    s0, s1, s2 = float(len(x)), float(x.sum()), float(x2.sum())
-    s3, s4 = float(x2 @ x), float(x2 @ x2)
-    a, b, c = s0, s1, s2
-    d, f = s2 + w[0], s3
-    g = s4 + w[1]                      # A = [[a, b, c], [b, d, f], [c, f, g]]
+    return float(len(x)), float(x.sum()), float(x2.sum()), float(x2 @ x), float(x2 @ x2)
+
+
+@functools.lru_cache(maxsize=8)
+def _full_arm_sums(gap: float, window: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Power sums of a complete left and right arm: one point per column ``gap..window`` px
+    from the corner."""
+    n, s1, s2, s3, s4 = _power_sums(np.arange(np.ceil(gap), np.floor(window) + 1))
+    return (n, -s1, s2, -s3, s4), (n, s1, s2, s3, s4)
+
+
+def _leverage(sums: tuple[float, ...], xc: float, w: tuple[float, float]) -> float:
+    """Variance, per unit point noise, of a quadratic fit at ``xc`` to columns with power sums
+    ``sums`` (:func:`_power_sums`), ridge weights ``w`` on slope and curvature (as
+    :func:`~torchseam.vision.tipm._quadfit`): ``e^T A^-1 e`` with ``e = (1, xc, xc^2)`` and
+    ``A`` the 3x3 normal matrix."""
+    a, b, c, f, g = sums
+    d, g = c + w[0], g + w[1]          # A = [[a, b, c], [b, d, f], [c, f, g]]
     # adjugate of the symmetric A (a handful of float ops: np.linalg.solve costs ~15 us)
     A00, A01, A02 = d * g - f * f, c * f - b * g, b * f - c * d
     A11, A12, A22 = a * g - c * c, b * c - a * f, a * d - b * b
     det = a * A00 + b * A01 + c * A02
-    e0, e1, e2 = 1.0, xc, xc * xc
-    q = (A00 * e0 * e0 + A11 * e1 * e1 + A22 * e2 * e2
-         + 2.0 * (A01 * e0 * e1 + A02 * e0 * e2 + A12 * e1 * e2))
+    e1, e2 = xc, xc * xc
+    q = (A00 + A11 * e1 * e1 + A22 * e2 * e2
+         + 2.0 * (A01 * e1 + A02 * e2 + A12 * e1 * e2))
     return q / det
 
 
