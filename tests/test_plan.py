@@ -202,6 +202,31 @@ def test_buffer_arms_prefer_measured_over_guessed():
     assert arm_angle(buffer(20), stale) < 0.5
 
 
+def test_buffer_arms_weigh_each_vote_by_the_arm_length_ecal_measured_it_over():
+    """A crossing's pixel error turns an arm by about error / radius: arms ECAL could measure
+    only on its innermost circle (short arm points) count for less than arms measured out to
+    its largest circle, even when they are the majority."""
+    from torchseam.plan.path import _weighted_median
+
+    x = np.arange(0.0, 20.0, 0.25)
+    true_arm = np.array([0.0, 0.6, 0.8])
+    leaning = np.array([0.0, 0.66, 0.75]) / np.linalg.norm([0.0, 0.66, 0.75])  # ~4 deg off
+    other = np.array([0.0, -0.6, 0.8])
+    buf = LookAheadBuffer(maxlen=200, smooth_mm=3.0, outlier_mm=0.2)
+    for i, xi in enumerate(x):
+        p = np.array([xi, 0.0, 0.0])
+        short = i % 3 != 0  # two in three points: the arm seen on the first circle only
+        a, r = (leaning, 2.0) if short else (true_arm, 7.0)
+        buf.push(p, np.stack([p + r * a, p + r * other]), i / 25)
+    arm = buf.fit(40)[2][0]
+    assert np.degrees(np.arccos(np.clip(arm @ true_arm, -1, 1))) < 0.5
+    # equal weights: exactly the plain median
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 5, 8):
+        v = rng.normal(size=(n, 2, 3))
+        np.testing.assert_allclose(_weighted_median(v, np.ones_like(v)), np.median(v, axis=0))
+
+
 # --------------------------------------------------------------------------- prepare()
 
 def _prepared_pair(maxlen: int = 1000, n: int = 120, seed: int = 3):
