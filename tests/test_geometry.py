@@ -209,3 +209,32 @@ def test_single_rotation_to_quaternion_matches_the_batched_scipy_path():
     np.testing.assert_allclose(one, batch, atol=1e-12)
     assert np.all(one[:, 0] >= 0)
     np.testing.assert_allclose(np.linalg.norm(one, axis=1), 1.0, atol=1e-12)
+
+
+def test_ecal_does_not_take_the_arm_angle_where_the_arm_vanishes():
+    """The right arm runs straight out to 40 px, bends 12 degrees over its last stretch and ends
+    at 49 px (hidden by the other pipe): the circle at 45 px crosses the bent stretch, the one
+    at 55 px finds one arm only. ECAL keeps the clean circle before the vanishing one."""
+    ecal = Ecal()
+    c = np.array([150.0, 150.0])
+    right = np.array([np.cos(np.radians(-25.0)), np.sin(np.radians(-25.0))])
+    bent = np.array([np.cos(np.radians(-37.0)), np.sin(np.radians(-37.0))])
+    knee = c + 40.0 * right
+
+    def mask_with(end_px: float) -> np.ndarray:
+        m = np.zeros((300, 300), np.uint8)
+        cv2.line(m, (150, 150), (20, 90), 255, 5)
+        cv2.line(m, (150, 150), tuple(int(round(v)) for v in knee), 255, 5)
+        if end_px > 40:
+            tip = knee + (end_px - 40.0) * bent
+            cv2.line(m, tuple(int(round(v)) for v in knee), tuple(int(round(v)) for v in tip),
+                     255, 5)
+        return m
+    res = ecal(mask_with(49.0), c)
+    assert res.ok and res.radius == pytest.approx(ecal.circles[1])   # 35 px, not 45
+    a = np.arctan2(*(res.p[1] - c)[::-1])
+    assert abs(np.degrees(a) + 25.0) < 2.0                           # the straight part's angle
+    # an arm ending at 40 px: clean on the 25 and 35 px circles; the 35 px one, next to where
+    # it vanishes, is dropped as well (never the last one left)
+    short = ecal(mask_with(30.0), c)
+    assert short.ok and short.radius == pytest.approx(ecal.circles[0])

@@ -215,6 +215,7 @@ class Ecal:
         best: EcalResult | None = None
         single: tuple[float, float, np.ndarray] | None = None
         radii, arm_angles, rejected_total = [], [], 0
+        kept: list[EcalResult] = []  # the result at each clean circle
         on, val = self.polar(mask, uv, intensity)
         for r, (cands, rejected) in zip(self.circles, self.crossings(on, val, uv), strict=True):
             rejected_total += rejected
@@ -223,7 +224,15 @@ class Ecal:
                 if len(cands) == 1 and single is None:
                     single = (float(r), cands[0][0], cands[0][1])
                 if best is not None:
-                    break  # the arms stop being clean further out: keep the last good circle
+                    # the arms stop being clean further out. The circle just inside, where an
+                    # arm is about to vanish (hidden by the other pipe, glare), is deflected
+                    # (image angles jumping 4-5 degrees on a 75-degree joint, then copied by
+                    # the occluded-arm fallback): keep the clean circle before it
+                    if len(radii) >= 2:
+                        radii.pop()
+                        arm_angles.pop()
+                        best = kept[-2]
+                    break
                 continue
             (a1, p1), (a2, p2) = pair
             prev_angles = np.array([a1, a2])  # follow the arms outwards
@@ -231,6 +240,7 @@ class Ecal:
             arm_angles.append(prev_angles)
             best = EcalResult(True, np.stack([p1, p2]), np.array([a1, a2]), float(r),
                               rejected=rejected_total)
+            kept.append(best)
         if best is not None:
             best.p_tangent = _tangent_points(uv, np.array(radii), np.array(arm_angles),
                                              best.radius, self.cfg.min_extrapolation_circles)
