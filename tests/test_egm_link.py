@@ -514,6 +514,18 @@ class StallMonitor:
         return any(a < hi and b > lo for a, b in self.stalls)
 
 
+def _link_within_budget(link, sent_ns: int, cfg) -> bool:
+    """Did the link answer the EgmRobot sent at ``sent_ns`` (or the newer one that superseded
+    it) with at most ``link.late_reply_ms`` of its own CPU time? The reply is the first logged
+    one whose newest EgmRobot arrived after ``sent_ns``; its batch must begin within a period
+    (the next EgmRobot never leaves sooner), else the log holds no record of this one."""
+    period_ns = 1e9 / cfg.sim_controller.rate_hz
+    rec = min((r for r in link.late_log if r.rx_ns >= sent_ns), key=lambda r: r.rx_ns,
+              default=None)
+    return (rec is not None and rec.first_rx_ns < sent_ns + period_ns
+            and rec.cpu_ms <= cfg.link.late_reply_ms)
+
+
 def test_loopback_session_250hz_10s_without_late_replies(robot_model, record_property):
     """10 s at 250 Hz: the sensor (link + synthetic tracker) in its own process, as in a cell.
 
@@ -522,9 +534,11 @@ def test_loopback_session_250hz_10s_without_late_replies(robot_model, record_pro
     left 103 of 2500 replies late, real-time none. Refused (no CAP_SYS_NICE), the session runs
     at normal priority, which keeps up on an idle machine; the printed table says which. A VM's
     hypervisor can still take a CPU away for tens of ms (measured here: a real-time canary
-    sleeping 1 ms woke up to 36 ms late, 10 times in 10 s; at worst 196 stalls in 10 s): a
-    canary process records such stalls, and a late reply must line up with one. On a quiet
-    machine: no late reply at all.
+    sleeping 1 ms woke up to 36 ms late, 10 times in 10 s; at worst 196 stalls in 10 s, and on
+    a CI machine 913): a canary process records such stalls, and a late reply must line up
+    with one, or the link's own record of it (``EgmStats.late_log``) must show that the link
+    did its work within ``link.late_reply_ms`` of CPU time while the rest went to waiting for
+    a CPU. On a quiet machine: no late reply at all.
     """
     cfg = load_egm_config()
     cfg = dataclasses.replace(
@@ -533,10 +547,16 @@ def test_loopback_session_250hz_10s_without_late_replies(robot_model, record_pro
     with StallMonitor() as machine:
         result = loopback_session(cfg, 10.0, mode="pathcorr", sim_kwargs={"robot": robot_model})
     sim, link = result.sim, result.link
-    explained = [t for t in sim.late_cycles_ns if machine.explains(t)]
+    stalled = [t for t in sim.late_cycles_ns if machine.explains(t)]
+    # the link's own record of each late reply: within its CPU budget, the time that made it
+    # late was the machine's (the link thread waiting for a CPU, or taken off one)
+    off_cpu = [t for t in sim.late_cycles_ns
+               if t not in stalled and _link_within_budget(link, t, cfg)]
+    explained = stalled + off_cpu
     worst = max((b - a for a, b in machine.stalls), default=0) / 1e6
     print(f"\n{result.table()}\n  machine stalls > 1 ms: {len(machine.stalls)} "
-          f"(longest {worst:.1f} ms); late replies during one: {len(explained)}")
+          f"(longest {worst:.1f} ms); late replies during one: {len(stalled)}; others with "
+          f"the link's work within its budget, the machine holding its thread: {len(off_cpu)}")
     ctl, sen = latency_summary(sim.latency_ms), link.latency_summary()
     for name, d in (("controller", ctl), ("sensor", sen)):
         record_property(f"reply_latency_{name}_p50_ms", round(d["p50"], 3))

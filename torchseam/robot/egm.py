@@ -68,7 +68,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -107,6 +107,24 @@ ACCEPTED = Verdict(True)
 
 # --------------------------------------------------------------------------- statistics
 
+class LateReply(NamedTuple):
+    """One late reply of the link, by where its time went (wall-clock ns / ms).
+
+    A reply answers the newest of the ``EgmRobot`` queued when the serving thread woke (the
+    older ones are superseded); it is late when it left more than ``link.late_reply_ms`` after
+    the oldest of them arrived. ``wait_ms`` (that one in the kernel before the thread woke) and
+    the part of ``work_ms`` not in ``cpu_ms`` are time the thread did not run: the scheduler,
+    another process or the hypervisor had its CPU. ``cpu_ms`` is the link's own work (parse,
+    answer, ``sendto``: the thread's CPU clock, which stops while it is off the CPU).
+    """
+
+    first_rx_ns: int  # kernel receive time of the oldest EgmRobot answered (CLOCK_REALTIME)
+    rx_ns: int        # ... of the newest, the one the reply answers
+    wait_ms: float    # first_rx_ns -> serving thread awake
+    work_ms: float    # awake -> after ``sendto``
+    cpu_ms: float     # CPU time the serving thread used in ``work_ms``
+
+
 @dataclass
 class EgmStats:
     """Counters of one link (all cumulative since start).
@@ -128,6 +146,9 @@ class EgmStats:
             ``safety.watchdog_ms``; the first reply after one is a hold.
         send_errors: replies the socket refused.
         latency_ms: reply latency samples, ms (kernel receive time to after ``sendto``).
+        late_log: the most recent late replies (superseded ``EgmRobot`` included), each split
+            into where its time went (:class:`LateReply`): tells a machine that took the CPU
+            away from the link from a link that was too slow.
     """
 
     received: int = 0
@@ -144,6 +165,8 @@ class EgmStats:
     send_errors: int = 0
     latency_ms: collections.deque[float] = field(
         default_factory=lambda: collections.deque(maxlen=100_000))
+    late_log: collections.deque[LateReply] = field(
+        default_factory=lambda: collections.deque(maxlen=10_000))
 
     def latency_summary(self) -> dict[str, float]:
         """Reply latency ``p50``, ``p99``, ``max`` and ``mean`` in ms (NaN without samples)."""
@@ -426,7 +449,9 @@ class EgmLink:
         if not ready:
             self._check_silence(self._clock())
             return 0
+        woke_ns, cpu0_ns = time.time_ns(), time.thread_time_ns()
         newest: tuple[Any, tuple[Any, ...], int] | None = None
+        first_rx_ns = 0
         while True:
             try:
                 data, anc, flags, sender = sock.recvmsg(self._max_bytes + 1, 64)
@@ -444,6 +469,8 @@ class EgmLink:
                 if newest is not None:
                     with self._lock:
                         self._stats.superseded += 1
+                else:
+                    first_rx_ns = rx_ns
                 newest = (robot, sender, rx_ns)
         if newest is None:
             return 0
@@ -456,7 +483,13 @@ class EgmLink:
                 self._stats.send_errors += 1
             log.warning("EGM reply to %s failed: %s", sender, e)
             return 0
-        self._count_sent((time.time_ns() - rx_ns) / 1e6)
+        tx_ns = time.time_ns()
+        self._count_sent((tx_ns - rx_ns) / 1e6)
+        if (tx_ns - first_rx_ns) / 1e6 > self.config.link.late_reply_ms:
+            entry = LateReply(first_rx_ns, rx_ns, (woke_ns - first_rx_ns) / 1e6,
+                              (tx_ns - woke_ns) / 1e6, (time.thread_time_ns() - cpu0_ns) / 1e6)
+            with self._lock:
+                self._stats.late_log.append(entry)
         return 1
 
     # ------------------------------------------------------------------ measurements

@@ -144,6 +144,13 @@ class SessionResult:
             f"holds {dict(k.holds)}, refused {dict(k.refused)}, dropped {dict(k.dropped)}, "
             f"superseded {k.superseded}, late (> link.late_reply_ms) {k.late_replies}",
         ]
+        if k.late_log:
+            w = np.array([(r.wait_ms, r.work_ms, r.cpu_ms) for r in k.late_log])
+            p50, mx = np.median(w, axis=0), w.max(axis=0)
+            lines.append(
+                f"  sensor's late replies ({len(w)}), ms p50/max: waiting to run "
+                f"{p50[0]:.2f}/{mx[0]:.2f}, working {p50[1]:.2f}/{mx[1]:.2f}, of it on the CPU "
+                f"{p50[2]:.2f}/{mx[2]:.2f}")
         return "\n".join(lines)
 
 

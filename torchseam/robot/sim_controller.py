@@ -112,7 +112,8 @@ class SimStats:
         send_errors: datagrams the socket refused to send.
         max_lag_mm: largest distance between the planned and the fed-back TCP position.
         overruns: cycles that started more than half a period late (the schedule then
-            restarts from there rather than sending back to back).
+            moves: the next ``EgmRobot`` never leaves less than a period after the previous
+            one).
         latency_ms: send of ``EgmRobot`` to kernel arrival of the reply, ms (late replies
             included when they arrive during the next cycle).
         jitter_ms: cycle start minus its scheduled time, ms.
@@ -493,7 +494,7 @@ class SimController:
 
     def _send(self, data: bytes) -> int | None:
         """Send this cycle's datagram through the fault plan. Returns when (``time.time_ns()``
-        right after ``sendto``) the datagram that expects a reply left, or None if none does."""
+        right before ``sendto``) the datagram that expects a reply left, or None if none does."""
         with self._lock:
             fault = self._faults.popleft() if self._faults else None
             if fault is not None:
@@ -523,10 +524,13 @@ class SimController:
         sent_ns = None
         for d in out:
             try:
+                # stamped before the send: on loopback the sensor can receive, answer and be
+                # heard while this thread is still on its way out of sendto (preempted there,
+                # its reply would look older than the request and the cycle unanswered)
+                before_ns = time.time_ns()
                 self._sock.sendto(d, self.sensor_address)
-                # stamped after the send: a stall before it must not count against the sensor
                 if sent_ns is None:
-                    sent_ns = time.time_ns()
+                    sent_ns = before_ns
                 with self._lock:
                     self._stats.sent += 1
             except OSError as e:
@@ -627,12 +631,9 @@ class SimController:
                 self._stats.jitter_ms.append(late_s * 1e3)
                 if late_s > self.period / 2:
                     self._stats.overruns += 1
-            if late_s > self.period / 2:
-                # resync after a stall: two EgmRobot back to back would leave the sensor one
-                # of them to skip, which is the simulator's fault, not the sensor's
-                t_next = start
             # send at the tick what the previous cycle prepared, then prepare the next one
             # while the sensor answers: the sensor gets the whole period, as on an IRC5
+            sent_at = time.perf_counter()
             stamp = self._send(self._stamp(msg))
             expect = stamp is not None
             sent_ns = stamp if stamp is not None else time.time_ns()
@@ -649,7 +650,11 @@ class SimController:
             if on_cycle is not None:
                 on_cycle(self)
             k += 1
-            t_next += self.period
+            # never less than a period to the next EgmRobot: when this thread stalled between
+            # its tick and the send (or overran), the schedule moves. Sending the next one early
+            # would close this cycle before its period is up (or leave the sensor two back to
+            # back, one of them to skip): the simulator's fault, not the sensor's
+            t_next = max(t_next + self.period, sent_at + self.period)
         # the last cycle's reply window
         answered = self._receive_until(t_next, sent_ns if expect else None, answered)
         if not self._stop.is_set():
