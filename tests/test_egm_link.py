@@ -507,6 +507,23 @@ class StallMonitor:
         out, _ = self.proc.communicate("", timeout=30)
         self.stalls = [tuple(map(int, w.split(":"))) for w in out.split()]
 
+    @staticmethod
+    def wait_for_quiet(max_wait_s: float = 60.0, probe_s: float = 1.0,
+                       max_stalls: int = 2) -> tuple[float, int]:
+        """Wait (at most ``max_wait_s``) for a ``probe_s`` second in which the canary records
+        at most ``max_stalls`` stalls; returns (seconds waited, stalls in the last probe).
+        A shared VM's stalls come in storms (here: 17 to 17778 per 10 s within minutes): a
+        cell would not start a weld on a PC in one either. After the wait the session runs
+        whatever the machine does, and its stalls are recorded as before."""
+        t0, n = time.monotonic(), 0
+        while True:
+            with StallMonitor() as probe:
+                time.sleep(probe_s)
+            n = len(probe.stalls)
+            waited = time.monotonic() - t0
+            if n <= max_stalls or waited >= max_wait_s:
+                return waited, n
+
     def explains(self, sent_ns: int, period_ns: int = 4_000_000) -> bool:
         """Did a stall come within 5 ms of the reply window [sent, sent + one period]? On a
         machine that stalls, smaller delays the canary cannot see cluster around the big ones."""
@@ -544,9 +561,11 @@ def test_loopback_session_250hz_10s_without_late_replies(robot_model, record_pro
     cfg = dataclasses.replace(
         cfg, link=dataclasses.replace(cfg.link, rt_priority=10),
         sim_controller=dataclasses.replace(cfg.sim_controller, rt_priority=10))
+    waited, probe_stalls = StallMonitor.wait_for_quiet()
     with StallMonitor() as machine:
         result = loopback_session(cfg, 10.0, mode="pathcorr", sim_kwargs={"robot": robot_model})
     sim, link = result.sim, result.link
+    print(f"\n  waited {waited:.1f} s for a quiet second ({probe_stalls} stalls in the last)")
     stalled = [t for t in sim.late_cycles_ns if machine.explains(t)]
     # the link's own record of each late reply: within its CPU budget, the time that made it
     # late was the machine's (the link thread waiting for a CPU, or taken off one)
