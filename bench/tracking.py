@@ -40,9 +40,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--levels", default="clean,strike,heavy")
     ap.add_argument("--trackers", default=",".join(ORDER))
-    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--batch", type=int, default=64,
+                    help="B of the batched torch run (0: skip it; default 64)")
     ap.add_argument("--batch-threads", type=int, default=2)
     args = ap.parse_args()
+    if args.batch < 0 or args.batch_threads < 1:
+        ap.error("--batch must be >= 0 and --batch-threads >= 1")
     trackers = args.trackers.split(",")
     for t in trackers:
         if t not in TRACKERS:
@@ -85,7 +88,7 @@ def main() -> None:
                         "ms p50", "ms p99"], rows))
     print("Errors over the arc frames; 'lost' = no point or > 15 px off. Time: BGR frame in "
           "memory -> point, per frame, single stream.")
-    if "eakf-stc" in trackers and grey_bank:
+    if "eakf-stc" in trackers and grey_bank and args.batch > 0:
         batch_table(grey_bank, args.batch, args.batch_threads)
 
 
