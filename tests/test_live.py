@@ -190,3 +190,46 @@ def test_preparing_between_frames_changes_no_command(cell, part, noise, baseline
     assert len(with_prep.sent) == len(without.sent) == len(baseline.sent)
     for a, b in zip(with_prep.sent, without.sent, strict=True):
         assert a[0] == b[0] and np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])
+
+
+def test_demo_video_thread_is_idle_when_the_loop_takes_a_frame():
+    """The recorder overlaps rendering and robot motion only: after ``idle()`` every frame
+    handed to it is written; a writer error reaches the weld at the next frame."""
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from torchseam.live.demo import _VideoThread
+
+    class SlowWriter:
+        def __init__(self) -> None:
+            self.frames: list[tuple[int, int]] = []
+            self.busy = threading.Event()
+
+        def write(self, img: np.ndarray) -> None:
+            self.busy.set()
+            time.sleep(0.02)  # an encoder slower than handing over a frame
+            self.frames.append(img.shape[:2])
+            self.busy.clear()
+
+    w = SlowWriter()
+    vt = _VideoThread(w)
+    truth = SimpleNamespace(t_s=0.0)
+    frame = np.zeros((40, 60, 3), np.uint8)
+    for k in range(3):
+        vt.put(frame, truth, None, None, "a")
+        vt.idle()
+        assert len(w.frames) == k + 1 and not w.busy.is_set()
+    assert w.frames == [(20, 30)] * 3  # half size
+    vt.close()
+
+    class Broken:
+        def write(self, img: np.ndarray) -> None:
+            raise OSError("disk full")
+
+    vt = _VideoThread(Broken())
+    vt.put(frame, truth, None, None, "a")
+    vt.idle()  # returns although the write failed
+    with pytest.raises(RuntimeError, match="disk full"):
+        vt.put(frame, truth, None, None, "a")
+    vt.close()
