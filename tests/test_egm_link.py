@@ -708,3 +708,42 @@ def test_fault_injection_on_the_wire(robot_model, caplog):
         sim.stop()
         link.stop()
         foreign.close()
+
+
+def test_late_log_tells_waiting_from_working():
+    """A reply late because the EgmRobot waited for the serving thread shows as waiting; one
+    late because the link worked on it shows as CPU time (``EgmStats.late_log``)."""
+    cfg = load_egm_config()
+    ctrl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    ctrl.bind(("127.0.0.1", 0))
+    ctrl.settimeout(2.0)
+    link = EgmLink(_ephemeral(cfg, "pathcorr", ctrl.getsockname()[1]))
+    late_ms = cfg.link.late_reply_ms
+    try:
+        # 1. nobody serves for 3 x late_reply_ms: the datagram waits in the kernel
+        ctrl.sendto(robot_bytes(1), link.address)
+        time.sleep(3 * late_ms / 1e3)
+        assert link.serve_once(1.0) == 1
+        ctrl.recvfrom(2048)
+        (r,) = link.stats.late_log
+        assert r.first_rx_ns == r.rx_ns and r.wait_ms >= 2.5 * late_ms
+        assert r.cpu_ms < r.wait_ms / 2 and link.stats.late_replies == 1
+        # 2. the link itself works for 3 x late_reply_ms on the answer
+        answer = link._answer
+
+        def slow(robot):
+            t_end = time.thread_time() + 3 * late_ms / 1e3
+            while time.thread_time() < t_end:
+                pass
+            return answer(robot)
+
+        link._answer = slow
+        ctrl.sendto(robot_bytes(2), link.address)
+        assert link.serve_once(1.0) == 1
+        ctrl.recvfrom(2048)
+        r = link.stats.late_log[-1]
+        assert r.cpu_ms >= 2.5 * late_ms and r.work_ms >= r.cpu_ms - 0.05  # clocks read in turn
+        assert link.stats.late_replies == 2
+    finally:
+        link.stop()
+        ctrl.close()

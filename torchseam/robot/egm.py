@@ -483,11 +483,11 @@ class EgmLink:
                 self._stats.send_errors += 1
             log.warning("EGM reply to %s failed: %s", sender, e)
             return 0
-        tx_ns = time.time_ns()
+        tx_ns, cpu_ns = time.time_ns(), time.thread_time_ns() - cpu0_ns
         self._count_sent((tx_ns - rx_ns) / 1e6)
         if (tx_ns - first_rx_ns) / 1e6 > self.config.link.late_reply_ms:
             entry = LateReply(first_rx_ns, rx_ns, (woke_ns - first_rx_ns) / 1e6,
-                              (tx_ns - woke_ns) / 1e6, (time.thread_time_ns() - cpu0_ns) / 1e6)
+                              (tx_ns - woke_ns) / 1e6, cpu_ns / 1e6)
             with self._lock:
                 self._stats.late_log.append(entry)
         return 1
