@@ -203,3 +203,35 @@ def test_docstring_example_runs() -> None:
 
     result = doctest.testmod(torchseam.track.lite)
     assert result.failed == 0 and result.attempted > 0
+
+
+def test_learning_between_frames_gives_the_same_track(heavy):
+    """``idle()`` (the live loop's between-frames hook) applies the context learning that the
+    next step would apply itself: the same numbers, bit for bit, whether it is called or not,
+    with re-anchoring, and whatever the caller does to its frame buffer after a step."""
+    frames, truth = heavy
+    module = fitted_eakf_stc()
+    runs = []
+    for between in (False, True):
+        lite = LiteEAKFSTC.from_module(module)
+        buf = frames[0].copy()
+        lite.init(buf, truth[0])
+        out = []
+        for k, f in enumerate(frames[1:], start=1):
+            buf[...] = f  # one camera buffer, refilled every frame
+            uv, status, q = lite.step(buf)
+            if k % REANCHOR_EVERY == 0:
+                lite.reanchor(buf, truth[k])
+            buf[...] = 0  # the driver reuses the buffer before the learning is applied
+            if between:
+                assert lite._pending
+                lite.idle()
+                assert not lite._pending
+            out.append((uv, status, q["psr"], q["trust"]))
+        runs.append(out)
+    for (uv_a, st_a, psr_a, tr_a), (uv_b, st_b, psr_b, tr_b) in zip(*runs, strict=True):
+        np.testing.assert_array_equal(uv_a, uv_b)
+        assert (st_a, psr_a, tr_a) == (st_b, psr_b, tr_b)
+    # and the track is a real one: near the truth on this heavy sequence
+    err = np.linalg.norm(np.array([r[0] for r in runs[1]]) - truth[1:], axis=1)
+    assert np.median(err) < 2.0

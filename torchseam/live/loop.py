@@ -376,12 +376,16 @@ class LiveLoop:
         return ""
 
     def prepare(self) -> None:
-        """Work between frames: plan the target after the current one (the look-ahead
+        """Work between frames: the tracker's learning for the next frame (its ``idle()``),
+        and the plan of the target after the current one (the look-ahead
         buffer's seam fit) and let the sink's gate check its pose, so that the frame which
         finds the torch at its target only has to send. Changes no decision: the buffer drops
         the plan when a new point could change it and the gate re-checks a pose that differs
         (:meth:`LookAheadBuffer.prepare`, :meth:`ReachGate.prepare`). ``on_frame`` calls
         this after the frame's command is out; it is timed as the ``prepare`` stage."""
+        idle = getattr(self.locator.tracker, "idle", None)
+        if idle is not None:
+            idle()  # the tracker's learning for the next frame (EAKF-STC's context model)
         if self.state in (LoopState.DONE, LoopState.STARTING) or self.target is None:
             return
         step = self.cell.process.step_mm

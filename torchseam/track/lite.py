@@ -83,6 +83,9 @@ class LiteEAKFSTC:
         # re-crops at the filtered point, usually the pixel it detected at. Valid within one
         # step only (frame ids are reused): cleared when a step or re-anchoring ends.
         self._last_prior: tuple[tuple[int, int, int], np.ndarray] | None = None
+        # learning steps not applied yet (see idle): (window or None, its prior spectrum or
+        # None, centre, rho scale), in order
+        self._pending: list[tuple[np.ndarray | None, np.ndarray | None, np.ndarray, float]] = []
         self._kernel = np.ones((3, 3), np.uint8)
         self.x = self.P = self.Z = self.s = self.s_ref = self.x_post = None
         self.coast = 0
@@ -148,16 +151,37 @@ class LiteEAKFSTC:
         key = (id(frame), int(c[0]), int(c[1]))
         if self._last_prior is not None and self._last_prior[0] == key:
             return self._last_prior[1]  # learning where it detected: the very same window
-        win = self._window(frame, c)
-        prior_f = scipy.fft.rfft2((win - win.mean()) * self.weight)  # eq. 4-5 (context_prior)
+        prior_f = self._spectrum(self._window(frame, c))
         self._last_prior = (key, prior_f)
         return prior_f
 
+    def _spectrum(self, win: np.ndarray) -> np.ndarray:
+        return scipy.fft.rfft2((win - win.mean()) * self.weight)  # eq. 4-5 (context_prior)
+
     # ------------------------------------------------------------------ STC
     def _learn(self, frame: np.ndarray, centre: np.ndarray, rho_scale: float) -> None:
-        """Eq. 8-9 at ``centre`` (STC.learn)."""
+        """Eq. 8-9 at ``centre`` (STC.learn), applied by :meth:`idle` or the next step: only
+        the window is cut now (the caller may reuse the frame's buffer)."""
         r = np.floor(centre + 0.5)
-        prior_f = self._prior_f(frame, r)
+        key = (id(frame), int(r[0]), int(r[1]))
+        centre = np.array(centre, dtype=float)
+        if self._last_prior is not None and self._last_prior[0] == key:
+            self._pending.append((None, self._last_prior[1], centre, rho_scale))
+        else:
+            self._pending.append((self._window(frame, r), None, centre, rho_scale))
+
+    def idle(self) -> None:
+        """Apply the learning left from the last step or re-anchoring (the context model the
+        next frame is searched with). :meth:`step` does it first if nobody did; the live loop
+        calls this between frames, after its command is out, where it costs nothing on the
+        frame -> command path. Same numbers either way."""
+        pending, self._pending = self._pending, []
+        for win, prior_f, centre, rho_scale in pending:
+            self._apply_learn(self._spectrum(win) if prior_f is None else prior_f, centre,
+                              rho_scale)
+
+    def _apply_learn(self, prior_f: np.ndarray, centre: np.ndarray, rho_scale: float) -> None:
+        r = np.floor(centre + 0.5)
         d = centre - r  # the target's sub-pixel place in the integer crop (fourier_shift)
         ramp = np.exp(1j * (d[1] * self._fy))[:, None] * np.exp(1j * (d[0] * self._fx))[None]
         h_f = (self.conf_f * ramp) / (prior_f + self.eps) if self.eps else \
@@ -235,8 +259,10 @@ class LiteEAKFSTC:
         self.x_post = None
         self.H_f, self.frame = None, 0
         self._last_prior = None
+        self._pending = []
         self._learn(frame, uv0, 1.0)
         self._last_prior = None
+        self.idle()
         self.coast, self.status = 0, int(TrackStatus.TRACKED)
 
     @property
@@ -249,6 +275,7 @@ class LiteEAKFSTC:
         if self.H_f is None:
             raise TrackInputError("LiteEAKFSTC.step: call init(frame, uv0) first")
         frame = self._frame(frame)
+        self.idle()  # the last step's learning, if nobody applied it between frames
         hi, wi = frame.shape[:2]
         Phi, x, P = self.Phi, self.x, self.P
         pred = (Phi[:, 0, :] * x).sum(axis=-1)                             # 1. prediction

@@ -33,6 +33,9 @@ OPENCV_BOX_PX = 64  # side of the box the OpenCV trackers follow (twice the targ
 
 
 class FrameTracker(Protocol):
+    """What the live loop and the CLI drive. A tracker may also offer ``idle()``: work
+    for the next frame that the live loop runs between frames, after its command is out."""
+
     name: str
 
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None: ...
@@ -109,6 +112,10 @@ class LiteTracker:
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
         uv, status, _ = self.lite.step(frame)
         return uv, status
+
+    def idle(self) -> None:
+        """Between frames: the context learning of the last update (see LiteEAKFSTC.idle)."""
+        self.lite.idle()
 
 
 class OpenCVTracker:
@@ -304,6 +311,10 @@ class AnchoredTracker:
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
         self.inner.init(frame, uv)
         self._restart(uv, self.Q.copy(), None)
+
+    def idle(self) -> None:
+        """Between frames: EAKF-STC's learning of the last update and re-anchoring."""
+        self.inner.idle()
 
     def _prior(self) -> np.ndarray | None:
         if self.shape is None:
