@@ -1,21 +1,26 @@
 """Does watching the weld slow it? The live loop's latency with the console open vs without.
 
     .venv/bin/python bench/console.py [--repeats 3] [--segments a] [--length-mm 40]
-                                      [--clients 2] [--browser]
+                                      [--clients 2] [--browser] [--pace P]
+                                      [--rt-priority N]
 
-Each repeat welds the same short simulated weld (``run_demo``, unpaced) twice, in alternating
-order: ``off`` calls :func:`run_demo` directly (no observer, no server); ``on`` runs it through
-the console (observer, ring buffers, publisher, JPEG encoding) with ``--clients`` headless
-WebSocket clients (in a child process, as a browser is) reading the whole stream, plus, with
-``--browser``, the page itself open in headless Chromium (Debian's ``/usr/bin/chromium``,
-through Playwright), and a third run per repeat, ``off +blank``: no console, Chromium open on an
-empty page (is it the browser being there, or what our page does?). Columns: the loop's
-frame -> command latency p50 / p99 (``DemoResult.summary``), wall time and wall ms per frame
-(render + loop + simulated controller + observer), the JPEG frames and updates the clients got,
-and the CPU seconds Chromium's processes used during the weld (``/proc``; Linux).
-The last table holds the medians over the repeats and the ratio on / off; the target is within
-10 %. One short weld first warms up (not counted). The machine's load average is printed: on a
-shared 2-core machine single runs are noisy.
+Each repeat welds the same short simulated weld (``run_demo``) twice, in alternating order, at
+the console's pacing (``--pace``, default ``configs/console.yaml: pace``, 1.0: the camera's
+frame rate, as a cell runs; 0: flat out, the loop then takes a whole core and anything else on
+the machine competes with it), and with the console's scheduling of the weld thread
+(``--rt-priority``, default ``configs/console.yaml: rt_priority``: SCHED_FIFO while paced, where
+granted, in both runs): ``off`` calls :func:`run_demo` directly (no observer, no server); ``on``
+runs it through the console (observer, ring buffers, publisher, JPEG encoding) with
+``--clients`` headless WebSocket clients (in a child process, as a browser is) reading the whole
+stream, plus, with ``--browser``, the page itself open in headless Chromium (Debian's
+``/usr/bin/chromium``, through Playwright), and a third run per repeat, ``off +blank``: no
+console, Chromium open on an empty page (is it the browser being there, or what our page does?).
+Columns: the loop's frame -> command latency p50 / p99 (``DemoResult.summary``), wall time and
+wall ms per frame (render + loop + simulated controller + observer), the JPEG frames and updates
+the clients got, and the CPU seconds Chromium's processes used during the weld (``/proc``;
+Linux). The last table holds the medians over the repeats and the ratio on / off; the target is
+within 10 %. One short weld first warms up (not counted). The machine's load average is printed:
+on a shared 2-core machine single runs are noisy.
 """
 
 from __future__ import annotations
@@ -36,10 +41,12 @@ import numpy as np
 import torch
 
 from torchseam.console.config import load_console_config
+from torchseam.console.session import PacedControl
 from torchseam.console.sim import simulated_console
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.report import format_table
 from torchseam.live.demo import run_demo
+from torchseam.robot.egm import set_realtime_priority
 
 
 def _read_stream(url: str, n: int, stop, counts) -> None:
@@ -122,9 +129,16 @@ def run_off(cell, part, noise, level, args, browser=None) -> dict:
         page.goto("about:blank")
         time.sleep(1.0)
     cpu0 = chromium_cpu_s()
+    # the weld thread's scheduling as the console's (WeldSession._run): real-time when paced
+    rt = args.rt_priority > 0 and args.pace > 0 and set_realtime_priority(args.rt_priority,
+                                                                           "bench weld")
     t0 = time.perf_counter()
-    res = run_demo(cell, part, noise, level, args.seed, segments=args.segments,
-                   length_mm=args.length_mm)
+    try:
+        res = run_demo(cell, part, noise, level, args.seed, segments=args.segments,
+                       length_mm=args.length_mm, control=_paced(cell, args.pace))
+    finally:
+        if rt:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     wall = time.perf_counter() - t0
     cpu = chromium_cpu_s() - cpu0
     if page is not None:
@@ -133,8 +147,14 @@ def run_off(cell, part, noise, level, args, browser=None) -> dict:
                 float("nan"), cpu)
 
 
+def _paced(cell, pace: float) -> PacedControl:
+    """The console's pacing (:class:`WeldSession` does the same) for the runs without it."""
+    return PacedControl(1.0 / cell.process.frame_rate_hz / pace if pace > 0 else 0.0)
+
+
 def run_on(cell, part, noise, args, browser) -> dict:
-    cfg = dataclasses.replace(load_console_config(), pace=0.0)
+    cfg = dataclasses.replace(load_console_config(), pace=args.pace,
+                              rt_priority=args.rt_priority)
     con = simulated_console(cfg, cell, part, noise)
     host, port = con.start_in_thread("127.0.0.1", 0)
     url = f"http://{host}:{port}"
@@ -191,7 +211,23 @@ def main() -> None:
     ap.add_argument("--clients", type=int, default=2, help="headless WebSocket clients")
     ap.add_argument("--browser", action="store_true",
                     help="also keep the page open in headless Chromium during 'on' runs")
+    ap.add_argument("--pace", type=float, default=None,
+                    help="weld no faster than this many times the camera's frame rate, both "
+                         "with and without the console (default: configs/console.yaml pace; "
+                         "0: flat out)")
+    ap.add_argument("--rt-priority", type=int, default=None,
+                    help="SCHED_FIFO priority of the paced weld thread, with and without the "
+                         "console (default: configs/console.yaml rt_priority; 0: normal)")
     args = ap.parse_args()
+    ccfg = load_console_config()
+    if args.pace is None:
+        args.pace = ccfg.pace
+    if args.pace < 0:
+        ap.error(f"--pace must be >= 0, got {args.pace:g}")
+    if args.rt_priority is None:
+        args.rt_priority = ccfg.rt_priority
+    if not 0 <= args.rt_priority <= 99:
+        ap.error(f"--rt-priority must be in 0..99, got {args.rt_priority}")
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     cell, part, noise = load_cell(), load_part(), load_noise()
@@ -199,7 +235,11 @@ def main() -> None:
     print(f"console bench: segments {args.segments}, {args.length_mm:g} mm each, noise "
           f"{args.noise}, {args.clients} WebSocket client(s)"
           + (" + Chromium" if args.browser else "")
-          + f", {args.repeats} repeat(s); {os.cpu_count()} CPUs, Python "
+          + f", {args.repeats} repeat(s), pace {args.pace:g}"
+            + (" (camera rate)" if args.pace == 1 else " (flat out)" if args.pace == 0 else "")
+            + (f", weld thread SCHED_FIFO {args.rt_priority}"
+               if args.rt_priority and args.pace > 0 else ", normal scheduling")
+            + f"; {os.cpu_count()} CPUs, Python "
             f"{platform.python_version()}, load {os.getloadavg()[0]:.1f}")
     pw = browser = None
     if args.browser:

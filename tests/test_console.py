@@ -314,6 +314,33 @@ def _raw_ws_client(url: str) -> socket.socket:
     return s
 
 
+@pytest.mark.parametrize("pace", [1.0, 0.0])
+def test_a_paced_weld_thread_asks_for_real_time_priority(cfg, pace):
+    """Paced, the weld thread runs at ``rt_priority`` (SCHED_FIFO) or says in the log that it
+    was refused; flat out it never asks (it would keep a core from everything else)."""
+    seen = []
+
+    def weld(params, observer, control):
+        seen.append((os.sched_getscheduler(0), os.sched_getparam(0).sched_priority))
+        return DemoResult(summary={"frames": 0, "stopped": False})
+
+    session = WeldSession(dataclasses.replace(cfg, pace=pace, rt_priority=7), weld, 0.04)
+    session.start(parse_params(GOOD, cfg.limits, _noise(), FAULTS, TRACKERS))
+    assert session.join(10)
+    log = [m[3] for m in session.messages]
+    policy, prio = seen[0]
+    if pace == 0:
+        assert (policy, prio) == (os.SCHED_OTHER, 0)
+        assert not any("real-time" in m for m in log)
+    elif policy == os.SCHED_FIFO:
+        assert prio == 7
+        assert any("weld thread at real-time priority 7" in m for m in log)
+    else:
+        assert policy == os.SCHED_OTHER
+        assert any("real-time priority 7 refused" in m for m in log)
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the caller's thread is untouched
+
+
 def test_a_client_that_never_reads_is_dropped_and_does_not_slow_the_weld(cfg, served):
     fast = dataclasses.replace(cfg, server=dataclasses.replace(cfg.server, send_timeout_s=1.0),
                                publish=dataclasses.replace(cfg.publish, rate_hz=30.0,

@@ -75,6 +75,7 @@ class ConsoleConfig:
     history: HistorySettings
     limits: ParamLimits
     pace: float = _f(lo=0.0)
+    rt_priority: int = _f(lo=0, hi=99)  # SCHED_FIFO priority of the paced weld thread; 0: normal
 
 
 def load_console_config(path: str | Path | None = None) -> ConsoleConfig:

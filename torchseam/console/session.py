@@ -23,6 +23,7 @@ import numpy as np
 
 from torchseam.console.config import ConsoleConfig, WeldParams
 from torchseam.live.demo import DemoControl, DemoEvent, DemoResult
+from torchseam.robot.egm import set_realtime_priority
 
 #: ``weld(params, observer, control) -> DemoResult``: what the session runs on its thread.
 WeldFn = Callable[[WeldParams, Callable[[DemoEvent], None], DemoControl], DemoResult]
@@ -201,6 +202,17 @@ class WeldSession:
             raise RuntimeError(f"{what}: no weld is running")
 
     def _run(self, params: WeldParams, control: PacedControl) -> None:
+        prio = self.cfg.rt_priority
+        if prio > 0 and self._period > 0:
+            # a paced weld sleeps most of each frame period; at real-time priority it gets a
+            # core the moment its frame is due, ahead of the browser and this server (flat
+            # out, it would keep a core from them)
+            if set_realtime_priority(prio, "console weld thread"):
+                self.log(f"weld thread at real-time priority {prio} (SCHED_FIFO)")
+            else:
+                self.log(f"real-time priority {prio} refused for the weld thread (needs "
+                         "CAP_SYS_NICE or an RLIMIT_RTPRIO): normal scheduling, so a browser "
+                         "on this PC can slow the loop", level="warn")
         try:
             res = self._weld(params, self.observe, control)
         except Exception as e:  # noqa: BLE001 - shown to the operator, the console lives on
