@@ -13,14 +13,15 @@ granted, in both runs): ``off`` calls :func:`run_demo` directly (no observer, no
 runs it through the console (observer, ring buffers, publisher, JPEG encoding) with
 ``--clients`` headless WebSocket clients (in a child process, as a browser is) reading the whole
 stream, plus, with ``--browser``, the page itself open in headless Chromium (Debian's
-``/usr/bin/chromium``, through Playwright), and a third run per repeat, ``off +blank``: no
-console, Chromium open on an empty page (is it the browser being there, or what our page does?).
-Columns: the loop's frame -> command latency p50 / p99 (``DemoResult.summary``), wall time and
-wall ms per frame (render + loop + simulated controller + observer), the JPEG frames and updates
-the clients got, and the CPU seconds Chromium's processes used during the weld (``/proc``;
-Linux). The last table holds the medians over the repeats and the ratio on / off; the target is
-within 10 %. One short weld first warms up (not counted). The machine's load average is printed:
-on a shared 2-core machine single runs are noisy.
+``/usr/bin/chromium``, through Playwright, driven from a process of its own), and a third run
+per repeat, ``off +blank``: no console, Chromium open on an empty page (is it the browser being
+there, or what our page does?). Columns: the loop's frame -> command latency p50 / p99
+(``DemoResult.summary``), wall time and wall ms per frame (render + loop + simulated controller
++ observer), the JPEG frames and updates the clients got, and the CPU seconds Chromium's
+processes used during the weld (``/proc``; Linux). The last table holds the medians over the
+repeats and the ratio on / off; the target is within 10 %. One short weld first warms up (not
+counted). The machine's load average is printed: on a shared 2-core machine single runs are
+noisy.
 """
 
 from __future__ import annotations
@@ -104,6 +105,66 @@ class Reader:
         self._proc.join(timeout=10)
 
 
+def _browse(conn) -> None:
+    """Child process: headless Chromium driven by Playwright; ``conn`` gets ("open", url),
+    ("close",) and ("quit",), and answers each. Between commands it keeps Playwright's event
+    loop served, as the browser's own process would."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path="/usr/bin/chromium", headless=True)
+        page = None
+        conn.send("ready")
+        while True:
+            if page is not None:
+                page.wait_for_timeout(100)
+            elif not conn.poll(0.1):
+                continue
+            if not conn.poll():
+                continue
+            cmd = conn.recv()
+            if cmd[0] == "open":
+                page = browser.new_page(viewport={"width": 1440, "height": 1000})
+                page.goto(cmd[1])
+            elif cmd[0] == "close" and page is not None:
+                page.close()
+                page = None
+            elif cmd[0] == "quit":
+                browser.close()
+                conn.send("bye")
+                return
+            conn.send("ok")
+
+
+class Browser:
+    """Headless Chromium in a process of its own, Playwright included: a browser on the cell
+    PC is not driven from the console's process, so the bench must not be either (Playwright's
+    sync client in this process would take the interpreter lock from the weld thread)."""
+
+    def __init__(self) -> None:
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_browse, args=(child,), daemon=True)
+        self._proc.start()
+        self._call(None, 120)
+
+    def _call(self, cmd, timeout: float = 60) -> None:
+        if cmd is not None:
+            self._conn.send(cmd)
+        if not self._conn.poll(timeout) or self._conn.recv() not in ("ok", "ready", "bye"):
+            raise RuntimeError(f"the browser process did not answer {cmd}")
+
+    def open(self, url: str) -> None:
+        self._call(("open", url))
+
+    def close_page(self) -> None:
+        self._call(("close",))
+
+    def quit(self) -> None:
+        self._call(("quit",))
+        self._proc.join(timeout=10)
+
+
 def chromium_cpu_s() -> float:
     """CPU seconds (user + system) of the running Chromium processes, from ``/proc``."""
     total, tick = 0.0, os.sysconf("SC_CLK_TCK")
@@ -122,11 +183,9 @@ def chromium_cpu_s() -> float:
     return total
 
 
-def run_off(cell, part, noise, level, args, browser=None) -> dict:
-    page = None
+def run_off(cell, part, noise, level, args, browser: Browser | None = None) -> dict:
     if browser is not None:  # Chromium there, on an empty page: its cost without our page
-        page = browser.new_page(viewport={"width": 1440, "height": 1000})
-        page.goto("about:blank")
+        browser.open("about:blank")
         time.sleep(1.0)
     cpu0 = chromium_cpu_s()
     # the weld thread's scheduling as the console's (WeldSession._run): real-time when paced
@@ -141,9 +200,9 @@ def run_off(cell, part, noise, level, args, browser=None) -> dict:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     wall = time.perf_counter() - t0
     cpu = chromium_cpu_s() - cpu0
-    if page is not None:
-        page.close()
-    return _row("off" if page is None else "off +blank", 0, res.summary, wall, 0, 0,
+    if browser is not None:
+        browser.close_page()
+    return _row("off" if browser is None else "off +blank", 0, res.summary, wall, 0, 0,
                 float("nan"), cpu)
 
 
@@ -152,17 +211,15 @@ def _paced(cell, pace: float) -> PacedControl:
     return PacedControl(1.0 / cell.process.frame_rate_hz / pace if pace > 0 else 0.0)
 
 
-def run_on(cell, part, noise, args, browser) -> dict:
+def run_on(cell, part, noise, args, browser: Browser | None) -> dict:
     cfg = dataclasses.replace(load_console_config(), pace=args.pace,
                               rt_priority=args.rt_priority)
     con = simulated_console(cfg, cell, part, noise)
     host, port = con.start_in_thread("127.0.0.1", 0)
     url = f"http://{host}:{port}"
     reader = Reader(url, args.clients) if args.clients else None
-    page = None
     if browser is not None:
-        page = browser.new_page(viewport={"width": 1440, "height": 1000})
-        page.goto(url + "/")
+        browser.open(url + "/")
     time.sleep(1.0)  # let the page load and settle
     cpu0 = chromium_cpu_s()
     params = {**con.defaults, "segments": args.segments, "length_mm": args.length_mm,
@@ -171,18 +228,17 @@ def run_on(cell, part, noise, args, browser) -> dict:
                                  {"Content-Type": "application/json"}, method="POST")
     t0 = time.perf_counter()
     urllib.request.urlopen(req, timeout=10).read()
-    while con.session.running or con.session.summary is None:
-        if page is not None:
-            page.wait_for_timeout(100)  # keeps the page's event loop (Playwright) served
-        else:
-            time.sleep(0.05)
+    con.session.join()  # blocked, not polling: this thread leaves the weld's process alone
     wall = time.perf_counter() - t0
     cpu = chromium_cpu_s() - cpu0
     if reader is not None:
         reader.close()
-    if page is not None:
-        page.close()
+    if browser is not None:
+        browser.close_page()
     con.stop_thread()
+    if con.session.summary is None:
+        raise RuntimeError("the console's weld failed: " + "; ".join(
+            m[3] for m in con.session.messages if m[2] == "error"))
     frames = con.session.summary["frames"]
     obs_us = 1e6 * con.session.observer_s / max(frames, 1)
     mode = "on" + (" +chromium" if browser is not None else "")
@@ -241,12 +297,7 @@ def main() -> None:
                if args.rt_priority and args.pace > 0 else ", normal scheduling")
             + f"; {os.cpu_count()} CPUs, Python "
             f"{platform.python_version()}, load {os.getloadavg()[0]:.1f}")
-    pw = browser = None
-    if args.browser:
-        from playwright.sync_api import sync_playwright
-
-        pw = sync_playwright().start()
-        browser = pw.chromium.launch(executable_path="/usr/bin/chromium", headless=True)
+    browser = Browser() if args.browser else None
     run_demo(cell, part, noise, level, args.seed, segments=args.segments, length_mm=1.0)  # warm-up
     rows = []
     try:
@@ -260,8 +311,7 @@ def main() -> None:
                 print(format_table(COLS, [[r[c] for c in COLS]]).splitlines()[-1], flush=True)
     finally:
         if browser is not None:
-            browser.close()
-            pw.stop()
+            browser.quit()
     print("\nall runs (latency ms, wall s, ms per frame, observer us per frame, load average)")
     print(format_table(COLS, [[r[c] for c in COLS] for r in rows]))
     groups = {"off": [r for r in rows if r["mode"] == "off"],
