@@ -341,6 +341,49 @@ def test_a_paced_weld_thread_asks_for_real_time_priority(cfg, pace):
     assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the caller's thread is untouched
 
 
+def test_the_publisher_works_between_frames_not_during_them(cfg):
+    """Each publisher tick (status, JSON, sends: a few ms holding the interpreter lock) starts
+    right after a frame has been handed over, in the gap before the next, not half-way through
+    a frame. The fake loop works 20 ms of every 40 (sleeping, so the lock is free and a tick
+    *could* run then): ticks at random times would land in the work half of the time."""
+    work: list[tuple[float, float]] = []
+    ticks: list[float] = []
+
+    def weld(params, observer, control):
+        link = EgmLink(load_egm_config(), bind=False)
+        loop = SimpleNamespace(commands=[], stats=LoopStats(), nominal=np.zeros((2, 3)))
+        img = np.zeros((48, 64, 3), np.uint8)
+        uv = np.array([30.0, 20.0])
+        for k in range(60):
+            if control.checkpoint():
+                break
+            t0 = time.perf_counter()
+            time.sleep(0.020)                      # the frame's work
+            work.append((t0, time.perf_counter()))
+            rec = FrameRecord("a", 0.04 * k, True, uv, uv, 0, "tracking", np.zeros(3),
+                              np.zeros(3), 0.1, "")
+            observer(DemoEvent("a", k, img, rec, None, np.eye(4), loop, link))
+            time.sleep(0.020)                      # waiting for the camera
+        return DemoResult(summary={"frames": 60, "stopped": False})
+
+    fast = dataclasses.replace(cfg, publish=dataclasses.replace(cfg.publish, rate_hz=20.0))
+    session = WeldSession(fast, weld, 0.04)
+    con = ConsoleServer(fast, session, lambda raw: raw, GOOD, {}, source="fake")
+    real_status = session.status
+    session.status = lambda: ticks.append(time.perf_counter()) or real_status()
+    con.start_in_thread("127.0.0.1", 0)
+    try:
+        session.start(parse_params(GOOD, cfg.limits, _noise(), FAULTS, TRACKERS))
+        assert session.join(30)
+    finally:
+        con.stop_thread()
+    during = [t for t in ticks if work[0][0] <= t <= work[-1][1]]
+    inside = [t for t in during if any(a < t < b for a, b in work)]
+    assert len(during) >= 20, f"the publisher ticked {len(during)} times in 2.4 s at 20 Hz"
+    assert len(inside) <= 0.2 * len(during), (
+        f"{len(inside)} of {len(during)} ticks started while a frame was being worked on")
+
+
 def test_a_client_that_never_reads_is_dropped_and_does_not_slow_the_weld(cfg, served):
     fast = dataclasses.replace(cfg, server=dataclasses.replace(cfg.server, send_timeout_s=1.0),
                                publish=dataclasses.replace(cfg.publish, rate_hz=30.0,

@@ -138,6 +138,9 @@ class ConsoleServer:
         self._runner: web.AppRunner | None = None
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        # the publisher waits for the weld's next frame before each tick (see _publish)
+        self._frame_done: asyncio.Event | None = None
+        self._want_frame = False
         self.address: tuple[str, int] | None = None
 
     # ------------------------------------------------------------------ app
@@ -165,6 +168,7 @@ class ConsoleServer:
         return self.address
 
     async def close(self) -> None:
+        self.session.frame_done = None
         if self._publisher is not None:
             self._publisher.cancel()
         for c in list(self.clients):
@@ -209,12 +213,44 @@ class ConsoleServer:
             self._thread.join(timeout=10)
 
     # ------------------------------------------------------------------ publisher
+    def _on_frame_done(self) -> None:
+        """Weld thread, after each frame's record is stored: wake a publisher waiting for it
+        (a flag test per frame otherwise)."""
+        if self._want_frame and self._loop is not None and self._frame_done is not None:
+            self._want_frame = False
+            self._loop.call_soon_threadsafe(self._frame_done.set)
+
+    async def _after_next_frame(self, timeout: float) -> None:
+        """Wait until the weld has handed over its next frame (at most ``timeout``). The
+        publisher's work (status, JSON, sends) holds the interpreter lock for a few ms a tick;
+        started right after a frame, it falls in the gap before the next one instead of
+        stalling a frame half-way (measured: 2-3 ms stalls of the loop, waiting for the lock,
+        when the tick came at any time)."""
+        ev = self._frame_done
+        if ev is None or not self.session.running:
+            return
+        ev.clear()
+        self._want_frame = True
+        try:
+            await asyncio.wait_for(ev.wait(), timeout)
+        except asyncio.TimeoutError:
+            pass  # held, stopped or slow: tick anyway
+        finally:
+            self._want_frame = False
+
     async def _publish(self) -> None:
         pub = self.cfg.publish
         loop = asyncio.get_running_loop()
+        self._frame_done = asyncio.Event()
+        self.session.frame_done = self._on_frame_done
+        period = 1.0 / pub.rate_hz
         next_jpeg = next_link = 0.0
+        next_tick = loop.time()
         while True:
+            await self._after_next_frame(period)
             now = loop.time()
+            # the next tick on the rate's own schedule (waiting for frames does not slow it)
+            next_tick = max(next_tick + period, now)
             lf = self.session.latest
             if lf is not None and (self.jpeg is None or lf.seq != self.jpeg.seq) \
                     and now >= next_jpeg:
@@ -235,7 +271,7 @@ class ConsoleServer:
             self._updates = {}
             for c in self.clients:
                 c.wake.set()
-            await asyncio.sleep(1.0 / pub.rate_hz)
+            await asyncio.sleep(max(0.0, next_tick - loop.time()))
 
     def _link_state(self) -> dict[str, Any]:
         """The EGM link's state from its (locked) counters, with cycle rates."""

@@ -134,6 +134,9 @@ class WeldSession:
         self._loop_ref: Any = None
         self._last_msg = ""
         self.observer_s = 0.0          # time spent in the observer (all frames), s
+        # told (on the weld thread) when a frame's record is stored: the publisher does its
+        # work then, between frames, rather than beside the loop (ConsoleServer sets it)
+        self.frame_done: Callable[[], None] | None = None
 
     def _new_rings(self) -> _Rings:
         h = self.cfg.history
@@ -275,6 +278,9 @@ class WeldSession:
         if msg and msg != self._last_msg:
             self.log(f"[{ev.seg} t={r.t_s:.2f}s] {r.state}: {msg}", level="warn")
         self._last_msg = msg
+        done = self.frame_done
+        if done is not None:
+            done()
         self.observer_s += time.perf_counter() - t0
 
     def _subsample(self, path: np.ndarray | None) -> list[list[float]]:
