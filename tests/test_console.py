@@ -343,10 +343,11 @@ def test_a_paced_weld_thread_asks_for_real_time_priority(cfg, pace):
 
 def test_the_publisher_works_between_frames_not_during_them(cfg):
     """Each publisher tick (status, JSON, sends: a few ms holding the interpreter lock) starts
-    right after a frame has been handed over, in the gap before the next, not half-way through
-    a frame. The fake loop works 20 ms of every 40 (sleeping, so the lock is free and a tick
-    *could* run then): ticks at random times would land in the work half of the time."""
-    work: list[tuple[float, float]] = []
+    right after a frame has been handed over, in the gap before the next, not at a random
+    point of the frame period. The fake loop hands over a frame every 80 ms: ticks at random
+    times would come a median 40 ms after the last frame (53 ms measured before the publisher
+    waited for frames); the median, not every tick, so a slow machine's late wake-ups pass."""
+    handed: list[float] = []
     ticks: list[float] = []
 
     def weld(params, observer, control):
@@ -357,16 +358,15 @@ def test_the_publisher_works_between_frames_not_during_them(cfg):
         for k in range(60):
             if control.checkpoint():
                 break
-            t0 = time.perf_counter()
-            time.sleep(0.020)                      # the frame's work
-            work.append((t0, time.perf_counter()))
+            time.sleep(0.030)                      # the frame's work
             rec = FrameRecord("a", 0.04 * k, True, uv, uv, 0, "tracking", np.zeros(3),
                               np.zeros(3), 0.1, "")
+            handed.append(time.perf_counter())
             observer(DemoEvent("a", k, img, rec, None, np.eye(4), loop, link))
-            time.sleep(0.020)                      # waiting for the camera
+            time.sleep(0.050)                      # waiting for the camera
         return DemoResult(summary={"frames": 60, "stopped": False})
 
-    fast = dataclasses.replace(cfg, publish=dataclasses.replace(cfg.publish, rate_hz=20.0))
+    fast = dataclasses.replace(cfg, publish=dataclasses.replace(cfg.publish, rate_hz=10.0))
     session = WeldSession(fast, weld, 0.04)
     con = ConsoleServer(fast, session, lambda raw: raw, GOOD, {}, source="fake")
     real_status = session.status
@@ -374,14 +374,14 @@ def test_the_publisher_works_between_frames_not_during_them(cfg):
     con.start_in_thread("127.0.0.1", 0)
     try:
         session.start(parse_params(GOOD, cfg.limits, _noise(), FAULTS, TRACKERS))
-        assert session.join(30)
+        assert session.join(60)
     finally:
         con.stop_thread()
-    during = [t for t in ticks if work[0][0] <= t <= work[-1][1]]
-    inside = [t for t in during if any(a < t < b for a, b in work)]
-    assert len(during) >= 20, f"the publisher ticked {len(during)} times in 2.4 s at 20 Hz"
-    assert len(inside) <= 0.2 * len(during), (
-        f"{len(inside)} of {len(during)} ticks started while a frame was being worked on")
+    after = np.array([t - max(h for h in handed if h <= t) for t in ticks
+                      if handed[0] <= t <= handed[-1]])
+    assert len(after) >= 20, f"the publisher ticked {len(after)} times in 4.8 s at 10 Hz"
+    assert np.median(after) < 0.012, (
+        f"ticks came a median {1e3 * np.median(after):.1f} ms after the last frame")
 
 
 def test_a_client_that_never_reads_is_dropped_and_does_not_slow_the_weld(cfg, served):

@@ -96,6 +96,11 @@ class _Jpeg:
     data: bytes
 
 
+#: The longest a publisher tick waits for the weld's next frame (a camera's frame period is
+#: shorter): without a frame by then (held, stopped, a slow source) it ticks anyway.
+FRAME_WAIT_S = 0.1
+
+
 @dataclass(eq=False)
 class _Client:
     ws: web.WebSocketResponse
@@ -247,14 +252,16 @@ class ConsoleServer:
         next_jpeg = next_link = 0.0
         next_tick = loop.time()
         while True:
-            await self._after_next_frame(period)
+            await self._after_next_frame(max(period, FRAME_WAIT_S))
             now = loop.time()
             # the next tick on the rate's own schedule (waiting for frames does not slow it)
             next_tick = max(next_tick + period, now)
             lf = self.session.latest
             if lf is not None and (self.jpeg is None or lf.seq != self.jpeg.seq) \
                     and now >= next_jpeg:
-                next_jpeg = now + 1.0 / pub.jpeg_rate_hz
+                # on the rate's schedule: ticks come up to a frame late, and a deadline from
+                # ``now`` would skip every other frame at jpeg_rate_hz == rate_hz
+                next_jpeg = max(next_jpeg + 1.0 / pub.jpeg_rate_hz, now - 0.5 / pub.rate_hz)
                 try:
                     data = await loop.run_in_executor(self._encoder, render_frame, lf,
                                                       pub.jpeg_scale, pub.jpeg_quality)
@@ -263,7 +270,7 @@ class ConsoleServer:
                 except Exception as e:  # noqa: BLE001 - a bad frame must not end the stream
                     self.session.log(f"frame not shown: {e}", level="error")
             if now >= next_link:
-                next_link = now + 1.0 / pub.link_stats_hz
+                next_link = max(next_link + 1.0 / pub.link_stats_hz, now - 0.5 / pub.rate_hz)
                 self._link = self._link_state()
             self._status = self.session.status()
             self._status["link"] = self._link
