@@ -384,6 +384,19 @@ def test_the_publisher_works_between_frames_not_during_them(cfg):
         f"ticks came a median {1e3 * np.median(after):.1f} ms after the last frame")
 
 
+def test_a_frame_handed_over_after_the_server_closed_does_not_fail_the_weld(cfg):
+    """The weld thread may hand over a frame just as the server's loop closes: the wake-up is
+    dropped, nothing is raised into the weld, and a closed server unhooks itself."""
+    con = fake_console(cfg)
+    con.start_in_thread("127.0.0.1", 0)
+    hook = con.session.frame_done
+    assert hook is not None
+    con.stop_thread()
+    assert con.session.frame_done is None
+    con._want_frame = True  # a publisher was waiting when the loop went away
+    hook()
+
+
 def test_a_client_that_never_reads_is_dropped_and_does_not_slow_the_weld(cfg, served):
     fast = dataclasses.replace(cfg, server=dataclasses.replace(cfg.server, send_timeout_s=1.0),
                                publish=dataclasses.replace(cfg.publish, rate_hz=30.0,

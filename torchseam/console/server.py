@@ -223,7 +223,10 @@ class ConsoleServer:
         (a flag test per frame otherwise)."""
         if self._want_frame and self._loop is not None and self._frame_done is not None:
             self._want_frame = False
-            self._loop.call_soon_threadsafe(self._frame_done.set)
+            try:
+                self._loop.call_soon_threadsafe(self._frame_done.set)
+            except RuntimeError:
+                pass  # the server closed its loop meanwhile: the weld goes on without it
 
     async def _after_next_frame(self, timeout: float) -> None:
         """Wait until the weld has handed over its next frame (at most ``timeout``). The
