@@ -188,13 +188,15 @@ def run_off(cell, part, noise, level, args, browser: Browser | None = None) -> d
         browser.open("about:blank")
         time.sleep(1.0)
     cpu0 = chromium_cpu_s()
+    lat: list[float] = []
     # the weld thread's scheduling as the console's (WeldSession._run): real-time when paced
     rt = args.rt_priority > 0 and args.pace > 0 and set_realtime_priority(args.rt_priority,
                                                                            "bench weld")
     t0 = time.perf_counter()
     try:
         res = run_demo(cell, part, noise, level, args.seed, segments=args.segments,
-                       length_mm=args.length_mm, control=_paced(cell, args.pace))
+                       length_mm=args.length_mm, control=_paced(cell, args.pace),
+                       observer=lambda ev: _keep_latency(ev, lat))
     finally:
         if rt:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
@@ -203,7 +205,14 @@ def run_off(cell, part, noise, level, args, browser: Browser | None = None) -> d
     if browser is not None:
         browser.close_page()
     return _row("off" if browser is None else "off +blank", 0, res.summary, wall, 0, 0,
-                float("nan"), cpu)
+                float("nan"), cpu, lat)
+
+
+def _keep_latency(ev, out: list[float]) -> None:
+    """The frame's frame -> command latency, as :meth:`WeldSession.observe` keeps it."""
+    t = ev.loop.stats.timings_ms.get("frame->command")
+    if t and ev.report is not None:
+        out.append(t[-1])
 
 
 def _paced(cell, pace: float) -> PacedControl:
@@ -242,12 +251,17 @@ def run_on(cell, part, noise, args, browser: Browser | None) -> dict:
     frames = con.session.summary["frames"]
     obs_us = 1e6 * con.session.observer_s / max(frames, 1)
     mode = "on" + (" +chromium" if browser is not None else "")
+    # every frame's latency, from the console's own ring buffer (history.latency frames)
+    lat = list(con.session._rings.latency)  # noqa: SLF001 - the bench reads what the page reads
+    if len(lat) < frames - 1:
+        print(f"  (the console kept the latency of {len(lat)} of {frames} frames: raise "
+              "history.latency for pooled figures of longer welds)")
     return _row(mode, args.clients, con.session.summary, wall,
-                reader.jpeg if reader else 0, reader.updates if reader else 0, obs_us, cpu)
+                reader.jpeg if reader else 0, reader.updates if reader else 0, obs_us, cpu, lat)
 
 
-def _row(mode, clients, s, wall, jpeg, updates, obs_us, browser_cpu) -> dict:
-    return {"mode": mode, "clients": clients, "frames": s["frames"],
+def _row(mode, clients, s, wall, jpeg, updates, obs_us, browser_cpu, lat) -> dict:
+    return {"lat": lat, "mode": mode, "clients": clients, "frames": s["frames"],
             "p50": s["latency_p50_ms"], "p99": s["latency_p99_ms"], "wall": wall,
             "ms_frame": 1e3 * wall / max(s["frames"], 1), "jpeg": jpeg, "updates": updates,
             "observer_us": obs_us, "browser_cpu_s": browser_cpu, "load": os.getloadavg()[0]}
@@ -330,6 +344,19 @@ def main() -> None:
           med["off"][c], med["on"][c], med["on"][c] / med["off"][c]]
          + ([med["blank"][c], med["blank"][c] / med["off"][c]] if blank else [])
          for c in ("p50", "p99", "ms_frame")]))
+    # one run's p99 is its 4th-slowest frame: pooled over the repeats it is steadier
+    pooled = {m: np.concatenate([r["lat"] for r in rs]) for m, rs in groups.items()}
+    print("\nevery frame of the repeats pooled (frames per mode: "
+          + ", ".join(f"{m} {len(v)}" for m, v in pooled.items()) + ")")
+    print(format_table(
+        ["figure", "console off", "console on", "on / off"]
+        + (["blank Chromium", "blank / off"] if blank else []),
+        [[f"frame->command {name}", q(pooled["off"]), q(pooled["on"]),
+          q(pooled["on"]) / q(pooled["off"])]
+         + ([q(pooled["blank"]), q(pooled["blank"]) / q(pooled["off"])] if blank else [])
+         for name, q in (("p50", lambda v: float(np.percentile(v, 50))),
+                         ("p99", lambda v: float(np.percentile(v, 99))),
+                         ("p99.9", lambda v: float(np.percentile(v, 99.9))))]))
 
 
 if __name__ == "__main__":
