@@ -590,7 +590,9 @@ def test_replay_hold_and_stop(cfg, recorded):
     wait_for(lambda: con.session.latest is not None and con.session.latest.seq >= 2,
              what="the first frames")
     con.session.hold()
-    time.sleep(0.15)   # the frame in flight
+    # the frame in flight is finished first (a fixed 0.15 s was too short on a machine whose
+    # host took its CPUs for longer)
+    wait_for(lambda: con.session.control.parked, what="the hold to take effect")
     seq = con.session.latest.seq
     time.sleep(0.3)
     assert con.session.latest.seq == seq, "frames went on while held"

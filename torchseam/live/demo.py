@@ -77,13 +77,15 @@ class DemoControl:
 
     ``hold()`` pauses the weld at the next frame (the simulated cell waits with the loop: no
     new target, no motion) until ``resume()``; ``stop()`` ends it (the result holds what was
-    welded so far, ``summary["stopped"]`` is True).
+    welded so far, ``summary["stopped"]`` is True). ``parked`` says when a hold has taken
+    effect: the weld has finished the frame in hand and waits.
     """
 
     def __init__(self) -> None:
         self._run = threading.Event()
         self._run.set()
         self._stop = threading.Event()
+        self._parked = threading.Event()
 
     def hold(self) -> None:
         self._run.clear()
@@ -103,9 +105,17 @@ class DemoControl:
     def stopped(self) -> bool:
         return self._stop.is_set()
 
+    @property
+    def parked(self) -> bool:
+        """The weld is waiting at a held checkpoint (no frame in hand)."""
+        return self._parked.is_set()
+
     def checkpoint(self) -> bool:
         """Block while held; True when the weld must stop."""
-        self._run.wait()
+        if not self._run.is_set():
+            self._parked.set()
+            self._run.wait()
+            self._parked.clear()
         return self._stop.is_set()
 
 
