@@ -192,6 +192,50 @@ def test_preparing_between_frames_changes_no_command(cell, part, noise, baseline
         assert a[0] == b[0] and np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])
 
 
+def test_commands_rest_on_the_plan_made_between_frames(cell, part, noise, monkeypatch):
+    """The frame's point joins the buffer after the frame's command, so the frame that finds
+    the torch at its target sends what prepare() planned and the gate checked between frames:
+    no seam fit and no IK on that frame, the segment's start included (where a new point used to
+    reach the fit at the next target and made the first commands re-plan on the frame). Only the
+    very first command, before anything was located, is planned on its frame."""
+    from torchseam.live.loop import LiveLoop
+    from torchseam.plan.path import LookAheadBuffer
+    from torchseam.robot.reach import ReachGate
+
+    inside = [False]
+    on_frame = {"plan": 0, "gate": 0}
+    sent_frames = []
+
+    def wrap(cls, name, key):
+        real = getattr(cls, name)
+
+        def counted(*a, **kw):
+            if inside[0]:
+                on_frame[key] += 1
+            return real(*a, **kw)
+        monkeypatch.setattr(cls, name, counted)
+
+    wrap(LookAheadBuffer, "_next_command", "plan")
+    wrap(ReachGate, "step", "gate")
+    real_command = LiveLoop._command
+
+    def command(self, *a, **kw):
+        inside[0] = True
+        try:
+            cmd = real_command(self, *a, **kw)
+        finally:
+            inside[0] = False
+        if cmd is not None and cmd.ok:
+            sent_frames.append(cmd.t_s)
+        return cmd
+
+    monkeypatch.setattr(LiveLoop, "_command", command)
+    res = _run(cell, part, noise)
+    assert res.summary["poses_sent"] >= LENGTH_MM / 2 and len(sent_frames) >= LENGTH_MM / 2
+    assert on_frame == {"plan": 1, "gate": 1}, on_frame  # the segment's first command only
+    assert res.summary["seam_rmse_mm"] < 0.1 and res.summary["seam_max_mm"] < 0.3
+
+
 def test_demo_video_thread_is_idle_when_the_loop_takes_a_frame():
     """The recorder overlaps rendering and robot motion only: after ``idle()`` every frame
     handed to it is written; a writer error reaches the weld at the next frame."""
