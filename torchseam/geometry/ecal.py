@@ -43,6 +43,7 @@ class EcalConfig:
     min_connected: float
     min_arm_separation_deg: float  # two crossings closer than this are one arm, not a pair
     min_extrapolation_circles: int  # fewer clean circles: mean arm angle, no extrapolation
+    tipm_agreement_deg: float  # a tracker's fitted arm directions are used within this of ECAL's
 
 
 def load_ecal_config(path: str | Path | None = None) -> EcalConfig:
