@@ -329,7 +329,12 @@ def test_shipped_model_loads_into_the_default_tracker():
     path = REPO / "models" / "eakf_stc.safetensors"
     if not path.exists():
         pytest.skip("no shipped model yet")
-    trk = EAKFSTC()
-    assert load_fitted(trk, path)
+    from torchseam.track.peers import STRUCTURAL_STC, fitted_eakf_stc
+
     _, meta = read_model(path)
     assert meta["info"]["data"]["train"]["seeds"]  # it says what it was fitted on
+    # the tracker it was made for: the default one plus the STC extensions the file names
+    cfg = meta["tracker_config"]
+    trk = EAKFSTC({k: cfg[k] for k in STRUCTURAL_STC if k in cfg})
+    assert load_fitted(trk, path)
+    assert fitted_eakf_stc().state_dict().keys() == trk.state_dict().keys()

@@ -85,10 +85,12 @@ def _lockstep(module: EAKFSTC, frames: list[np.ndarray], uv0: np.ndarray,
 @pytest.mark.parametrize("make, statuses_seen", [
     (lambda: fitted_eakf_stc(), {TrackStatus.TRACKED, TrackStatus.COASTING}),
     (lambda: EAKFSTC(), {TrackStatus.TRACKED, TrackStatus.COASTING}),
+    # the regularised eq. 8 and the start model in detection (STC reg, anchor)
+    (lambda: EAKFSTC(reg=20.0, anchor=0.3), {TrackStatus.TRACKED, TrackStatus.COASTING}),
     # a short coasting limit: the LOST branch too
     (lambda: EAKFSTC(max_coast=2),
      {TrackStatus.TRACKED, TrackStatus.COASTING, TrackStatus.LOST}),
-], ids=["fitted", "default", "max_coast=2"])
+], ids=["fitted", "default", "reg+anchor", "max_coast=2"])
 def test_twin_equals_the_module_frame_by_frame_with_reanchoring(heavy, make,
                                                                statuses_seen) -> None:
     frames, truth = heavy

@@ -296,3 +296,45 @@ def test_bad_inputs_raise_clear_errors() -> None:
         stc.detect(state, torch.zeros(3, 30, 30))
     with pytest.raises(TorchseamError, match="init"):
         STC().step(torch.zeros(1, 30, 30))
+
+
+def test_regularised_and_anchored_stc_is_structural_and_fittable() -> None:
+    """reg / anchor off: no parameter, the paper's numbers; on: the start model is the mean of
+    the first ``anchor_frames`` models and stays put, and both parameters get gradients."""
+    from torchseam.track.stc import learn_spatial_context, learn_spatial_context_reg
+
+    paper = STC(window=(32, 32), target=(16, 16))
+    assert "log_reg" not in paper.state_dict() and "logit_anchor" not in paper.state_dict()
+    assert float(paper.reg) == 0.0 and float(paper.anchor) == 0.0
+    # reg -> 0 is eq. 8
+    g = torch.Generator().manual_seed(0)
+    c_f = torch.fft.rfft2(confidence_map((16, 16), 2.25, 1.0, dtype=torch.float64))
+    p_f = torch.fft.rfft2(torch.randn(3, 16, 16, generator=g, dtype=torch.float64))
+    torch.testing.assert_close(learn_spatial_context_reg(c_f, p_f, 0.0, 0.0),
+                               learn_spatial_context(c_f, p_f, 0.0))
+    # a flat window (a saturated flash): no NaN
+    flat = learn_spatial_context_reg(c_f, torch.zeros_like(p_f), 5.0)
+    assert torch.isfinite(torch.view_as_real(flat)).all()
+    with pytest.raises(TorchseamError, match="reg"):
+        STC(reg=-1.0)
+    with pytest.raises(TorchseamError, match="anchor"):
+        STC(anchor=1.0)
+    with pytest.raises(TorchseamError, match="anchor_frames"):
+        STC(anchor=0.5, anchor_frames=0)
+
+    stc = STC(window=(32, 32), target=(16, 16), reg=5.0, anchor=0.4, anchor_frames=3)
+    assert {"log_reg", "logit_anchor"} <= set(dict(stc.named_parameters()))
+    frames = torch.rand(2, 8, 64, 80, generator=g) * 50
+    frames[:, :, 30:33, :] += 200.0
+    uv0 = torch.tensor([[40.0, 31.0], [38.0, 31.5]])
+    state = stc.init_state(frames[:, 0], uv0)
+    refs = [state.H_ref]
+    for t in range(1, 8):
+        state, uv, _ = stc.track(state, frames[:, t])
+        refs.append(state.H_ref)
+    assert refs[3] is refs[2] and refs[7] is refs[2]  # frozen after anchor_frames
+    assert torch.isfinite(uv).all()
+    uv[:, 0].sum().backward()
+    assert stc.log_reg.grad is not None and torch.isfinite(stc.log_reg.grad)
+    assert stc.logit_anchor.grad is not None and torch.isfinite(stc.logit_anchor.grad)
+    assert float(stc.log_reg.grad.abs()) > 0 and float(stc.logit_anchor.grad.abs()) > 0

@@ -38,6 +38,8 @@ PARAM_GROUPS: dict[str, tuple[str, ...]] = {
     "alpha": ("stc.log_alpha",),
     "sigma": ("stc.log_sigma",),
     "beta": ("stc.log_beta",),
+    "reg": ("stc.log_reg",),        # only with tracker: {reg: > 0}
+    "anchor": ("stc.logit_anchor",),  # only with tracker: {anchor: > 0}
 }
 
 _SEEDS_RE = re.compile(r"^\s*(\d+)\s*(?:-\s*(\d+)\s*)?$")

@@ -34,6 +34,10 @@ class TrackerConfig:
     rho: float = 0.075                       # eq. 9 (paper)
     sigma: float | None = None               # eq. 5; None: mean target side
     eps: float = MATLAB_EPS                  # eq. 8 division
+    reg: float = 0.0                         # eq. 8 regularised (Wiener): > 0 divides by
+                                             # |FFT(prior)|^2 + reg * mean |FFT(prior)|^2
+    anchor: float = 0.0                      # weight of the start model in detection (eq. 10)
+    anchor_frames: int = 5                   # frames (arc off) averaged into the start model
     scale_update: bool = False               # reference scale update (lambda 0.25, 5 frames)
     scale_lambda: float = 0.25
     scale_frames: int = 5

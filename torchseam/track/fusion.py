@@ -299,7 +299,8 @@ class EAKFSTC(nn.Module):
                        sigma=cfg.sigma, eps=cfg.eps, scale_update=cfg.scale_update,
                        scale_lambda=cfg.scale_lambda, scale_frames=cfg.scale_frames,
                        peak=cfg.peak, temperature=cfg.temperature, crop=cfg.crop,
-                       exclude=cfg.exclude, learnable=cfg.learnable)
+                       exclude=cfg.exclude, reg=cfg.reg, anchor=cfg.anchor,
+                       anchor_frames=cfg.anchor_frames, learnable=cfg.learnable)
         self.eakf = EAKF(cfg.frame_rate, lam=cfg.lam, a=cfg.a, b=cfg.b, q=cfg.q,
                          r=(cfg.r_pos, cfg.r_disp), p0=cfg.p0, learnable=cfg.learnable)
         self.guard = DriftGuard(cfg.psr0, cfg.psr_slope, cfg.second0, cfg.second_slope,

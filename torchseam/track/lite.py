@@ -61,6 +61,10 @@ class LiteEAKFSTC:
         self.weight = params["weight"]            # (H, W) focus window w_sigma (eq. 5)
         self.conf_f = params["conf_f"]            # (H, W//2+1) rfft2 of c (eq. 1)
         self.rho, self.eps = params["rho"], params["eps"]
+        self.reg = params.get("reg", 0.0)         # > 0: eq. 8 regularised (Wiener)
+        self.anchor = params.get("anchor", 0.0)   # weight of the start model in detection
+        self.anchor_frames = params.get("anchor_frames", 1)
+        self.H_ref: np.ndarray | None = None
         self.exclude = params["exclude"]
         self.Phi, self.GQG = params["Phi"], params["GQG"]          # (2, 4, 4)
         self.H_star, self.R, self.psi = params["H_star"], params["R"], params["psi"]
@@ -115,7 +119,8 @@ class LiteEAKFSTC:
             return cls({
                 "window": stc.window_size, "weight": npy(weight),
                 "conf_f": np.fft.rfft2(npy(conf)), "rho": float(stc.rho), "eps": stc.eps,
-                "exclude": stc.exclude, "Phi": npy(m.Phi), "GQG": npy(m.GQG),
+                "exclude": stc.exclude, "reg": float(stc.reg), "anchor": float(stc.anchor),
+                "anchor_frames": stc.anchor_frames, "Phi": npy(m.Phi), "GQG": npy(m.GQG),
                 "H_star": npy(m.H_star), "R": npy(m.R), "psi": npy(m.psi),
                 "p0": npy(module.eakf.p0).reshape(2, 4) * np.ones((2, 1)),
                 "guard": npy(module.guard.constants()), "max_coast": cfg.max_coast,
@@ -184,19 +189,30 @@ class LiteEAKFSTC:
         r = np.floor(centre + 0.5)
         d = centre - r  # the target's sub-pixel place in the integer crop (fourier_shift)
         ramp = np.exp(1j * (d[1] * self._fy))[:, None] * np.exp(1j * (d[0] * self._fx))[None]
-        h_f = (self.conf_f * ramp) / (prior_f + self.eps) if self.eps else \
-            (self.conf_f * ramp) / prior_f
+        if self.reg > 0:  # learn_spatial_context_reg
+            power = prior_f.real * prior_f.real + prior_f.imag * prior_f.imag
+            h_f = (self.conf_f * ramp) * np.conj(prior_f) / (power + power.mean() * self.reg
+                                                              + self.eps)
+        else:
+            h_f = (self.conf_f * ramp) / (prior_f + self.eps) if self.eps else \
+                (self.conf_f * ramp) / prior_f
         self.frame += 1
         if self.frame == 1:
             self.H_f = h_f
         else:
             self.H_f = self.H_f + (self.rho * rho_scale) * (h_f - self.H_f)
+        if self.anchor > 0 and self.frame <= self.anchor_frames:  # the start model
+            self.H_ref = self.H_f if self.frame == 1 else \
+                self.H_ref + (self.H_f - self.H_ref) / self.frame
 
     def _detect(self, frame: np.ndarray, centre: np.ndarray
                 ) -> tuple[np.ndarray, float, float, int, float]:
         """Eq. 10-11 around ``centre``: (uv, psr, second_ratio, n_peaks, peak)."""
         base = np.floor(centre + 0.5)
-        resp = scipy.fft.irfft2(self.H_f * self._prior_f(frame, base), s=(self.h, self.w))
+        H_f = self.H_f
+        if self.anchor > 0 and self.H_ref is not None:
+            H_f = H_f + self.anchor * (self.H_ref - H_f)
+        resp = scipy.fft.irfft2(H_f * self._prior_f(frame, base), s=(self.h, self.w))
         h, w = self.h, self.w
         idx = int(resp.argmax())
         i, j = divmod(idx, w)
@@ -257,7 +273,7 @@ class LiteEAKFSTC:
         self.s = np.array([[1.0, 1e6], [1.0, 1e6]])  # UNKNOWN_SCALE on the first displacement
         self.s_ref = np.ones(2)
         self.x_post = None
-        self.H_f, self.frame = None, 0
+        self.H_f, self.H_ref, self.frame = None, None, 0
         self._last_prior = None
         self._pending = []
         self._learn(frame, uv0, 1.0)

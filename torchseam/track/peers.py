@@ -29,6 +29,8 @@ from torchseam.vision.tipm import Tipm, TipmResult, arm_shape, red_response
 
 TRACKERS = ("eakf-stc", "anchored", "stc", "tipm", "kcf", "csrt", "mosse")
 STATUS_NAMES = {int(s): s.name.lower() for s in TrackStatus}
+#: TrackerConfig fields that add parameters to the module: read from the model file
+STRUCTURAL_STC = ("reg", "anchor", "anchor_frames")
 OPENCV_BOX_PX = 64  # side of the box the OpenCV trackers follow (twice the target, like STC)
 
 
@@ -428,10 +430,14 @@ def fitted_eakf_stc(model: dict | None = None) -> EAKFSTC:
     taken as given: the fitted file would silently overwrite the values asked for."""
     if model:
         return EAKFSTC(model)
-    from torchseam.fit.model_io import load_fitted  # the fitting stage owns the model file
+    from torchseam.fit import model_io  # the fitting stage owns the model file
 
-    module = EAKFSTC()
-    load_fitted(module)
+    # the STC extensions are structural (their parameters exist only when switched on): build
+    # the module the file was fitted as
+    path = model_io.DEFAULT_MODEL
+    fitted = (model_io.read_model(path)[1].get("tracker_config") or {}) if path.is_file() else {}
+    module = EAKFSTC({k: fitted[k] for k in STRUCTURAL_STC if k in fitted})
+    model_io.load_fitted(module)
     return module
 
 

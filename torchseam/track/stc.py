@@ -71,6 +71,7 @@ __all__ = [
     "fourier_shift",
     "hamming_window_2d",
     "learn_spatial_context",
+    "learn_spatial_context_reg",
     "locate_peak",
     "peak_quality",
     "stc_response",
@@ -316,6 +317,38 @@ def learn_spatial_context(conf_f: Tensor, prior_f: Tensor, eps: float = MATLAB_E
         torch.Size([1, 8, 5])
     """
     return conf_f / (prior_f + eps) if eps else conf_f / prior_f
+
+
+def learn_spatial_context_reg(conf_f: Tensor, prior_f: Tensor, reg: Tensor | float,
+                              eps: float = MATLAB_EPS) -> Tensor:
+    """Regularised (Wiener) spatial context model: eq. 8 with a noise floor in the division,
+    ``FFT(c) conj(FFT(prior)) / (|FFT(prior)|^2 + reg * mean |FFT(prior)|^2 + eps)``.
+
+    Eq. 8 divides by ``FFT(prior)``: at the frequencies where a clean window (a thin stripe on a
+    dark background) has almost no energy the model's gain is huge, so the arc's noise there
+    dominates the next response, and the context model learns its own error. ``reg`` is the
+    floor relative to the window's mean spectral power (scale-free; 0 gives eq. 8 without eps).
+
+    Args:
+        conf_f: (H, W//2+1) or (B, H, W//2+1) ``rfft2`` of the confidence map.
+        prior_f: (B, H, W//2+1) ``rfft2`` of the context priors.
+        reg: >= 0 scalar (float or 0-dim tensor, gradients flow to it).
+        eps: added to the denominator (a flat window, e.g. a saturated arc flash, has no power
+            at all: the model then learns 0 instead of NaN).
+
+    Returns:
+        (B, H, W//2+1) complex, ``rfft2(h_sc)``.
+
+    Example:
+        >>> c_f = torch.fft.rfft2(confidence_map((8, 8), 2.25, 1.0))
+        >>> p_f = torch.fft.rfft2(torch.randn(1, 8, 8))
+        >>> torch.allclose(learn_spatial_context_reg(c_f, p_f, 0.0), c_f / p_f, atol=1e-4)
+        True
+    """
+    check_tensor(prior_f, "prior_f", ("B", "H", "W2"))
+    power = prior_f.real.square() + prior_f.imag.square()
+    floor = power.mean(dim=(-2, -1), keepdim=True) * reg
+    return conf_f * prior_f.conj() / (power + floor + eps)
 
 
 def fourier_shift(shift: Tensor, size: Sequence[int]) -> Tensor:
@@ -581,6 +614,8 @@ class STCState:
         frame: number of frames learned so far (the reference's 1-based frame index).
         window: (H, W) or (B, H, W) focus window w_sigma (cached, derived from sigma).
         conf_f: (H, W//2+1) rfft2 of the confidence map (cached, derived from alpha, beta).
+        H_ref: (B, H, W//2+1) complex start model (mean of H_stc over the first
+            ``anchor_frames`` frames) when the module anchors detection, else None.
     """
 
     H_f: Tensor
@@ -591,6 +626,7 @@ class STCState:
     frame: int
     window: Tensor
     conf_f: Tensor
+    H_ref: Tensor | None = None
 
     def detach(self) -> STCState:
         """A copy cut from the autograd graph (truncated BPTT). Cached parameter-derived
@@ -637,6 +673,13 @@ class STC(nn.Module):
         rho: learning rate (eq. 9); paper 0.075.
         sigma: initial focus width (eq. 5); default ``mean(target)``.
         eps: added in the eq. 8 division.
+        reg: > 0: eq. 8 regularised (:func:`learn_spatial_context_reg`, ``eps`` added too),
+            learnable (``log_reg``); 0: eq. 8 as the paper.
+        anchor: in [0, 1): detection (eq. 10) with ``(1 - anchor) H_stc + anchor H_ref``,
+            ``H_ref`` the model of the first ``anchor_frames`` frames (the clean start, learnt
+            at TIPM's point): an absolute reference that the context model's own drift does
+            not move; learnable (``logit_anchor``); 0: off (the paper).
+        anchor_frames: frames averaged into ``H_ref``.
         scale_update: enable the reference's scale update (lambda ``scale_lambda`` over
             ``scale_frames`` frames).
         peak: ``"subpixel"`` | ``"soft"`` | ``"argmax"`` (:func:`locate_peak`).
@@ -658,7 +701,9 @@ class STC(nn.Module):
                  scale_update: bool = _D.scale_update, scale_lambda: float = _D.scale_lambda,
                  scale_frames: int = _D.scale_frames, peak: str = _D.peak,
                  temperature: float = _D.temperature, crop: str = _D.crop,
-                 exclude: int = _D.exclude, learnable: bool = _D.learnable) -> None:
+                 exclude: int = _D.exclude, reg: float = _D.reg, anchor: float = _D.anchor,
+                 anchor_frames: int = _D.anchor_frames,
+                 learnable: bool = _D.learnable) -> None:
         super().__init__()
         self.window_size = check_size(window, "window")
         self.target_size = tuple(int(t) for t in target)
@@ -676,6 +721,12 @@ class STC(nn.Module):
             raise TrackInputError(f"eps: expected >= 0, got {eps}")
         if not 0.0 < rho < 1.0:
             raise TrackInputError(f"rho: expected in (0, 1), got {rho}")
+        if not reg >= 0:
+            raise TrackInputError(f"reg: expected >= 0, got {reg}")
+        if not 0.0 <= anchor < 1.0:
+            raise TrackInputError(f"anchor: expected in [0, 1), got {anchor}")
+        if anchor_frames < 1:
+            raise TrackInputError(f"anchor_frames: expected >= 1, got {anchor_frames}")
         if not 0.0 <= scale_lambda <= 1.0 or scale_frames < 1:
             raise TrackInputError("scale_lambda must lie in [0, 1] and scale_frames be >= 1")
         self.eps = float(eps)
@@ -683,9 +734,18 @@ class STC(nn.Module):
         self.scale_lambda = float(scale_lambda)
         self.scale_frames = int(scale_frames)
         self.exclude = int(exclude)
+        # the two extensions are structural: off (0) they hold no parameter and the tracker is
+        # the paper's, numbers and state dict alike
+        self.regularised = reg > 0
+        self.anchored = anchor > 0
+        self.anchor_frames = int(anchor_frames)
         raw = {"log_alpha": math.log(alpha), "log_beta": math.log(beta),
                "logit_rho": math.log(rho / (1.0 - rho)), "log_sigma": math.log(sigma),
                "log_temperature": math.log(temperature)}
+        if self.regularised:
+            raw["log_reg"] = math.log(reg)
+        if self.anchored:
+            raw["logit_anchor"] = math.log(anchor / (1.0 - anchor))
         for name, v in raw.items():
             t = torch.tensor(v, dtype=torch.get_default_dtype())
             if learnable:
@@ -715,9 +775,21 @@ class STC(nn.Module):
     def temperature(self) -> Tensor:
         return self.log_temperature.exp()
 
+    @property
+    def reg(self) -> Tensor:
+        """Eq. 8 regulariser (0 when the module runs eq. 8 as the paper)."""
+        return self.log_reg.exp() if self.regularised else self.log_alpha.new_zeros(())
+
+    @property
+    def anchor(self) -> Tensor:
+        """Weight of the start model in detection (0 when off)."""
+        return torch.sigmoid(self.logit_anchor) if self.anchored else \
+            self.log_alpha.new_zeros(())
+
     def extra_repr(self) -> str:
         return (f"window={self.window_size}, target={self.target_size}, peak={self.peak!r}, "
-                f"crop={self.crop!r}, scale_update={self.scale_update}")
+                f"crop={self.crop!r}, scale_update={self.scale_update}, "
+                f"regularised={self.regularised}, anchored={self.anchored}")
 
     # ------------------------------------------------------------------ functional core
     def _check_frames(self, frames: Tensor, name: str, batch: int | None = None) -> Tensor:
@@ -777,7 +849,10 @@ class STC(nn.Module):
         centre = state.pos if centre is None else centre
         check_tensor(centre, "centre", (B, 2))
         prior_f, _ = self._prior_f(frames, centre, state.window)
-        resp = stc_response(state.H_f, prior_f, self.window_size)
+        H_f = state.H_f
+        if self.anchored and state.H_ref is not None:
+            H_f = H_f + self.anchor * (state.H_ref - H_f)
+        resp = stc_response(H_f, prior_f, self.window_size)
         off, quality = _analyse(resp, self.peak, self.log_temperature.exp(), self.exclude, True)
         base = torch.floor(centre.detach() + 0.5) if self.crop == "nearest" else centre
         base = as_float(base, resp)
@@ -815,18 +890,24 @@ class STC(nn.Module):
         if self.crop == "nearest":  # target at centre - round(centre) in the window
             conf_f = conf_f * fourier_shift(centre - torch.floor(centre.detach() + 0.5),
                                             self.window_size)
-        h_f = learn_spatial_context(conf_f, prior_f, self.eps)
+        if self.regularised:
+            h_f = learn_spatial_context_reg(conf_f, prior_f, self.reg, self.eps)
+        else:
+            h_f = learn_spatial_context(conf_f, prior_f, self.eps)
         if f == 1:
             H_f = h_f
         else:
             rho = self.rho if rho_scale is None else self.rho * rho_scale
             H_f = update_context_model(state.H_f, h_f, rho)
+        H_ref = state.H_ref
+        if self.anchored and f <= self.anchor_frames:  # running mean of the start models
+            H_ref = H_f if f == 1 else H_ref + (H_f - H_ref) / f
         sigma, window = state.sigma, state.window
         if self.scale_update:  # sigma <- sigma * s at the start of the next frame
             sigma = sigma * scale
             window = self._window(sigma)
         return STCState(H_f=H_f, pos=centre, sigma=sigma, scale=scale, maxconf=maxconf,
-                        frame=f, window=window, conf_f=state.conf_f)
+                        frame=f, window=window, conf_f=state.conf_f, H_ref=H_ref)
 
     def track(self, state: STCState, frames: Tensor
               ) -> tuple[STCState, Tensor, dict[str, Tensor]]:
