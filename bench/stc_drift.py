@@ -23,7 +23,7 @@ import torch
 
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.report import error_stats, format_table
-from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.sim.sequence import SequenceSpec, simulate_labelled
 from torchseam.track.peers import LiteTracker, fitted_eakf_stc, run_tracker
 
 
@@ -61,12 +61,7 @@ def main() -> None:
         for k in range(args.sequences):
             seed = args.first_seed + k
             spec = SequenceSpec(n_frames=args.frames, level=level, seed=seed)
-            frames, labels, arc = [], [], []
-            for img, truth in simulate(cell, part, noise, spec):
-                frames.append(img)
-                labels.append(truth.uv)
-                arc.append(truth.arc_on)
-            labels, arc = np.array(labels), np.array(arc)
+            frames, labels, arc = simulate_labelled(cell, part, noise, spec)
             if not arc.any():
                 arc[1:] = True
             for s in sigmas:

@@ -29,7 +29,7 @@ import torch
 
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.report import error_stats, format_table, percentiles_ms
-from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.sim.sequence import SequenceSpec, simulate_labelled
 from torchseam.track.peers import TRACKERS, fitted_eakf_stc, make_tracker, run_tracker
 from torchseam.vision.tipm import red_response
 
@@ -66,12 +66,7 @@ def main() -> None:
         secs = {t: [] for t in trackers}
         for s in range(args.sequences):
             spec = SequenceSpec(n_frames=args.frames, level=level, seed=args.first_seed + s)
-            frames, labels, arc = [], [], []
-            for img, truth in simulate(cell, part, noise, spec):
-                frames.append(img)
-                labels.append(truth.uv)
-                arc.append(truth.arc_on)
-            labels, arc = np.array(labels), np.array(arc)
+            frames, labels, arc = simulate_labelled(cell, part, noise, spec)
             if name == args.levels.split(",")[-1]:
                 grey_bank.append((np.stack([red_response(f) for f in frames]), labels[0]))
             for t in trackers:

@@ -170,6 +170,30 @@ def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: Seque
                               laser_on=k not in spec.laser_off, phi_hint=phi_hint)
 
 
+
+def simulate_labelled(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
+                      spec: SequenceSpec) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """A whole sequence of :func:`simulate` in memory, for benchmarks that score trackers.
+
+    Returns:
+        frames: the (H, W, 3) uint8 BGR frames; labels: (N, 2) true feature pixels (u, v);
+        arc: (N,) bool, the arc burns (the frames a tracker is scored on).
+
+    Example:
+        >>> from torchseam.core.config import load_cell, load_part, load_noise
+        >>> f, uv, arc = simulate_labelled(load_cell(), load_part(), load_noise(),
+        ...                                SequenceSpec(n_frames=7))
+        >>> len(f), uv.shape, int(arc.sum())
+        (7, (7, 2), 2)
+    """
+    frames, labels, arc = [], [], []
+    for img, truth in simulate(cell, part, noise, spec):
+        frames.append(img)
+        labels.append(truth.uv)
+        arc.append(truth.arc_on)
+    return frames, np.array(labels, dtype=float), np.array(arc, dtype=bool)
+
+
 def _small_motion(dp_mm: np.ndarray, drot_deg: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     ang = np.linalg.norm(drot_deg)
