@@ -62,3 +62,19 @@ def test_bad_input_is_named(tmp_path, capsys):
     assert "--init" in err and "Traceback" not in err
     assert main(["eval", str(tmp_path)]) == 2
     assert "no frames" in capsys.readouterr().err
+
+
+def test_a_gap_in_the_numbering_is_reported_not_dropped(seq_dir, tmp_path, capsys):
+    gap = tmp_path / "gap"
+    gap.mkdir()
+    for p in sorted(seq_dir.glob("0*.png"))[:8]:
+        if p.name not in ("00003.png", "00004.png"):
+            (gap / p.name).write_bytes(p.read_bytes())
+    out = tmp_path / "g.csv"
+    assert main(["track", str(gap), "--tracker", "tipm", "--out", str(out)]) == 0
+    rows = list(csv.DictReader(out.open()))
+    assert [int(r["frame"]) for r in rows] == list(range(8))
+    assert all(r["u"] == "" for r in rows if r["status"] == "missing")
+    assert {int(r["frame"]) for r in rows if r["status"] == "missing"} == {3, 4}
+    io = capsys.readouterr()
+    assert "2 frame number(s) missing (3, 4)" in io.err and "missing 2" in io.out

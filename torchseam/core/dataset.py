@@ -141,6 +141,14 @@ class Dataset:
             yield self.read(i)
 
     @property
+    def missing(self) -> np.ndarray:
+        """Frame numbers absent between the first and the last frame (a camera that dropped
+        frames, a file lost on the way), ascending; empty when the numbering has no gap."""
+        present = np.zeros(int(self.frames[-1] - self.frames[0]) + 1, bool)
+        present[self.frames - self.frames[0]] = True
+        return np.flatnonzero(~present) + int(self.frames[0])
+
+    @property
     def labelled(self) -> np.ndarray:
         """(N,) bool: which frames carry a label."""
         if self.labels is None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import sys
 from pathlib import Path
 
 import cv2
@@ -15,6 +16,8 @@ from torchseam.core.dataset import Dataset
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import error_stats, format_table, percentiles_ms
 from torchseam.track.peers import STATUS_NAMES, TRACKERS, make_tracker, run_tracker
+
+MISSING = "missing"  # track.csv status of a frame number the folder has no image for
 
 
 def _parse_init(text: str | None) -> np.ndarray | None:
@@ -44,7 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "track", help="track the feature point through a folder of frames",
         description="Track the weld feature point through FRAMES_DIR (frames in file-name "
-                    "order; labels are not needed) and write frame,u,v,status per frame.")
+                    "order; labels are not needed) and write frame,u,v,status per frame "
+                    "number (status tracked, coasting, lost, or missing for a number the "
+                    "folder has no image for).")
     _common(p)
     p.add_argument("--out", type=Path, default=Path("track.csv"),
                    help="output CSV (default track.csv)")
@@ -70,18 +75,34 @@ def _track(args: argparse.Namespace, ds: Dataset, uv0: np.ndarray | None
     return uv, status, secs, note
 
 
+def _warn_missing(ds: Dataset) -> np.ndarray:
+    """Say which frame numbers the folder lacks (the trackers take the frames on both sides
+    of a gap as consecutive, so their motion model is off there); returns them."""
+    gone = ds.missing
+    if len(gone):
+        shown = ", ".join(str(int(f)) for f in gone[:10]) + (" ..." if len(gone) > 10 else "")
+        print(f"warning: {ds.root}: {len(gone)} frame number(s) missing ({shown}); the tracker "
+              "takes the frames around a gap as consecutive", file=sys.stderr)
+    return gone
+
+
 def run_track(args: argparse.Namespace) -> int:
     uv0 = _parse_init(args.init)
     ds = Dataset.open(args.frames_dir)
+    gone = _warn_missing(ds)
     uv, status, _, note = _track(args, ds, uv0)
+    rows = [[int(f), f"{u:.3f}" if np.isfinite(u) and np.isfinite(v) else "",
+             f"{v:.3f}" if np.isfinite(u) and np.isfinite(v) else "", STATUS_NAMES[int(s)]]
+            for f, (u, v), s in zip(ds.frames, uv, status, strict=True)]
+    rows += [[int(f), "", "", MISSING] for f in gone]  # one row per frame number, none dropped
+    rows.sort(key=lambda r: r[0])
     with args.out.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["frame", "u", "v", "status"])
-        for f, (u, v), s in zip(ds.frames, uv, status, strict=True):
-            ok = np.isfinite(u) and np.isfinite(v)
-            w.writerow([int(f), f"{u:.3f}" if ok else "", f"{v:.3f}" if ok else "",
-                        STATUS_NAMES[int(s)]])
+        w.writerows(rows)
     counts = {STATUS_NAMES[k]: int(np.sum(status == k)) for k in STATUS_NAMES}
+    if len(gone):
+        counts[MISSING] = len(gone)
     print(f"{args.tracker}: {len(ds)} frames -> {args.out} (start: {note}; "
           + ", ".join(f"{k} {n}" for k, n in counts.items()) + ")")
     return 0
@@ -90,6 +111,7 @@ def run_track(args: argparse.Namespace) -> int:
 def run_eval(args: argparse.Namespace) -> int:
     uv0 = _parse_init(args.init)
     ds = Dataset.open(args.frames_dir, require_labels=True)
+    _warn_missing(ds)
     uv, status, secs, note = _track(args, ds, uv0)
     labelled = ds.labelled
     err = np.linalg.norm(uv - ds.labels, axis=1)[labelled]
