@@ -277,3 +277,45 @@ def test_demo_video_thread_is_idle_when_the_loop_takes_a_frame():
     with pytest.raises(RuntimeError, match="disk full"):
         vt.put(frame, truth, None, None, "a")
     vt.close()
+
+
+def test_a_refused_re_send_holds_the_loop_with_its_reason(cell):
+    """On its way to a target the loop re-sends it every frame (the link's watchdog needs
+    that). A tracked frame whose point was not located (no stripe arms) leaves the tracking
+    time behind; when the link refuses the re-send as stale, the robot is held, and the
+    operator must read it in the loop's state, not only in the link's counters."""
+    from types import SimpleNamespace
+
+    from torchseam.live.locate import Location
+    from torchseam.live.loop import LiveLoop, LoopState
+    from torchseam.track.fusion import TrackStatus
+
+    class Sink:
+        def __init__(self):
+            self.calls = []
+
+        def set_target(self, position_mm, quaternion, measured_at=None):
+            self.calls.append(measured_at)
+            ok = measured_at is not None and measured_at >= 0.95
+            return SimpleNamespace(ok=ok, reason="" if ok else "stale")
+
+    sink = Sink()
+    loop = LiveLoop(cell, tracker=SimpleNamespace(name="fake"), sink=sink)
+    loop.state, loop.target = LoopState.TRACKING, np.array([10.0, 0.0, 0.0])
+    loop.last_q, loop.fresh_t = np.array([1.0, 0.0, 0.0, 0.0]), 0.0
+    located = [False, True]  # the first frame has no arms, the second is located again
+
+    def step(frame, T_B_F):
+        ok = located.pop(0)
+        return Location(np.array([300.0, 200.0]), int(TrackStatus.TRACKED), np.zeros(3),
+                        np.array([[-1.0, 0, -1], [1, 0, -1]]) if ok else np.full((2, 3), np.nan),
+                        ok, False)
+
+    loop.locator.step = step
+    torch_at = np.eye(4)  # 10 mm short of the target: on its way, re-sending
+    rep = loop.on_frame(np.zeros((4, 4, 3), np.uint8), np.eye(4), torch_at, 1.0)
+    assert sink.calls == [0.0]
+    assert rep.state == LoopState.HOLD and "link refused the pose (stale)" in rep.message
+    rep = loop.on_frame(np.zeros((4, 4, 3), np.uint8), np.eye(4), torch_at, 1.04)
+    assert sink.calls[-1] == 1.04  # located again: fresh tracking, accepted
+    assert rep.state == LoopState.TRACKING and rep.message == ""

@@ -45,7 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
     r = sub.add_parser(
-        "replay", help="feed recorded frames (folder or video) through the live loop, open loop",
+        "replay",
+        help="feed recorded frames (folder, video or camera) through the live loop, open loop",
         description="Open-loop replay: feed a recorded frame folder (dataset format) or a video "
                     "file through the same live loop the demo runs (tracking, triangulation, "
                     "ECAL, IPI plan) and print the per-stage latency and, with labels.csv, the "

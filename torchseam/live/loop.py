@@ -320,8 +320,12 @@ class LiveLoop:
             alive = loc is not None and loc.status != TrackStatus.LOST
             if self.last_q is not None and alive and (
                     self.state != LoopState.HOLD or loc.status == TrackStatus.TRACKED):
-                self.sink.set_target(self.target, self.last_q, measured_at=self.fresh_t)
-                self._set_state(loc)
+                verdict = self.sink.set_target(self.target, self.last_q,
+                                               measured_at=self.fresh_t)
+                if bool(getattr(verdict, "ok", True)):
+                    self._set_state(loc)
+                else:  # the link holds the robot (stale tracking, say): say so, as below
+                    self._hold(f"link refused the pose ({getattr(verdict, 'reason', 'refused')})")
             return None
         pose = self._pose(self.buffer.next_command(self.target, self.cell.process.step_mm))
         if isinstance(pose, str):

@@ -1,10 +1,11 @@
 """One interface over every tracker the CLI and the benchmarks compare.
 
 ``FrameTracker``: ``init(frame, uv)`` on the first frame, then ``update(frame) -> (uv, status)``
-per BGR frame. Peers: TIPM on every frame, plain STC, EAKF-STC (the torch modules, B = 1),
-``anchored`` (EAKF-STC and TIPM fused by a Kalman filter on the point, EAKF-STC re-anchored
-on TIPM's fixes: the live loop's default, see :class:`AnchoredTracker`), and OpenCV's KCF,
-CSRT and MOSSE (a box around the feature point; the point keeps its offset in the box).
+per BGR frame. Peers: TIPM on every frame, plain STC, EAKF-STC (the fitted module's numpy
+twin, B = 1), ``anchored`` (EAKF-STC and TIPM fused by a Kalman filter on the point,
+EAKF-STC re-anchored on TIPM's fixes: the live loop's default, see
+:class:`AnchoredTracker`), and OpenCV's KCF, CSRT and MOSSE (a box around the feature
+point; the point keeps its offset in the box).
 """
 
 from __future__ import annotations
