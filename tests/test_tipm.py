@@ -128,3 +128,25 @@ def test_arm_ends_at_the_window_edge_do_not_move_the_corner(cell, noise):
         err.append(res.uv + (x0, y0) - t.uv)
     err = np.array(err)
     assert abs(err[:, 1].mean()) < 0.1 and np.abs(err).max() < 0.3, err
+
+
+def test_a_red_glare_halo_under_the_corner_does_not_pull_it(cell, part, noise):
+    """Arc glare reflected off the part adds a broad red halo under the stripe. Weighed by the
+    raw red response, each column's centre leans toward the halo's brighter side (0.07-0.12 px
+    in v here, up to 0.5 px on heavy-arc frames of the 60-degree joint); weighed by the ridge
+    (red minus its local vertical mean) it does not."""
+    tipm = Tipm()
+    err = []
+    for img, t in simulate(cell, part, noise, SequenceSpec(n_frames=6, level=0.0, seed=3)):
+        h, w = img.shape[:2]
+        yy, xx = np.mgrid[0:h, 0:w]
+        for dy in (25.0, 40.0):  # halo centre below the corner, sigma 35 px, +120 grey levels
+            halo = 120.0 * np.exp(-((xx - t.uv[0]) ** 2 + (yy - t.uv[1] - dy) ** 2)
+                                  / (2 * 35.0 ** 2))
+            lit = img.astype(float)
+            lit[..., 2] += halo
+            res = tipm(np.clip(lit, 0, 255).astype(np.uint8))
+            assert res.ok, res.reason
+            err.append(res.uv - t.uv)
+    err = np.array(err)
+    assert np.abs(err.mean(axis=0)).max() < 0.05 and np.abs(err).max() < 0.3, err

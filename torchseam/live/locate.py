@@ -85,10 +85,11 @@ class SeamLocator:
 
     def _stripe(self, frame: np.ndarray, uv: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
-        """Red response, stripe mask and ROI corner around ``uv`` for ECAL. A tracker that
-        has just made them for this frame (the anchored tracker's TIPM window: attribute
-        ``stripe`` = (red, mask, (x0, y0)) or None) lends them when its window holds ECAL's
-        whole ROI; else they are made here (computing them twice cost ~0.4 ms a frame)."""
+        """Stripe response (TIPM's ridge), mask and ROI corner around ``uv`` for ECAL. A
+        tracker that has just made them for this frame (the anchored tracker's TIPM window:
+        attribute ``stripe`` = (response, mask, (x0, y0)) or None) lends them when its window
+        holds ECAL's whole ROI; else they are made here (computing them twice cost ~0.4 ms a
+        frame)."""
         lent = getattr(self.tracker, "stripe", None)
         if lent is not None:
             red, mask, (x0, y0) = lent

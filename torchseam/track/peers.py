@@ -311,7 +311,7 @@ class AnchoredTracker:
         self.P = np.eye(2)
         self.shape: np.ndarray | None = None   # arm_shape of the last fix taken
         self.age = 0                           # frames since that fix
-        # this frame's TIPM window: (red response, stripe mask, (x0, y0) of the window) or None;
+        # this frame's TIPM window: (stripe response, stripe mask, (x0, y0) of the window) or None;
         # valid until the next update (the arrays are TIPM's reused planes)
         self.stripe: tuple[np.ndarray, np.ndarray, tuple[int, int]] | None = None
         # this frame's arm directions at the corner from the TIPM fix taken when it is clean
@@ -404,8 +404,8 @@ class AnchoredTracker:
                                          x0:int(cu) + cfg.window_px + 1])
         taken = False
         if roi.shape[0] >= 16 and roi.shape[1] >= 16:
-            # TIPM's stages by hand (the frame is checked already) to keep the red response
-            # and stripe mask of the window: ECAL reads them next (see ``stripe``)
+            # TIPM's stages by hand (the frame is checked already) to keep the stripe response
+            # and mask of the window: ECAL reads them next (see ``stripe``)
             red, mask, why = self.tipm.stripe_mask(roi)
             self.stripe = (red, mask, (x0, y0))
             if not why:

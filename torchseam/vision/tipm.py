@@ -138,9 +138,14 @@ class Tipm:
 
     # ------------------------------------------------------------------ stages
     def stripe_mask(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
-        """Red response (H, W) uint8, filtered + dilated mask (H, W) uint8, failure reason.
+        """Stripe response (H, W) uint8, filtered + dilated mask (H, W) uint8, failure reason.
 
-        The red response lives in a work plane of this ``Tipm``: valid until its next call.
+        The stripe response is the ridge: the red response minus its local vertical mean, i.e.
+        the stripe with the glare under it taken away. The centre line and ECAL weigh pixels
+        by it: weighed by the raw red response, a glare halo's slope across the stripe pulls
+        each column's centre toward the glare (a red glare blob 25-40 px below the corner moved
+        the corner 0.1 px, on heavy-arc frames up to 0.5 px). It lives in a work plane of this
+        ``Tipm``: valid until its next call.
         """
         cfg = self.cfg
         hw = frame.shape[:2]
@@ -161,7 +166,7 @@ class Tipm:
         _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY, dst=planes[2])
         bx, by, bw, bh = cv2.boundingRect(binary)
         if bw == 0:
-            return red, np.zeros_like(red), "no stripe found (no red pixels above threshold)"
+            return ridge, np.zeros_like(red), "no stripe found (no red pixels above threshold)"
         # label and dilate only the box that holds anything (the stripe is a thin band), with a
         # margin for the dilation
         d = cfg.dilate_px
@@ -173,7 +178,7 @@ class Tipm:
         keep = np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= cfg.min_area)[0] + 1
         mask = np.zeros_like(binary)
         if len(keep) == 0:
-            return red, mask, "no stripe found (only small blobs)"
+            return ridge, mask, "no stripe found (only small blobs)"
         if len(keep) == n - 1:
             box = binary[roi]  # every blob is large enough: nothing to filter
         else:
@@ -182,14 +187,15 @@ class Tipm:
             # cv2.LUT needs 8-bit labels; with <= 256 labels (nearly always) it is 5x np.take
             box = cv2.LUT(lab.astype(np.uint8), lut[:256]) if n <= 256 else np.take(lut, lab)
         mask[roi] = cv2.dilate(box, self._kernel)
-        return red, mask, ""
+        return ridge, mask, ""
 
     def mask_around(self, frame: np.ndarray, uv: np.ndarray, radius: int
                     ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
-        """Stripe mask and red response in the square ROI of ``radius`` around ``uv``.
+        """Stripe response and mask (see :meth:`stripe_mask`) in the square ROI of ``radius``
+        around ``uv``.
 
         What ECAL needs in the live loop, at a fraction of the full-frame cost. Returns
-        ``(red, mask, (x0, y0))`` with the ROI's top-left corner.
+        ``(response, mask, (x0, y0))`` with the ROI's top-left corner.
         """
         h, w = frame.shape[:2]
         x0, y0 = max(0, int(uv[0]) - radius), max(0, int(uv[1]) - radius)
@@ -200,8 +206,9 @@ class Tipm:
         red, mask, _ = self.stripe_mask(np.ascontiguousarray(frame[y0:y1, x0:x1]))
         return red, mask, (x0, y0)
 
-    def centre(self, red: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """(N, 2) centre-line points (u, v) of the masked stripe.
+    def centre(self, response: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """(N, 2) centre-line points (u, v) of the masked stripe: per column the centroid of
+        ``response`` (the stripe response of :meth:`stripe_mask`) within the mask.
 
         Columns where the stripe comes within the ridge filter's reach of the top or bottom
         row of the image (or of the window the tracker cut) are left out: the border skews the
@@ -215,7 +222,7 @@ class Tipm:
             pts = np.stack([u[order], v[order]], axis=1)
         else:
             x0, y0, bw, bh = cv2.boundingRect(mask)
-            r, m = red[y0:y0 + bh, x0:x0 + bw], mask[y0:y0 + bh, x0:x0 + bw]
+            r, m = response[y0:y0 + bh, x0:x0 + bw], mask[y0:y0 + bh, x0:x0 + bw]
             w = cv2.bitwise_and(r, r, mask=m).astype(np.float32)
             # column sums of w and of row * w in one small matrix product
             rows = np.stack([np.ones(bh, np.float32), np.arange(y0, y0 + bh, dtype=np.float32)])
