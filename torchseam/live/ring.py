@@ -162,10 +162,12 @@ def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
 
     ``located_mm`` (arc-on frames, NaN where nothing was located) and ``used`` (bool, the
     same frames: the point went into the look-ahead buffer, with ECAL's arms around it, and
-    was not flagged as off the smooth seam through its neighbours) come per frame; the rest
-    per command.
+    was not flagged as off the smooth seam through its neighbours) come per frame;
+    ``nominal_mm`` per nominal path point; the rest per command, with ``command_segment``
+    (the segment's letter) and ``command_index`` (its command number in that segment).
     """
     loc3d, pix, used, planned, nominal, axis = [], [], [], [], [], []
+    seg_of, index_of = [], []
     for run in runs:
         scene = run.scene
         entries = run.entries or [None] * len(run.truths)
@@ -181,14 +183,16 @@ def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
         phis = np.linspace(0, 2 * np.pi, 20001)
         s = scene.true_joint.seam(phis)
         z_T = torch_frames(s)[:, :3, 2]
-        for ip, R, t, ok in zip(run.commands, run.rotations, run.command_t, run.frame_ok,
-                                strict=True):
+        for i, (ip, R, t, ok) in enumerate(zip(run.commands, run.rotations, run.command_t,
+                                               run.frame_ok, strict=True)):
             T_B_T = scene.part_pose(t)  # the part as it was when the stripe saw the point
             p_T = apply(invert(T_B_T), ip)
             k = int(np.argmin(np.linalg.norm(s.point - p_T, axis=1)))
             planned.append(np.linalg.norm(s.point[k] - p_T))
             z = T_B_T[:3, :3] @ z_T[k]
             axis.append(np.degrees(np.arccos(np.clip(R[:, 2] @ z, -1, 1))) if ok else np.nan)
+            seg_of.append(run.segment.name)
+            index_of.append(i)
         T_B_T = scene.part_pose(run.truths[len(run.truths) // 2].t_s)
         curve = apply(T_B_T, s.point)
         for p in run.nominal:
@@ -196,4 +200,5 @@ def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
     return {k: np.array(v) for k, v in (("located_mm", loc3d), ("used", used),
                                          ("pixel_px", pix),
                                          ("planned_mm", planned), ("nominal_mm", nominal),
-                                         ("axis_deg", axis))}
+                                         ("axis_deg", axis), ("command_segment", seg_of),
+                                         ("command_index", index_of))}

@@ -33,7 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--segments", default="abcdef", help="which segments (default abcdef)")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
     p.add_argument("--out", type=Path, default=Path("ring_out"),
-                   help="folder for quaternions.png and ring.json (default ring_out)")
+                   help="folder for quaternions.png, ring.json and commands.csv (default "
+                        "ring_out)")
     p.set_defaults(func=run)
 
 
@@ -80,6 +81,11 @@ def run(args: argparse.Namespace) -> int:
     ax = e["axis_deg"]
     print(f"torch axis within 1 degree of the bisector: {int((ax <= 1.0).sum())} of {len(ax)} "
           "commands")
+    over = np.flatnonzero(~(ax <= 1.0))  # NaN (no torch frame) counts as over
+    if len(over):
+        print("  over 1 degree: " + ", ".join(
+            f"{e['command_segment'][i]}{e['command_index'][i]} {ax[i]:.2f}" for i in over[:12])
+              + (f", ... ({len(over) - 12} more, see commands.csv)" if len(over) > 12 else ""))
     jumps = [float(np.abs(np.diff(r.quats, axis=0)).max()) if len(r.quats) > 1 else 0.0
              for r in runs]
     print("largest quaternion step between 2 mm points per segment: "
@@ -94,5 +100,11 @@ def run(args: argparse.Namespace) -> int:
     summary["quaternion_max_step"] = dict(zip([r.segment.name for r in runs], jumps,
                                               strict=True))
     (args.out / "ring.json").write_text(json.dumps(summary, indent=1))
-    print(f"wrote {args.out / 'quaternions.png'} and {args.out / 'ring.json'}")
+    with open(args.out / "commands.csv", "w") as f:  # one row per planned command
+        f.write("segment,command,path_error_mm,axis_error_deg\n")
+        for seg, i, d, a in zip(e["command_segment"], e["command_index"], e["planned_mm"], ax,
+                                strict=True):
+            f.write(f"{seg},{i},{d:.4f},{a:.3f}\n")
+    print(f"wrote {args.out / 'quaternions.png'}, {args.out / 'ring.json'} and "
+          f"{args.out / 'commands.csv'}")
     return 0
