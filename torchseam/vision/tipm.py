@@ -270,6 +270,11 @@ class Tipm:
             if abs(x) < 0.05 or it == 2:
                 break
             u0 += x
+        if abs(x) > cfg.corner_gap_px:
+            # the arms meet inside one arm's fitted span: that fit ran over the corner (glare
+            # hid or bent the stripe next to it) and the refits did not settle
+            return _fail(f"no corner: the arm fits do not settle ({abs(x):.1f} px apart)",
+                         mask, pts)
         if rms > cfg.max_rms_px:
             return _fail(f"no clean stripe: arm fit residual {rms:.2f} px", mask, pts)
         v = float(np.polynomial.polynomial.polyval(x, arms[0]))
