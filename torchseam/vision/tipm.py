@@ -7,14 +7,16 @@ line -> feature point.
 
 Centre line: the paper thins the mask to a one-pixel skeleton (``centre_line="thinning"``, kept
 for comparison and for the overlay); the default is a sub-pixel grey-gravity centre per column
-(the accepted improvement of METHOD.md).
+(the accepted improvement of METHOD.md), weighed by the ridge response rather than the raw red
+one, so that glare under the stripe does not pull it.
 
 Feature point: the stripe is split into its two arms at the column that best explains it as two
 lines (an exhaustive two-line least-squares search, O(N) with cumulative sums); each arm is then
 fitted with a quadratic ``v = a + b u + c u^2`` over a window next to the corner (skipping the
 few columns at the corner where the two arms blur together), and the feature point is where the
-two quadratics meet. A frame without a usable stripe gives ``ok=False`` and a reason, never a
-garbage point.
+two quadratics meet (the windows move there and the arms are refitted, up to three times; fits
+that still meet inside one arm's window give no point). A frame without a usable stripe gives
+``ok=False`` and a reason, never a garbage point.
 
 Arm prior (optional, for a tracker that has seen the previous frames): each arm's slope at the
 corner and its curvature change little from frame to frame, while an arm with a gap next to the
