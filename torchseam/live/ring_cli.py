@@ -84,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
     over = np.flatnonzero(~(ax <= 1.0))  # NaN (no torch frame) counts as over
     if len(over):
         print("  over 1 degree: " + ", ".join(
-            f"{e['command_segment'][i]}{e['command_index'][i]} {ax[i]:.2f}" for i in over[:12])
+            f"{e['command_segment'][i]}{e['command_index'][i]} "
+            + (f"{ax[i]:.2f}" if np.isfinite(ax[i]) else "no torch frame") for i in over[:12])
               + (f", ... ({len(over) - 12} more, see commands.csv)" if len(over) > 12 else ""))
     jumps = [float(np.abs(np.diff(r.quats, axis=0)).max()) if len(r.quats) > 1 else 0.0
              for r in runs]
