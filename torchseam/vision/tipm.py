@@ -146,7 +146,8 @@ class Tipm:
         the stripe with the glare under it taken away. The centre line and ECAL weigh pixels
         by it: weighed by the raw red response, a glare halo's slope across the stripe pulls
         each column's centre toward the glare (a red glare blob 25-40 px below the corner moved
-        the corner 0.1 px, on heavy-arc frames up to 0.5 px). It lives in a work plane of this
+        the corner 0.1 px, on heavy-arc frames up to 0.5 px); a frame refused as saturated
+        gives the raw red response (and an empty mask). It lives in a work plane of this
         ``Tipm``: valid until its next call.
         """
         cfg = self.cfg
