@@ -168,6 +168,9 @@ class AnchorConfig:
     arm_noise_px: float = config_field(lo=0.0, lo_open=True)
     slope_step: float = config_field(lo=0.0, lo_open=True)
     curvature_step: float = config_field(lo=0.0, lo_open=True)
+    glare_px: int = config_field(lo=1)
+    glare_start: float = config_field(lo=0.0)
+    glare_scale: float = config_field(lo=0.0, lo_open=True)
 
 
 def load_anchor_config(path: str | Path | None = None) -> AnchorConfig:
@@ -212,6 +215,25 @@ def corner_cov(res: TipmResult, noise: float, floor_px: float,
         var[side] = sigma * sigma * max(1.0, ratio)
     n_inv = _inv2(normals)
     return (n_inv * var) @ n_inv.T
+
+
+def glare_level(frame: np.ndarray, uv: np.ndarray, half_px: int) -> float:
+    """Red glare around a point: the median red response (:func:`red_response`, grey levels)
+    of the ``(2 half_px + 1)^2`` box of BGR ``frame`` (H, W, 3) centred at ``uv``; 0 where the box
+    leaves the frame entirely. The stripe covers a few rows of the box, so the median is the
+    background: arc light reflected off the part, which is red-heavy near the weld pool.
+
+    Example:
+        >>> f = np.zeros((100, 100, 3), np.uint8); f[..., 2] = 80   # a red haze
+        >>> glare_level(f, np.array([50.0, 50.0]), 30)
+        80.0
+    """
+    u, v = int(round(float(uv[0]))), int(round(float(uv[1])))
+    box = frame[max(v - half_px, 0):max(v + half_px + 1, 0),
+                max(u - half_px, 0):max(u + half_px + 1, 0)]
+    if box.size == 0:
+        return 0.0
+    return float(np.median(red_response(np.ascontiguousarray(box))))
 
 
 def arm_directions(res: TipmResult) -> np.ndarray:
@@ -285,6 +307,14 @@ class AnchoredTracker:
     run away under arc light, dragging the filter with it; loose fixes outside the gate are
     refused. When EAKF-STC declares the track lost, TIPM searches the whole frame
     and restarts everything.
+    Under red glare around the predicted point (:func:`glare_level` above ``glare_start``) both
+    measurements are trusted less: their covariances are multiplied by
+    ``1 + ((glare - glare_start) / glare_scale)^2``, so the filter leans on its prediction
+    while the glare lasts. Both, because both go wrong together there and the same way: on a
+    glare band across the corner TIPM's fits stay tight while the corner slides 3-4 px along
+    the stripe, and EAKF-STC, re-anchored onto it, follows (held-out seed 1026: 3.6 px).
+    Measured over 4 599 fixes on 16 heavy sequences: Mahalanobis^2 errors of mean 1.2-1.5 at
+    glare below 60 grey levels (2 expected), 5.6 at 60-80, 11.4 at 80-100.
     Why (measured on 30 simulated heavy sequences, seeds 1000-1029): a free quadratic on an arm
     with a gap next to the corner slides the corner 4-15 px along the shallow stripe with a
     tight fit, which no residual test catches; the arm prior cuts those fixes > 3 px from 126
@@ -318,6 +348,7 @@ class AnchoredTracker:
         # (arm-fit RMS <= max_rms_px), (2, 2) unit image vectors (left, right arm), or None
         self.arm_dirs: np.ndarray | None = None
         self._expected: np.ndarray | None = None  # the next frame's pixel from the robot's motion
+        self.glare = 0.0  # this frame's glare_level around the predicted point (grey levels)
 
     def expect(self, uv: np.ndarray | None) -> None:
         """Where the feature point should be in the next frame, from the robot's motion (the
@@ -359,13 +390,14 @@ class AnchoredTracker:
         self.P = (np.eye(2) - K) @ self.P
         return True
 
-    def _fix(self, anchor: np.ndarray, res: TipmResult) -> bool:
-        """Take or refuse a TIPM fix; True when the filter moved onto it."""
+    def _fix(self, anchor: np.ndarray, res: TipmResult, inflate: float = 1.0) -> bool:
+        """Take or refuse a TIPM fix (its covariance times ``inflate``); True when the filter
+        moved onto it."""
         c = self.cfg
         # the prior the fit used: shape and age are those of the last fix taken until below
         t = self.tipm.cfg
-        R = corner_cov(res, c.fix_noise, c.fix_floor_px, self._prior(),
-                       (t.corner_gap_px, t.fit_window_px))
+        R = inflate * corner_cov(res, c.fix_noise, c.fix_floor_px, self._prior(),
+                                 (t.corner_gap_px, t.fit_window_px))
         taken = self._measure(anchor, R, c.fix_gate)
         if not taken and res.rms_px <= c.max_rms_px:
             # a clean corner the motion model did not expect: the image jumped (in closed loop
@@ -398,6 +430,8 @@ class AnchoredTracker:
             self.x = expected
         h, w = frame.shape[:2]
         cu, cv = self.x  # the filter's prediction: EAKF-STC can be the one that ran off
+        self.glare = glare_level(frame, self.x, cfg.glare_px)
+        inflate = 1.0 + (max(self.glare - cfg.glare_start, 0.0) / cfg.glare_scale) ** 2
         x0 = int(np.clip(cu - cfg.window_px, 0, w - 1))
         y0 = int(np.clip(cv - cfg.window_px, 0, h - 1))
         roi = np.ascontiguousarray(frame[y0:int(cv) + cfg.window_px + 1,
@@ -411,12 +445,12 @@ class AnchoredTracker:
             if not why:
                 res = self.tipm.corner(self.tipm.centre(red, mask), mask, self._prior())
                 if res.ok:
-                    taken = self._fix(res.uv + (x0, y0), res)
+                    taken = self._fix(res.uv + (x0, y0), res, inflate)
                     if taken and res.rms_px <= cfg.max_rms_px:
                         # clean arms only: a fit over an arm cut short (glare, the other pipe)
                         # leaves the line, and its tangent turns (3-4 degrees seen)
                         self.arm_dirs = arm_directions(res)
-        self._measure(uv, self.R_track, cfg.track_gate)
+        self._measure(uv, inflate * self.R_track, cfg.track_gate)
         out = self.x.copy()
         if not taken:
             return out, status  # EAKF-STC's word on the frame (it may be coasting)
