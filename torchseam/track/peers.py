@@ -292,6 +292,22 @@ def _inv2(A: np.ndarray) -> np.ndarray:
     return np.array([[d, -b], [-c, a]]) / det
 
 
+@dataclass(frozen=True)
+class Fix:
+    """A TIPM corner the :class:`AnchoredTracker` weighed on one frame.
+
+    Attributes:
+        uv: (2,) the corner, frame px. cov: (2, 2) its covariance before the glare term
+            (:func:`corner_cov`); inflate: the glare term's factor on it (1: no glare).
+        taken: whether the filter took it (or restarted on it).
+    """
+
+    uv: np.ndarray
+    cov: np.ndarray
+    inflate: float
+    taken: bool
+
+
 class AnchoredTracker:
     """EAKF-STC with TIPM as an absolute anchor, fused by a small Kalman filter on the point.
 
@@ -350,6 +366,7 @@ class AnchoredTracker:
         self.arm_dirs: np.ndarray | None = None
         self._expected: np.ndarray | None = None  # the next frame's pixel from the robot's motion
         self.glare = 0.0  # this frame's glare_level around the predicted point (grey levels)
+        self.fix: Fix | None = None  # this frame's TIPM corner and what became of it, or None
 
     def expect(self, uv: np.ndarray | None) -> None:
         """Where the feature point should be in the next frame, from the robot's motion (the
@@ -397,8 +414,9 @@ class AnchoredTracker:
         c = self.cfg
         # the prior the fit used: shape and age are those of the last fix taken until below
         t = self.tipm.cfg
-        R = inflate * corner_cov(res, c.fix_noise, c.fix_floor_px, self._prior(),
-                                 (t.corner_gap_px, t.fit_window_px))
+        cov = corner_cov(res, c.fix_noise, c.fix_floor_px, self._prior(),
+                         (t.corner_gap_px, t.fit_window_px))
+        R = inflate * cov
         taken = self._measure(anchor, R, c.fix_gate)
         if not taken and res.rms_px <= c.max_rms_px:
             # a clean corner the motion model did not expect: the image jumped (in closed loop
@@ -408,10 +426,11 @@ class AnchoredTracker:
             taken = True
         if taken:
             self.shape, self.age = arm_shape(res), 0
+        self.fix = Fix(np.asarray(anchor, float).copy(), cov, inflate, taken)
         return taken
 
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
-        self.stripe = self.arm_dirs = None
+        self.stripe = self.arm_dirs = self.fix = None
         expected, self._expected = self._expected, None  # for this frame only
         uv, status = self.inner.update(frame)
         if self.x is None:
