@@ -330,8 +330,9 @@ class AnchoredTracker:
     while the glare lasts. Both, because both go wrong together there and the same way: on a
     glare band across the corner TIPM's fits stay tight while the corner slides 3-4 px along
     the stripe, and EAKF-STC, re-anchored onto it, follows (held-out seed 1026: 3.6 px).
-    Measured over 4 599 fixes on 16 heavy sequences: Mahalanobis^2 errors of mean 1.2-1.5 at
-    glare below 60 grey levels (2 expected), 5.6 at 60-80, 11.4 at 80-100.
+    Measured over 4 599 fixes on 16 heavy sequences (``bench/fix_calibration.py``):
+    Mahalanobis^2 errors of mean 1.2-1.5 at glare below 60 grey levels (2 expected), 5.5 at
+    60-80, 11.5 at 80-100; 1.2-2.0 with the term, except 3.5 at 60-80.
     Why (measured on 30 simulated heavy sequences, seeds 1000-1029): a free quadratic on an arm
     with a gap next to the corner slides the corner 4-15 px along the shallow stripe with a
     tight fit, which no residual test catches; the arm prior cuts those fixes > 3 px from 126
