@@ -71,6 +71,8 @@ def main() -> None:
     ap.add_argument("--level", default="heavy", help="arc-noise level of simulated sequences")
     ap.add_argument("--frames", type=int, default=300)
     args = ap.parse_args()
+    if args.frames < 2:
+        ap.error("--frames: need at least 2 (the tracker starts on the first)")
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     rows = []
