@@ -365,13 +365,18 @@ def test_anchored_leans_on_its_prediction_under_red_glare():
     assert glare_level(haze, np.array([-100.0, 150.0]), 30) == 0.0  # the box off the frame
     moved = {}
     for name, frame in (("dark", dark), ("haze", haze)):
-        # EAKF-STC at the true point (200, 150), tight TIPM fixes 3 px beside it
+        # the filter at the true point (200, 150); TIPM's tight fixes and EAKF-STC both 3 px
+        # beside it (a glare band biases both the same way)
         trk = _anchored_with_tipm([np.array([3.0, 0.0])] * 3, rms=0.15)
-        trk.inner = _StubInner((203.0, 150.0))  # EAKF-STC re-anchored onto the fix: with it
+        trk.inner = _StubInner((203.0, 150.0))
         trk.x = np.array([200.0, 150.0])
         trk.P = trk.Q.copy()
         moved[name] = [trk.update(frame)[0][0] - 200.0 for _ in range(3)]
         assert trk.glare == (level if name == "haze" else 0.0)
+        # the frame's fix is recorded with the glare factor on its covariance
+        assert trk.fix is not None and trk.fix.taken
+        np.testing.assert_allclose(trk.fix.uv, [203.0, 150.0], atol=1e-9)
+        assert trk.fix.inflate == pytest.approx(10.0 if name == "haze" else 1.0, rel=0.02)
     assert moved["dark"][0] > 2.8                      # dark: taken at once (3 px)
     assert moved["haze"][0] < 0.7 * moved["dark"][0]   # haze: a part of the way per frame ...
     assert moved["haze"][2] > moved["haze"][0]         # ... still moving toward them
