@@ -153,18 +153,50 @@ def test_a_red_glare_halo_under_the_corner_does_not_pull_it(cell, part, noise):
 
 
 def test_under_heavy_arc_tipm_refuses_rather_than_guesses(cell, part, noise):
-    """Whole-frame TIPM on heavy-arc frames: a point it gives is never a gross error. On frame
-    43 of this sequence glare bends the stripe next to the corner; the right arm's fit ran
-    over the corner, the refits did not settle (the arms met 44 px inside an arm's span) and
-    the point was 50 px off. Such a fit is refused now."""
+    """Whole-frame TIPM on heavy-arc frames: a point it gives is never a gross error. Glare
+    can bend the stripe next to the corner: an arm's fit then runs over the corner and the
+    refits do not settle (on frame 43 of seed 103 the arms met 44 px inside an arm's span and
+    the point was 50 px off, before such fits were refused; since the centre line is refined
+    around each column's centroid, that frame gives a point 1.3 px off, and the refusal
+    happens on seed 105's frame 19)."""
     tipm = Tipm()
     errs, reasons = [], []
-    for k, (img, t) in enumerate(simulate(cell, part, noise,
-                                          SequenceSpec(n_frames=50, level=1.0, seed=103))):
-        res = tipm(img)
-        if res.ok:
-            errs.append(np.linalg.norm(res.uv - t.uv))
-        elif k == 43:
-            reasons.append(res.reason)
-    assert len(errs) >= 40 and max(errs) < 15.0, max(errs)
-    assert reasons and "do not settle" in reasons[0]
+    for seed in (103, 105):
+        for img, t in simulate(cell, part, noise,
+                               SequenceSpec(n_frames=50, level=1.0, seed=seed)):
+            res = tipm(img)
+            if res.ok:
+                errs.append(np.linalg.norm(res.uv - t.uv))
+            else:
+                reasons.append(res.reason)
+    assert len(errs) >= 80 and max(errs) < 15.0, max(errs)
+    assert any("do not settle" in r for r in reasons), reasons
+
+
+def test_a_stripe_saturated_on_glare_keeps_its_centre(cell, part, noise):
+    """Over arc glare the stripe's red channel saturates while green rises with the glare, so
+    ``R - max(G, B)`` dips at the stripe's middle and its cross-section splits into two ridges;
+    where the mask holds only one, the masked centroid sits on it (1.3-2.4 px off on a
+    heavy-arc ring) and next to the corner that slides the corner along the stripe. Here a
+    glare blob (the simulator's arc colour) lies on the right arm next to the corner: without
+    the refinement over the response around each column's centroid (``centre_passes: 0``)
+    the corner moves up to 1.1 px; with it, within 0.3 px."""
+    from torchseam.sim.noise import ARC_BGR
+
+    tipm = Tipm()
+    masked_only = Tipm(dataclasses.replace(tipm.cfg, centre_passes=0))
+    err, err_masked = [], []
+    for img, t in simulate(cell, part, noise, SequenceSpec(n_frames=6, level=0.0, seed=3)):
+        h, w = img.shape[:2]
+        yy, xx = np.mgrid[0:h, 0:w]
+        for amp, dx in ((200.0, 10.0), (200.0, 15.0), (240.0, 15.0), (240.0, 20.0)):
+            glare = amp * np.exp(-((xx - t.uv[0] - dx) ** 2 + (yy - t.uv[1] - 8.0) ** 2)
+                                 / (2 * 14.0 ** 2))
+            lit = img.astype(float) + glare[..., None] * ARC_BGR
+            frame = np.clip(lit, 0, 255).astype(np.uint8)
+            res, res_masked = tipm(frame), masked_only(frame)
+            assert res.ok and res_masked.ok, (res.reason, res_masked.reason)
+            err.append(np.linalg.norm(res.uv - t.uv))
+            err_masked.append(np.linalg.norm(res_masked.uv - t.uv))
+    assert max(err_masked) > 0.6  # the case is there: the masked centroid alone is off
+    assert max(err) < 0.3 and np.mean(err) < 0.15, np.round(err, 2)

@@ -8,7 +8,9 @@ line -> feature point.
 Centre line: the paper thins the mask to a one-pixel skeleton (``centre_line="thinning"``, kept
 for comparison and for the overlay); the default is a sub-pixel grey-gravity centre per column
 (the accepted improvement of METHOD.md), weighed by the ridge response rather than the raw red
-one, so that glare under the stripe does not pull it.
+one, so that glare under the stripe does not pull it, and refined over the response within a few
+rows of it, so that a stripe saturated on glare (its response split into two ridges) does not
+leave it on one of them.
 
 Feature point: the stripe is split into its two arms at the column that best explains it as two
 lines (an exhaustive two-line least-squares search, O(N) with cumulative sums); each arm is then
@@ -33,7 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from torchseam.core.config import CONFIG_DIR, load_config
+from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.dataset import check_frame
 
 
@@ -41,17 +43,19 @@ from torchseam.core.dataset import check_frame
 class TipmConfig:
     """Parameters of TIPM (``configs/tipm.yaml``)."""
 
-    min_red: float
-    rel_threshold: float
-    ridge_px: int
-    min_area: int
-    dilate_px: int
-    corner_gap_px: float
-    fit_window_px: float
-    min_points_per_arm: int
-    max_rms_px: float
-    min_corner_deg: float
-    max_saturated_fraction: float
+    min_red: float = config_field(lo=0.0)
+    rel_threshold: float = config_field(lo=0.0, hi=1.0)
+    ridge_px: int = config_field(lo=3)
+    min_area: int = config_field(lo=0)
+    dilate_px: int = config_field(lo=0)
+    centre_half_px: float = config_field(lo=0.0, lo_open=True)
+    centre_passes: int = config_field(lo=0)
+    corner_gap_px: float = config_field(lo=0.0)
+    fit_window_px: float = config_field(lo=0.0, lo_open=True)
+    min_points_per_arm: int = config_field(lo=3)
+    max_rms_px: float = config_field(lo=0.0, lo_open=True)
+    min_corner_deg: float = config_field(lo=0.0, hi=180.0)
+    max_saturated_fraction: float = config_field(lo=0.0, hi=1.0)
 
 
 def red_response(frame: np.ndarray, with_green: bool = False,
@@ -231,12 +235,39 @@ class Tipm:
             rows = np.stack([np.ones(bh, np.float32), np.arange(y0, y0 + bh, dtype=np.float32)])
             s0, s1 = rows @ w
             cols = np.nonzero(s0 > 0)[0]
-            pts = np.stack([cols + x0, s1[cols] / s0[cols]], axis=1)
+            v = self._recentre(response, cols + x0, s1[cols] / s0[cols])
+            pts = np.stack([cols + x0, v], axis=1)
         k = self.cfg.ridge_px // 2 + 1  # the ridge filter's reach: its mean is skewed there
         cut = (mask[:k] > 0).any(axis=0) | (mask[-k:] > 0).any(axis=0)
         if len(pts) and cut.any():
             pts = pts[~cut[pts[:, 0].astype(np.intp)]]
         return pts.astype(float)
+
+    def _recentre(self, response: np.ndarray, cols: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Each column's centre ``v`` (N,) at columns ``cols`` (N,) moved to the centroid of the
+        stripe response within ``centre_half_px`` rows of it, mask or not (``centre_passes``
+        times).
+
+        Why: where the stripe runs over arc glare its red channel saturates while green rises
+        with the glare, so ``R - max(G, B)`` dips at the stripe's middle and its cross-section
+        splits into two ridges 4-8 px apart, each near the threshold. The mask then holds one of
+        them in some columns and the masked centroid sits on it, 1.3-2.4 px off the stripe;
+        next to the corner those columns slid the corner 2-4.6 px along the stripe with tight
+        arm fits (heavy-arc T ring seed 5: 15 frames in a row). The window takes both ridges.
+        """
+        cfg = self.cfg
+        if cfg.centre_passes == 0 or len(cols) == 0:
+            return v
+        reach = int(np.ceil(cfg.centre_half_px))
+        y0 = max(int(v.min()) - reach, 0)
+        y1 = min(int(v.max()) + reach + 2, response.shape[0])
+        r = response[y0:y1, cols].astype(np.float32)
+        y = np.arange(y0, y1, dtype=np.float32)[:, None]
+        rows = np.stack([np.ones(y1 - y0, np.float32), y[:, 0]])
+        for _ in range(cfg.centre_passes):
+            s0, s1 = rows @ (r * (np.abs(y - v) <= cfg.centre_half_px))
+            v = np.where(s0 > 0, s1 / np.maximum(s0, 1e-6), v)  # (an empty window: keep it)
+        return v
 
     # ------------------------------------------------------------------ main
     def __call__(self, frame: np.ndarray, prior: np.ndarray | None = None) -> TipmResult:
