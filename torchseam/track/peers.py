@@ -328,11 +328,13 @@ class AnchoredTracker:
     measurements are trusted less: their covariances are multiplied by
     ``1 + ((glare - glare_start) / glare_scale)^2``, so the filter leans on its prediction
     while the glare lasts. Both, because both go wrong together there and the same way: on a
-    glare band across the corner TIPM's fits stay tight while the corner slides 3-4 px along
-    the stripe, and EAKF-STC, re-anchored onto it, follows (held-out seed 1026: 3.6 px).
-    Measured over 4 599 fixes on 16 heavy sequences (``bench/fix_calibration.py``):
-    Mahalanobis^2 errors of mean 1.2-1.5 at glare below 60 grey levels (2 expected), 5.5 at
-    60-80, 11.5 at 80-100; 1.2-2.0 with the term, except 3.5 at 60-80.
+    glare band across the corner TIPM's fits stay tight while the corner slides along the
+    stripe, and EAKF-STC, re-anchored onto it, follows. Measured over 4 602 fixes on 16 heavy
+    sequences (``bench/fix_calibration.py``, TIPM's centre line refined around each column's
+    centroid): Mahalanobis^2 errors of mean 1.1 at glare below 60 grey levels (2 expected),
+    2.9 at 60-80, 8.5 at 80-100; 1.1-1.9 with the term. (Before that refinement a stripe
+    saturated on glare left the centre line on one of its two ridges and the corner slid
+    3-4 px: 5.5 and 11.5 in those bins.)
     Why (measured on 30 simulated heavy sequences, seeds 1000-1029): a free quadratic on an arm
     with a gap next to the corner slides the corner 4-15 px along the shallow stripe with a
     tight fit, which no residual test catches; the arm prior cuts those fixes > 3 px from 126
