@@ -46,6 +46,31 @@ def test_buffer_walks_a_curved_path_in_equal_steps():
     assert buf.dropped == 0
 
 
+def test_buffer_tangent_is_the_seams_at_the_commanded_point():
+    """The fit's tangent is taken where the torch is sent (ip), not at the located point the
+    step aimed at, which lies up to one point spacing further on: on a tight saddle that
+    spacing turned the torch axis by up to 0.5 degree (60-degree joint, 0.3 mm spacing)."""
+    r, spacing = 20.0, 0.6  # a helix turning 1.7 degrees per point
+    def helix(phi: np.ndarray) -> np.ndarray:
+        return np.stack([r * np.cos(phi), r * np.sin(phi), r * phi**2 / 8], axis=1)
+
+    pts = helix(np.arange(0, 1.5, spacing / r))
+    buf = LookAheadBuffer(maxlen=1000, smooth_mm=5.0)
+    for k, p in enumerate(pts):
+        buf.push(p, np.full((2, 3), np.nan), k / 25)
+    dense = helix(np.linspace(0, 1.5, 30001))
+    true_t = np.gradient(dense, axis=0)
+    true_t /= np.linalg.norm(true_t, axis=1, keepdims=True)
+    cp, errs = pts[10], []
+    while (nxt := buf.next_command(cp, 2.0)) is not None:
+        ip, tangent, _ = nxt
+        k = int(np.argmin(np.linalg.norm(dense - ip, axis=1)))
+        errs.append(np.degrees(np.arccos(np.clip(tangent @ true_t[k], -1, 1))))
+        cp = ip
+    assert len(errs) >= 10
+    assert max(errs) < 0.25  # at the aimed-at point instead: up to 1.6 degrees
+
+
 def test_buffer_is_bounded_and_counts_what_it_drops():
     buf = LookAheadBuffer(maxlen=10)
     for k in range(25):
