@@ -34,6 +34,9 @@ def test_closed_loop_follows_the_true_seam(baseline):
     assert s["seam_rmse_mm"] < 0.1 and s["seam_max_mm"] < 0.3
     assert s["nominal_rmse_mm"] > 0.5  # the part really deviates from its design
     assert s["poses_sent"] >= LENGTH_MM / 2
+    # every pose welded with (arc on) has its torch axis on the true joint's bisector
+    assert s["poses_welded"] >= LENGTH_MM / 2 - 1
+    assert s["axis_within_1deg"] == s["poses_welded"] and s["axis_max_deg"] < 1.0
 
 
 @pytest.mark.parametrize(("fault", "why"), [

@@ -230,7 +230,8 @@ class WeldSession:
             self.state = RunState.STOPPED if s.get("stopped") else RunState.FINISHED
         accuracy = (f"pixel RMSE {s.get('pixel_rmse_px')} px, located RMSE "
                     f"{s.get('located_rmse_mm')} mm" if s.get("open_loop") else
-                    f"torch vs seam RMSE {s.get('seam_rmse_mm')} mm")
+                    f"torch vs seam RMSE {s.get('seam_rmse_mm')} mm, axis RMSE "
+                    f"{s.get('axis_rmse_deg')} deg")
         self.log(f"weld {'stopped' if s.get('stopped') else 'finished'}: {s.get('frames')} "
                  f"frames, {accuracy}, poses sent {s.get('poses_sent')}, refused "
                  f"{s.get('poses_refused')}, frame->command p99 {s.get('latency_p99_ms')} ms")

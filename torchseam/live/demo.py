@@ -22,8 +22,9 @@ import numpy as np
 import torch
 
 from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
-from torchseam.core.transforms import apply, invert
+from torchseam.core.transforms import apply, invert, quat_to_matrix
 from torchseam.live.loop import Command, LiveLoop, LoopState, StepReport
+from torchseam.live.ring import torch_axis_errors
 from torchseam.live.simcell import LockstepCell, SimClock
 from torchseam.plan.path import load_plan_config, six_segments
 from torchseam.robot.egm import EgmLink
@@ -123,6 +124,8 @@ class DemoControl:
 class DemoResult:
     frames: list[FrameRecord] = field(default_factory=list)
     sent: list[tuple[str, np.ndarray, np.ndarray, float]] = field(default_factory=list)
+    # per pose sent with the arc on (not the approach), torch axis vs the true bisector
+    axis_deg: list[float] = field(default_factory=list)
     refused: dict[str, int] = field(default_factory=dict)
     watchdog_trips: int = 0
     quats: dict[str, np.ndarray] = field(default_factory=dict)
@@ -183,6 +186,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             travelled, prev = 0.0, start
             first, last_msg = True, ""
             commands: list[Command] = []   # every pose handed to the link (the loop keeps few)
+            welding: list[bool] = []       # the arc was on when it was handed over
             for k in range(n_max):
                 if control is not None and control.checkpoint():
                     stopped = True
@@ -214,6 +218,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                                         T_B_W, clock.t)
                     if rep.command is not None:
                         commands.append(rep.command)
+                        welding.append(arc_on)
                     if rep.message and rep.message != last_msg:
                         res.messages.append(f"[{seg.name} t={clock.t:.2f}s] {rep.state.value}: "
                                             f"{rep.message}")
@@ -235,6 +240,14 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             sent = [c for c in commands if c.ok]
             for c in sent:
                 res.sent.append((seg.name, c.p, c.q, c.seen_t_s))
+            # (in the approach the torch turns from the programmed orientation onto the
+            # seam's, at most max_turn_deg a step: up to ~5 degrees off, arc off)
+            weld = [c for c, arc in zip(commands, welding, strict=True) if c.ok and arc]
+            if weld:
+                res.axis_deg += list(torch_axis_errors(
+                    scene, np.array([c.p for c in weld]),
+                    quat_to_matrix(np.array([c.q for c in weld])),
+                    np.array([c.seen_t_s for c in weld]))[0])
             # the link's count: new targets and the re-sends that keep its watchdog fed
             # (a re-send refused as stale is the link holding the robot while tracking is old)
             link_stats = link.stats
@@ -367,6 +380,7 @@ def _summary(res: DemoResult, unsafe: int) -> dict:
         nominal += [float(np.min(np.linalg.norm(C - p, axis=1))) for p in P]
     nominal = np.array(nominal)
     lat = res.latency.get("frame->command", (float("nan"), float("nan")))
+    axis = np.array(res.axis_deg)
 
     def rms(x):
         return float(np.sqrt(np.mean(x**2))) if len(x) else float("nan")
@@ -378,6 +392,8 @@ def _summary(res: DemoResult, unsafe: int) -> dict:
         "nominal_rmse_mm": rms(nominal),
         "nominal_max_mm": float(nominal.max()) if len(nominal) else float("nan"),
         "pixel_rmse_px": rms(pix), "pixel_max_px": float(pix.max()) if len(pix) else 0.0,
+        "axis_rmse_deg": rms(axis), "axis_max_deg": float(axis.max()) if len(axis) else float(
+            "nan"), "axis_within_1deg": int((axis <= 1.0).sum()), "poses_welded": len(axis),
         "latency_p50_ms": lat[0], "latency_p99_ms": lat[1],
         "poses_sent": len(res.sent), "poses_refused": int(sum(res.refused.values())),
         "refused_reasons": dict(res.refused),

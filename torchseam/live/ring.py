@@ -27,6 +27,7 @@ from torchseam.core.transforms import apply, invert
 from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
 from torchseam.live.locate import Location, SeamLocator
 from torchseam.plan.path import Located, LookAheadBuffer, Segment, load_plan_config, six_segments
+from torchseam.sim.joint import SeamSample
 from torchseam.sim.scene import Scene, torch_frames
 from torchseam.sim.sequence import FrameTruth, SequenceSpec, simulate
 from torchseam.track.fusion import TrackStatus
@@ -157,6 +158,28 @@ def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: f
     run.nominal = scene.nominal_tcp(s0 + np.arange(0.0, seg_len, step))[:, :3, 3]
 
 
+def torch_axis_errors(scene: Scene, p: np.ndarray, R: np.ndarray, t_s: np.ndarray,
+                      seam: SeamSample | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Torch axis of poses (``p`` (N, 3) mm, ``R`` (N, 3, 3), robot base) against the true
+    one at the nearest point of the true seam, with the part where it was at ``t_s`` (N,):
+    ``(angle (N,) degrees, distance to that seam point (N,) mm)``. The true frame gets the
+    work and travel angles of ``configs/plan.yaml`` as the planned one does. ``seam``: the
+    true seam densely sampled (default: 20 001 points round it)."""
+    if seam is None:
+        seam = scene.true_joint.seam(np.linspace(0, 2 * np.pi, 20001))
+    plan = load_plan_config()
+    frames = torch.tensor(torch_frames(seam)[:, :3, :3])
+    z_T = tilt(frames, plan.work_angle_deg, plan.travel_angle_deg)[:, :, 2].numpy()
+    angle, dist = np.full(len(p), np.nan), np.full(len(p), np.nan)
+    for i in range(len(p)):
+        T_B_T = scene.part_pose(float(t_s[i]))
+        p_T = apply(invert(T_B_T), p[i])
+        k = int(np.argmin(np.linalg.norm(seam.point - p_T, axis=1)))
+        dist[i] = np.linalg.norm(seam.point[k] - p_T)
+        angle[i] = np.degrees(np.arccos(np.clip(R[i][:, 2] @ (T_B_T[:3, :3] @ z_T[k]), -1, 1)))
+    return angle, dist
+
+
 def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
     """Per-point errors against the truth, pooled over segments (mm, px, degrees).
 
@@ -180,19 +203,14 @@ def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
             used.append(e is not None and not e.flagged)
         if not run.commands:
             continue
-        phis = np.linspace(0, 2 * np.pi, 20001)
-        s = scene.true_joint.seam(phis)
-        z_T = torch_frames(s)[:, :3, 2]
-        for i, (ip, R, t, ok) in enumerate(zip(run.commands, run.rotations, run.command_t,
-                                               run.frame_ok, strict=True)):
-            T_B_T = scene.part_pose(t)  # the part as it was when the stripe saw the point
-            p_T = apply(invert(T_B_T), ip)
-            k = int(np.argmin(np.linalg.norm(s.point - p_T, axis=1)))
-            planned.append(np.linalg.norm(s.point[k] - p_T))
-            z = T_B_T[:3, :3] @ z_T[k]
-            axis.append(np.degrees(np.arccos(np.clip(R[:, 2] @ z, -1, 1))) if ok else np.nan)
-            seg_of.append(run.segment.name)
-            index_of.append(i)
+        s = scene.true_joint.seam(np.linspace(0, 2 * np.pi, 20001))
+        # the part as it was when the stripe saw each point
+        ax, dist = torch_axis_errors(scene, np.array(run.commands), np.array(run.rotations),
+                                     np.array(run.command_t), s)
+        planned += list(dist)
+        axis += list(np.where(run.frame_ok, ax, np.nan))
+        seg_of += [run.segment.name] * len(ax)
+        index_of += list(range(len(ax)))
         T_B_T = scene.part_pose(run.truths[len(run.truths) // 2].t_s)
         curve = apply(T_B_T, s.point)
         for p in run.nominal:
