@@ -9,8 +9,10 @@ plain STC, KCF, CSRT, MOSSE, EAKF-STC and ``anchored`` (EAKF-STC fused with TIPM
 loop's default), each started on frame 0 (arc off) by TIPM. Errors are
 over the arc frames against the simulator's labels: RMSE and max (px), % frames lost (no point
 or > 15 px off), and the single-stream time per frame (BGR frame in memory -> point) p50/p99 on
-one thread (EAKF-STC single stream is the numpy twin of the fitted module,
-:class:`~torchseam.track.lite.LiteEAKFSTC`, as in the live loop). A second table times the torch
+one thread, with the tracker's work between frames (``idle()``: EAKF-STC's learning for the
+next frame, which the live loop runs once the frame's command is out) timed apart. EAKF-STC
+single stream is the numpy twin of the fitted module,
+:class:`~torchseam.track.lite.LiteEAKFSTC`, as in the live loop. A second table times the torch
 module itself: one sequence (B = 1) and B sequences stepped together.
 
 Threads: torch.set_num_threads(1) and cv2.setNumThreads(1) for the single-stream figures (the
@@ -64,16 +66,18 @@ def main() -> None:
         level = noise.level(name)
         err = {t: [] for t in trackers}
         secs = {t: [] for t in trackers}
+        idle = {t: [] for t in trackers}
         for s in range(args.sequences):
             spec = SequenceSpec(n_frames=args.frames, level=level, seed=args.first_seed + s)
             frames, labels, arc = simulate_labelled(cell, part, noise, spec)
             if name == args.levels.split(",")[-1]:
                 grey_bank.append((np.stack([red_response(f) for f in frames]), labels[0]))
             for t in trackers:
-                uv, _, sec, _ = run_tracker(make_tracker(t), frames, None)
+                uv, _, sec, idle_sec, _ = run_tracker(make_tracker(t), frames, None)
                 e = np.linalg.norm(uv - labels, axis=1)
                 err[t].append(e[arc] if arc.any() else e[1:])
                 secs[t].append(sec[1:])
+                idle[t].append(idle_sec[1:])
             print(f"  {name}: sequence {s + 1}/{args.sequences} done", flush=True)
         for t in trackers:
             # the sequence with the largest error of a point given (lost frames: their lost %):
@@ -83,16 +87,19 @@ def main() -> None:
             worst.append([name, t, args.first_seed + k, sk["rmse"], sk["max"], sk["pct_lost"]])
             st = error_stats(np.concatenate(err[t]))
             p50, p99 = percentiles_ms(np.concatenate(secs[t]))
+            i50, i99 = percentiles_ms(np.concatenate(idle[t]))
             rows.append([name, t, st["n"], st["rmse"], st["max"], st["pct_gt5"], st["pct_lost"],
-                         p50, p99])
+                         p50, p99, i50, i99])
     cpu = platform.processor() or platform.machine()
     print(f"\nTrackers on {args.sequences} sequences (seeds {args.first_seed}-"
           f"{args.first_seed + args.sequences - 1}) x {args.frames} frames per level "
           f"({cell.camera.width} x {cell.camera.height}); {cpu}, 1 thread")
     print(format_table(["noise", "tracker", "frames", "RMSE px", "max px", ">5px %", "lost %",
-                        "ms p50", "ms p99"], rows))
-    print("Errors over the arc frames; 'lost' = no point or > 15 px off. Time: BGR frame in "
-          "memory -> point, per frame, single stream.")
+                        "ms p50", "ms p99", "idle p50", "idle p99"], rows))
+    print("Errors over the arc frames; 'lost' = no point or > 15 px off. Time (ms): BGR frame "
+          "in memory -> point, per frame, single stream; idle: the tracker's work after the "
+          "point, before the next frame (its learning; the live loop runs it once the "
+          "command is out).")
     print("\nWorst sequence per level and tracker (the largest error of a point given):")
     print(format_table(["noise", "tracker", "seed", "RMSE px", "max px", "lost %"], worst))
     if "eakf-stc" in trackers and grey_bank and args.batch > 0:

@@ -184,8 +184,9 @@ def test_eakf_stc_tracker_is_the_twin_and_follows_a_heavy_arc_seam(cell, part, n
     frames, truth = [f for f, _ in pairs], np.array([t.uv for _, t in pairs], float)
     trk = make_tracker("eakf-stc")
     assert isinstance(trk, LiteTracker)
-    uv, status, secs, note = run_tracker(trk, frames, truth[0])
+    uv, status, secs, idle_secs, note = run_tracker(trk, frames, truth[0])
     assert uv.shape == (80, 2) and status.shape == (80,) and note == "given"
+    assert idle_secs.shape == (80,) and idle_secs[1:].min() > 0  # the learning, between frames
     err = np.linalg.norm(uv - truth, axis=1)
     rmse = float(np.sqrt(np.mean(err ** 2)))
     frozen = float(np.sqrt(np.mean(np.sum((truth - truth[0]) ** 2, axis=1))))

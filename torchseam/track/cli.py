@@ -57,7 +57,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser(
         "eval", help="track a labelled folder and print the error table",
         description="Track FRAMES_DIR and compare with its labels.csv: RMSE, max error, "
-                    "%% frames > 5 px, %% lost (> 15 px or no point), ms per frame.")
+                    "%% frames > 5 px, %% lost (> 15 px or no point), ms per frame (frame -> "
+                    "point; the tracker's learning between frames, as the live loop runs it, "
+                    "is not counted).")
     _common(e)
     e.set_defaults(func=run_eval)
 
@@ -69,8 +71,8 @@ def _track(args: argparse.Namespace, ds: Dataset, uv0: np.ndarray | None
     tracker = make_tracker(args.tracker)
     bar = tqdm(total=len(ds), desc=f"{args.tracker} {ds.root.name}", unit="frame", leave=False)
     frames = (ds.read(i) for i in range(len(ds)))
-    uv, status, secs, note = run_tracker(tracker, frames, uv0,
-                                         progress=lambda k: bar.update(1))
+    uv, status, secs, _, note = run_tracker(tracker, frames, uv0,
+                                            progress=lambda k: bar.update(1))
     bar.close()
     return uv, status, secs, note
 

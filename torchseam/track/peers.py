@@ -517,14 +517,18 @@ def make_tracker(name: str, model: dict | None = None) -> FrameTracker:
 
 def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
                 progress: Callable[[int], None] | None = None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-    """Track an iterable of BGR frames.
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]:
+    """Track an iterable of BGR frames, the way the live loop drives a tracker: ``update`` on
+    each frame, then its ``idle()`` (the learning for the next frame, e.g. EAKF-STC's context
+    model), when it has one, before the next frame arrives.
 
     Args:
         uv0: start point on frame 0; None: TIPM on frame 0 (it must find the stripe there).
 
     Returns:
-        ``(uv (N, 2), status (N,), seconds (N,), init_note)``; frame 0 is the start point.
+        ``(uv (N, 2), status (N,), seconds (N,), idle_seconds (N,), init_note)``: ``seconds``
+        from frame to point (``update``), ``idle_seconds`` the work after it, between frames
+        (0 for trackers without ``idle``); frame 0 is the start point.
     """
     it = iter(frames)
     try:
@@ -539,13 +543,19 @@ def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
                                  "give the start point with --init U,V")
         uv0, note = res.uv, "TIPM on frame 0"
     tracker.init(first, np.asarray(uv0, float))
+    idle = getattr(tracker, "idle", None)
     uvs, stats, secs = [np.asarray(uv0, float)], [int(TrackStatus.TRACKED)], [0.0]
+    idle_secs = [0.0]
     for k, frame in enumerate(it, start=1):
         t0 = time.perf_counter()
         uv, st = tracker.update(frame)
-        secs.append(time.perf_counter() - t0)
+        t1 = time.perf_counter()
+        if idle is not None:
+            idle()
+        idle_secs.append(time.perf_counter() - t1)
+        secs.append(t1 - t0)
         uvs.append(np.asarray(uv, float))
         stats.append(st)
         if progress:
             progress(k)
-    return np.stack(uvs), np.array(stats), np.array(secs), note
+    return np.stack(uvs), np.array(stats), np.array(secs), np.array(idle_secs), note
