@@ -105,6 +105,17 @@ class SeamFit:
         p: (3,) smoothed point; tangent: (3,) unit seam tangent, or None (too few points);
         arms: (2, 3) median unit arm directions over the inliers (NaN if none had arms);
         used: number of inliers fitted; rejected: points of the window flagged as off-seam.
+        coef: (3, 3) the fitted quadratic, rows c0, c1, c2: point(x) = c0 + c1 x + c2 x^2 at
+            x = (point - origin) . d; origin (3,), d (3,) unit; span: the fitted points' x
+            range. None when there was no fit (tangent None).
+
+    Example:
+        >>> buf = LookAheadBuffer(maxlen=100, outlier_mm=0.2)
+        >>> for x in range(0, 12):
+        ...     _ = buf.push(np.array([float(x), 0.05 * x * x, 0]), np.full((2, 3), np.nan), x)
+        >>> f = buf.seam_fit(5)
+        >>> f.tangent_at(np.array([4.0, 0.8, 0])).round(2).tolist()   # slope 0.1 x at x = 4
+        [0.93, 0.37, 0.0]
     """
 
     p: np.ndarray
@@ -112,11 +123,10 @@ class SeamFit:
     arms: np.ndarray
     used: int
     rejected: int
-    # the fitted quadratic: point(x) = coef[0] + coef[1] x + coef[2] x^2, x = (point - origin) . d
     coef: np.ndarray | None = None
     origin: np.ndarray | None = None
     d: np.ndarray | None = None
-    span: tuple[float, float] = (0.0, 0.0)  # the fitted points' x range
+    span: tuple[float, float] = (0.0, 0.0)
 
     def tangent_at(self, p: np.ndarray) -> np.ndarray | None:
         """Unit tangent of the fit at the position of ``p`` (3,) along it (None: no fit)."""
