@@ -200,7 +200,7 @@ def test_buffer_torch_axis_within_a_degree_through_spatter():
 
 
 def test_buffer_arms_prefer_measured_over_guessed():
-    """ECAL's occluded-arm fallback repeats an old direction: where enough points had both arms
+    """ECAL's occluded-arm fallback guesses from an old direction: where enough points had both arms
     measured, the guessed ones do not tilt the torch; a few measured among many guessed do not
     outvote them."""
     x = np.arange(0.0, 20.0, 0.25)

@@ -13,9 +13,13 @@ arm split by a dark streak are not the V). The circle grows from
 both stay clean, up to ``r_max``.
 
 Occluded arm (fallback): when only one arm is found at every radius and the previous frame's
-arm directions are given, the missing arm point is placed along the previous direction at the
-found arm's radius and the result is flagged ``fallback``; with no previous directions, or with
-no arm at all, the result is not ``ok`` and says why (the caller then makes no pose).
+arm directions are given, the missing arm point is placed at the found arm's radius along the
+previous direction turned by minus the found arm's turn since then (the V opens and closes about
+a steady bisector along the saddle: over 20 frames of a heavy 60-degree ring the two arms' image
+angles changed with correlation -0.98; held instead, the hidden arm lagged the seam by up to
+2.6 degrees after ~25 frames), and the result is flagged ``fallback``; with no previous
+directions, or with no arm at all, the result is not ``ok`` and says why (the caller then makes
+no pose).
 """
 
 from __future__ import annotations
@@ -249,7 +253,8 @@ class Ecal:
         if single is not None and prev_angles is not None:
             r, a, p = single
             k = int(np.argmin(np.abs(_wrap(prev_angles - a))))
-            other = float(prev_angles[1 - k])
+            # the hidden arm mirrors the seen one's turn about the previous bisector
+            other = float(prev_angles[1 - k] - _wrap(a - prev_angles[k]))
             q = uv + r * np.array([np.cos(other), np.sin(other)])
             pts = [(a, p), (other, q)] if k == 0 else [(other, q), (a, p)]
             p = np.stack([pts[0][1], pts[1][1]])

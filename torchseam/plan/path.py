@@ -286,8 +286,9 @@ class LookAheadBuffer:
         """Median unit arm directions (2, 3) of points ``idx`` (NaN if none had arms). The
         median, not the mean: one ECAL crossing taken on a spatter streak must not tilt the
         torch. Arms ECAL measured on both sides win over guessed ones (its occluded-arm
-        fallback repeats an older direction: on a heavy-arc ring those were 4-7 degrees off
-        while the measured ones were within about 1) when there are enough of them.
+        fallback extrapolates the hidden arm from an older direction: on a heavy-arc ring,
+        when it still held that direction, those were 4-7 degrees off while the measured ones
+        were within about 1) when there are enough of them.
 
         Each arm votes with the weight of its length ``|q - p|`` (a weighted median): ECAL
         places the arm point at the radius of the circle it measured on, and a crossing's
