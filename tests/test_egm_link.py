@@ -710,6 +710,70 @@ def test_fault_injection_on_the_wire(robot_model, caplog):
         foreign.close()
 
 
+class _HeldSend:
+    """The controller's socket, its thread held ``hold_s`` inside the ``at``-th sendto before
+    the datagram leaves (as the GIL, the scheduler or a hypervisor can hold it)."""
+
+    def __init__(self, sock: socket.socket, at: int, hold_s: float) -> None:
+        self.sock, self.at, self.hold_s, self.n = sock, at, hold_s, 0
+        self.window_ns: tuple[int, int] | None = None  # [before the hold, after the send]
+        self.next_sent_ns: int | None = None  # right before the datagram after it
+
+    def sendto(self, data: bytes, address) -> int:
+        self.n += 1
+        if self.n == self.at + 1:
+            self.next_sent_ns = time.time_ns()
+        if self.n != self.at:
+            return self.sock.sendto(data, address)
+        t0 = time.time_ns()
+        time.sleep(self.hold_s)
+        out = self.sock.sendto(data, address)
+        self.window_ns = (t0, time.time_ns())
+        return out
+
+    def __getattr__(self, name: str):
+        return getattr(self.sock, name)
+
+
+def test_a_controller_held_on_its_way_out_is_not_a_late_reply(robot_model):
+    """The simulated controller judges a reply from when its EgmRobot left the socket (kernel
+    transmit stamp), not from when it began to send: held 8 ms (two periods) before the
+    datagram left, the sensor's prompt reply is on time, and the next EgmRobot still leaves a
+    full period after it. Stamped before the hold, that cycle was late and its reply, heard
+    after the next EgmRobot had already left, counted as an extra one (CI, 10 s session)."""
+    from torchseam.robot.sim_controller import SimController
+
+    cfg = load_egm_config()
+    sim = SimController(cfg, mode="pathcorr", robot=robot_model, bind_address=("127.0.0.1", 0))
+    held = sim._sock = _HeldSend(sim._sock, at=150, hold_s=0.008)
+    stop_feed = threading.Event()
+    link = EgmLink(_ephemeral(cfg, "pathcorr", sim.address[1]))
+    sim.sensor_address = link.address
+    feeder = threading.Thread(target=run_feed, args=(link, Feed(), 60.0, None, stop_feed.is_set),
+                              daemon=True)
+    try:
+        link.start()
+        feeder.start()
+        sim.start()
+        sim.wait_cycles(200)
+    finally:
+        stop_feed.set()
+        sim.stop()
+        link.stop()
+    assert held.window_ns is not None, "the held send never happened"
+    t0, t1 = held.window_ns
+    s = sim.stats
+    late_there = [t for t in s.late_cycles_ns if t0 - 1_000_000 <= t <= t1 + 1_000_000]
+    assert not late_there, f"the held cycle counted as late ({len(late_there)})"
+    assert s.extra_replies == 0
+    # the sensor's window: the next EgmRobot left at least a period after the held one, which
+    # left after the hold (0.1 ms for clock readings)
+    period_ns = 1e9 / cfg.sim_controller.rate_hz
+    assert held.next_sent_ns - t0 >= held.hold_s * 1e9 + period_ns - 100_000
+    # the hold shows where it was: in the controller's own send time
+    assert max(s.send_ms) >= 8.0
+
+
 def test_late_log_tells_waiting_from_working():
     """A reply late because the EgmRobot waited for the serving thread shows as waiting; one
     late because the link worked on it shows as CPU time (``EgmStats.late_log``)."""

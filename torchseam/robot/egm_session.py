@@ -133,6 +133,7 @@ class SessionResult:
             row("reply latency, controller side", lat),
             row("reply latency, sensor side", proc),
             row("cycle jitter |start - schedule|", jit),
+            row("controller send (start -> left)", latency_summary(s.send_ms)),
             row("controller model update", comp),
         ]
         lines += [

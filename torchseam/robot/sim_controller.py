@@ -45,6 +45,7 @@ import logging
 import math
 import select
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -59,6 +60,7 @@ from torchseam.core.config import load_cell
 from torchseam.core.transforms import matrix_to_quat
 from torchseam.robot.egm import (
     _SO_TIMESTAMPNS,
+    _TIMESPEC,
     EgmError,
     _copy_stats,
     _rx_time_ns,
@@ -82,6 +84,10 @@ _H_DEG = 1e-4          # finite-difference step of the Jacobian, deg
 _ROT_WEIGHT = 200.0    # mm per rad: makes orientation and position errors comparable
 _DAMPING = 1e-3        # damped least squares, keeps the step bounded near singularities
 _CONVERGED_MM = 0.05   # |planned - feedback| below this: mciConvergenceMet
+# kernel transmit time stamps (Linux, Documentation/networking/timestamping.rst): a software
+# stamp as each datagram leaves, reported on the error queue without the payload
+_SO_TIMESTAMPING = getattr(socket, "SO_TIMESTAMPING", 37) if sys.platform == "linux" else None
+_TX_STAMP_FLAGS = (1 << 1) | (1 << 4) | (1 << 11)  # TX_SOFTWARE | SOFTWARE | OPT_TSONLY
 
 
 class Fault(str, enum.Enum):
@@ -114,9 +120,12 @@ class SimStats:
         overruns: cycles that started more than half a period late (the schedule then
             moves: the next ``EgmRobot`` never leaves less than a period after the previous
             one).
-        latency_ms: send of ``EgmRobot`` to kernel arrival of the reply, ms (late replies
+        latency_ms: ``EgmRobot`` leaving to the reply arriving (kernel time stamps on both
+            ends where the kernel gives them), ms (late replies
             included when they arrive during the next cycle).
         jitter_ms: cycle start minus its scheduled time, ms.
+        send_ms: cycle start to its ``EgmRobot`` leaving (kernel transmit time stamp), ms:
+            where this controller, not the sensor, held a cycle up.
         compute_ms: model update time per cycle, ms.
         late_cycles_ns: when (``time.time_ns()``) each cycle that got no reply in time sent
             its ``EgmRobot``; lets a test line late replies up with machine stalls.
@@ -137,6 +146,8 @@ class SimStats:
         default_factory=lambda: collections.deque(maxlen=100_000))
     jitter_ms: collections.deque[float] = field(
         default_factory=lambda: collections.deque(maxlen=100_000))
+    send_ms: collections.deque[float] = field(
+        default_factory=lambda: collections.deque(maxlen=100_000))
     compute_ms: collections.deque[float] = field(
         default_factory=lambda: collections.deque(maxlen=100_000))
     late_cycles_ns: collections.deque[int] = field(
@@ -153,6 +164,7 @@ class SimStats:
                 "max_lag_mm": self.max_lag_mm,
                 "overruns": self.overruns, "latency_ms": latency_summary(self.latency_ms),
                 "jitter_ms": latency_summary(np.abs(np.fromiter(self.jitter_ms, float))),
+                "send_ms": latency_summary(self.send_ms),
                 "compute_ms": latency_summary(self.compute_ms)}
 
 
@@ -278,6 +290,13 @@ class SimController:
         if _SO_TIMESTAMPNS is not None:
             try:
                 self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+            except OSError:
+                pass
+        self._tx_stamps = False  # whether the kernel stamps each datagram as it leaves
+        if _SO_TIMESTAMPING is not None:
+            try:
+                self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPING, _TX_STAMP_FLAGS)
+                self._tx_stamps = True
             except OSError:
                 pass
 
@@ -492,9 +511,27 @@ class SimController:
         with self._lock:
             self._faults.extend([kind] * cycles)
 
+    def _tx_stamp(self) -> int | None:
+        """The newest kernel transmit time stamp queued on the socket's error queue
+        (CLOCK_REALTIME ns, as ``time.time_ns()``), or None (none queued, or not supported).
+        Reads them all: a queued one would keep ``select`` waking."""
+        if not self._tx_stamps:
+            return None
+        stamp = None
+        while True:
+            try:
+                _, anc, _, _ = self._sock.recvmsg(1, 256, socket.MSG_ERRQUEUE)
+            except OSError:  # empty (EAGAIN), or the socket is closed
+                return stamp
+            for level, kind, data in anc:
+                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPING and len(data) >= 16:
+                    sec, nsec = _TIMESPEC.unpack_from(data)  # [0]: the software stamp
+                    stamp = sec * 1_000_000_000 + nsec
+
     def _send(self, data: bytes) -> int | None:
-        """Send this cycle's datagram through the fault plan. Returns when (``time.time_ns()``
-        right before ``sendto``) the datagram that expects a reply left, or None if none does."""
+        """Send this cycle's datagram through the fault plan. Returns when the datagram that
+        expects a reply left (kernel transmit time stamp, CLOCK_REALTIME ns; ``time.time_ns()``
+        right before ``sendto`` where the kernel gives none), or None if none does."""
         with self._lock:
             fault = self._faults.popleft() if self._faults else None
             if fault is not None:
@@ -524,13 +561,16 @@ class SimController:
         sent_ns = None
         for d in out:
             try:
-                # stamped before the send: on loopback the sensor can receive, answer and be
-                # heard while this thread is still on its way out of sendto (preempted there,
-                # its reply would look older than the request and the cycle unanswered)
+                # when it left is the kernel's transmit time stamp: this thread can be held
+                # between its own clock reading and the wire (the GIL, the scheduler, a
+                # hypervisor), and a request stamped before that would charge the hold to the
+                # sensor. Without kernel stamps: the time right before sendto (on loopback the
+                # reply can be heard before sendto returns, so never the time after it)
                 before_ns = time.time_ns()
                 self._sock.sendto(d, self.sensor_address)
+                left_ns = self._tx_stamp()
                 if sent_ns is None:
-                    sent_ns = before_ns
+                    sent_ns = before_ns if left_ns is None else left_ns
                 with self._lock:
                     self._stats.sent += 1
             except OSError as e:
@@ -577,9 +617,10 @@ class SimController:
 
     def _drain(self, cycle_sent_ns: int | None, answered: bool) -> bool:
         """Read every queued reply (non-blocking)."""
+        self._tx_stamp()  # a stamp that came after its sendto returned: too late to use
         while True:
             try:
-                data, anc, flags, _ = self._sock.recvmsg(self._max_reply + 1, 64)
+                data, anc, flags, _ = self._sock.recvmsg(self._max_reply + 1, 128)
             except (BlockingIOError, InterruptedError):
                 return answered
             except OSError:  # closed by stop(), or ICMP port unreachable (no sensor yet)
@@ -633,10 +674,14 @@ class SimController:
                     self._stats.overruns += 1
             # send at the tick what the previous cycle prepared, then prepare the next one
             # while the sensor answers: the sensor gets the whole period, as on an IRC5
-            sent_at = time.perf_counter()
+            sent_at, wall_at = time.perf_counter(), time.time_ns()
             stamp = self._send(self._stamp(msg))
             expect = stamp is not None
             sent_ns = stamp if stamp is not None else time.time_ns()
+            # when it left, on this loop's clock (held on its way out, it left later)
+            sent_at += max(0, sent_ns - wall_at) / 1e9 if expect else 0.0
+            with self._lock:
+                self._stats.send_ms.append((sent_at - start) * 1e3)
             answered = False
             c0 = time.perf_counter()
             q, T, T_plan = self._update(self.period)
@@ -651,9 +696,10 @@ class SimController:
                 on_cycle(self)
             k += 1
             # never less than a period to the next EgmRobot: when this thread stalled between
-            # its tick and the send (or overran), the schedule moves. Sending the next one early
-            # would close this cycle before its period is up (or leave the sensor two back to
-            # back, one of them to skip): the simulator's fault, not the sensor's
+            # its tick and the datagram leaving (or overran), the schedule moves. Sending the
+            # next one early would close this cycle before its period is up (or leave the
+            # sensor two back to back, one of them to skip): the simulator's fault, not the
+            # sensor's
             t_next = max(t_next + self.period, sent_at + self.period)
         # the last cycle's reply window
         answered = self._receive_until(t_next, sent_ns if expect else None, answered)
