@@ -396,8 +396,11 @@ class AnchoredTracker:
             return None
         c = self.cfg
         n = max(self.age, 1)  # random walk of the arm shape since the last fix
-        w = c.arm_noise_px ** 2 / (n * np.array([c.slope_step, c.curvature_step]) ** 2)
-        return np.hstack([self.shape, np.broadcast_to(w, (2, 2))])
+        out = np.empty((2, 4))
+        out[:, :2] = self.shape
+        out[:, 2] = c.arm_noise_px ** 2 / (n * c.slope_step ** 2)
+        out[:, 3] = c.arm_noise_px ** 2 / (n * c.curvature_step ** 2)
+        return out
 
     def _measure(self, z: np.ndarray, R: np.ndarray, gate: float) -> bool:
         """Kalman update with ``z`` (covariance ``R``) unless its Mahalanobis distance from

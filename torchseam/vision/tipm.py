@@ -371,20 +371,27 @@ class Tipm:
 def _quadfit(x: np.ndarray, y: np.ndarray, prior: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares (a, b, c) of y = a + b x + c x^2 (x is centred on the corner already) and
-    the residuals, from the 3x3 normal equations: far cheaper than a general lstsq per arm.
-    ``prior`` (b0, c0, w_b, w_c) adds w_b (b - b0)^2 + w_c (c - c0)^2 to the squared error."""
-    V = np.empty((len(x), 3))
-    V[:, 0], V[:, 1] = 1.0, x
-    np.multiply(x, x, out=V[:, 2])
-    A, r = V.T @ V, V.T @ y
+    the residuals, from the 3x3 normal equations in closed form (power sums and the adjugate:
+    a handful of dot products, where a Vandermonde matrix and ``np.linalg.solve`` cost twice
+    that per arm, up to six times a frame). ``prior`` (b0, c0, w_b, w_c) adds
+    w_b (b - b0)^2 + w_c (c - c0)^2 to the squared error."""
+    x2 = x * x
+    a, b, c = float(len(x)), float(x.sum()), float(x2.sum())
+    f, g = float(x2 @ x), float(x2 @ x2)
+    r0, r1, r2 = float(y.sum()), float(x @ y), float(x2 @ y)
+    d = c
     if prior is not None:
-        b0, c0, wb, wc = prior
-        A[1, 1] += wb
-        A[2, 2] += wc
-        r[1] += wb * b0
-        r[2] += wc * c0
-    coef = np.linalg.solve(A, r)
-    return coef, y - V @ coef
+        b0, c0, wb, wc = (float(p) for p in prior)
+        d, g = d + wb, g + wc
+        r1, r2 = r1 + wb * b0, r2 + wc * c0
+    # A = [[a, b, c], [b, d, f], [c, f, g]] is symmetric: its adjugate has six entries
+    A00, A01, A02 = d * g - f * f, c * f - b * g, b * f - c * d
+    A11, A12, A22 = a * g - c * c, b * c - a * f, a * d - b * b
+    det = a * A00 + b * A01 + c * A02
+    k0 = (A00 * r0 + A01 * r1 + A02 * r2) / det
+    k1 = (A01 * r0 + A11 * r1 + A12 * r2) / det
+    k2 = (A02 * r0 + A12 * r1 + A22 * r2) / det
+    return np.array([k0, k1, k2]), y - (k0 + k1 * x + k2 * x2)
 
 
 def arm_shape(res: TipmResult) -> np.ndarray:
@@ -400,24 +407,29 @@ def _best_split(u: np.ndarray, v: np.ndarray, min_pts: int) -> float | None:
     n = len(u)
     if n < 2 * min_pts:
         return None
-    uc = u - u.mean()
-    vc = v - v.mean()
-
-    def sse(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        # SSE of a line fit to every prefix, from cumulative moments (one cumsum for all five)
-        k = np.arange(1, len(x) + 1, dtype=float)
-        sx, sy, sxx, sxy, syy = np.cumsum(np.stack((x, y, x * x, x * y, y * y)), axis=1)
-        vx = sxx - sx * sx / k
-        cxy = sxy - sx * sy / k
-        vy = syy - sy * sy / k
-        return vy - np.where(vx > 1e-9, cxy * cxy / np.maximum(vx, 1e-9), 0.0)
-
-    left = sse(uc, vc)                       # left[i]: points 0..i
-    right = sse(uc[::-1], vc[::-1])[::-1]    # right[i]: points i..n-1
+    M = np.empty((5, n))  # moments of the centred points, then their running sums
+    np.subtract(u, u.mean(), out=M[0])
+    np.subtract(v, v.mean(), out=M[1])
+    np.multiply(M[0], M[0], out=M[2])
+    np.multiply(M[0], M[1], out=M[3])
+    np.multiply(M[1], M[1], out=M[4])
+    np.cumsum(M, axis=1, out=M)
     i = np.arange(min_pts - 1, n - min_pts)
-    total = left[i] + right[i + 1]
+    left = M[:, i]                   # points 0..i
+    right = M[:, -1:] - left         # points i+1..n-1: the totals less the left's
+    k_left = i + 1.0
+    total = _line_sse(left, k_left) + _line_sse(right, n - k_left)
     best = i[np.argmin(total)]
     return float(0.5 * (u[best] + u[best + 1]))
+
+
+def _line_sse(S: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Squared error of a least-squares line through each of the point sets whose count is
+    ``k`` (M,) and sums of x, y, x^2, xy, y^2 are the columns of ``S`` (5, M)."""
+    sx, sy, sxx, sxy, syy = S
+    vx = sxx - sx * sx / k
+    cxy = sxy - sx * sy / k
+    return syy - sy * sy / k - np.where(vx > 1e-9, cxy * cxy / np.maximum(vx, 1e-9), 0.0)
 
 
 def draw_overlay(frame: np.ndarray, res: TipmResult, truth: np.ndarray | None = None
