@@ -763,6 +763,9 @@ def test_a_controller_held_on_its_way_out_is_not_a_late_reply(robot_model):
     assert held.window_ns is not None, "the held send never happened"
     t0, t1 = held.window_ns
     s = sim.stats
+    if s.unstamped == s.expected:  # what the test is about needs them
+        pytest.skip("this kernel gives no transmit time stamps on loopback")
+    assert s.unstamped == 0
     late_there = [t for t in s.late_cycles_ns if t0 - 1_000_000 <= t <= t1 + 1_000_000]
     assert not late_there, f"the held cycle counted as late ({len(late_there)})"
     assert s.extra_replies == 0

@@ -140,7 +140,8 @@ class SessionResult:
             f"  controller: cycles {s.cycles}, EgmRobot sent {s.sent}, replies {s.replies}, "
             f"late replies {s.late_replies}, extra replies {s.extra_replies}, "
             f"overruns {s.overruns}, rejected {dict(s.rejected)}, faults {dict(s.faults)}, "
-            f"largest lag {s.max_lag_mm:.3f} mm",
+            f"largest lag {s.max_lag_mm:.3f} mm"
+            + (f", sent without a kernel time stamp {s.unstamped}" if s.unstamped else ""),
             f"  sensor: received {k.received}, sent {k.sent}, commands {k.commands}, "
             f"holds {dict(k.holds)}, refused {dict(k.refused)}, dropped {dict(k.dropped)}, "
             f"superseded {k.superseded}, late (> link.late_reply_ms) {k.late_replies}",

@@ -116,6 +116,8 @@ class SimStats:
         rejected: replies that failed validation, by reason.
         faults: injected faults, by kind.
         send_errors: datagrams the socket refused to send.
+        unstamped: expecting ``EgmRobot`` without a kernel transmit time stamp, timed from
+            the clock right before ``sendto`` instead (a hold there counts against the sensor).
         max_lag_mm: largest distance between the planned and the fed-back TCP position.
         overruns: cycles that started more than half a period late (the schedule then
             moves: the next ``EgmRobot`` never leaves less than a period after the previous
@@ -140,6 +142,7 @@ class SimStats:
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     faults: collections.Counter[str] = field(default_factory=collections.Counter)
     send_errors: int = 0
+    unstamped: int = 0
     max_lag_mm: float = 0.0
     overruns: int = 0
     latency_ms: collections.deque[float] = field(
@@ -161,6 +164,7 @@ class SimStats:
                 "replies": self.replies, "late_replies": self.late_replies,
                 "extra_replies": self.extra_replies, "rejected": dict(self.rejected),
                 "faults": dict(self.faults), "send_errors": self.send_errors,
+                "unstamped": self.unstamped,
                 "max_lag_mm": self.max_lag_mm,
                 "overruns": self.overruns, "latency_ms": latency_summary(self.latency_ms),
                 "jitter_ms": latency_summary(np.abs(np.fromiter(self.jitter_ms, float))),
@@ -569,10 +573,12 @@ class SimController:
                 before_ns = time.time_ns()
                 self._sock.sendto(d, self.sensor_address)
                 left_ns = self._tx_stamp()
-                if sent_ns is None:
+                first_out = sent_ns is None
+                if first_out:
                     sent_ns = before_ns if left_ns is None else left_ns
                 with self._lock:
                     self._stats.sent += 1
+                    self._stats.unstamped += int(first_out and expect and left_ns is None)
             except OSError as e:
                 with self._lock:
                     self._stats.send_errors += 1
