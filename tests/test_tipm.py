@@ -200,3 +200,34 @@ def test_a_stripe_saturated_on_glare_keeps_its_centre(cell, part, noise):
             err_masked.append(np.linalg.norm(res_masked.uv - t.uv))
     assert max(err_masked) > 0.6  # the case is there: the masked centroid alone is off
     assert max(err) < 0.3 and np.mean(err) < 0.15, np.round(err, 2)
+
+
+def test_quadratic_arm_fit_in_closed_form_matches_least_squares():
+    """TIPM's arm fit (power sums and the adjugate) against numpy's least squares, plain and
+    with a prior on slope and curvature (rows sqrt(w) * (b - b0), sqrt(w) * (c - c0))."""
+    import doctest
+
+    import torchseam.vision.tipm as tipm_mod
+    from torchseam.vision.tipm import _quadfit, power_sums, quad_normal_adjugate
+
+    rng = np.random.default_rng(3)
+    x = np.sort(rng.uniform(-120.0, -5.0, 90))
+    y = 200.0 + 0.4 * x - 1e-3 * x * x + rng.normal(0.0, 0.3, x.size)
+    V = np.stack([np.ones_like(x), x, x * x], axis=1)
+    coef, res = _quadfit(x, y)
+    ref = np.linalg.lstsq(V, y, rcond=None)[0]
+    np.testing.assert_allclose(coef, ref, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(res, y - V @ ref, atol=1e-8)
+    prior = np.array([0.5, 2e-3, 4e4, 1e9])  # pulls both coefficients hard
+    coef_p, _ = _quadfit(x, y, prior)
+    sw = np.sqrt(prior[2:])
+    Va = np.vstack([V, [[0.0, sw[0], 0.0], [0.0, 0.0, sw[1]]]])
+    ya = np.concatenate([y, [sw[0] * prior[0], sw[1] * prior[1]]])
+    np.testing.assert_allclose(coef_p, np.linalg.lstsq(Va, ya, rcond=None)[0], rtol=1e-7)
+    assert abs(coef_p[2] - prior[1]) < abs(coef[2] - prior[1])  # the prior did pull
+    (A00, A01, A02, A11, A12, A22), det = quad_normal_adjugate(power_sums(x), (3.0, 5.0))
+    A = V.T @ V + np.diag([0.0, 3.0, 5.0])
+    adj = np.array([[A00, A01, A02], [A01, A11, A12], [A02, A12, A22]])
+    np.testing.assert_allclose(adj / det, np.linalg.inv(A), rtol=1e-6)
+    result = doctest.testmod(tipm_mod)
+    assert result.failed == 0 and result.attempted > 0

@@ -26,7 +26,14 @@ from torchseam.core.errors import TorchseamError
 from torchseam.track.fusion import EAKFSTC, TrackStatus
 from torchseam.track.lite import LiteEAKFSTC
 from torchseam.track.stc import STC
-from torchseam.vision.tipm import Tipm, TipmResult, arm_shape, red_response
+from torchseam.vision.tipm import (
+    Tipm,
+    TipmResult,
+    arm_shape,
+    power_sums,
+    quad_normal_adjugate,
+    red_response,
+)
 
 TRACKERS = ("eakf-stc", "anchored", "stc", "tipm", "kcf", "csrt", "mosse")
 STATUS_NAMES = {int(s): s.name.lower() for s in TrackStatus}
@@ -210,7 +217,7 @@ def corner_cov(res: TipmResult, noise: float, floor_px: float,
         x = u[cut[2 * side]:cut[2 * side + 1]]
         w = (0.0, 0.0) if prior is None else (float(prior[side, 2]), float(prior[side, 3]))
         # (fewer than 3 points: TIPM gives no corner then; if it did, the arm says ~nothing)
-        ratio = (_leverage(_power_sums(x), xc, w) / _leverage(full[side], xc, w)
+        ratio = (_leverage(power_sums(x), xc, w) / _leverage(full[side], xc, w)
                  if len(x) >= 3 else 1e6)
         var[side] = sigma * sigma * max(1.0, ratio)
     n_inv = _inv2(normals)
@@ -254,31 +261,20 @@ def arm_directions(res: TipmResult) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def _power_sums(x: np.ndarray) -> tuple[float, float, float, float, float]:
-    """(n, sum x, sum x^2, sum x^3, sum x^4)."""
-    x2 = x * x
-    return float(len(x)), float(x.sum()), float(x2.sum()), float(x2 @ x), float(x2 @ x2)
-
-
 @functools.lru_cache(maxsize=8)
 def _full_arm_sums(gap: float, window: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """Power sums of a complete left and right arm: one point per column ``gap..window`` px
     from the corner."""
-    n, s1, s2, s3, s4 = _power_sums(np.arange(np.ceil(gap), np.floor(window) + 1))
+    n, s1, s2, s3, s4 = power_sums(np.arange(np.ceil(gap), np.floor(window) + 1))
     return (n, -s1, s2, -s3, s4), (n, s1, s2, s3, s4)
 
 
 def _leverage(sums: tuple[float, ...], xc: float, w: tuple[float, float]) -> float:
     """Variance, per unit point noise, of a quadratic fit at ``xc`` to columns with power sums
-    ``sums`` (:func:`_power_sums`), ridge weights ``w`` on slope and curvature (as
-    :func:`~torchseam.vision.tipm._quadfit`): ``e^T A^-1 e`` with ``e = (1, xc, xc^2)`` and
-    ``A`` the 3x3 normal matrix."""
-    a, b, c, f, g = sums
-    d, g = c + w[0], g + w[1]          # A = [[a, b, c], [b, d, f], [c, f, g]]
-    # adjugate of the symmetric A (a handful of float ops: np.linalg.solve costs ~15 us)
-    A00, A01, A02 = d * g - f * f, c * f - b * g, b * f - c * d
-    A11, A12, A22 = a * g - c * c, b * c - a * f, a * d - b * b
-    det = a * A00 + b * A01 + c * A02
+    ``sums`` (:func:`~torchseam.vision.tipm.power_sums`), ridge weights ``w`` on slope and
+    curvature (as :func:`~torchseam.vision.tipm._quadfit`): ``e^T A^-1 e`` with
+    ``e = (1, xc, xc^2)`` and ``A`` the 3x3 normal matrix."""
+    (A00, A01, A02, A11, A12, A22), det = quad_normal_adjugate(sums, w)
     e1, e2 = xc, xc * xc
     q = (A00 + A11 * e1 * e1 + A22 * e2 * e2
          + 2.0 * (A01 * e1 + A02 * e2 + A12 * e1 * e2))

@@ -368,26 +368,53 @@ class Tipm:
         return arms, max(rms_all), x
 
 
+def power_sums(x: np.ndarray) -> tuple[float, float, float, float, float]:
+    """(n, sum x, sum x^2, sum x^3, sum x^4) of ``x`` (N,): what a quadratic fit's 3x3 normal
+    matrix is made of.
+
+    Example:
+        >>> power_sums(np.array([1.0, 2.0]))
+        (2.0, 3.0, 5.0, 9.0, 17.0)
+    """
+    x2 = x * x
+    return float(len(x)), float(x.sum()), float(x2.sum()), float(x2 @ x), float(x2 @ x2)
+
+
+def quad_normal_adjugate(sums: tuple[float, ...], w: tuple[float, float] = (0.0, 0.0)
+                         ) -> tuple[tuple[float, ...], float]:
+    """Adjugate (A00, A01, A02, A11, A12, A22) and determinant of the normal matrix
+    ``A = [[n, s1, s2], [s1, s2 + w_b, s3], [s2, s3, s4 + w_c]]`` of a quadratic fit with power
+    sums ``sums`` (:func:`power_sums`) and ridge weights ``w`` on slope and curvature.
+
+    In closed form: ``np.linalg.solve`` costs ~15 us a call on a 3x3, this a handful of float
+    operations. ``A^-1 = adj / det``.
+
+    Example:
+        >>> adj, det = quad_normal_adjugate(power_sums(np.arange(3.0)))  # x = 0, 1, 2
+        >>> det
+        4.0
+    """
+    a, b, c, f, g = sums
+    d, g = c + w[0], g + w[1]
+    A00, A01, A02 = d * g - f * f, c * f - b * g, b * f - c * d
+    A11, A12, A22 = a * g - c * c, b * c - a * f, a * d - b * b
+    return (A00, A01, A02, A11, A12, A22), a * A00 + b * A01 + c * A02
+
+
 def _quadfit(x: np.ndarray, y: np.ndarray, prior: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares (a, b, c) of y = a + b x + c x^2 (x is centred on the corner already) and
-    the residuals, from the 3x3 normal equations in closed form (power sums and the adjugate:
-    a handful of dot products, where a Vandermonde matrix and ``np.linalg.solve`` cost twice
-    that per arm, up to six times a frame). ``prior`` (b0, c0, w_b, w_c) adds
-    w_b (b - b0)^2 + w_c (c - c0)^2 to the squared error."""
+    the residuals, from the 3x3 normal equations in closed form (a Vandermonde matrix and
+    ``np.linalg.solve`` cost twice as much per arm, up to six times a frame). ``prior``
+    (b0, c0, w_b, w_c) adds w_b (b - b0)^2 + w_c (c - c0)^2 to the squared error."""
     x2 = x * x
-    a, b, c = float(len(x)), float(x.sum()), float(x2.sum())
-    f, g = float(x2 @ x), float(x2 @ x2)
     r0, r1, r2 = float(y.sum()), float(x @ y), float(x2 @ y)
-    d = c
+    w = (0.0, 0.0)
     if prior is not None:
         b0, c0, wb, wc = (float(p) for p in prior)
-        d, g = d + wb, g + wc
+        w = (wb, wc)
         r1, r2 = r1 + wb * b0, r2 + wc * c0
-    # A = [[a, b, c], [b, d, f], [c, f, g]] is symmetric: its adjugate has six entries
-    A00, A01, A02 = d * g - f * f, c * f - b * g, b * f - c * d
-    A11, A12, A22 = a * g - c * c, b * c - a * f, a * d - b * b
-    det = a * A00 + b * A01 + c * A02
+    (A00, A01, A02, A11, A12, A22), det = quad_normal_adjugate(power_sums(x), w)
     k0 = (A00 * r0 + A01 * r1 + A02 * r2) / det
     k1 = (A01 * r0 + A11 * r1 + A12 * r2) / det
     k2 = (A02 * r0 + A12 * r1 + A22 * r2) / det
