@@ -231,3 +231,79 @@ def test_quadratic_arm_fit_in_closed_form_matches_least_squares():
     np.testing.assert_allclose(adj / det, np.linalg.inv(A), rtol=1e-6)
     result = doctest.testmod(tipm_mod)
     assert result.failed == 0 and result.attempted > 0
+
+
+def test_best_split_matches_a_brute_force_two_line_search():
+    """The compiled O(N) split search (running sums) against fitting both lines at every split."""
+    from torchseam.vision._kernels import best_split as _best_split
+
+    rng = np.random.default_rng(5)
+    for trial in range(20):
+        n = int(rng.integers(30, 200))
+        u = np.sort(rng.choice(np.arange(0, 400), n, replace=False)).astype(float)
+        k = rng.uniform(u[10], u[-10])
+        v = 100.0 + np.where(u < k, 0.3 * (u - k), -0.5 * (u - k)) + rng.normal(0, 0.4, n)
+        pts = np.stack([u, v], axis=1)
+
+        def sse(a, b):
+            return np.sum((b - np.polyval(np.polyfit(a, b, 1), a)) ** 2)
+
+        m = 15
+        totals = [sse(u[:i + 1], v[:i + 1]) + sse(u[i + 1:], v[i + 1:])
+                  for i in range(m - 1, n - m)]
+        best = m - 1 + int(np.argmin(totals))
+        assert _best_split(pts, m) == pytest.approx(0.5 * (u[best] + u[best + 1])), trial
+    assert np.isnan(_best_split(pts[:29], 15))  # fewer than two arms' worth of points
+
+
+def _centre_reference(response, mask, half, passes, reach):
+    """TIPM's centre line as plain numpy: masked column centroids, refined over the response
+    within ``half`` rows (a band of rows around the first centroid, clipped at the border)."""
+    r = response.astype(float) * (mask > 0)
+    rows = np.arange(mask.shape[0], dtype=float)[:, None]
+    s0, s1 = r.sum(axis=0), (r * rows).sum(axis=0)
+    cut = (mask[:reach] > 0).any(axis=0) | (mask[-reach:] > 0).any(axis=0)
+    cols = np.nonzero((s0 > 0) & ~cut)[0]
+    out = []
+    for c in cols:
+        v = s1[c] / s0[c]
+        band = np.clip(np.rint(v) + np.arange(-(int(np.ceil(half)) + 3), int(np.ceil(half)) + 4),
+                       0, mask.shape[0] - 1)
+        x = response[band.astype(int), c].astype(float)
+        for _ in range(passes):
+            w = x * (np.abs(band - v) <= half)
+            if w.sum() > 0:
+                v = (w * band).sum() / w.sum()
+        out.append((c, v))
+    return np.array(out, float).reshape(-1, 2)
+
+
+def test_compiled_centre_line_matches_its_numpy_statement(cell, part, noise):
+    """The compiled centre line against a direct numpy statement of it, on clean and heavy-arc
+    windows (stripe saturated on glare, spatter), at the frame border, and on an empty mask."""
+    tipm = Tipm()
+    cfg = tipm.cfg
+    reach = cfg.ridge_px // 2 + 1
+    frames = [f for f, _ in simulate(cell, part, noise, SequenceSpec(n_frames=40, level=1.0,
+                                                                     seed=7))][::8]
+    frames += [f for f, _ in simulate(cell, part, noise, SequenceSpec(n_frames=1, level=0.0,
+                                                                      seed=7))]
+    checked, cut_by_border = 0, 0
+    for img in frames:
+        u, v = (int(x) for x in tipm(frames[-1]).uv)  # the clean frame's corner
+        # the whole frame, the tracker's window, windows whose top or bottom row cuts the stripe
+        for roi in (img, img[v - 110:v + 111, u - 110:u + 111], img[v - 12:v + 60],
+                    img[v - 60:v + 12, u - 150:u + 40]):
+            red, mask, why = tipm.stripe_mask(np.ascontiguousarray(roi))
+            if why:
+                continue
+            cut_by_border += bool(mask[:reach].any() or mask[-reach:].any())
+            pts = tipm.centre(red, mask)
+            ref = _centre_reference(red, mask, cfg.centre_half_px, cfg.centre_passes, reach)
+            assert pts.shape == ref.shape
+            np.testing.assert_allclose(pts, ref, atol=1e-9)
+            checked += len(pts)
+    assert checked > 1000 and cut_by_border >= 4
+    empty = np.zeros((50, 80), np.uint8)
+    assert tipm.centre(empty, empty).shape == (0, 2)
+    assert Tipm(centre_line="thinning").centre(empty, empty).shape == (0, 2)

@@ -29,6 +29,7 @@ previous frame's (a MAP fit); without it the fit is the plain least squares.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -107,6 +108,15 @@ class TipmResult:
     mask: np.ndarray | None = None
 
 
+@functools.cache
+def _kernels():  # noqa: ANN202 - the module
+    """The compiled kernels (:mod:`torchseam.vision._kernels`), imported on first use: numba
+    and the kernels' loading cost ~1 s, which commands without TIPM need not pay."""
+    from torchseam.vision import _kernels as k
+
+    return k
+
+
 def _fail(reason: str, mask: np.ndarray | None = None, centre: np.ndarray | None = None
           ) -> TipmResult:
     return TipmResult(False, np.full(2, np.nan), reason, centre=centre, mask=mask)
@@ -130,6 +140,7 @@ class Tipm:
         k = 2 * self.cfg.dilate_px + 1
         self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
         self._ws: dict[tuple, np.ndarray] = {}  # reused frame-sized planes (see _plane)
+        self._k = _kernels()  # compiled (or loaded) now, not on the first frame
 
     def _plane(self, name: str, shape: tuple[int, int]) -> np.ndarray:
         """A reused uint8 work plane: fresh frame-sized arrays cost page faults on every frame,
@@ -221,55 +232,27 @@ class Tipm:
         row of the image (or of the window the tracker cut) are left out: the border skews the
         filter's vertical mean there, the mask ends short of the stripe's cross-section, so
         its centre leans inward, and those are the arm ends that bend a quadratic fit most (at
-        a deep V in a +-110 px window the corner moved 0.3-0.4 px in v on clean frames)."""
-        if self.centre_line == "thinning":
-            skel = cv2.ximgproc.thinning(mask)
-            v, u = np.nonzero(skel)
-            order = np.argsort(u, kind="stable")
-            pts = np.stack([u[order], v[order]], axis=1)
-        else:
-            x0, y0, bw, bh = cv2.boundingRect(mask)
-            r, m = response[y0:y0 + bh, x0:x0 + bw], mask[y0:y0 + bh, x0:x0 + bw]
-            w = cv2.bitwise_and(r, r, mask=m).astype(np.float32)
-            # column sums of w and of row * w in one small matrix product
-            rows = np.stack([np.ones(bh, np.float32), np.arange(y0, y0 + bh, dtype=np.float32)])
-            s0, s1 = rows @ w
-            cols = np.nonzero(s0 > 0)[0]
-            v = self._recentre(response, cols + x0, s1[cols] / s0[cols])
-            pts = np.stack([cols + x0, v], axis=1)
-        k = self.cfg.ridge_px // 2 + 1  # the ridge filter's reach: its mean is skewed there
-        cut = (mask[:k] > 0).any(axis=0) | (mask[-k:] > 0).any(axis=0)
-        if len(pts) and cut.any():
-            pts = pts[~cut[pts[:, 0].astype(np.intp)]]
-        return pts.astype(float)
+        a deep V in a +-110 px window the corner moved 0.3-0.4 px in v on clean frames).
 
-    def _recentre(self, response: np.ndarray, cols: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Each column's centre ``v`` (N,) at columns ``cols`` (N,) moved to the centroid of the
-        stripe response within ``centre_half_px`` rows of it, mask or not (``centre_passes``
-        times).
-
-        Why: where the stripe runs over arc glare its red channel saturates while green rises
-        with the glare, so ``R - max(G, B)`` dips at the stripe's middle and its cross-section
-        splits into two ridges 4-8 px apart, each near the threshold. The mask then holds one of
-        them in some columns and the masked centroid sits on it, 1.3-2.4 px off the stripe;
-        next to the corner those columns slid the corner 2-4.6 px along the stripe with tight
-        arm fits (heavy-arc T ring seed 5: 15 frames in a row). The window takes both ridges.
+        Each column's centroid is then moved to the centroid of the response within
+        ``centre_half_px`` rows of it, mask or not (``centre_passes`` times). Why: where the
+        stripe runs over arc glare its red channel saturates while green rises with the glare,
+        so ``R - max(G, B)`` dips at the stripe's middle and its cross-section splits into two
+        ridges 4-8 px apart, each near the threshold. The mask then holds one of them in some
+        columns and the masked centroid sits on it, 1.3-2.4 px off the stripe; next to the
+        corner those columns slid the corner 2-4.6 px along the stripe with tight arm fits
+        (heavy-arc T ring seed 5: 15 frames in a row). The window takes both ridges.
         """
-        cfg = self.cfg
-        if cfg.centre_passes == 0 or len(cols) == 0:
-            return v
-        # a band of rows around each column's first centre, wide enough for the window to move
-        # a few px (gathered: the whole stripe's row span costs ~1 ms per full frame)
-        reach = int(np.ceil(cfg.centre_half_px)) + 3
-        rows = np.rint(v).astype(np.intp)[None, :] + np.arange(-reach, reach + 1)[:, None]
-        np.clip(rows, 0, response.shape[0] - 1, out=rows)
-        r = response[rows, cols[None, :]].astype(np.float32)      # (2 reach + 1, N)
-        y = rows.astype(np.float32)
-        for _ in range(cfg.centre_passes):
-            w = r * (np.abs(y - v.astype(np.float32)) <= cfg.centre_half_px)
-            s0 = w.sum(axis=0)
-            v = np.where(s0 > 0, (w * y).sum(axis=0) / np.maximum(s0, 1e-6), v)  # empty: keep
-        return v.astype(float)
+        mask = np.ascontiguousarray(mask, dtype=np.uint8)
+        reach = self.cfg.ridge_px // 2 + 1  # the ridge filter's: its mean is skewed there
+        if self.centre_line == "thinning":
+            v, u = np.nonzero(cv2.ximgproc.thinning(mask))
+            order = np.argsort(u, kind="stable")
+            pts = np.stack([u[order], v[order]], axis=1).astype(float)
+            return pts[~self._k.border_columns(mask, reach)[u[order]]]
+        return self._k.centre_line(np.ascontiguousarray(response, dtype=np.uint8), mask,
+                                   float(self.cfg.centre_half_px), int(self.cfg.centre_passes),
+                                   reach)
 
     # ------------------------------------------------------------------ main
     def __call__(self, frame: np.ndarray, prior: np.ndarray | None = None) -> TipmResult:
@@ -292,20 +275,15 @@ class Tipm:
         cfg = self.cfg
         if len(pts) < 2 * cfg.min_points_per_arm:
             return _fail(f"no stripe found ({len(pts)} centre-line points)", mask, pts)
-        split = _best_split(pts[:, 0], pts[:, 1], cfg.min_points_per_arm)
-        if split is None:
-            return _fail("no corner: the stripe cannot be split into two arms", mask, pts)
-        # The two-line split is only roughly at the corner (the arms are curved): fit the arms
-        # next to it, move to where they meet, and refit there until the corner stays put.
-        u0 = split
-        for it in range(3):
-            fit = self._fit_arms(pts, u0, prior)
-            if isinstance(fit, str):
-                return _fail(fit, mask, pts)
-            arms, rms, x = fit  # arms are centred on u0; they meet at u0 + x
-            if abs(x) < 0.05 or it == 2:
-                break
-            u0 += x
+        pts = np.ascontiguousarray(pts, dtype=np.float64)
+        arms = np.empty((2, 3))
+        k = self._k
+        code, count, u0, x, rms, v, corner = k.corner(
+            pts, float(cfg.corner_gap_px), float(cfg.fit_window_px),
+            int(cfg.min_points_per_arm), k.NO_PRIOR if prior is None else
+            np.ascontiguousarray(prior, dtype=np.float64), arms)
+        if code:
+            return _fail(k.CORNER_FAILS[code].format(count=count), mask, pts)
         if abs(x) > cfg.corner_gap_px:
             # the arms meet inside one arm's fitted span: that fit ran over the corner (glare
             # hid or bent the stripe next to it) and the refits did not settle
@@ -313,59 +291,10 @@ class Tipm:
                          mask, pts)
         if rms > cfg.max_rms_px:
             return _fail(f"no clean stripe: arm fit residual {rms:.2f} px", mask, pts)
-        v = float(np.polynomial.polynomial.polyval(x, arms[0]))
-        # angle between the arms at the corner (slopes b + 2 c x)
-        s1 = arms[0][1] + 2 * arms[0][2] * x
-        s2 = arms[1][1] + 2 * arms[1][2] * x
-        d1, d2 = np.array([-1.0, -s1]), np.array([1.0, s2])
-        cosang = d1 @ d2 / (np.linalg.norm(d1) * np.linalg.norm(d2))
-        corner = float(np.degrees(np.arccos(np.clip(cosang, -1, 1))))
         if 180.0 - corner < cfg.min_corner_deg:
             return _fail(f"no corner: the stripe is straight ({corner:.1f} deg)", mask, pts)
         return TipmResult(True, np.array([u0 + x, v]), "", pts, (arms[0], arms[1]), u0, corner,
                           rms, mask)
-
-    def _fit_arms(self, pts: np.ndarray, u0: float, prior: np.ndarray | None = None
-                  ) -> tuple[list[np.ndarray], float, float] | str:
-        """Quadratic fit of each arm beside column ``u0``; returns (arms, rms, x of the meeting
-        point relative to ``u0``) or the reason it fails. ``pts`` is sorted by u, so each arm's
-        window is a slice (this runs up to three times per frame: keep it lean). ``prior``: see
-        :meth:`corner` (the slope is taken at ``u0``, which converges onto the corner)."""
-        cfg = self.cfg
-        u = pts[:, 0]
-        windows = ((u0 - cfg.fit_window_px, u0 - cfg.corner_gap_px),
-                   (u0 + cfg.corner_gap_px, u0 + cfg.fit_window_px))
-        arms, rms_all = [], []
-        for name, (lo, hi) in zip(("left", "right"), windows, strict=True):
-            i0, i1 = np.searchsorted(u, (lo, hi + 1e-9))
-            if i1 - i0 < cfg.min_points_per_arm:
-                return f"no corner: the {name} arm has only {int(i1 - i0)} points"
-            x, y = u[i0:i1] - u0, pts[i0:i1, 1]
-            arm_prior = None if prior is None else prior[len(arms)]
-            coef, res = _quadfit(x, y, arm_prior)
-            # one robust pass: drop points far off the fit (spatter touching the stripe); the
-            # residuals of a fit with an intercept have zero mean, so their std is their RMS
-            good = np.abs(res) < max(3 * np.sqrt(res @ res / len(res)), 0.5)
-            n_good = np.count_nonzero(good)
-            if cfg.min_points_per_arm <= n_good < len(x):
-                coef, res = _quadfit(x[good], y[good], arm_prior)
-            arms.append(coef)
-            rms_all.append(float(np.sqrt(res @ res / len(res))))
-        c0, c1, c2 = arms[0] - arms[1]
-        if abs(c2) > 1e-12:
-            disc = c1 * c1 - 4 * c2 * c0
-            if disc < 0:
-                return "no corner: the arms do not meet"
-            sq = np.sqrt(disc)
-            roots = ((-c1 - sq) / (2 * c2), (-c1 + sq) / (2 * c2))
-            x = float(min(roots, key=abs))
-        elif abs(c1) > 1e-12:
-            x = float(-c0 / c1)
-        else:
-            return "no corner: the arms are parallel"
-        if abs(x) > cfg.fit_window_px:
-            return "no corner: the arms meet far from the stripe"
-        return arms, max(rms_all), x
 
 
 def power_sums(x: np.ndarray) -> tuple[float, float, float, float, float]:
@@ -401,26 +330,6 @@ def quad_normal_adjugate(sums: tuple[float, ...], w: tuple[float, float] = (0.0,
     return (A00, A01, A02, A11, A12, A22), a * A00 + b * A01 + c * A02
 
 
-def _quadfit(x: np.ndarray, y: np.ndarray, prior: np.ndarray | None = None
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares (a, b, c) of y = a + b x + c x^2 (x is centred on the corner already) and
-    the residuals, from the 3x3 normal equations in closed form (a Vandermonde matrix and
-    ``np.linalg.solve`` cost twice as much per arm, up to six times a frame). ``prior``
-    (b0, c0, w_b, w_c) adds w_b (b - b0)^2 + w_c (c - c0)^2 to the squared error."""
-    x2 = x * x
-    r0, r1, r2 = float(y.sum()), float(x @ y), float(x2 @ y)
-    w = (0.0, 0.0)
-    if prior is not None:
-        b0, c0, wb, wc = (float(p) for p in prior)
-        w = (wb, wc)
-        r1, r2 = r1 + wb * b0, r2 + wc * c0
-    (A00, A01, A02, A11, A12, A22), det = quad_normal_adjugate(power_sums(x), w)
-    k0 = (A00 * r0 + A01 * r1 + A02 * r2) / det
-    k1 = (A01 * r0 + A11 * r1 + A12 * r2) / det
-    k2 = (A02 * r0 + A12 * r1 + A22 * r2) / det
-    return np.array([k0, k1, k2]), y - (k0 + k1 * x + k2 * x2)
-
-
 def arm_shape(res: TipmResult) -> np.ndarray:
     """(2, 2) slope at the corner and curvature of the left and right arm of a found corner
     (what :meth:`Tipm.corner` takes as a prior)."""
@@ -429,34 +338,16 @@ def arm_shape(res: TipmResult) -> np.ndarray:
     return np.array([[a[1] + 2 * a[2] * x, a[2]] for a in res.arms])
 
 
-def _best_split(u: np.ndarray, v: np.ndarray, min_pts: int) -> float | None:
-    """Column that best splits (u, v) into two straight lines (least squares, O(N))."""
-    n = len(u)
-    if n < 2 * min_pts:
-        return None
-    M = np.empty((5, n))  # moments of the centred points, then their running sums
-    np.subtract(u, u.mean(), out=M[0])
-    np.subtract(v, v.mean(), out=M[1])
-    np.multiply(M[0], M[0], out=M[2])
-    np.multiply(M[0], M[1], out=M[3])
-    np.multiply(M[1], M[1], out=M[4])
-    np.cumsum(M, axis=1, out=M)
-    i = np.arange(min_pts - 1, n - min_pts)
-    left = M[:, i]                   # points 0..i
-    right = M[:, -1:] - left         # points i+1..n-1: the totals less the left's
-    k_left = i + 1.0
-    total = _line_sse(left, k_left) + _line_sse(right, n - k_left)
-    best = i[np.argmin(total)]
-    return float(0.5 * (u[best] + u[best + 1]))
-
-
-def _line_sse(S: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Squared error of a least-squares line through each of the point sets whose count is
-    ``k`` (M,) and sums of x, y, x^2, xy, y^2 are the columns of ``S`` (5, M)."""
-    sx, sy, sxx, sxy, syy = S
-    vx = sxx - sx * sx / k
-    cxy = sxy - sx * sy / k
-    return syy - sy * sy / k - np.where(vx > 1e-9, cxy * cxy / np.maximum(vx, 1e-9), 0.0)
+def _quadfit(x: np.ndarray, y: np.ndarray, prior: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares (a, b, c) of y = a + b x + c x^2 (x (N,) centred on the corner already)
+    and the residuals (N,). ``prior`` (b0, c0, w_b, w_c) adds w_b (b - b0)^2 + w_c (c - c0)^2
+    to the squared error. (What the corner search runs compiled, for tests and tools.)"""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    p = np.zeros(4) if prior is None else np.ascontiguousarray(prior, dtype=np.float64)
+    k = np.array(_kernels().quad_fit(x, y, np.ones(x.size, np.bool_), p))
+    return k, y - (k[0] + k[1] * x + k[2] * x * x)
 
 
 def draw_overlay(frame: np.ndarray, res: TipmResult, truth: np.ndarray | None = None
