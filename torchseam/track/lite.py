@@ -2,9 +2,11 @@
 
 The torch module is what is fitted and what evaluates batches; at B = 1 on a CPU its ~800 tiny
 tensor ops per frame cost more in dispatch (~2-3 ms) than in arithmetic. This twin runs the
-same equations, with the same parameters read from a module, as ~150 numpy calls on (64, 64)
-windows (~0.5 ms), and it crops the red-stripe response from the colour frame only where the
-windows lie instead of converting the whole frame. It is inference only: no gradients, no
+same equations, with the same parameters read from a module, as ~120 numpy calls on (64, 64)
+windows and one compiled kernel for the confidence map's peak and its quality
+(:mod:`torchseam.track._kernels`; ~0.35 ms a frame in all), and it crops the red-stripe
+response from the colour frame only where the windows lie instead of converting the whole
+frame. It is inference only: no gradients, no
 batch, the module's settings for live tracking (``crop="nearest"``, ``peak="subpixel"``, no
 scale update); anything else is refused, not approximated.
 
@@ -28,7 +30,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 import scipy.fft
 
@@ -77,8 +78,7 @@ class LiteEAKFSTC:
         self._fx = np.fft.rfftfreq(w) * (-2.0 * math.pi)
         self._ar_h = np.arange(h) - h // 2
         self._ar_w = np.arange(w) - w // 2
-        e = max(self.exclude, 1)
-        self._area = np.arange(-e, e + 1)
+        self._e = max(self.exclude, 1)  # the peak's area left out of the sidelobe: +-e
         self._even = not (h % 2 or w % 2)  # competing peaks on 2x2-block maxima (see stc.py)
         self._eb = (self.exclude + 1) // 2 if self._even else self.exclude
         self.H_f: np.ndarray | None = None
@@ -90,7 +90,9 @@ class LiteEAKFSTC:
         # learning steps not applied yet (see idle): (window or None, its prior spectrum or
         # None, centre, rho scale), in order
         self._pending: list[tuple[np.ndarray | None, np.ndarray | None, np.ndarray, float]] = []
-        self._kernel = np.ones((3, 3), np.uint8)
+        from torchseam.track._kernels import peak_quality  # numba: compiled or loaded now
+
+        self._peak_quality = peak_quality
         self.x = self.P = self.Z = self.s = self.s_ref = self.x_post = None
         self.coast = 0
         self.status = int(TrackStatus.TRACKED)
@@ -213,47 +215,9 @@ class LiteEAKFSTC:
         if self.anchor > 0 and self.H_ref is not None:
             H_f = H_f + self.anchor * (self.H_ref - H_f)
         resp = scipy.fft.irfft2(H_f * self._prior_f(frame, base), s=(self.h, self.w))
-        h, w = self.h, self.w
-        idx = int(resp.argmax())
-        i, j = divmod(idx, w)
-        peak = float(resp[i, j])
-        # sub-pixel: a parabola through the peak and its neighbours per axis (wrapping)
-        off = np.array([j - w // 2, i - h // 2], float)
-        for k, (lo, hi) in enumerate(((resp[i, (j - 1) % w], resp[i, (j + 1) % w]),
-                                      (resp[(i - 1) % h, j], resp[(i + 1) % h, j]))):
-            den = lo + hi - 2.0 * peak
-            if den < 0:
-                off[k] += min(max(0.5 * (lo - hi) / den, -0.5), 0.5)
-        # peak-to-sidelobe ratio outside the (2e + 1)^2 area around the peak (circular)
-        av = resp[((i + self._area) % h)[:, None], ((j + self._area) % w)[None, :]]
-        N, P = h * w, av.size
-        flat = resp.reshape(-1)
-        mean_all = float(flat.sum()) / N
-        var_all = float(flat @ flat) / N - mean_all * mean_all
-        mean_s = (mean_all * N - float(av.sum())) / (N - P)
-        var_s = ((var_all + mean_all * mean_all) * N - float((av * av).sum())) / (N - P) \
-            - mean_s * mean_s
-        height = peak - mean_s
-        psr = height / math.sqrt(max(var_s, _TINY))
-        # competing peaks: interior local maxima of the 2x2-block maxima, off the peak's area
-        if self._even:
-            blocks = np.maximum(np.maximum(resp[0::2, 0::2], resp[0::2, 1::2]),
-                                np.maximum(resp[1::2, 0::2], resp[1::2, 1::2]))
-            bi, bj = i // 2, j // 2
-        else:
-            blocks, bi, bj = resp, i, j
-        bh, bw = blocks.shape
-        m = cv2.dilate(blocks, self._kernel)[1:-1, 1:-1]  # 3x3 maxima (interior: exact)
-        inner = blocks[1:-1, 1:-1]
-        cand = np.where(inner >= m, inner, -np.inf)
-        rb = np.arange(-self._eb, self._eb + 1)
-        rr, cc = (bi + rb) % bh - 1, (bj + rb) % bw - 1
-        rr, cc = rr[(rr >= 0) & (rr < bh - 2)], cc[(cc >= 0) & (cc < bw - 2)]
-        cand[rr[:, None], cc[None, :]] = -np.inf
-        second = max(float(cand.max()), mean_s)
-        height = max(height, _TINY)
-        second_ratio = min(max((second - mean_s) / height, 0.0), 1.0)
-        n_peaks = 1 + int((cand > mean_s + 0.5 * height).sum())
+        off_u, off_v, peak, psr, second_ratio, n_peaks = self._peak_quality(
+            resp, self._e, self._even, self._eb)
+        off = np.array([off_u, off_v])
         return base + off, psr, second_ratio, n_peaks, peak
 
     # ------------------------------------------------------------------ API
