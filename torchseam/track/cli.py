@@ -35,8 +35,9 @@ def _parse_init(text: str | None) -> np.ndarray | None:
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("frames_dir", type=Path, metavar="FRAMES_DIR",
                    help="folder of NNNNN.png frames (the dataset format)")
-    p.add_argument("--tracker", choices=TRACKERS, default="eakf-stc",
-                   help="tracker (default eakf-stc)")
+    p.add_argument("--tracker", choices=TRACKERS, default="anchored",
+                   help="tracker (default anchored: EAKF-STC fused with TIPM, as the live loop "
+                        "and demo run it; eakf-stc alone drifts along the stripe)")
     p.add_argument("--init", metavar="U,V",
                    help="start point on the first frame (default: TIPM on the first frame)")
     p.add_argument("--threads", type=int, default=1,

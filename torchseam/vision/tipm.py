@@ -316,7 +316,9 @@ def quad_normal_adjugate(sums: tuple[float, ...], w: tuple[float, float] = (0.0,
     sums ``sums`` (:func:`power_sums`) and ridge weights ``w`` on slope and curvature.
 
     In closed form: ``np.linalg.solve`` costs ~15 us a call on a 3x3, this a handful of float
-    operations. ``A^-1 = adj / det``.
+    operations. ``A^-1 = adj / det``. TIPM's corner search runs this very function compiled
+    (:mod:`torchseam.vision._kernels`); the fix covariance of the anchored tracker calls it
+    from Python.
 
     Example:
         >>> adj, det = quad_normal_adjugate(power_sums(np.arange(3.0)))  # x = 0, 1, 2
