@@ -273,9 +273,15 @@ class Tipm:
         the curvature) for the left and right arm; a weight is the squared point noise over the
         prior's variance (px^2 per slope^2, resp. per curvature^2). None: plain fit."""
         cfg = self.cfg
+        pts = np.ascontiguousarray(pts, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise ValueError(f"TIPM corner: centre-line points must be (N, 2) (u, v), got shape "
+                             f"{pts.shape}")
+        if prior is not None and np.shape(prior) != (2, 4):
+            raise ValueError(f"TIPM corner: the arm prior must be (2, 4) (see arm_shape), got "
+                             f"shape {np.shape(prior)}")
         if len(pts) < 2 * cfg.min_points_per_arm:
             return _fail(f"no stripe found ({len(pts)} centre-line points)", mask, pts)
-        pts = np.ascontiguousarray(pts, dtype=np.float64)
         arms = np.empty((2, 3))
         k = self._k
         code, count, u0, x, rms, v, corner = k.corner(
