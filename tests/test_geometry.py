@@ -252,3 +252,78 @@ def test_ecal_does_not_take_the_arm_angle_where_the_arm_vanishes():
     # it vanishes, is dropped as well (never the last one left)
     short = ecal(mask_with(30.0), c)
     assert short.ok and short.radius == pytest.approx(ecal.circles[0])
+
+
+def _crossings_reference(ecal, on, val, uv):
+    """ECAL's arm crossings as plain numpy (the vectorised statement the kernel replaced): runs
+    paired rise -> fall on the rings doubled end to end, grey-weighted circular mean angles
+    from cumulative sums, connection to the feature point from cumulative sums along radii."""
+    cfg, n, rows = ecal.cfg, len(ecal._theta), ecal._circle_rows
+    phasor = np.exp(1j * ecal._theta)
+    ph2 = np.concatenate([[0], np.cumsum(np.tile(phasor, 2))])
+    ring = on[rows]
+    prev = np.roll(ring, 1, axis=1)
+    rs, s0 = np.nonzero(ring & ~prev)
+    re, e0 = np.nonzero(~ring & prev)
+    ekey = np.sort(np.concatenate([re * 2 * n + e0, re * 2 * n + e0 + n]))
+    skey = rs * 2 * n + s0
+    length = ekey[np.searchsorted(ekey, skey)] - skey
+    row = rows[rs]
+    r = ecal.ring_radii[row]
+    width = length * (2 * np.pi / n) * r
+    ok = (width >= cfg.min_width_px) & (width <= cfg.max_width_px)
+    z = ph2[s0 + length] - ph2[s0]
+    if val is not None:
+        v = val[rows]
+        v2 = np.concatenate([np.zeros((len(rows), 1)), np.cumsum(np.hstack([v, v]), 1)], 1)
+        vp = v * phasor
+        vp2 = np.concatenate([np.zeros((len(rows), 1), complex),
+                              np.cumsum(np.hstack([vp, vp]), 1)], 1)
+        wsum = v2[rs, s0 + length] - v2[rs, s0]
+        z = np.where(wsum > 0, vp2[rs, s0 + length] - vp2[rs, s0], z)
+    ang = np.angle(z)
+    k = np.rint(ang * n / (2 * np.pi)).astype(int) % n
+    lo = (0.15 * row).astype(int)
+    cum = np.concatenate([np.zeros((1, n), int), np.cumsum(on, axis=0)])
+    good = ok & ((cum[row + 1, k] - cum[lo, k]) >= cfg.min_connected * (row + 1 - lo))
+    px = uv + r[:, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    return [([(ang[i], px[i]) for i in np.flatnonzero(good & (rs == c))],
+             int(np.sum(~good & (rs == c)))) for c in range(len(rows))]
+
+
+def test_ecal_compiled_crossings_match_their_numpy_statement(cell, part, noise):
+    """The compiled crossings kernel against the numpy statement, on the stripe windows the
+    live loop hands ECAL (TIPM's ridge and mask around the true point) of clean and heavy-arc
+    frames, spatter and glare included, and one window at the frame's border. With grey
+    levels, as the live loop runs ECAL: without them an even-length run's mean angle lies
+    exactly between two samples, and which of the two rays the connection test walks is left
+    to rounding in either version (the ECAL tests above cover that path by behaviour)."""
+    ecal, tipm = Ecal(), Tipm()
+    frames = list(simulate(cell, part, noise, SequenceSpec(n_frames=60, level=1.0, seed=3)))
+    frames += list(simulate(cell, part, noise, SequenceSpec(n_frames=4, level=0.0, seed=3)))
+    windows = []
+    for img, t in frames:
+        for uv in (t.uv, np.array([60.0, t.uv[1]])):  # the second: ECAL's rings leave the image
+            red, mask, (x0, y0) = tipm.mask_around(img, uv, int(ecal.cfg.r_max_px) + 8)
+            windows.append((red, mask, uv - (x0, y0)))
+    # a V with a blob too wide for a stripe joined to its corner, grey levels rising to the right
+    mask = np.zeros((200, 200), np.uint8)
+    cv2.line(mask, (100, 100), (10, 60), 255, 5)
+    cv2.line(mask, (100, 100), (190, 60), 255, 5)
+    cv2.line(mask, (100, 100), (100, 190), 255, 31)
+    windows.append((((mask > 0) * np.linspace(100, 200, 200)[None]).astype(np.uint8), mask,
+                    np.array([100.0, 100.0])))
+    n_cross = n_rejected = 0
+    for red, mask, local in windows:
+        on, val = ecal.polar(mask, local, red)
+        got = ecal.crossings(on, val, local)
+        want = _crossings_reference(ecal, on, val, local)
+        assert [g[1] for g in got] == [w[1] for w in want]
+        for (g, _), (w, _) in zip(got, want, strict=True):
+            assert len(g) == len(w)
+            for (ga, gp), (wa, wp) in zip(g, w, strict=True):
+                assert ga == pytest.approx(wa, abs=1e-9)
+                np.testing.assert_allclose(gp, wp, atol=1e-9)
+            n_cross += len(g)
+        n_rejected += sum(g[1] for g in got)
+    assert n_cross > 500 and n_rejected > 20  # crossings and rejected spatter were compared

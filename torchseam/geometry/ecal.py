@@ -101,16 +101,16 @@ class Ecal:
         cfg = self.cfg
         n = max(64, int(np.ceil(2 * np.pi * cfg.r_max_px / ARC_STEP_PX)))
         self._theta = np.arange(n) * (2 * np.pi / n)
-        self._phasor = np.exp(1j * self._theta)
-        self._phasor_cum = np.concatenate([[0], np.cumsum(np.tile(self._phasor, 2))])
+        self._cos, self._sin = np.cos(self._theta), np.sin(self._theta)
         # rings every RADIAL_STEP_PX out to r_max (the circles ECAL tries are among them)
-        self.ring_radii = np.arange(cfg.r_max_px, 0.0, -RADIAL_STEP_PX)[::-1]
+        self.ring_radii = np.ascontiguousarray(np.arange(cfg.r_max_px, 0.0, -RADIAL_STEP_PX)[::-1])
         self._ru = self.ring_radii[:, None] * np.cos(self._theta)
         self._rv = self.ring_radii[:, None] * np.sin(self._theta)
         self.circles = self.ring_radii[np.unique(np.argmin(np.abs(
             self.ring_radii[:, None] - np.arange(cfg.r_min_px, cfg.r_max_px + 1e-9,
                                                  cfg.r_step_px)[None]), axis=0))]
-        self._circle_rows = np.searchsorted(self.ring_radii, self.circles)
+        self._circle_rows = np.searchsorted(self.ring_radii, self.circles).astype(np.int64)
+        self._k = _kernels()  # compiled (or loaded) now, not on the first frame
 
     def polar(self, mask: np.ndarray, uv: np.ndarray, intensity: np.ndarray | None
               ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -142,63 +142,22 @@ class Ecal:
         """Accepted arm crossings on every circle of ``self.circles`` from a :meth:`polar`
         sampling: per circle ``([(angle, pixel)], number rejected)``.
 
-        All circles at once (this runs on every frame): runs of stripe along each circle are
-        paired rise -> fall on the ring doubled end to end (so a run over angle 0 needs no
-        special case); a run's grey-weighted circular mean angle and its connection to the
-        feature point along the radius come from cumulative sums, not per-run loops.
+        All circles in one compiled pass (:func:`torchseam.geometry._kernels.crossings`; this
+        runs on every frame): a run of stripe along a circle is a crossing when its arc length
+        is a stripe width and stripe joins it to the feature point along the radius at its
+        (grey-weighted) mean angle.
         """
         cfg = self.cfg
-        n = len(self._theta)
-        rows = self._circle_rows
-        ring = on[rows]                                               # (C, N)
-        prev = np.roll(ring, 1, axis=1)
-        rs, s0 = np.nonzero(ring & ~prev)                             # background -> stripe
-        out: list[tuple[list[_Crossing], int]] = [([], 0) for _ in rows]
-        if len(rs) == 0:
-            return out
-        re, e0 = np.nonzero(~ring & prev)                             # stripe -> background
-        # the first fall after each rise, going round its circle
-        ekey = np.sort(np.concatenate([re * 2 * n + e0, re * 2 * n + e0 + n]))
-        skey = rs * 2 * n + s0
-        length = ekey[np.searchsorted(ekey, skey)] - skey
-        row = rows[rs]
-        r = self.ring_radii[row]
-        width = length * (2 * np.pi / n) * r
-        ok = (width >= cfg.min_width_px) & (width <= cfg.max_width_px)
-        # grey-weighted circular mean of each run's angles (unweighted without grey levels)
-        z = self._run_sums(rs, s0, length, rows, val)
-        ang = np.angle(z)
-        k = np.rint(ang * n / (2 * np.pi)).astype(np.intp) % n
-        # joined to the feature point along the radius: stripe on >= min_connected of the rings
-        # from 0.15 r out to r at the run's angle
-        lo = (0.15 * row).astype(np.intp)
-        cum = np.concatenate([np.zeros((1, n), np.intp), np.cumsum(on, axis=0)])
-        joined = (cum[row + 1, k] - cum[lo, k]) >= cfg.min_connected * (row + 1 - lo)
-        good = ok & joined
+        circle, ang, rejected = self._k.crossings(
+            on, _NO_VAL if val is None else val, self._circle_rows, self.ring_radii,
+            self._cos, self._sin, float(cfg.min_width_px), float(cfg.max_width_px),
+            float(cfg.min_connected))
+        r = self.circles[circle]
         px = uv + r[:, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
-        rejected = np.bincount(rs[~good], minlength=len(rows))
-        for c in range(len(rows)):
-            sel = np.flatnonzero(good & (rs == c))
-            out[c] = ([(float(ang[i]), px[i]) for i in sel], int(rejected[c]))
+        out: list[tuple[list[_Crossing], int]] = [([], int(x)) for x in rejected]
+        for i, c in enumerate(circle.tolist()):
+            out[c][0].append((float(ang[i]), px[i]))
         return out
-
-    def _run_sums(self, rs: np.ndarray, s0: np.ndarray, length: np.ndarray,
-                  rows: np.ndarray, val: np.ndarray | None) -> np.ndarray:
-        """Sum of the unit phasors over each run (weighted by ``val`` where the run has grey
-        levels), via cumulative sums over the rings doubled end to end."""
-        phasor, ph2 = self._phasor, self._phasor_cum
-        plain = ph2[s0 + length] - ph2[s0]
-        if val is None:
-            return plain
-        v = val[rows]
-        v2 = np.concatenate([np.zeros((len(rows), 1)), np.cumsum(np.concatenate([v, v], 1), 1)],
-                            axis=1)
-        vp = v * phasor
-        vp2 = np.concatenate([np.zeros((len(rows), 1), complex),
-                              np.cumsum(np.concatenate([vp, vp], 1), 1)], axis=1)
-        wsum = v2[rs, s0 + length] - v2[rs, s0]
-        z = vp2[rs, s0 + length] - vp2[rs, s0]
-        return np.where(wsum > 0, z, plain)
 
     def __call__(self, mask: np.ndarray, uv: np.ndarray, intensity: np.ndarray | None = None,
                  prev_angles: np.ndarray | None = None) -> EcalResult:
@@ -263,6 +222,17 @@ class Ecal:
         why = "one arm only (occluded) and no previous arm directions" if single else (
             "no arm crossings around the feature point")
         return EcalResult(False, nan2, np.full(2, np.nan), reason=why)
+
+
+_NO_VAL = np.zeros((0, 0))  # no grey levels: the kernel weighs every sample alike
+
+
+def _kernels():  # noqa: ANN202 - the module
+    """The compiled kernel (:mod:`torchseam.geometry._kernels`), imported on first use: numba
+    and the kernel's loading cost ~1 s, which commands without ECAL need not pay."""
+    from torchseam.geometry import _kernels as k
+
+    return k
 
 
 def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref: float,
