@@ -149,7 +149,9 @@ class Ecal:
         """
         cfg = self.cfg
         circle, ang, rejected = self._k.crossings(
-            on, _NO_VAL if val is None else val, self._circle_rows, self.ring_radii,
+            np.ascontiguousarray(on, dtype=np.bool_),
+            _NO_VAL if val is None else np.ascontiguousarray(val, dtype=np.float64),
+            self._circle_rows, self.ring_radii,
             self._cos, self._sin, float(cfg.min_width_px), float(cfg.max_width_px),
             float(cfg.min_connected))
         r = self.circles[circle]
