@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from torchseam.console.config import load_console_config
+from torchseam.console.server import TOKEN_HEADER
 from torchseam.console.session import PacedControl
 from torchseam.console.sim import simulated_console
 from torchseam.core.config import load_cell, load_noise, load_part
@@ -80,12 +81,12 @@ def _read_stream(url: str, n: int, stop, counts) -> None:
 class Reader:
     """Headless clients in a process of their own (as a browser is): read the whole stream."""
 
-    def __init__(self, url: str, n: int) -> None:
+    def __init__(self, url: str, n: int, token: str) -> None:
         ctx = mp.get_context("spawn")
         self._stop = ctx.Event()
         self._counts = ctx.Array("q", 4)
         self._proc = ctx.Process(target=_read_stream, daemon=True, args=(
-            url.replace("http", "ws") + "/ws", n, self._stop, self._counts))
+            url.replace("http", "ws") + f"/ws?token={token}", n, self._stop, self._counts))
         self._proc.start()
         t0 = time.monotonic()
         while self._counts[3] < n:
@@ -227,15 +228,16 @@ def run_on(cell, part, noise, args, browser: Browser | None) -> dict:
     con = simulated_console(cfg, cell, part, noise)
     host, port = con.start_in_thread("127.0.0.1", 0)
     url = f"http://{host}:{port}"
-    reader = Reader(url, args.clients) if args.clients else None
+    reader = Reader(url, args.clients, con.token) if args.clients else None
     if browser is not None:
-        browser.open(url + "/")
+        browser.open(con.url())   # the address with the token, as the CLI prints it
     time.sleep(1.0)  # let the page load and settle
     cpu0 = chromium_cpu_s()
     params = {**con.defaults, "segments": args.segments, "length_mm": args.length_mm,
               "noise": args.noise, "seed": args.seed}
     req = urllib.request.Request(url + "/api/start", json.dumps(params).encode(),
-                                 {"Content-Type": "application/json"}, method="POST")
+                                 {"Content-Type": "application/json", TOKEN_HEADER: con.token},
+                                 method="POST")
     t0 = time.perf_counter()
     urllib.request.urlopen(req, timeout=10).read()
     con.session.join()  # blocked, not polling: this thread leaves the weld's process alone

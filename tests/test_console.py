@@ -32,7 +32,7 @@ from torchseam.console.config import (
     load_console_config,
     parse_params,
 )
-from torchseam.console.server import ConsoleServer, is_loopback, render_frame
+from torchseam.console.server import TOKEN_HEADER, ConsoleServer, is_loopback, render_frame
 from torchseam.console.session import LatestFrame, RunState, WeldSession
 from torchseam.console.sim import simulated_console
 from torchseam.core.config import ConfigError
@@ -44,6 +44,8 @@ from torchseam.track.peers import TRACKERS
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = Path("/usr/bin/chromium")
+#: The tests' console token (a console makes its own, ``secrets.token_urlsafe``, when not given).
+TOKEN = "test-token-0123456789"
 GOOD = {"step_mm": 2, "look_ahead_mm": 20, "weld_speed_mm_s": 8, "segments": "a",
         "length_mm": "", "noise": "heavy", "seed": 0, "faults": [], "tracker": "anchored"}
 
@@ -99,7 +101,8 @@ def fake_console(cfg, **weld_kw) -> ConsoleServer:
 
     return ConsoleServer(cfg, session, validate, GOOD,
                          {"noise": ["clean", "heavy"], "faults": list(FAULTS),
-                          "trackers": list(TRACKERS), "segments": "abcdef"}, source="fake")
+                          "trackers": list(TRACKERS), "segments": "abcdef"}, source="fake",
+                         token=TOKEN)
 
 
 def _noise():
@@ -127,10 +130,15 @@ def served(cfg):
         con.stop_thread()
 
 
-def post(url: str, body: dict | None = None, origin: str | None = None) -> tuple[int, dict]:
-    req = urllib.request.Request(url, data=json.dumps(body or {}).encode(), method="POST",
+def post(url: str, body: dict | bytes | None = None, origin: str | None = None,
+         token: str | None = TOKEN, headers: dict | None = None) -> tuple[int, dict]:
+    """POST ``body`` (JSON, or bytes as they are) with the token header (None: without)."""
+    data = body if isinstance(body, bytes) else json.dumps(body or {}).encode()
+    req = urllib.request.Request(url, data=data, method="POST",
                                  headers={"Content-Type": "application/json",
-                                          **({"Origin": origin} if origin else {})})
+                                          **({"Origin": origin} if origin else {}),
+                                          **({TOKEN_HEADER: token} if token else {}),
+                                          **(headers or {})})
     try:
         with urllib.request.urlopen(req, timeout=10) as r:
             return r.status, json.loads(r.read())
@@ -152,10 +160,10 @@ def wait_for(cond, timeout: float = 20.0, what: str = "condition"):
     raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
 
-async def read_ws(url: str, n_updates: int) -> list[dict | bytes]:
+async def read_ws(url: str, n_updates: int, token: str = TOKEN) -> list[dict | bytes]:
     out: list[dict | bytes] = []
-    async with aiohttp.ClientSession() as s, s.ws_connect(url.replace("http", "ws") + "/ws") \
-            as ws:
+    async with aiohttp.ClientSession() as s, \
+            s.ws_connect(url.replace("http", "ws") + f"/ws?token={token}") as ws:
         async for msg in ws:
             out.append(msg.data if msg.type == aiohttp.WSMsgType.BINARY
                        else json.loads(msg.data))
@@ -209,7 +217,10 @@ def test_loopback_and_cli_registration():
     assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
     assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.5")
     args = build_parser().parse_args(["console"])
-    assert args.host == "127.0.0.1" and args.source == "sim"
+    assert args.host == "127.0.0.1" and args.source == "sim" and args.allow_host == []
+    args = build_parser().parse_args(["console", "--host", "0.0.0.0", "--allow-host",
+                                      "cell-pc.local", "--allow-host", "10.0.0.5"])
+    assert args.allow_host == ["cell-pc.local", "10.0.0.5"]
 
 
 def test_render_frame_is_a_jpeg_of_the_scaled_frame():
@@ -308,7 +319,8 @@ def _raw_ws_client(url: str) -> socket.socket:
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     s.connect((host, int(port)))
     key = base64.b64encode(os.urandom(16)).decode()
-    s.sendall((f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
+    s.sendall((f"GET /ws?token={TOKEN} HTTP/1.1\r\nHost: {host}:{port}\r\n"
+               "Upgrade: websocket\r\n"
                f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
                "Sec-WebSocket-Version: 13\r\n\r\n").encode())
     return s
@@ -450,6 +462,7 @@ def test_page_runs_and_watches_a_simulated_weld(chromium, cfg, tmp_path):
     con = simulated_console(cfg)
     host, port = con.start_in_thread("127.0.0.1", 0)
     url = f"http://{host}:{port}/"
+    assert con.url() == f"{url}?token={con.token}" and len(con.token) >= 40
     shot = (ROOT / "docs" / "images" / "console.png" if os.environ.get("TORCHSEAM_SCREENSHOT")
             else tmp_path / "console.png")
     try:
@@ -457,10 +470,15 @@ def test_page_runs_and_watches_a_simulated_weld(chromium, cfg, tmp_path):
             browser = pw.chromium.launch(executable_path=str(chromium), headless=True)
             page = browser.new_page(viewport={"width": 1440, "height": 1000})
             page.set_default_timeout(30_000)
+            # without the token the page watches nothing and says why
             page.goto(url)
+            page.wait_for_function("document.querySelector('#param-error').textContent"
+                                   ".includes('no token')")
+            page.goto(con.url())   # the address the console prints
             state = page.locator("#run-state")
             page.wait_for_function("document.querySelector('#run-state').dataset.state"
                                    " === 'idle'")
+            assert "token" not in page.url, "the token stays in the address bar"
 
             def num(sel: str, attr: str | None = None) -> float:
                 v = (page.get_attribute(sel, attr) if attr else page.inner_text(sel))

@@ -25,9 +25,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "parameters, start / hold / resume / stop and the message log. It drives "
                     "the same live loop as `torchseam demo` (the simulated cell, closed loop) "
                     "or, with --source DIR|VIDEO|camera:N, as `torchseam replay` (recorded or "
-                    "live frames, open loop). Binds to loopback unless --host says otherwise.")
+                    "live frames, open loop). Binds to loopback unless --host says otherwise. "
+                    "Prints the page's address with a per-run token (/?token=...): starting, "
+                    "holding or stopping the weld and the live stream need it.")
     p.add_argument("--host", default=DEFAULT_HOST,
                    help=f"address to bind (default {DEFAULT_HOST}: this machine only)")
+    p.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                   help="also answer requests whose Host is NAME (with the port), e.g. the "
+                        "cell PC's name or address for --host 0.0.0.0; repeatable (always "
+                        "answered: localhost, 127.0.0.1, [::1] and --host)")
     p.add_argument("--port", type=int, default=None,
                    help="port (default configs/console.yaml server.port; 0: any free port)")
     p.add_argument("--config", type=Path, help="console config (default configs/console.yaml)")
@@ -68,20 +74,22 @@ def run(args: argparse.Namespace) -> int:
             console = replay_console(args.source, cfg, defaults=defaults)
     except ParamError as e:
         raise TorchseamError(str(e)) from None
+    console.allowed_hosts = tuple(args.allow_host)
     if not is_loopback(args.host):
         print(f"WARNING: the console is bound to {args.host}, not loopback: anyone who can "
-              "reach this machine can start and stop the weld", flush=True)
+              "reach this machine and has the token can start and stop the weld (pages are "
+              f"answered as {args.host} or a --allow-host name)", flush=True)
     asyncio.run(_serve(console, args.host, port))
     return 0
 
 
 async def _serve(console, host: str, port: int) -> None:
     try:
-        h, p = await console.start(host, port)
+        await console.start(host, port)
     except OSError as e:
         raise TorchseamError(f"cannot serve on {host}:{port}: {e.strerror or e}") from None
-    shown = f"[{h}]" if ":" in h else h
-    print(f"torchseam console on http://{shown}:{p}/  (Ctrl-C stops)", flush=True)
+    # the token is in the address, as a notebook server prints it: the page keeps it
+    print(f"torchseam console on {console.url()}  (Ctrl-C stops)", flush=True)
     try:
         await asyncio.Event().wait()
     finally:

@@ -116,18 +116,37 @@ class WeldParams:
         return d
 
 
+#: Longest number the form may send as text, and the largest whole number it may send (far
+#: above every limit: a longer one is refused by name before any conversion can fail on it).
+MAX_NUMBER_CHARS = 32
+MAX_INT_BITS = 64
+
+
+def _short(v: Any, n: int = 40) -> str:
+    """``repr(v)`` clipped for a message (the page shows it; a 5000-digit value would not fit)."""
+    r = repr(v)
+    return r if len(r) <= n else f"{r[:n - 8]}... ({len(r)} chars)"
+
+
 def _number(raw: dict[str, Any], name: str, limits: tuple[float, ...], unit: str,
             integer: bool = False) -> float:
     v = raw.get(name)
     if isinstance(v, str):
         v = v.strip()
+        if len(v) > MAX_NUMBER_CHARS:
+            raise ParamError(f"{name}: {len(v)} characters is too long for a number")
         try:
             v = float(v) if v else None
         except ValueError:
-            raise ParamError(f"{name}: {raw.get(name)!r} is not a number") from None
+            raise ParamError(f"{name}: {_short(raw.get(name))} is not a number") from None
     if v is None:
         raise ParamError(f"{name}: missing")
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+    # strictly numbers: JSON's true / false are not (Python's bool is an int)
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ParamError(f"{name}: {_short(v)} is not a number")
+    if isinstance(v, int) and v.bit_length() > MAX_INT_BITS:
+        raise ParamError(f"{name}: a {len(str(abs(v)))}-digit number is too large")
+    if not math.isfinite(v):
         raise ParamError(f"{name}: {v!r} is not a number")
     lo, hi = limits
     span = f"{lo:g}..{hi:g}" + (f" {unit}" if unit else "")
@@ -138,6 +157,58 @@ def _number(raw: dict[str, Any], name: str, limits: tuple[float, ...], unit: str
     return int(v) if integer else float(v)
 
 
+def _text(raw: dict[str, Any], name: str, max_len: int = 64) -> str:
+    """A text field (a JSON string: a list or a number is refused, not turned into text)."""
+    v = raw.get(name)
+    if not isinstance(v, str):
+        raise ParamError(f"{name}: expected text, got {_short(v)}")
+    if len(v) > max_len:
+        raise ParamError(f"{name}: {len(v)} characters is too long (at most {max_len})")
+    return v
+
+
+def _noise_level(raw: dict[str, Any], noise: NoiseConfig) -> float:
+    v = raw.get("noise")
+    if isinstance(v, str):
+        _text(raw, "noise")
+    elif isinstance(v, bool) or not isinstance(v, (int, float)):
+        # true would be level 1.0 to float(): a name or a number, nothing else
+        raise ParamError(f"noise: expected a level name or a number, got {_short(v)}")
+    elif isinstance(v, int) and v.bit_length() > MAX_INT_BITS:
+        raise ParamError(f"noise: a {len(str(abs(v)))}-digit number is too large")
+    try:
+        return noise.level(v.strip() if isinstance(v, str) else v)
+    except ValueError as e:
+        raise ParamError(f"noise: {e}") from None
+
+
+def _faults(raw: dict[str, Any], faults: tuple[str, ...]) -> tuple[str, ...]:
+    fl = raw.get("faults", [])
+    if fl is None:
+        fl = []
+    if isinstance(fl, str):
+        if len(fl) > 256:
+            raise ParamError(f"faults: {len(fl)} characters is too long")
+        fl = fl.split(",")
+    if not isinstance(fl, (list, tuple)):
+        raise ParamError(f"faults: expected a list of names, got {_short(fl)}")
+    if len(fl) > 4 * len(faults) + 4:
+        raise ParamError(f"faults: {len(fl)} entries (there are {len(faults)} faults)")
+    out: list[str] = []
+    for f in fl:
+        if not isinstance(f, str):
+            raise ParamError(f"faults: expected fault names, got {_short(f)}")
+        f = f.strip()
+        if not f:
+            continue
+        if f not in faults:
+            raise ParamError(f"faults: {_short(f)} is not one of {', '.join(faults)}")
+        if f in out:
+            raise ParamError(f"faults: {f!r} is given twice")
+        out.append(f)
+    return tuple(out)
+
+
 def parse_params(raw: dict[str, Any], limits: ParamLimits, noise: NoiseConfig,
                  faults: tuple[str, ...], trackers: tuple[str, ...]) -> WeldParams:
     """Check the page's parameter form. Raises :class:`ParamError` naming the field."""
@@ -146,36 +217,26 @@ def parse_params(raw: dict[str, Any], limits: ParamLimits, noise: NoiseConfig,
     known = {f.name for f in dataclasses.fields(WeldParams)}
     unknown = sorted(set(raw) - known)
     if unknown:
-        raise ParamError(f"{unknown[0]}: unknown parameter (expected {', '.join(sorted(known))})")
+        raise ParamError(f"{_short(unknown[0])[1:-1]}: unknown parameter (expected "
+                         f"{', '.join(sorted(known))})")
     missing = [n for n in ("step_mm", "look_ahead_mm", "weld_speed_mm_s", "segments", "noise",
                            "seed", "tracker") if n not in raw]
     if missing:
         raise ParamError(f"{missing[0]}: missing")
-    segs = str(raw.get("segments", "")).strip().lower()
+    segs = _text(raw, "segments").strip().lower()
     if not segs or set(segs) - set(SEGMENT_LETTERS) or len(set(segs)) != len(segs):
         raise ParamError(f"segments must be distinct letters from {SEGMENT_LETTERS}, "
-                         f"got {raw.get('segments')!r}")
+                         f"got {_short(raw.get('segments'))}")
     length = raw.get("length_mm")
     if length is None or (isinstance(length, str) and not length.strip()):
         length_mm = None
     else:
         length_mm = _number(raw, "length_mm", limits.length_mm, "mm")
-    try:
-        level = noise.level(raw.get("noise", ""))
-    except ValueError as e:
-        raise ParamError(f"noise: {e}") from None
-    fl = raw.get("faults", [])
-    if isinstance(fl, str):
-        fl = [f for f in fl.split(",")]
-    if not isinstance(fl, (list, tuple)):
-        raise ParamError("faults: expected a list")
-    fl = tuple(str(f).strip() for f in fl if str(f).strip())
-    bad = [f for f in fl if f not in faults]
-    if bad:
-        raise ParamError(f"faults: {bad[0]!r} is not one of {', '.join(faults)}")
-    tracker = str(raw.get("tracker", ""))
+    level = _noise_level(raw, noise)
+    fl = _faults(raw, faults)
+    tracker = _text(raw, "tracker")
     if tracker not in trackers:
-        raise ParamError(f"tracker must be one of {', '.join(trackers)}, got {tracker!r}")
+        raise ParamError(f"tracker must be one of {', '.join(trackers)}, got {_short(tracker)}")
     return WeldParams(
         step_mm=_number(raw, "step_mm", limits.step_mm, "mm"),
         look_ahead_mm=_number(raw, "look_ahead_mm", limits.look_ahead_mm, "mm"),

@@ -9,7 +9,18 @@
   ``publish.jpeg_rate_hz`` (and ``publish.rate_hz``), only when there is a new one.
 * ``POST /api/start`` (JSON weld parameters), ``/api/hold``, ``/api/resume``, ``/api/stop``:
   200 ``{"ok": true}``, or 400 / 409 ``{"error": "..."}`` with a message for the operator.
-* ``GET /api/state`` the same snapshot as ``hello``; ``GET /frame.jpg`` the newest frame.
+* ``GET /api/state`` the same snapshot as ``hello``; ``GET /frame.jpg`` the newest frame;
+  ``GET /api/auth`` 200 when the request carries the token (the page asks when its stream
+  closes, to tell a wrong token from a console that is gone).
+
+Who may ask (:meth:`ConsoleServer.refusal`, every request): the ``Host`` header must name this
+console (``localhost``, ``127.0.0.1`` or ``[::1]`` with the served port, or the ``--host`` it is
+bound to, or a name given with ``--allow-host``), so a DNS-rebinding page (its own name
+resolving to 127.0.0.1) is refused; an ``Origin`` header, when there is one, must name the same;
+and everything but ``GET`` of the page, ``/api/state`` and ``/frame.jpg`` must carry the per-run
+token (``secrets.token_urlsafe``, printed with the address at start: ``/?token=...``) in the
+``X-Torchseam-Token`` header, or for the WebSocket in the ``token`` query parameter (a browser
+cannot set a WebSocket's headers). Refusals are 403 ``{"ok": false, "error": "..."}``.
 
 Nothing here runs on the weld thread. One publisher task encodes the newest frame (on a worker
 thread: OpenCV releases the GIL) and wakes each client's sender; a sender sends what is new
@@ -22,12 +33,14 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import hmac
 import ipaddress
 import json
 import math
+import secrets
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any
@@ -49,6 +62,21 @@ FONT_SCALE = 0.4
 #: The robot-link panel's text when the loop's poses go to no controller (a replay).
 NO_CONTROLLER = "replay: no controller"
 
+#: Header carrying the per-run token on API calls; the WebSocket takes it as ``?token=``.
+TOKEN_HEADER = "X-Torchseam-Token"
+TOKEN_PARAM = "token"
+#: Host names every console answers to (with its port), whatever it is bound to.
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "[::1]")
+#: What may be fetched without the token (``GET`` / ``HEAD`` only): the page, which then reads
+#: the token from its own address, and read-only state.
+TOKEN_FREE = frozenset({"/", "/api/state", "/frame.jpg"})
+#: Largest request body (the parameter form is about 250 bytes).
+MAX_BODY = 16 * 1024
+#: Deepest JSON accepted (the form is an object holding one list: 2).
+MAX_JSON_DEPTH = 4
+#: Longest number literal accepted in a JSON body (digits, sign, point, exponent).
+MAX_NUMBER_CHARS = 32
+
 
 def is_loopback(host: str) -> bool:
     """True for ``localhost`` and loopback addresses."""
@@ -58,6 +86,124 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+def _host_name(name: str) -> str:
+    """A host name as it appears in a ``Host`` header: lower case, IPv6 in brackets."""
+    name = name.strip().lower()
+    bare = name[1:-1] if name.startswith("[") and name.endswith("]") else name
+    try:
+        ip = ipaddress.ip_address(bare)
+    except ValueError:
+        return name
+    return f"[{ip.compressed}]" if ip.version == 6 else ip.compressed
+
+
+def split_host(value: str, default_port: int = 80) -> tuple[str, int] | None:
+    """``(name, port)`` of a ``Host`` header value (``name[:port]``, ``[v6][:port]``), None
+    when it is not one."""
+    v = value.strip().lower()
+    if v.startswith("["):
+        end = v.find("]")
+        if end < 0:
+            return None
+        name, rest = v[:end + 1], v[end + 1:]
+    else:
+        name, sep, rest = v.partition(":")
+        rest = sep + rest
+    if not name:
+        return None
+    if not rest:
+        port = default_port
+    elif rest[0] == ":" and 1 < len(rest) <= 6 and rest[1:].isascii() and rest[1:].isdigit():
+        port = int(rest[1:])
+    else:
+        return None
+    return _host_name(name), port
+
+
+class _JsonRefused(ValueError):
+    """A request body refused before it reaches the parameters (the message names why)."""
+
+
+@dataclass(frozen=True)
+class _LongNumber:
+    """A JSON number literal too long to convert (the 4300-digit limit of ``int``, a float
+    that overflows): kept as text, refused by name once its key is known."""
+
+    text: str
+
+
+def _number_literal(conv: Callable[[str], Any]) -> Callable[[str], Any]:
+    def parse(text: str) -> Any:
+        return _LongNumber(text) if len(text) > MAX_NUMBER_CHARS else conv(text)
+    return parse
+
+
+def _pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``object_pairs_hook``: refuse a key given twice and a number too long (by its key)."""
+    out: dict[str, Any] = {}
+    for k, v in pairs:
+        name = k if len(k) <= 40 else k[:32] + "..."
+        if k in out:
+            raise _JsonRefused(f"{name}: given twice")
+        for i, item in enumerate(v if isinstance(v, list) else [v]):
+            if isinstance(item, _LongNumber):
+                where = f"{name}[{i}]" if isinstance(v, list) else name
+                raise _JsonRefused(f"{where}: a number of {len(item.text)} characters is too "
+                                   f"long (at most {MAX_NUMBER_CHARS})")
+        out[k] = v
+    return out
+
+
+def _json_depth_exceeds(text: str, limit: int) -> bool:
+    """True when ``text`` nests arrays / objects deeper than ``limit`` (checked before
+    ``json.loads``, whose recursion a body of brackets would exhaust)."""
+    depth = 0
+    in_str = esc = False
+    for ch in text:
+        if in_str:
+            if esc:
+                esc = False
+            elif ch == "\\":
+                esc = True
+            elif ch == '"':
+                in_str = False
+        elif ch == '"':
+            in_str = True
+        elif ch in "[{":
+            depth += 1
+            if depth > limit:
+                return True
+        elif ch in "]}":
+            depth -= 1
+    return False
+
+
+def parse_body(body: bytes) -> Any:
+    """The JSON of a request body, guarded: nesting deeper than :data:`MAX_JSON_DEPTH`, number
+    literals longer than :data:`MAX_NUMBER_CHARS`, keys given twice and non-JSON raise
+    :class:`ValueError` with the operator's message (naming the field where there is one)."""
+    try:
+        text = body.decode("utf-8")
+    except UnicodeDecodeError:
+        raise _JsonRefused("parameters: the request is not UTF-8 JSON") from None
+    if _json_depth_exceeds(text, MAX_JSON_DEPTH):
+        raise _JsonRefused(f"parameters: JSON nested deeper than {MAX_JSON_DEPTH} levels")
+    if not text.strip():
+        return {}
+    try:
+        raw = json.loads(text, parse_int=_number_literal(int),
+                         parse_float=_number_literal(float), object_pairs_hook=_pairs)
+    except _JsonRefused:
+        raise
+    except (ValueError, RecursionError):
+        raise _JsonRefused("parameters: the request is not JSON") from None
+    if isinstance(raw, _LongNumber):
+        raise _JsonRefused("parameters: expected a JSON object")
+    if isinstance(raw, list) and any(isinstance(x, _LongNumber) for x in raw):
+        raise _JsonRefused("parameters: expected a JSON object")
+    return raw
 
 
 def render_frame(lf: LatestFrame, scale: float, quality: int) -> bytes:
@@ -119,12 +265,21 @@ class ConsoleServer:
             :class:`ParamError` with the operator's message).
         defaults: the form's initial values; ``choices``: lists for its selectors (noise
             names, faults, trackers, segment letters); ``source``: what feeds the loop, shown.
+        token: the per-run token (default: a new ``secrets.token_urlsafe(32)``; tests pass a
+            known one). ``allowed_hosts``: ``Host`` names to answer besides loopback and the
+            bound address (a name the operator reaches a ``--host 0.0.0.0`` console by).
     """
 
     def __init__(self, cfg: ConsoleConfig, session: WeldSession,
                  validate: Callable[[dict[str, Any]], WeldParams], defaults: dict[str, Any],
-                 choices: dict[str, Any], source: str = "simulated cell") -> None:
+                 choices: dict[str, Any], source: str = "simulated cell",
+                 token: str | None = None, allowed_hosts: Iterable[str] = ()) -> None:
         self.cfg = cfg
+        #: The per-run secret every state-changing request and the WebSocket must carry.
+        self.token = token or secrets.token_urlsafe(32)
+        #: Host names answered besides loopback and the bound address (``--allow-host``).
+        self.allowed_hosts = tuple(allowed_hosts)
+        self.bind_host: str | None = None
         self.session = session
         self.validate = validate
         self.defaults = defaults
@@ -150,8 +305,16 @@ class ConsoleServer:
 
     # ------------------------------------------------------------------ app
     def app(self) -> web.Application:
-        app = web.Application(client_max_size=64 * 1024)
+        @web.middleware
+        async def guard(request: web.Request, handler: Any) -> web.StreamResponse:
+            refused = self.refusal(request)
+            if refused is not None:
+                return _error(403, refused)
+            return await handler(request)
+
+        app = web.Application(client_max_size=MAX_BODY, middlewares=[guard])
         app.router.add_get("/", self._page)
+        app.router.add_get("/api/auth", self._auth)
         app.router.add_get("/ws", self._ws)
         app.router.add_get("/api/state", self._state)
         app.router.add_get("/frame.jpg", self._frame)
@@ -163,6 +326,7 @@ class ConsoleServer:
     async def start(self, host: str, port: int) -> tuple[str, int]:
         """Serve on ``host:port`` (port 0: any free port) from the running event loop."""
         self._loop = asyncio.get_running_loop()
+        self.bind_host = host
         self._runner = web.AppRunner(self.app(), access_log=None)
         await self._runner.setup()
         site = web.TCPSite(self._runner, host, port)
@@ -171,6 +335,82 @@ class ConsoleServer:
         self.address = sock.getsockname()[:2]
         self._publisher = asyncio.create_task(self._publish())
         return self.address
+
+    def url(self) -> str:
+        """The page's address with the token (what the CLI prints), once serving: on the
+        bound name (one the Host check answers to); a wildcard bind (``0.0.0.0``, ``::``) is
+        shown as ``127.0.0.1``."""
+        if self.address is None:
+            raise RuntimeError("the console is not serving yet")
+        host = self.bind_host or "0.0.0.0"
+        if host in ("0.0.0.0", "::"):
+            host = "127.0.0.1"
+        return f"http://{_host_name(host)}:{self.address[1]}/?{TOKEN_PARAM}={self.token}"
+
+    # ------------------------------------------------------------------ who may ask
+    def host_names(self) -> set[str]:
+        """Names this console answers to (with its port): loopback, the bound address and
+        ``allowed_hosts``."""
+        names = set(LOOPBACK_NAMES)
+        for h in (self.bind_host, *self.allowed_hosts):
+            if h:
+                names.add(_host_name(h))
+        return names
+
+    def _port(self, request: web.Request) -> int | None:
+        """The port the request came in on (a ``localhost`` bind to port 0 may listen on two:
+        IPv4 and IPv6)."""
+        sock = request.transport.get_extra_info("sockname") if request.transport else None
+        if isinstance(sock, tuple) and len(sock) >= 2:
+            return int(sock[1])
+        return int(self.address[1]) if self.address is not None else None
+
+    def _is_us(self, hp: tuple[str, int] | None, port: int | None) -> bool:
+        return hp is not None and hp[1] == port and hp[0] in self.host_names()
+
+    def token_ok(self, request: web.Request, query: bool = False) -> bool:
+        """The request carries this run's token (``X-Torchseam-Token``; ``?token=`` too when
+        ``query``), compared in constant time."""
+        given = request.headers.get(TOKEN_HEADER)
+        if given is None and query:
+            given = request.query.get(TOKEN_PARAM)
+        if not given:
+            return False
+        return hmac.compare_digest(given.encode("utf-8", "surrogateescape"),
+                                   self.token.encode("utf-8"))
+
+    def refusal(self, request: web.Request) -> str | None:
+        """Why ``request`` is refused (403), or None. The ``Host`` must name this console
+        (a DNS-rebinding page carries its own name), an ``Origin`` the same, and all but the
+        token-free reads (:data:`TOKEN_FREE`) the token."""
+        port = self._port(request)
+        host = request.headers.get("Host")
+        if host is None or not self._is_us(split_host(host), port):
+            shown = host[:100] if host else host
+            return (f"console: Host {shown!r} is not this console (open it as "
+                    f"http://127.0.0.1:{port}/, or start it with --allow-host NAME)")
+        origin = request.headers.get("Origin")
+        if origin is not None:
+            try:
+                o = urlsplit(origin) if len(origin) < 300 else None
+            except ValueError:  # "http://[::1": not a URL
+                o = None
+            hp = (split_host(o.netloc, 443 if o.scheme == "https" else 80)
+                  if o is not None and o.scheme in ("http", "https") and o.netloc
+                  and not o.path.strip("/") and not o.query else None)
+            if not self._is_us(hp, port):
+                return f"console: requests from {origin[:100]} are not accepted"
+        if request.method in ("GET", "HEAD") and request.path in TOKEN_FREE:
+            return None
+        if not self.token_ok(request, query=request.method == "GET"
+                             and request.path == "/ws"):
+            given = (request.headers.get(TOKEN_HEADER) is not None
+                     or TOKEN_PARAM in request.query)
+            return ("console: wrong token" if given else
+                    f"console: this request needs the console's token ({TOKEN_HEADER} "
+                    "header; the page takes it from the ?token=... address the console "
+                    "printed at start)")
+        return None
 
     async def close(self) -> None:
         self.session.frame_done = None
@@ -336,7 +576,6 @@ class ConsoleServer:
                 "status": status, **data}, cursor
 
     async def _ws(self, request: web.Request) -> web.StreamResponse:
-        _same_origin(request)
         if len(self.clients) >= self.cfg.server.max_clients:
             raise web.HTTPServiceUnavailable(
                 text=f"console: {self.cfg.server.max_clients} clients already connected")
@@ -393,6 +632,9 @@ class ConsoleServer:
         return web.Response(text=html, content_type="text/html",
                             headers={"Cache-Control": "no-store"})
 
+    async def _auth(self, request: web.Request) -> web.Response:
+        return web.json_response({"ok": True})  # the guard has checked the token
+
     async def _state(self, request: web.Request) -> web.Response:
         return web.json_response(self.hello()[0])
 
@@ -403,16 +645,22 @@ class ConsoleServer:
                             headers={"Cache-Control": "no-store"})
 
     async def _start(self, request: web.Request) -> web.Response:
-        _same_origin(request)
         try:
-            raw = await request.json()
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            return _error(400, "parameters: the request is not JSON")
+            raw = parse_body(await request.read())
+        except web.HTTPRequestEntityTooLarge:
+            return _error(413, f"parameters: the request is larger than {MAX_BODY // 1024} KiB")
+        except ValueError as e:
+            self.session.log(f"start refused: {e}", level="warn")
+            return _error(400, str(e))
         try:
             params = self.validate(raw)
         except ParamError as e:
             self.session.log(f"start refused: {e}", level="warn")
             return _error(400, str(e))
+        except (TypeError, ValueError, OverflowError) as e:   # a check that missed a case
+            msg = f"parameters: refused ({type(e).__name__}: {str(e)[:120]})"
+            self.session.log(f"start refused: {msg}", level="warn")
+            return _error(400, msg)
         try:
             self.session.start(params)
         except RuntimeError as e:
@@ -420,8 +668,13 @@ class ConsoleServer:
         return web.json_response({"ok": True, "params": params.as_dict()})
 
     async def _action(self, request: web.Request) -> web.Response:
-        _same_origin(request)
         action = request.path.rsplit("/", 1)[-1]
+        ctl = self.session.control
+        if self.session.running and ctl is not None and not ctl.stopped:
+            if action == "hold" and ctl.held:
+                return _error(409, "hold: the weld is already held")
+            if action == "resume" and not ctl.held:
+                return _error(409, "resume: the weld is not held")
         try:
             getattr(self.session, action)()
         except RuntimeError as e:
@@ -431,13 +684,6 @@ class ConsoleServer:
 
 def _error(status: int, text: str) -> web.Response:
     return web.json_response({"ok": False, "error": text}, status=status)
-
-
-def _same_origin(request: web.Request) -> None:
-    """Refuse requests a page from another site makes (CSRF, cross-site WebSocket)."""
-    origin = request.headers.get("Origin")
-    if origin and urlsplit(origin).netloc != request.host:
-        raise web.HTTPForbidden(text=f"console: requests from {origin} are not accepted")
 
 
 def _limits(cfg: ConsoleConfig) -> dict[str, list[float]]:
