@@ -191,12 +191,109 @@ class SensorNoise:
     sigma_arc: float = _f(lo=0.0)
 
 
+#: The appearance families of the simulated sensor (``families:`` in ``configs/noise.yaml``).
+FAMILY_NAMES = ("sim", "wide", "thin", "smoke")
+
+
+@dataclass(frozen=True)
+class StripeLook:
+    """How the laser stripe is imaged: cross-section, brightness, colour and speckle."""
+
+    sigma_px: float = _f(lo=0.0, lo_open=True, hi=8.0)  # width scale of the cross-section
+    order: float = _f(lo=1.0, hi=8.0)      # super-Gaussian order: 1 Gaussian, > 1 flat top
+    peak: float = _f(lo=0.0, lo_open=True, hi=2000.0)  # grey level head-on, at exposure gain 1
+    bgr: tuple[float, ...] = _f(3, lo=0.0, hi=2.0)     # colour through the Bayer filter
+    speckle: float = _f(lo=0.0, hi=2.0)    # log-normal speckle depth along the stripe
+    speckle_px: float = _f(lo=0.25, hi=64.0)  # speckle correlation length along the stripe
+    grain: float = _f(lo=0.0, hi=0.9)      # depth of the fixed surface grain
+
+
+@dataclass(frozen=True)
+class GlareLook:
+    """Shape, placement and colour of the arc glare."""
+
+    core: float = _f(lo=0.0)               # weight of the saturated core
+    halo: float = _f(lo=0.0)               # weight of the long exponential halo
+    size: float = _f(lo=0.0, lo_open=True, hi=4.0)  # scale of ``glare.radius_px``
+    aspect: float = _f(lo=0.2, hi=5.0)     # along-seam (image vertical) / across-seam extent
+    tilt_deg: float = _f(lo=-90.0, hi=90.0)  # rotation of the long axis from the vertical
+    offset_px: tuple[float, ...] = _f(2)   # arc light centre relative to the torch tip pixel
+    bgr: tuple[float, ...] = _f(3, lo=0.0, hi=2.0)
+
+
+@dataclass(frozen=True)
+class SpatterLook:
+    """How spatter droplets are imaged."""
+
+    style: str = _f(choices=("streaks", "dots"))
+    length_scale: float = _f(lo=0.0, lo_open=True, hi=10.0)  # scale of ``spatter.length_px``
+    size_px: tuple[int, ...] = _f(2, lo=1, hi=12)  # streak thickness or dot radius range
+    head: float = _f(lo=0.0, hi=4.0)       # extra brightness of a streak's leading droplet
+    bgr: tuple[float, ...] = _f(3, lo=0.0, hi=2.0)
+
+    def _check(self) -> None:
+        if self.size_px[0] > self.size_px[1]:
+            raise ValueError(f"size_px: expected [min, max], got {list(self.size_px)}")
+
+
+@dataclass(frozen=True)
+class ExposureLook:
+    """The camera's exposure and response."""
+
+    gain: float = _f(lo=0.0, lo_open=True, hi=10.0)  # scales all light before the response
+    gamma: float = _f(lo=0.2, hi=5.0)      # response curve 255 (x / 255) ** gamma
+    bleed: tuple[float, ...] = _f(2, lo=0.0, hi=1.0)  # red above full well into (blue, green)
+    band_prob: float = _f(lo=0.0, hi=1.0)  # chance per frame (level 1) of a saturated row band
+    band_gain: float = _f(lo=1.0, hi=20.0)  # exposure gain inside that band
+
+
+@dataclass(frozen=True)
+class HazeLook:
+    """Welding fume: a grey, drifting, low-frequency veil."""
+
+    amount: float = _f(lo=0.0, hi=255.0)   # grey level of the densest fume at level 1
+    absorb: float = _f(lo=0.0, hi=1.0)     # share of the stripe light the densest fume hides
+    scale_px: float = _f(lo=8.0, hi=2000.0)  # size of the fume patches
+    drift_px: float = _f(lo=0.0, hi=100.0)   # fume drift per frame
+
+
+@dataclass(frozen=True)
+class AppearanceFamily:
+    """One structurally distinct look of the sensor images (see ``configs/noise.yaml``)."""
+
+    stripe: StripeLook
+    glare: GlareLook
+    spatter: SpatterLook
+    exposure: ExposureLook
+    haze: HazeLook
+    reflections_gain: float = _f(lo=0.0, hi=10.0)  # scales ``reflections.brightness``
+    dropout_gain: float = _f(lo=0.0, hi=10.0)      # scales ``dropout.prob``
+    motion_blur_px: int = _f(lo=0, hi=31)           # horizontal motion blur length
+    read_noise: float = _f(lo=0.0, hi=50.0)         # extra read noise std (in quadrature)
+
+
+@dataclass(frozen=True)
+class AppearanceFamilies:
+    """The appearance families, one field per name of :data:`FAMILY_NAMES`."""
+
+    sim: AppearanceFamily
+    wide: AppearanceFamily
+    thin: AppearanceFamily
+    smoke: AppearanceFamily
+
+
 @dataclass(frozen=True)
 class NoiseConfig:
-    """Arc-noise model (``configs/noise.yaml``); amplitudes are those at level 1.0."""
+    """Arc-noise model (``configs/noise.yaml``); amplitudes are those at level 1.0.
+
+    ``family`` names the default appearance family; ``families`` holds each family's look
+    (:meth:`appearance`).
+    """
 
     levels: dict[str, float]
     clean_lead_frames: int = _f(lo=0)
+    family: str = _f(choices=FAMILY_NAMES)
+    families: AppearanceFamilies = _f()
     glare: GlareNoise = field(default_factory=GlareNoise)
     groove: GrooveNoise = field(default_factory=GrooveNoise)
     spatter: SpatterNoise = field(default_factory=SpatterNoise)
@@ -204,6 +301,15 @@ class NoiseConfig:
     flash: FlashNoise = field(default_factory=FlashNoise)
     dropout: DropoutNoise = field(default_factory=DropoutNoise)
     sensor: SensorNoise = field(default_factory=SensorNoise)
+
+    def appearance(self, family: str | None = None) -> AppearanceFamily:
+        """The look of ``family`` (None: the default ``family``); ValueError naming an unknown
+        one."""
+        name = self.family if family is None else family
+        if name not in FAMILY_NAMES:
+            raise ValueError(f"appearance family {name!r}: expected one of "
+                             f"{', '.join(FAMILY_NAMES)}")
+        return getattr(self.families, name)
 
     def level(self, name_or_value: str | float) -> float:
         """Resolve ``'heavy'`` or ``'0.4'`` or ``0.4`` to a level in [0, 1]."""

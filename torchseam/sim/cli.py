@@ -8,7 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from torchseam.core.config import load_cell, load_noise, load_part
+from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.sim.record import contact_sheet, write_sequence
 from torchseam.sim.sequence import SequenceSpec
@@ -31,6 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--noise", default="clean",
                    help="arc-noise level: a name from configs/noise.yaml (clean, light, strike, "
                         "heavy) or a number in [0, 1] (default clean)")
+    p.add_argument("--family", choices=FAMILY_NAMES, default=None, metavar="NAME",
+                   help="appearance family from the noise model's families: "
+                        f"{', '.join(FAMILY_NAMES)} (default: its `family`)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--start-mm", type=float, default=None,
                    help="seam arc length at the first frame (default: random from the seed)")
@@ -49,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
         level = noise.level(args.noise)
     except ValueError as e:
         raise TorchseamError(f"--noise: {e}") from None
-    spec = SequenceSpec(n_frames=args.frames, level=level, seed=args.seed, start_mm=args.start_mm)
+    spec = SequenceSpec(n_frames=args.frames, level=level, seed=args.seed, start_mm=args.start_mm,
+                        family=args.family)
     name = args.noise if args.noise in noise.levels else None
     truths = write_sequence(args.out, cell, part, noise, spec, name, overwrite=args.overwrite)
     visible = sum(t.visible for t in truths)

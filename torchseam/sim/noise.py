@@ -7,6 +7,11 @@ flying out of the arc, with Markov bursts; slow-drifting specular reflections on
 occasional whole-frame flashes; stripe dropouts (gaps along the stripe, sometimes at the
 feature point); sensor read noise. The state (flicker, burst, reflections) carries over frames,
 so a sequence has the temporal structure a tracker meets in a real cell.
+
+The appearance family (:class:`~torchseam.core.config.AppearanceFamily`) sets the shapes: the
+glare's aspect, tilt, offset and core/halo mix; spatter as streaks (with or without bright
+heads) or round dots; the fume veil; saturated row bands of flashes caught by a rolling
+shutter. Family ``sim`` leaves every extra off, and its random stream is the historical one.
 """
 
 from __future__ import annotations
@@ -16,10 +21,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from torchseam.core.config import NoiseConfig
+from torchseam.core.config import AppearanceFamily, NoiseConfig
 
-# Colour of arc light behind the 650 nm band-pass, as seen through the Bayer filter (B, G, R):
-# the core saturates white, the fringe stays red.
+# Colours of the ``sim`` family (``configs/noise.yaml`` holds every family's): arc light behind
+# the 650 nm band-pass, as seen through the Bayer filter (B, G, R): the core saturates white,
+# the fringe stays red. Kept here for renderers without families (the calibration board).
 ARC_BGR = np.array([0.45, 0.55, 1.0], np.float32)
 SPATTER_BGR = np.array([0.35, 0.6, 1.0], np.float32)
 STRIPE_BGR = np.array([0.18, 0.24, 1.0], np.float32)
@@ -49,16 +55,24 @@ class NoiseLayers:
     """One frame of arc light: grey (H, W) float32 layers and stripe gaps.
 
     ``gaps`` are (start, end) arc lengths in px along the stripe from the feature point.
+    ``haze`` (fume density in [0, 1]) and ``rows`` (per-row exposure gain, (H,) float32) are
+    None unless the appearance family has fume or rolling-shutter bands.
     """
 
-    glare: np.ndarray      # arc glare, reflections and flashes (colour ARC_BGR)
-    spatter: np.ndarray    # spatter streaks (colour SPATTER_BGR)
+    glare: np.ndarray      # arc glare, reflections and flashes (the family's glare colour)
+    spatter: np.ndarray    # spatter streaks or dots (the family's spatter colour)
     gaps: list[tuple[float, float]]
     flags: NoiseFlags
+    haze: np.ndarray | None = None
+    rows: np.ndarray | None = None
 
 
 class ArcNoise:
     """Stateful arc-noise generator for one sequence.
+
+    Args:
+        cfg: the noise model; level: in [0, 1]; size: (width, height); seed: random seed.
+        family: the appearance (None: ``cfg``'s default family).
 
     Example:
         >>> from torchseam.core.config import load_noise
@@ -68,10 +82,12 @@ class ArcNoise:
         (492, 656)
     """
 
-    def __init__(self, cfg: NoiseConfig, level: float, size: tuple[int, int], seed: int) -> None:
+    def __init__(self, cfg: NoiseConfig, level: float, size: tuple[int, int], seed: int,
+                 family: AppearanceFamily | None = None) -> None:
         if not 0.0 <= level <= 1.0:
             raise ValueError(f"noise level {level} must lie in [0, 1]")
         self.cfg = cfg
+        self.look = cfg.appearance() if family is None else family
         self.level = float(level)
         self.w, self.h = size
         self.rng = np.random.default_rng(seed)
@@ -81,11 +97,19 @@ class ArcNoise:
         self._xx, self._yy = xx, yy
         self._ramp = 1.0 - 0.5 * yy / self.h
         # glare: saturated core plus a long halo, as a template pasted at the arc each frame
-        rad = cfg.glare.radius_px * (0.6 + 0.4 * level)
-        r = int(4 * rad)
-        d = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]).astype(np.float32)
-        self._glare_t = 1.6 * np.exp(-(d**2) / (2 * (0.25 * rad) ** 2)) + 0.8 * np.exp(-d / rad)
+        g = self.look.glare
+        rad = cfg.glare.radius_px * (0.6 + 0.4 * level) * g.size
+        # the sim family's round template is computed exactly as it always was
+        exact = g.aspect == 1.0 and g.tilt_deg == 0.0 and g.size == 1.0
+        self._glare_t = _glare_template(rad, g.core, g.halo, g.aspect, g.tilt_deg, exact)
+        self._offset = np.asarray(g.offset_px, float) if any(g.offset_px) else None
         self.reflections = [self._new_reflection() for _ in range(cfg.reflections.count)]
+        hz = self.look.haze
+        self._haze = self._haze_phase = None
+        if hz.amount > 0:   # own random streams: the main one stays the same as without fume
+            self._haze = _haze_field(hz.scale_px, size, seed)
+            self._haze_phase = np.random.default_rng(seed + 1).uniform(0, 2 * np.pi, 3)
+        self._haze_k = 0
 
     def _new_reflection(self) -> np.ndarray:
         r = self.cfg.reflections
@@ -100,12 +124,14 @@ class ArcNoise:
             arc_uv: (2,) pixel of the arc (torch tip), may lie outside the image.
             stripe_uv: (2,) pixel of the stripe's feature point (reflections gather near it).
         """
-        L, cfg, rng = self.level, self.cfg, self.rng
+        L, cfg, rng, look = self.level, self.cfg, self.rng, self.look
         out = NoiseLayers(np.zeros((self.h, self.w), np.float32),
                           np.zeros((self.h, self.w), np.float32), [], NoiseFlags())
         if L <= 0.0:
             return out
         flags, glare, spatter = out.flags, out.glare, out.spatter
+        if self._offset is not None:   # the arc light centre sits off the torch tip's pixel
+            arc_uv = arc_uv + self._offset
 
         # Arc brightness: AR(1) flicker around 1.
         self.flicker = max(0.2, 0.7 * self.flicker + 0.3 + cfg.glare.flicker * rng.standard_normal()
@@ -125,7 +151,7 @@ class ArcNoise:
             if not (0 <= ref[0] < self.w and 0 <= ref[1] < self.h) or rng.random() < 0.01:
                 self.reflections[i] = ref = self._new_reflection()
                 ref[:2] = stripe_uv + rng.normal(0, [90.0, 60.0])
-            self._blob(glare, ref, ref[5] * L * self.flicker)
+            self._blob(glare, ref, ref[5] * look.reflections_gain * L * self.flicker)
 
         # Spatter streaks, with Markov bursts.
         if self.burst_left > 0:
@@ -136,8 +162,9 @@ class ArcNoise:
         rate = (cfg.spatter.burst_rate if flags.burst else cfg.spatter.rate) * L
         flags.spatter = int(rng.poisson(rate))
         box = None
+        draw = self._dot if look.spatter.style == "dots" else self._streak
         for _ in range(flags.spatter):
-            box = _union(box, self._streak(spatter, arc_uv))
+            box = _union(box, draw(spatter, arc_uv))
         if box is not None:
             # blur only around the streaks (the rest is zero before and after; the margin
             # exceeds the kernel's reach, so the pixels are the full-frame blur's)
@@ -154,13 +181,21 @@ class ArcNoise:
             # half of the flashes light the lower part (nearer the arc) more
             glare += gain * (self._ramp if rng.random() < 0.5 else 1.0)
 
-        if rng.random() < cfg.dropout.prob * L:
+        if rng.random() < cfg.dropout.prob * look.dropout_gain * L:
             flags.dropout = True
             for _ in range(int(rng.integers(cfg.dropout.gaps[0], cfg.dropout.gaps[1] + 1))):
                 length = rng.uniform(*cfg.dropout.length_px)
                 # a third of the gaps hide the feature point itself
                 centre = rng.normal(0, 4.0) if rng.random() < 0.33 else rng.uniform(-250, 250)
                 out.gaps.append((centre - length / 2, centre + length / 2))
+
+        # Family extras, drawn after everything above (so the rest of the stream is unchanged).
+        if self._haze is not None:
+            out.haze = self._fume(L)
+        ex = look.exposure
+        if ex.band_prob > 0 and rng.random() < ex.band_prob * L:
+            flags.flash = True
+            out.rows = self._band_rows(ex.band_gain)
         return out
 
     # ------------------------------------------------------------ primitives
@@ -251,26 +286,109 @@ class ArcNoise:
         np.multiply(t, ex, out=t)
         img[roi] += t
 
-    def _streak(self, img: np.ndarray, arc: np.ndarray) -> tuple[int, int, int, int]:
-        """Draw one spatter streak; returns the box (x0, y0, x1, y1) it may touch."""
-        rng, sp = self.rng, self.cfg.spatter
-        # droplets fly out of the arc, mostly upwards (towards the stripe) and sideways
+    def _launch(self) -> tuple[float, float]:
+        """Direction and distance from the arc of one spatter droplet: mostly upwards (towards
+        the stripe) and sideways."""
+        rng = self.rng
         ang = rng.uniform(np.pi, 2 * np.pi) if rng.random() < 0.8 else rng.uniform(0, np.pi)
-        dist = rng.exponential(120.0)
+        return ang, rng.exponential(120.0)
+
+    def _streak(self, img: np.ndarray, arc: np.ndarray) -> tuple[int, int, int, int]:
+        """Draw one spatter streak (a droplet's flight during the exposure, optionally with a
+        brighter head); returns the box (x0, y0, x1, y1) it may touch."""
+        rng, sp, look = self.rng, self.cfg.spatter, self.look.spatter
+        ang, dist = self._launch()
         start = arc + dist * np.array([np.cos(ang), np.sin(ang)])
-        length = rng.uniform(*sp.length_px)
+        length = rng.uniform(*sp.length_px) * look.length_scale
         dirn = ang + rng.normal(0, 0.3)
         end = start + length * np.array([np.cos(dirn), np.sin(dirn)])
         p0, p1 = tuple(int(v) for v in start * 16), tuple(int(v) for v in end * 16)
         value = float(rng.uniform(*sp.brightness))   # drawn in this order: same random stream
-        thick = int(rng.integers(1, 3))
+        thick = int(rng.integers(look.size_px[0], look.size_px[1] + 1))
         cv2.line(img, p0, p1, value, thick, cv2.LINE_8, 4)
-        # the pixels the line can touch (end points in 1/16 px, plus its thickness)
         r = thick + 1
+        if look.head > 0:   # the droplet itself, at the end of its flight
+            r = thick + 2
+            cv2.circle(img, p1, 8 * (thick + 2), value * (1 + look.head), -1,
+                       cv2.LINE_8, 4)
+        # the pixels the line can touch (end points in 1/16 px, plus its thickness)
         return (min(p0[0], p1[0]) // 16 - r, min(p0[1], p1[1]) // 16 - r,
                 max(p0[0], p1[0]) // 16 + r + 1, max(p0[1], p1[1]) // 16 + r + 1)
+
+    def _dot(self, img: np.ndarray, arc: np.ndarray) -> tuple[int, int, int, int]:
+        """Draw one round spatter droplet; returns the box (x0, y0, x1, y1) it may touch."""
+        rng, sp, look = self.rng, self.cfg.spatter, self.look.spatter
+        ang, dist = self._launch()
+        c = arc + dist * np.array([np.cos(ang), np.sin(ang)])
+        value = float(rng.uniform(*sp.brightness))
+        rad = float(rng.uniform(look.size_px[0], look.size_px[1]))
+        p = tuple(int(v) for v in c * 16)
+        cv2.circle(img, p, int(rad * 16), value, -1, cv2.LINE_AA, 4)
+        r = int(rad) + 2
+        return (p[0] // 16 - r, p[1] // 16 - r, p[0] // 16 + r + 1, p[1] // 16 + r + 1)
+
+    def _fume(self, L: float) -> np.ndarray:
+        """Fume density in [0, 1] this frame: the fixed fume field seen through a window that
+        drifts on a slow Lissajous path, its density breathing with the arc."""
+        hz, f = self.look.haze, self._haze
+        k, ph = self._haze_k, self._haze_phase
+        self._haze_k += 1
+        px, py = f.shape[1] - self.w, f.shape[0] - self.h
+        # angular rates so that the window moves about drift_px per frame
+        wx, wy = 2 * hz.drift_px / max(px, 1), 1.4 * hz.drift_px / max(py, 1)
+        x = int(round(0.5 * px * (1 + np.sin(wx * k + ph[0]))))
+        y = int(round(0.5 * py * (1 + np.sin(wy * k + ph[1]))))
+        dens = L * (0.75 + 0.25 * np.sin(0.05 * k + ph[2]))
+        return f[y:y + self.h, x:x + self.w] * np.float32(dens)
+
+    def _band_rows(self, gain: float) -> np.ndarray:
+        """Per-row exposure gain (H,): a band of rows (a flash caught by the rolling shutter)
+        at ``gain``, with edges a few rows soft."""
+        rng = self.rng
+        y0 = rng.uniform(-0.1, 0.9) * self.h
+        y1 = y0 + rng.uniform(0.08, 0.35) * self.h
+        y = np.arange(self.h, dtype=np.float32)
+        edge = np.clip(np.minimum(y - y0, y1 - y) / 4.0 + 0.5, 0.0, 1.0)
+        return (1.0 + (gain - 1.0) * edge).astype(np.float32)
 
     def sensor_sigma(self) -> float:
         """Grey-level read noise std at this level."""
         s = self.cfg.sensor
         return s.sigma_clean + s.sigma_arc * self.level
+
+
+def _glare_template(rad: float, core: float, halo: float, aspect: float, tilt_deg: float,
+                    exact: bool = True) -> np.ndarray:
+    """Float32 glare template (saturated Gaussian core plus exponential halo), centre pixel in
+    the middle. ``aspect`` != 1 stretches it along the (tilted) image vertical and shrinks it
+    across, keeping its area. Without ``exact`` it is evaluated every other pixel and
+    interpolated (a quarter of the work; the glare is smooth at that scale)."""
+    s = np.sqrt(aspect)
+    r = int(4 * rad * max(s, 1 / s))
+    if exact and aspect == 1.0 and tilt_deg == 0.0:
+        d = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]).astype(np.float32)
+    else:
+        step = 1 if exact else 2
+        y, x = np.mgrid[-r:r + 1:step, -r:r + 1:step].astype(np.float32)
+        t = np.deg2rad(tilt_deg)
+        along = np.cos(t) * y + np.sin(t) * x     # the tilted long axis
+        across = np.cos(t) * x - np.sin(t) * y
+        d = np.hypot(along / s, across * s).astype(np.float32)
+    t = core * np.exp(-(d**2) / (2 * (0.25 * rad) ** 2)) + halo * np.exp(-d / rad)
+    if t.shape[0] != 2 * r + 1:
+        t = cv2.resize(t, (2 * r + 1, 2 * r + 1), interpolation=cv2.INTER_LINEAR)
+    return t
+
+
+def _haze_field(scale_px: float, size: tuple[int, int], seed: int) -> np.ndarray:
+    """Float32 fume field in [0, 1], larger than the frame (the window drifts over it): smooth
+    noise at ``scale_px``, squared so that the fume gathers in patches."""
+    w, h = size
+    pad = int(2 * scale_px)
+    W, H = w + pad, h + pad
+    rng = np.random.default_rng(seed + 2)
+    low = rng.random((int(H / scale_px) + 3, int(W / scale_px) + 3)).astype(np.float32)
+    f = cv2.resize(low, (W, H), interpolation=cv2.INTER_CUBIC)
+    f -= f.min()
+    f /= max(float(f.max()), 1e-6)
+    return f * f

@@ -3,7 +3,8 @@
 Physics kept: the fan leaves the projector and lights the first surface it meets; a lit point is
 seen only if nothing of the part lies between it and the camera; points are projected with the
 pinhole + OpenCV distortion model (``cv2.projectPoints`` is the reference); the stripe has a
-Gaussian cross-section, brightness falling with incidence angle, and speckle along it.
+Gaussian (or flat-top super-Gaussian) cross-section, brightness falling with incidence angle, and
+speckle along it, as set by a :class:`~torchseam.core.config.StripeLook`.
 Everything geometric is done in the part frame {T}.
 """
 
@@ -14,15 +15,18 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from torchseam.core.config import CellConfig
+from torchseam.core.config import CellConfig, StripeLook
 from torchseam.core.transforms import apply, invert
 from torchseam.sim.joint import PipeJoint
 
 ARM_DISTANCE_MM = 5.0  # truth points on each stripe arm lie this far (3D) from the seam point
-STRIPE_SIGMA_PX = 1.8  # Gaussian cross-section of the imaged stripe (about 0.35 mm on the part)
-STRIPE_PEAK = 235.0    # red-channel grey level of a stripe lit head-on
 SPLAT_STEP_PX = 0.25   # spacing of splatted samples along the imaged stripe
 BLUR_MARGIN_PX = 16    # stripe box margin for the blur: > the Gaussian kernel's radius (7 px)
+#: The stripe of the ``sim`` appearance family (``configs/noise.yaml``): a Gaussian
+#: cross-section of sigma 1.8 px (about 0.35 mm on the part). The look of a stripe rendered
+#: without a family, e.g. on the calibration board.
+DEFAULT_STRIPE = StripeLook(sigma_px=1.8, order=1.0, peak=235.0, bgr=(0.18, 0.24, 1.0),
+                            speckle=0.25, speckle_px=2.0, grain=0.12)
 
 
 @dataclass
@@ -80,7 +84,8 @@ class LaserSensor:
         self.fan_C = np.cos(self.psi)[:, None] * a + np.sin(self.psi)[:, None] * b
         w, h = self.size
         grain = np.random.default_rng(7).standard_normal(((h + 32) // 2, (w + 32) // 2))
-        self._grain = 1.0 + 0.12 * cv2.resize(grain.astype(np.float32), (w + 32, h + 32))
+        self._grain_field = cv2.resize(grain.astype(np.float32), (w + 32, h + 32))
+        self._grains: dict[float, np.ndarray] = {}
 
     # ---------------------------------------------------------------- projection
     def project(self, X_C: np.ndarray) -> np.ndarray:
@@ -200,13 +205,25 @@ class LaserSensor:
         return out
 
     # ---------------------------------------------------------------- rendering
+    def grain(self, depth: float) -> np.ndarray:
+        """Float32 (H + 32, W + 32) fixed surface grain ``1 + depth * field`` (kept per depth)."""
+        g = self._grains.get(depth)
+        if g is None:
+            g = self._grains[depth] = 1.0 + depth * self._grain_field
+        return g
+
     def stripe_layer(self, view: StripeView, rng: np.random.Generator,
-                     gaps: list[tuple[float, float]] | None = None) -> np.ndarray:
+                     gaps: list[tuple[float, float]] | None = None,
+                     look: StripeLook | None = None) -> np.ndarray:
         """Float32 (H, W) red-channel stripe intensity, speckled, with optional dropouts.
 
         ``gaps`` are (start, end) arc-length ranges in pixels along the imaged stripe, measured
         from the feature point (negative: towards the first arm) where the stripe is missing.
+        ``look`` sets the cross-section, peak and speckle (default :data:`DEFAULT_STRIPE`).
+        A cross-section of order p > 1 is the super-Gaussian ``exp(-(x^2 / 2 sigma^2)^p)``:
+        flat-topped, with steeper flanks than the Gaussian of the same sigma.
         """
+        look = DEFAULT_STRIPE if look is None else look
         w, h = self.size
         uv = view.uv
         if len(uv) < 2:
@@ -220,12 +237,14 @@ class LaserSensor:
         frac = (np.arange(n_sub.sum()) - np.repeat(np.cumsum(n_sub) - n_sub, n_sub)) / np.repeat(
             np.maximum(n_sub, 1), n_sub)
         pts = uv[starts] + frac[:, None] * seg[starts]
+        step = seg_len[starts] / np.maximum(n_sub[starts], 1)   # arc length per sample
         weight = (view.brightness[starts] * (1 - frac) + view.brightness[starts + 1] * frac)
-        weight = weight * (seg_len[starts] / np.maximum(n_sub[starts], 1))
-        # speckle: smooth log-normal modulation along the stripe
-        sp = rng.standard_normal(len(pts) // 8 + 2)
-        sp = np.interp(np.arange(len(pts)) / 8.0, np.arange(len(sp)), sp)
-        weight = weight * np.exp(0.25 * sp - 0.03)
+        weight = weight * step
+        # speckle: smooth log-normal modulation along the stripe (mean about 1)
+        stride = look.speckle_px / SPLAT_STEP_PX
+        sp = rng.standard_normal(int(len(pts) // stride) + 2)
+        sp = np.interp(np.arange(len(pts)) / stride, np.arange(len(sp)), sp)
+        weight = weight * np.exp(look.speckle * sp - 0.48 * look.speckle**2)
         if gaps:
             arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
             k0 = int(np.argmin(np.linalg.norm(pts - view.seam_uv, axis=1)))
@@ -240,14 +259,36 @@ class LaserSensor:
         # Blur, scale and speckle only where the stripe is (its bounding box plus more than
         # the kernel's reach): everything outside is zero before and after, and inside the
         # box the filter sees the same pixels, so the result is the full-frame one.
-        m = BLUR_MARGIN_PX
+        sigma = look.sigma_px
+        m = max(BLUR_MARGIN_PX, int(4 * sigma) + 2)
         x0, y0, x1, y1 = box
         ys, xs = slice(max(0, y0 - m), min(h, y1 + m)), slice(max(0, x0 - m), min(w, x1 + m))
-        sub = cv2.GaussianBlur(img[ys, xs], (0, 0), STRIPE_SIGMA_PX)
-        sub *= STRIPE_PEAK * np.sqrt(2 * np.pi) * STRIPE_SIGMA_PX
-        sub *= self._grain[dy:dy + h, dx:dx + w][ys, xs]
+        sub = cv2.GaussianBlur(img[ys, xs], (0, 0), sigma)
+        if look.order != 1.0:
+            sub = _super_gaussian(sub, _splat(pts, step, w, h)[0][ys, xs], sigma, look.order)
+        sub *= look.peak * np.sqrt(2 * np.pi) * sigma
+        sub *= self.grain(look.grain)[dy:dy + h, dx:dx + w][ys, xs]
         img[ys, xs] = sub
         return img
+
+
+def _super_gaussian(blurred: np.ndarray, unit: np.ndarray, sigma: float, order: float
+                    ) -> np.ndarray:
+    """Reshape a Gaussian-blurred stripe into a super-Gaussian cross-section of ``order``.
+
+    ``unit`` is the same stripe splatted with unit brightness: blurred and normalised it is
+    the Gaussian cross-section g in (0, 1] (1 on the line), so the stripe is
+    ``blurred / g * exp(-(-ln g)^order)``: the brightness along the stripe times the new profile.
+    Where two arms overlap (g > 1) the profile is 1.
+    """
+    g = cv2.GaussianBlur(unit, (0, 0), sigma)
+    g *= np.sqrt(2 * np.pi) * sigma
+    q = -np.log(np.maximum(g, 1e-30))
+    np.maximum(q, 0.0, out=q)
+    prof = np.exp(-(q**order))
+    out = np.divide(blurred, g, out=np.zeros_like(blurred), where=g > 1e-12)
+    out *= prof
+    return out
 
 
 _GRID_PHI = np.linspace(0.0, 2 * np.pi, 721)

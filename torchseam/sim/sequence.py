@@ -3,6 +3,11 @@
 The robot follows the *nominal* (design) seam with a small path wobble, while the true part
 deviates from the design; so the feature point wanders in the image the way it does in a real
 cell. Every frame carries its ground truth (:class:`FrameTruth`).
+
+The appearance family (``families:`` in ``configs/noise.yaml``) sets how the frame looks:
+stripe cross-section and colour, glare and spatter shapes, fume, motion blur and the camera's
+exposure and response. It never changes the geometry, so the labels are the same in every
+family.
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
+from torchseam.core.config import AppearanceFamily, CellConfig, NoiseConfig, PartConfig
 from torchseam.core.transforms import apply, invert, rotation_about
 from torchseam.sim.noise import ARC_BGR, SPATTER_BGR, STRIPE_BGR, ArcNoise, NoiseFlags
 from torchseam.sim.scene import Scene
@@ -22,7 +27,7 @@ from torchseam.sim.sensor import LaserSensor, camera_pose
 BACKGROUND_GREY = 6.0       # ambient light behind the band-pass filter
 WOBBLE_MM = 0.15            # robot path wobble (std, smooth)
 WOBBLE_DEG = 0.15
-# (B, G, R) <- (stripe, glare, spatter) grey layers
+# (B, G, R) <- (stripe, glare, spatter) grey layers of the ``sim`` family
 COLOUR_MIX = np.stack([STRIPE_BGR, ARC_BGR, SPATTER_BGR], axis=1).astype(np.float32)
 
 
@@ -58,6 +63,7 @@ class SequenceSpec:
     laser_off: tuple[int, ...] = ()
     arc_on_frame: int | None = None   # first frame with the arc burning (None: noise config)
     t0_s: float = 0.0                 # weld time at frame 0 (the part's thermal drift)
+    family: str | None = None         # appearance family (None: the noise config's default)
 
 
 class SensorRenderer:
@@ -70,18 +76,27 @@ class SensorRenderer:
     Args:
         scene: the part (true and nominal) on its positioner.
         level: arc-noise level in [0, 1]; seed: random seed.
+        family: appearance family, a name of ``noise.families`` (None: ``noise.family``);
+            ValueError naming an unknown one.
     """
 
     def __init__(self, cell: CellConfig, scene: Scene, noise: NoiseConfig, level: float,
-                 seed: int) -> None:
+                 seed: int, family: str | None = None) -> None:
         self.cell, self.scene = cell, scene
+        self.look = look = noise.appearance(family)
         self.rng = np.random.default_rng(seed)
         self.sensor = LaserSensor(cell)
         w, h = cell.camera.width, cell.camera.height
         self.size = (w, h)
-        self.arc_noise = ArcNoise(noise, level, (w, h), int(self.rng.integers(2**31)))
-        self.clean = ArcNoise(noise, 0.0, (w, h), 0)
+        self.arc_noise = ArcNoise(noise, level, (w, h), int(self.rng.integers(2**31)), look)
+        self.clean = ArcNoise(noise, 0.0, (w, h), 0, look)
         self.sigma_clean = noise.sensor.sigma_clean
+        self.mix = _colour_mix(look)
+        ex = look.exposure
+        # the camera stage runs only when the family has something for it to do
+        self._camera_on = (look.motion_blur_px > 1 or ex.gain != 1.0 or ex.gamma != 1.0
+                           or any(ex.bleed) or ex.band_prob > 0)
+        self._blur = _motion_kernel(look.motion_blur_px)
         self.background = _background(self.rng, w, h)
         self.read_noise = [self.rng.standard_normal((h + 16, w + 16, 3), dtype=np.float32)
                            for _ in range(4)]
@@ -113,13 +128,24 @@ class SensorRenderer:
         if force_flash:
             layers.glare += 400.0
             layers.flags.flash = True
-        stripe = (sensor.stripe_layer(view, rng, layers.gaps) if laser_on
+        look = self.look
+        stripe = (sensor.stripe_layer(view, rng, layers.gaps, look.stripe) if laser_on
                   else np.zeros((h, w), np.float32))
-        # colour mixing of stripe, arc glare and spatter light in one pass
-        img = cv2.transform(cv2.merge([stripe, layers.glare, layers.spatter]), COLOUR_MIX)
+        chans = [stripe, layers.glare, layers.spatter]
+        if look.haze.amount > 0:   # fume: hides part of the stripe, adds a grey veil
+            haze = layers.haze if layers.haze is not None else np.zeros((h, w), np.float32)
+            if layers.haze is not None and look.haze.absorb > 0:
+                stripe *= 1.0 - look.haze.absorb * haze
+            chans.append(haze)
+        # colour mixing of stripe, arc glare, spatter (and fume) light in one pass
+        img = cv2.transform(cv2.merge(chans), self.mix)
         img += self.background
+        if self._camera_on:
+            img = self._camera(img, layers.rows)
         dy, dx = rng.integers(0, 16, 2)
         sigma = src.sensor_sigma() if arc_on else self.sigma_clean
+        if look.read_noise > 0:   # independent extra noise: adds in quadrature
+            sigma = float(np.hypot(sigma, look.read_noise))
         # sigma * noise into a reused buffer, then added: the same numbers, no temporaries
         np.multiply(self.read_noise[self.k % 4][dy:dy + h, dx:dx + w], sigma, out=self._tmp)
         img += self._tmp
@@ -131,6 +157,28 @@ class SensorRenderer:
             arc_uv=arc_uv, flags=layers.flags)
         self.k += 1
         return frame, truth
+
+    def _camera(self, img: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+        """The family's optics and camera on the (H, W, 3) float32 light: horizontal motion
+        blur, exposure gain (and a rolling-shutter band's ``rows`` gain), red overflow bleeding
+        into green and blue, then the response curve."""
+        ex = self.look.exposure
+        if self._blur is not None:
+            img = cv2.filter2D(img, -1, self._blur, borderType=cv2.BORDER_REFLECT)
+        if ex.gain != 1.0:
+            img *= np.float32(ex.gain)
+        if rows is not None:
+            img *= rows[:, None, None]
+        if any(ex.bleed):
+            over = np.maximum(img[..., 2] - 255.0, 0.0)
+            img[..., 0] += np.float32(ex.bleed[0]) * over
+            img[..., 1] += np.float32(ex.bleed[1]) * over
+        if ex.gamma != 1.0:
+            np.maximum(img, 0.0, out=img)
+            img *= np.float32(1 / 255)
+            np.power(img, np.float32(ex.gamma), out=img)
+            img *= np.float32(255)
+        return img
 
 
 def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: SequenceSpec
@@ -154,7 +202,8 @@ def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: Seque
     scene = Scene(part, spec.rotation_deg)
     proc = cell.process
     start = rng.uniform(0, scene.seam_length_mm) if spec.start_mm is None else spec.start_mm
-    renderer = SensorRenderer(cell, scene, noise, spec.level, int(rng.integers(2**31)))
+    renderer = SensorRenderer(cell, scene, noise, spec.level, int(rng.integers(2**31)),
+                              family=spec.family)
     wob = np.zeros(6)
     arc_on_frame = noise.clean_lead_frames if spec.arc_on_frame is None else spec.arc_on_frame
     a = 0.97  # wobble correlation per frame
@@ -201,6 +250,26 @@ def _small_motion(dp_mm: np.ndarray, drot_deg: np.ndarray) -> np.ndarray:
         T[:3, :3] = rotation_about(drot_deg / ang, np.deg2rad(ang))
     T[:3, 3] = dp_mm
     return T
+
+
+def _colour_mix(look: AppearanceFamily) -> np.ndarray:
+    """(3, 3) float32 matrix (B, G, R) <- (stripe, glare, spatter); (3, 4) with the fume's grey
+    as a fourth layer when the family has fume."""
+    cols = [look.stripe.bgr, look.glare.bgr, look.spatter.bgr]
+    if look.haze.amount > 0:
+        cols.append((look.haze.amount,) * 3)
+    return np.stack([np.asarray(c, np.float32) for c in cols], axis=1).astype(np.float32)
+
+
+def _motion_kernel(length_px: int) -> np.ndarray | None:
+    """(1, n) float32 horizontal box kernel of ``length_px`` centred on the pixel (an even
+    length gets half-weight end taps), or None for no blur."""
+    if length_px <= 1:
+        return None
+    taps = np.ones(length_px + 1 - length_px % 2, np.float32)
+    if length_px % 2 == 0:
+        taps[[0, -1]] = 0.5
+    return (taps / length_px)[None, :]
 
 
 def _background(rng: np.random.Generator, w: int, h: int) -> np.ndarray:

@@ -1,0 +1,80 @@
+"""Frame transforms for benchmarks: other cameras and other mountings of the same scene.
+
+:func:`to_mono` turns a simulated colour frame into what a monochrome camera behind the same
+650 nm band-pass delivers, at 8 or 16 bits. :func:`rotate90` turns frame and labels by 90
+degrees, as a sensor mounted with the laser line running vertically sees the joint;
+:func:`rotate90_uv` and :func:`unrotate90_uv` map points to and from the rotated image.
+
+Pixel coordinates are (u, v) = (column, row), pixel centres at integers.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+#: Mono sensor response behind the 650 nm band-pass, as weights of the colour frame's
+#: (B, G, R): essentially the red channel's light, plus the little that the Bayer filter's
+#: green and blue passed of the same band.
+MONO_BGR_WEIGHTS = (0.05, 0.10, 0.85)
+#: 8-bit to 16-bit scale: 255 -> 65535.
+SCALE_16 = 257
+
+
+def to_mono(frame_bgr: np.ndarray, bits: int = 8, noise_lsb: float = 0.3,
+            rng: np.random.Generator | int | None = 0) -> np.ndarray:
+    """Single-channel intensity of an (H, W, 3) BGR frame: (H, W) uint8 or uint16.
+
+    The intensity is ``MONO_BGR_WEIGHTS`` . (B, G, R). At 16 bits it is scaled to the full range
+    (x 257) and gets Gaussian noise of ``noise_lsb`` 8-bit steps, the low bits a deeper
+    converter fills in (``rng``: a generator or a seed, for reproducible frames).
+
+    Example:
+        >>> f = np.zeros((4, 5, 3), np.uint8); f[..., 2] = 200
+        >>> to_mono(f).dtype, int(to_mono(f)[0, 0]), to_mono(f, bits=16).shape
+        (dtype('uint8'), 170, (4, 5))
+    """
+    if bits not in (8, 16):
+        raise ValueError(f"bits must be 8 or 16, got {bits}")
+    if frame_bgr.ndim != 3 or frame_bgr.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) BGR frame, got shape {frame_bgr.shape}")
+    w = np.asarray(MONO_BGR_WEIGHTS, np.float32)[None, :]
+    y = cv2.transform(frame_bgr.astype(np.float32), w)
+    if y.ndim == 3:
+        y = y[..., 0]
+    if bits == 8:
+        return np.clip(np.rint(y), 0, 255).astype(np.uint8)
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    y = y * np.float32(SCALE_16)
+    if noise_lsb > 0:
+        y += gen.standard_normal(y.shape, dtype=np.float32) * np.float32(noise_lsb * SCALE_16)
+    return np.clip(np.rint(y), 0, 65535).astype(np.uint16)
+
+
+def rotate90_uv(uv: np.ndarray, width: int) -> np.ndarray:
+    """Points (..., 2) of an image ``width`` pixels wide -> the same points in that image
+    turned 90 degrees counter-clockwise (``np.rot90``): ``(u', v') = (v, width - 1 - u)``."""
+    uv = np.asarray(uv, dtype=float)
+    return np.stack([uv[..., 1], (width - 1) - uv[..., 0]], axis=-1)
+
+
+def unrotate90_uv(uv_rot: np.ndarray, width: int) -> np.ndarray:
+    """Inverse of :func:`rotate90_uv` (``width`` of the original, unrotated image):
+    ``(u, v) = (width - 1 - v', u')``."""
+    uv_rot = np.asarray(uv_rot, dtype=float)
+    return np.stack([(width - 1) - uv_rot[..., 1], uv_rot[..., 0]], axis=-1)
+
+
+def rotate90(frame: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frame (H, W[, C]) and its label points (..., 2) turned 90 degrees counter-clockwise.
+
+    Returns the (W, H[, C]) frame (contiguous) and the points in it: pixel (u, v) goes to
+    (v, W - 1 - u); NaN labels stay NaN.
+
+    Example:
+        >>> f = np.zeros((3, 4), np.uint8); f[0, 3] = 9      # row 0, column 3: (u, v) = (3, 0)
+        >>> r, p = rotate90(f, np.array([3.0, 0.0]))
+        >>> r.shape, p.tolist(), int(r[int(p[1]), int(p[0])])
+        ((4, 3), [0.0, 0.0], 9)
+    """
+    return np.ascontiguousarray(np.rot90(frame)), rotate90_uv(uv, frame.shape[1])
