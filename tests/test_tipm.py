@@ -85,10 +85,12 @@ def test_straight_stripe_has_no_corner():
 def test_bad_frames_raise_clear_errors(tmp_path, clean_seq):
     tipm = Tipm()
     img = clean_seq[0][0]
-    with pytest.raises(FrameError, match="grey image"):
-        tipm(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
-    with pytest.raises(FrameError, match="8-bit"):
+    with pytest.raises(FrameError, match=r"mono \(H, W\) or BGR \(H, W, 3\)"):
+        tipm(np.zeros((100, 100, 4), np.uint8))
+    with pytest.raises(FrameError, match="8- or 16-bit"):
         tipm(img.astype(np.float32))
+    with pytest.raises(FrameError, match="image is 1 x 1 px"):
+        tipm(np.zeros((1, 1, 3), np.uint8))
     with pytest.raises(FrameError, match="frame is 328 x 246 px, the camera is configured"):
         check_frame(img[::2, ::2], (656, 492), "frame")
     junk = tmp_path / "00000.png"
@@ -256,24 +258,44 @@ def test_best_split_matches_a_brute_force_two_line_search():
     assert np.isnan(_best_split(pts[:29], 15))  # fewer than two arms' worth of points
 
 
-def _centre_reference(response, mask, half, passes, reach):
-    """TIPM's centre line as plain numpy: masked column centroids, refined over the response
-    within ``half`` rows (a band of rows around the first centroid, clipped at the border)."""
-    r = response.astype(float) * (mask > 0)
-    rows = np.arange(mask.shape[0], dtype=float)[:, None]
-    s0, s1 = r.sum(axis=0), (r * rows).sum(axis=0)
+def _centre_reference(response, mask, half, passes, reach, span):
+    """TIPM's centre line as plain numpy: per column the runs of mask (their response
+    centroids); one run: its centroid; several: the one nearest the median centroid of the
+    one-run columns within ``span`` (of the strongest runs of all columns there when none has
+    one run); then refined over the response within ``half`` rows (a band of rows around it,
+    clipped at the border)."""
+    h, w = mask.shape
+    rows = np.arange(h, dtype=float)
     cut = (mask[:reach] > 0).any(axis=0) | (mask[-reach:] > 0).any(axis=0)
-    cols = np.nonzero((s0 > 0) & ~cut)[0]
+    cents = []
+    for c in range(w):
+        on = np.concatenate([[0], (mask[:, c] > 0).astype(int), [0]])
+        edges = np.flatnonzero(np.diff(on))
+        runs = []
+        for a, b in zip(edges[::2], edges[1::2], strict=True):
+            x = response[a:b, c].astype(float)
+            if x.sum() > 0:
+                runs.append(((x * rows[a:b]).sum() / x.sum(), x.sum()))
+        cents.append(runs)
+    first = [max(r, key=lambda t: t[1])[0] if r else np.nan for r in cents]
     out = []
-    for c in cols:
-        v = s1[c] / s0[c]
+    for c in range(w):
+        if not cents[c] or cut[c]:
+            continue
+        v = first[c]
+        if len(cents[c]) > 1:
+            win = range(max(0, c - span), min(w, c + span + 1))
+            near = [first[j] for j in win if len(cents[j]) == 1]
+            near = near or [first[j] for j in win if cents[j]]
+            ref = np.median(near)
+            v = min(cents[c], key=lambda t: abs(t[0] - ref))[0]
         band = np.clip(np.rint(v) + np.arange(-(int(np.ceil(half)) + 3), int(np.ceil(half)) + 4),
-                       0, mask.shape[0] - 1)
+                       0, h - 1)
         x = response[band.astype(int), c].astype(float)
         for _ in range(passes):
-            w = x * (np.abs(band - v) <= half)
-            if w.sum() > 0:
-                v = (w * band).sum() / w.sum()
+            wt = x * (np.abs(band - v) <= half)
+            if wt.sum() > 0:
+                v = (wt * band).sum() / wt.sum()
         out.append((c, v))
     return np.array(out, float).reshape(-1, 2)
 
@@ -288,7 +310,8 @@ def test_compiled_centre_line_matches_its_numpy_statement(cell, part, noise):
                                                                      seed=7))][::8]
     frames += [f for f, _ in simulate(cell, part, noise, SequenceSpec(n_frames=1, level=0.0,
                                                                       seed=7))]
-    checked, cut_by_border = 0, 0
+    checked, cut_by_border, several = 0, 0, 0
+    frames += [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in frames[:3]]  # mono: more runs
     for img in frames:
         u, v = (int(x) for x in tipm(frames[-1]).uv)  # the clean frame's corner
         # the whole frame, the tracker's window, windows whose top or bottom row cuts the stripe
@@ -299,11 +322,13 @@ def test_compiled_centre_line_matches_its_numpy_statement(cell, part, noise):
                 continue
             cut_by_border += bool(mask[:reach].any() or mask[-reach:].any())
             pts = tipm.centre(red, mask)
-            ref = _centre_reference(red, mask, cfg.centre_half_px, cfg.centre_passes, reach)
+            ref = _centre_reference(red, mask, cfg.centre_half_px, cfg.centre_passes, reach,
+                                    cfg.run_span_px)
+            several += int(np.sum(np.diff(mask > 0, axis=0).sum(axis=0) > 2))
             assert pts.shape == ref.shape
             np.testing.assert_allclose(pts, ref, atol=1e-9)
             checked += len(pts)
-    assert checked > 1000 and cut_by_border >= 4
+    assert checked > 1000 and cut_by_border >= 4 and several > 20  # columns with 2+ runs
     empty = np.zeros((50, 80), np.uint8)
     assert tipm.centre(empty, empty).shape == (0, 2)
     assert Tipm(centre_line="thinning").centre(empty, empty).shape == (0, 2)

@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from torchseam.core.errors import TorchseamError
+from torchseam.core.orient import STRIPE_AXES
 
 T = TypeVar("T")
 
@@ -43,11 +44,12 @@ def _spec(n: int | None = None, lo: float | None = None, hi: float | None = None
             "ip": ip}
 
 
-def config_field(n: int | None = None, **kw: Any) -> Any:
+def config_field(n: int | None = None, default: Any = dataclasses.MISSING, **kw: Any) -> Any:
     """A dataclass field with the constraints :func:`load_config` checks (see ``_spec``):
     ``config_field(3, unit=True)``, ``config_field(lo=0.0, lo_open=True)``,
-    ``config_field(choices=("pose", "pathcorr"))``, ``config_field(ip=True)``."""
-    return field(metadata=_spec(n, **kw))
+    ``config_field(choices=("pose", "pathcorr"))``, ``config_field(ip=True)``. A field with a
+    ``default`` may be left out of the file (for settings added after files were written)."""
+    return field(default=default, metadata=_spec(n, **kw))
 
 
 _f = config_field  # the short name used inside this module
@@ -78,6 +80,9 @@ class CameraConfig:
     cx: float = _f()
     cy: float = _f()
     dist: tuple[float, ...] = _f(5)
+    #: how the laser stripe runs in the image (see torchseam.core.orient): along the rows,
+    #: along the columns (sensor mounted at 90 degrees), or auto: found on the first clean frame
+    stripe_axis: str = _f(default="auto", choices=STRIPE_AXES)
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the math's name
@@ -406,6 +411,9 @@ def _parse_dataclass(cls: type[T], data: Any, path: str) -> T:
     for name, f in fields.items():
         where = f"{path}.{name}" if path else name
         if name not in data:
+            if f.default is not dataclasses.MISSING:
+                kwargs[name] = f.default
+                continue
             raise ConfigError(f"{where}: missing")
         try:
             kwargs[name] = _parse_value(hints[name], data[name], dict(f.metadata), where)

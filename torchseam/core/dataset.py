@@ -2,7 +2,7 @@
 
 ::
 
-    DIR/00000.png ...        frames, numbered from 0 in file-name order (BGR, 8 bit)
+    DIR/00000.png ...        frames, numbered from 0 in file-name order (BGR or mono, 8/16 bit)
     DIR/labels.csv           header ``frame,u,v``: the feature pixel of each labelled frame
     DIR/meta.json            optional: calibration, noise level, per-frame 3D truth (simulator)
 
@@ -36,21 +36,55 @@ def frame_name(index: int) -> str:
     return f"{index:05d}.png"
 
 
+#: bit depths a 16-bit container may carry (machine-vision cameras deliver 10, 12 or 14 bits
+#: in the low bits of a 16-bit pixel)
+CONTAINER_BITS = (10, 12, 14, 16)
+#: smallest image side any stage works on (TIPM's ridge filter and arm fits need more)
+MIN_SIDE_PX = 32
+
+
+def to_8bit(img: np.ndarray, bits: int | None = None) -> np.ndarray:
+    """A uint16 image scaled to uint8 by its bit depth ``bits``; None: the smallest of
+    ``CONTAINER_BITS`` that holds the image's brightest pixel (a 12-bit camera's frames then
+    keep their brightness, instead of ending up 16x darker than an 8-bit camera's).
+
+    Example:
+        >>> to_8bit(np.array([[0, 4095]], np.uint16))
+        array([[  0, 255]], dtype=uint8)
+    """
+    if bits is None:
+        top = int(img.max(initial=0))
+        bits = next((b for b in CONTAINER_BITS if top < (1 << b)), 16)
+    shift = bits - 8
+    return np.clip(img >> shift if shift > 0 else img, 0, 255).astype(np.uint8)
+
+
 def check_frame(img: Any, size: tuple[int, int] | None = None, name: str = "frame") -> np.ndarray:
-    """Validate a BGR frame: (H, W, 3) uint8, of ``size`` = (width, height) when given.
+    """Validate a camera frame and bring it to 8 bits.
+
+    Accepted: BGR colour (H, W, 3), or mono (H, W) / (H, W, 1) as most industrial laser
+    sensors deliver behind their 650 nm band-pass filter; 8-bit or 16-bit pixels (16-bit ones
+    are scaled by :func:`to_8bit`). Returns (H, W, 3) or (H, W) uint8 (a view of ``img`` when
+    nothing had to change): colour frames are told apart by their stripe's colour, mono ones
+    by brightness alone (see :func:`~torchseam.vision.tipm.red_response`).
 
     Raises:
-        FrameError: naming ``name`` and what is wrong (grey, wrong size, wrong dtype...).
+        FrameError: naming ``name`` and what is wrong (shape, dtype, too small, wrong size).
     """
     if not isinstance(img, np.ndarray):
         raise FrameError(f"{name}: expected an image array, got {type(img).__name__}")
-    if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
-        raise FrameError(f"{name}: grey image {img.shape[:2]}; a BGR colour frame (H, W, 3) "
-                         "is needed to recognise the red laser stripe")
-    if img.ndim != 3 or img.shape[2] != 3:
-        raise FrameError(f"{name}: expected shape (H, W, 3) BGR, got {img.shape}")
-    if img.dtype != np.uint8:
-        raise FrameError(f"{name}: expected 8-bit pixels, got {img.dtype}")
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
+        raise FrameError(f"{name}: expected a mono (H, W) or BGR (H, W, 3) image, got shape "
+                         f"{img.shape}")
+    if img.dtype == np.uint16:
+        img = to_8bit(img)
+    elif img.dtype != np.uint8:
+        raise FrameError(f"{name}: expected 8- or 16-bit pixels, got {img.dtype}")
+    if min(img.shape[:2]) < MIN_SIDE_PX:
+        raise FrameError(f"{name}: image is {img.shape[1]} x {img.shape[0]} px; at least "
+                         f"{MIN_SIDE_PX} x {MIN_SIDE_PX} is needed to find a stripe")
     if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
         raise FrameError(f"{name}: frame is {img.shape[1]} x {img.shape[0]} px, the camera "
                          f"is configured for {size[0]} x {size[1]}")
@@ -58,7 +92,8 @@ def check_frame(img: Any, size: tuple[int, int] | None = None, name: str = "fram
 
 
 def read_frame(path: str | os.PathLike[str], size: tuple[int, int] | None = None) -> np.ndarray:
-    """Read one BGR frame from disk, validated (see :func:`check_frame`)."""
+    """Read one frame from disk (colour or mono, 8 or 16 bit), validated and brought to 8 bits
+    (see :func:`check_frame`)."""
     p = Path(path)
     if not p.is_file():
         raise FrameError(f"{p}: no such file")

@@ -15,11 +15,12 @@ import numpy as np
 
 from torchseam.core.config import CellConfig
 from torchseam.core.errors import TorchseamError
+from torchseam.core.orient import StripeAxis
 from torchseam.geometry.ecal import Ecal, EcalResult
 from torchseam.geometry.triangulate import FastTriangulator
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import FrameTracker
-from torchseam.vision.tipm import Tipm
+from torchseam.vision.tipm import Tipm, find_stripe_axis
 
 EXPECT_POINTS = 40     # recent located points kept for the expected pixel (~1.5 s at 25 Hz)
 EXPECT_SPAN_MM = 4.0   # the seam's local direction from two of them at least this far apart
@@ -44,6 +45,12 @@ class Location:
 class SeamLocator:
     """Tracker + triangulation + ECAL for one camera stream.
 
+    Frames may be colour or mono (8 bit; see :func:`~torchseam.core.dataset.check_frame`),
+    with the stripe along the rows or the columns (``cell.camera.stripe_axis``; ``auto``:
+    found on the start frame). The tracker and ECAL see the frame turned so that the stripe
+    runs along the rows (:class:`~torchseam.core.orient.StripeAxis`); pixels go back to the
+    camera's own before triangulation, and :class:`Location` holds camera pixels.
+
     Args:
         cell: calibration (camera, laser plane, hand-eye).
         tracker: any :class:`~torchseam.track.peers.FrameTracker` (EAKF-STC in the live loop).
@@ -52,6 +59,9 @@ class SeamLocator:
     def __init__(self, cell: CellConfig, tracker: FrameTracker) -> None:
         self.cell = cell
         self.tracker = tracker
+        setting = cell.camera.stripe_axis
+        self.axis: StripeAxis | None = (None if setting == "auto"
+                                        else StripeAxis(setting, cell.camera.height))
         self.tipm = Tipm()
         self.ecal = Ecal()
         self._agree_cos = float(np.cos(np.radians(self.ecal.cfg.tipm_agreement_deg)))
@@ -61,13 +71,21 @@ class SeamLocator:
         self._seen: deque[np.ndarray] = deque(maxlen=EXPECT_POINTS)  # recent located points
 
     def start(self, frame: np.ndarray, uv0: np.ndarray | None = None) -> np.ndarray:
-        """Initialise on a clean frame (TIPM when ``uv0`` is None). Returns the start pixel."""
+        """Initialise on a clean frame (TIPM when ``uv0``, camera pixels, is None). Returns the
+        start pixel (camera pixels). With ``stripe_axis: auto`` the frame also tells which
+        way the stripe runs."""
+        if self.axis is None:
+            self.axis = find_stripe_axis(frame, self.tipm)
+            if self.axis is None:
+                raise TorchseamError("cannot start tracking: no stripe corner in the start "
+                                     "frame, along the rows or the columns")
+        view = self.axis.frame(frame)
         if uv0 is None:
-            res = self.tipm(frame)
+            res = self.tipm(view)
             if not res.ok:
                 raise TorchseamError(f"cannot start tracking: {res.reason}")
-            uv0 = res.uv
-        self.tracker.init(frame, np.asarray(uv0, float))
+            uv0 = self.axis.to_camera(res.uv)
+        self.tracker.init(view, self.axis.to_canonical(np.asarray(uv0, float)))
         self.prev_angles = None
         self._seen.clear()
         return np.asarray(uv0, float)
@@ -124,15 +142,21 @@ class SeamLocator:
     def step(self, frame: np.ndarray, T_B_F: np.ndarray) -> Location:
         """Locate the seam in ``frame`` taken with the flange at ``T_B_F`` (4, 4) mm."""
         t0 = time.perf_counter()
+        if self.axis is None:  # a tracker started by the caller, not by start(): find it here
+            self.axis = find_stripe_axis(frame, self.tipm) or StripeAxis(
+                "rows", frame.shape[0])
+        axis = self.axis
+        frame = axis.frame(frame)  # the stripe along the rows (the same array if it is)
         expect = getattr(self.tracker, "expect", None)
         if expect is not None:  # a tracker that takes the robot's motion into account
-            expect(self._expect(T_B_F))
+            seen = self._expect(T_B_F)
+            expect(None if seen is None else axis.to_canonical(seen))
         uv, status = self.tracker.update(frame)
         t1 = time.perf_counter()
         nan3, q = np.full(3, np.nan), np.full((2, 3), np.nan)
         arms_ok = fallback = False
         if status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
-            return Location(uv, status, nan3, q, False, False,
+            return Location(axis.to_camera(uv), status, nan3, q, False, False,
                             {"track": (t1 - t0) * 1e3})
         red, mask, (x0, y0) = self._stripe(frame, uv)
         local = uv - (x0, y0)
@@ -143,12 +167,12 @@ class SeamLocator:
             arms_ok, fallback = True, arms.fallback
             self.prev_angles = arms.angles
             pix += list(self._tangent_points(arms, local) + (x0, y0))
-        X = self.tri(np.stack(pix), T_B_F)
+        X = self.tri(axis.to_camera(np.stack(pix)), T_B_F)
         if np.all(np.isfinite(X[0])) and status == TrackStatus.TRACKED:
             self._seen.append(X[0])
         if arms_ok:
             q = X[1:3]
         t3 = time.perf_counter()
-        return Location(uv, status, X[0], q, arms_ok, fallback,
+        return Location(axis.to_camera(uv), status, X[0], q, arms_ok, fallback,
                         {"track": (t1 - t0) * 1e3, "ecal": (t2 - t1) * 1e3,
                          "triangulate": (t3 - t2) * 1e3})

@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from torchseam.core.dataset import Dataset
 from torchseam.core.errors import TorchseamError
+from torchseam.core.orient import STRIPE_AXES
 from torchseam.core.report import error_stats, format_table, percentiles_ms
 from torchseam.track.peers import STATUS_NAMES, TRACKERS, make_tracker, run_tracker
 
@@ -40,6 +41,9 @@ def _common(p: argparse.ArgumentParser) -> None:
                         "and demo run it; eakf-stc alone drifts along the stripe)")
     p.add_argument("--init", metavar="U,V",
                    help="start point on the first frame (default: TIPM on the first frame)")
+    p.add_argument("--stripe-axis", choices=STRIPE_AXES, default="auto",
+                   help="how the stripe runs in the frames: rows, columns (sensor mounted at "
+                        "90 degrees) or auto: found on the first frame (default)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch and OpenCV threads (default 1: the live loop's setting)")
 
@@ -73,7 +77,8 @@ def _track(args: argparse.Namespace, ds: Dataset, uv0: np.ndarray | None
     bar = tqdm(total=len(ds), desc=f"{args.tracker} {ds.root.name}", unit="frame", leave=False)
     frames = (ds.read(i) for i in range(len(ds)))
     uv, status, secs, _, note = run_tracker(tracker, frames, uv0,
-                                            progress=lambda k: bar.update(1))
+                                            progress=lambda k: bar.update(1),
+                                            axis=args.stripe_axis)
     bar.close()
     return uv, status, secs, note
 

@@ -22,7 +22,9 @@ import numpy as np
 import torch
 
 from torchseam.core.config import CONFIG_DIR, config_field, load_config
+from torchseam.core.dataset import check_frame
 from torchseam.core.errors import TorchseamError
+from torchseam.core.orient import StripeAxis
 from torchseam.track.fusion import EAKFSTC, TrackStatus
 from torchseam.track.lite import LiteEAKFSTC
 from torchseam.track.stc import STC
@@ -30,6 +32,7 @@ from torchseam.vision.tipm import (
     Tipm,
     TipmResult,
     arm_shape,
+    find_stripe_axis,
     power_sums,
     quad_normal_adjugate,
     red_response,
@@ -178,6 +181,11 @@ class AnchorConfig:
     glare_px: int = config_field(lo=1)
     glare_start: float = config_field(lo=0.0)
     glare_scale: float = config_field(lo=0.0, lo_open=True)
+    evidence_px: float = config_field(lo=0.0, lo_open=True)
+    lost_frames: int = config_field(lo=1)
+    lost_px: float = config_field(lo=0.0, lo_open=True)
+    reacquire_frames: int = config_field(lo=1)
+    reacquire_step_px: float = config_field(lo=0.0, lo_open=True)
 
 
 def load_anchor_config(path: str | Path | None = None) -> AnchorConfig:
@@ -366,6 +374,17 @@ class AnchoredTracker:
         self._expected: np.ndarray | None = None  # the next frame's pixel from the robot's motion
         self.glare = 0.0  # this frame's glare_level around the predicted point (grey levels)
         self.fix: Fix | None = None  # this frame's TIPM corner and what became of it, or None
+        # status from image evidence (see update): frames without it in a row, and where the
+        # last evidence was
+        self.coast = 0
+        self.last_evidence: np.ndarray | None = None
+        self.status = int(TrackStatus.TRACKED)
+        # re-acquisition (see idle): this frame (until idle), the whole-frame corners found in
+        # a row while the track had no evidence, and the corner to move to on the next frame
+        self._frame: np.ndarray | None = None
+        self._found: list[np.ndarray] = []
+        self._reacquire: np.ndarray | None = None
+        self.reacquired = 0  # times the track was moved onto persistent independent corners
 
     def expect(self, uv: np.ndarray | None) -> None:
         """Where the feature point should be in the next frame, from the robot's motion (the
@@ -382,10 +401,38 @@ class AnchoredTracker:
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
         self.inner.init(frame, uv)
         self._restart(uv, self.Q.copy(), None)
+        self.coast, self.last_evidence = 0, np.asarray(uv, float).copy()
+        self.status = int(TrackStatus.TRACKED)
+        self._frame, self._found, self._reacquire = None, [], None
 
     def idle(self) -> None:
-        """Between frames: EAKF-STC's learning of the last update and re-anchoring."""
+        """Between frames: EAKF-STC's learning of the last update, and, while the track has no
+        evidence, the search that keeps a wrong track from lasting.
+
+        No gate may hold a wrong track forever: the filter's gates refuse fixes far from its
+        prediction, and the arm prior pulls the windowed fits toward the shape it last saw.
+        So on a frame without evidence TIPM looks at the whole frame, without the prior:
+        when ``reacquire_frames`` such corners in a row each lie within
+        ``reacquire_step_px`` of the one before (a corner that persists, not spatter) and away
+        from the track, the next update starts again there. Run here, after the frame's
+        command is out, it costs the frame-to-point latency nothing.
+        """
         self.inner.idle()
+        frame, self._frame = self._frame, None
+        if frame is None or self.status == TrackStatus.TRACKED:
+            self._found.clear()
+            return
+        c = self.cfg
+        res = self.tipm(frame)
+        if not res.ok or (self.x is not None
+                          and np.linalg.norm(res.uv - self.x) <= c.evidence_px):
+            self._found.clear()
+            return
+        if self._found and np.linalg.norm(res.uv - self._found[-1]) > c.reacquire_step_px:
+            self._found.clear()
+        self._found.append(res.uv)
+        if len(self._found) >= c.reacquire_frames:
+            self._reacquire, self._found = res.uv, []
 
     def _prior(self) -> np.ndarray | None:
         if self.shape is None:
@@ -432,19 +479,32 @@ class AnchoredTracker:
         return taken
 
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
+        """The point on ``frame`` and its status, decided by what the image shows there:
+        ``TRACKED`` only when this frame's TIPM corner (the stripe bends: two arms meet) lies
+        within ``evidence_px`` of the point; ``COASTING`` when the point is predicted (no
+        corner, or one that contradicts the track); ``LOST`` after ``lost_frames`` frames in a
+        row without evidence, or once the prediction has moved ``lost_px`` from the last
+        evidence. The filter's own confidence does not decide it."""
         self.stripe = self.arm_dirs = self.fix = None
         expected, self._expected = self._expected, None  # for this frame only
+        self._frame = frame  # for idle()'s search (valid until then)
         uv, status = self.inner.update(frame)
         if self.x is None:
             self._restart(uv, self.Q.copy(), None)
-        if status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
+        if self._reacquire is not None:
+            # a corner the whole-frame search found persistently away from the track
+            # (see idle): start again there; the window below looks for it on this frame
+            self._restart(self._reacquire, self.Q.copy(), None)
+            self._reacquire, expected = None, None
+            self.reacquired += 1
+        elif status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
             # re-acquire: look for the stripe corner in the whole frame
             res = self.tipm(frame)
             if res.ok:
                 self.inner.init(frame, res.uv)
                 self._restart(res.uv, self.Q.copy(), arm_shape(res))
-                return res.uv, int(TrackStatus.TRACKED)
-            return uv, status
+                return self._verdict(res.uv, True)
+            return self._verdict(self.x if self.x is not None else uv, False)
         cfg = self.cfg
         self.age += 1
         self.P = self.P + self.Q
@@ -474,11 +534,25 @@ class AnchoredTracker:
                         self.arm_dirs = arm_directions(res)
         self._measure(uv, inflate * self.R_track, cfg.track_gate)
         out = self.x.copy()
-        if not taken:
-            return out, status  # EAKF-STC's word on the frame (it may be coasting)
-        if np.linalg.norm(out - uv) > cfg.reanchor_px:
+        if taken and np.linalg.norm(out - uv) > cfg.reanchor_px:
             self.inner.reanchor(frame, out)
-        return out, int(TrackStatus.TRACKED)
+        evidence = self.fix is not None and float(
+            np.linalg.norm(self.fix.uv - out)) <= cfg.evidence_px
+        return self._verdict(out, evidence)
+
+    def _verdict(self, out: np.ndarray, evidence: bool) -> tuple[np.ndarray, int]:
+        """``(out, status)`` of a frame with or without evidence at ``out`` (see update)."""
+        c = self.cfg
+        if evidence:
+            self.coast, self.last_evidence = 0, np.asarray(out, float).copy()
+            self.status = int(TrackStatus.TRACKED)
+        else:
+            self.coast += 1
+            far = (self.last_evidence is None or not np.all(np.isfinite(out))
+                   or float(np.linalg.norm(out - self.last_evidence)) > c.lost_px)
+            self.status = int(TrackStatus.LOST if far or self.coast > c.lost_frames
+                              else TrackStatus.COASTING)
+        return out, self.status
 
 
 def fitted_eakf_stc(model: dict | None = None) -> EAKFSTC:
@@ -515,39 +589,55 @@ def make_tracker(name: str, model: dict | None = None) -> FrameTracker:
 
 
 def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
-                progress: Callable[[int], None] | None = None
+                progress: Callable[[int], None] | None = None, axis: str = "rows"
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]:
-    """Track an iterable of BGR frames, the way the live loop drives a tracker: ``update`` on
-    each frame, then its ``idle()`` (the learning for the next frame, e.g. EAKF-STC's context
-    model), when it has one, before the next frame arrives.
+    """Track an iterable of frames (colour or mono), the way the live loop drives a tracker:
+    ``update`` on each frame, then its ``idle()`` (the learning for the next frame, e.g.
+    EAKF-STC's context model), when it has one, before the next frame arrives.
 
     Args:
-        uv0: start point on frame 0; None: TIPM on frame 0 (it must find the stripe there).
+        uv0: start point on frame 0 (camera pixels); None: TIPM on frame 0 (it must find the
+            stripe there).
+        axis: how the stripe runs: ``rows``, ``columns`` (the tracker sees each frame turned,
+            see :mod:`torchseam.core.orient`) or ``auto`` (found on frame 0).
 
     Returns:
-        ``(uv (N, 2), status (N,), seconds (N,), idle_seconds (N,), init_note)``: ``seconds``
-        from frame to point (``update``), ``idle_seconds`` the work after it, between frames
-        (0 for trackers without ``idle``); frame 0 is the start point.
+        ``(uv (N, 2), status (N,), seconds (N,), idle_seconds (N,), init_note)``: points in
+        camera pixels, ``seconds`` from frame to point (``update``, the turn included),
+        ``idle_seconds`` the work after it, between frames (0 for trackers without ``idle``);
+        frame 0 is the start point.
     """
     it = iter(frames)
     try:
         first = next(it)
     except StopIteration:
         raise TorchseamError("no frames to track") from None
+    tipm = Tipm()
+    first = check_frame(first, name="frame 0")
+    if axis == "auto":
+        found = find_stripe_axis(first, tipm)
+        if found is None:
+            raise TorchseamError("frame 0: no stripe corner along the rows or the columns; "
+                                 "give --stripe-axis (and --init U,V)")
+        view = found
+    else:
+        view = StripeAxis(axis, first.shape[0])
     note = "given"
+    first = view.frame(first)
     if uv0 is None:
-        res = Tipm()(first)
+        res = tipm(first)
         if not res.ok:
             raise TorchseamError(f"frame 0: TIPM cannot start the tracker ({res.reason}); "
                                  "give the start point with --init U,V")
-        uv0, note = res.uv, "TIPM on frame 0"
-    tracker.init(first, np.asarray(uv0, float))
+        uv0, note = view.to_camera(res.uv), "TIPM on frame 0"
+    tracker.init(first, view.to_canonical(np.asarray(uv0, float)))
     idle = getattr(tracker, "idle", None)
     uvs, stats, secs = [np.asarray(uv0, float)], [int(TrackStatus.TRACKED)], [0.0]
     idle_secs = [0.0]
     for k, frame in enumerate(it, start=1):
         t0 = time.perf_counter()
-        uv, st = tracker.update(frame)
+        uv, st = tracker.update(view.frame(check_frame(frame, name=f"frame {k}")))
+        uv = view.to_camera(uv)
         t1 = time.perf_counter()
         if idle is not None:
             idle()

@@ -42,31 +42,76 @@ def border_columns(mask, reach):  # pragma: no cover - compiled
     return cut
 
 
-@numba.njit("f8[:, ::1](u1[:, ::1], u1[:, ::1], f8, i8, i8)", **_JIT)
-def centre_line(response, mask, half, passes, reach):  # pragma: no cover - compiled
-    """Sub-pixel centre line (N, 2) (u, v) of :meth:`Tipm.centre`: per column the centroid of
-    ``response`` under ``mask`` (columns within ``reach`` of the top or bottom row left out),
-    then moved ``passes`` times to the centroid of the response within ``half`` rows of it
-    over a band of rows around the first centroid (mask or not)."""
+MAX_RUNS = 8  # runs of masked rows kept per column (more join the last one)
+
+
+@numba.njit("f8[:, ::1](u1[:, ::1], u1[:, ::1], f8, i8, i8, i8)", **_JIT)
+def centre_line(response, mask, half, passes, reach, span):  # pragma: no cover - compiled
+    """Sub-pixel centre line (N, 2) (u, v) of :meth:`Tipm.centre`.
+
+    Per column the runs of masked rows (columns within ``reach`` of the top or bottom row
+    left out): one run gives its ``response``-weighed centroid; of several (a spatter streak
+    or a reflection in the same column as the stripe) the run whose centroid lies nearest
+    the median centroid of the one-run columns within ``span`` columns (of all columns
+    there, by their strongest run, when none has one run). That centre is then moved
+    ``passes`` times to the centroid of the response within ``half`` rows of it over a band
+    of rows around it (mask or not)."""
     h, w = mask.shape
-    s0, s1 = np.zeros(w), np.zeros(w)
+    n_run = np.zeros(w, np.int64)
+    s0 = np.zeros((w, MAX_RUNS))
+    s1 = np.zeros((w, MAX_RUNS))
+    inside = np.zeros(w, np.bool_)
     for r in range(h):
         for c in range(w):
             if mask[r, c]:
+                if not inside[c]:
+                    inside[c] = True
+                    if n_run[c] < MAX_RUNS:
+                        n_run[c] += 1
+                k = n_run[c] - 1
                 x = float(response[r, c])
-                s0[c] += x
-                s1[c] += r * x
+                s0[c, k] += x
+                s1[c, k] += r * x
+            else:
+                inside[c] = False
     cut = border_columns(mask, reach)
+    # per column: runs with any response, and the centroid of the strongest
+    runs = np.zeros(w, np.int64)
+    first = np.full(w, np.nan)
+    for c in range(w):
+        best = 0.0
+        for k in range(n_run[c]):
+            if s0[c, k] > 0:
+                runs[c] += 1
+                if s0[c, k] > best:
+                    best = s0[c, k]
+                    first[c] = s1[c, k] / s0[c, k]
     n = 0
     for c in range(w):
-        n += s0[c] > 0 and not cut[c]
+        n += runs[c] > 0 and not cut[c]
     pts = np.empty((n, 2))
     band = int(np.ceil(half)) + 3  # wide enough for the window to move a few px
+    near = np.empty(2 * span + 1)
     i = 0
     for c in range(w):
-        if not (s0[c] > 0) or cut[c]:
+        if runs[c] == 0 or cut[c]:
             continue
-        v = s1[c] / s0[c]
+        v = first[c]
+        if runs[c] > 1:
+            m = 0
+            for single in (True, False):
+                for j in range(max(0, c - span), min(w, c + span + 1)):
+                    if runs[j] > 0 and (runs[j] == 1 or not single):
+                        near[m] = first[j]
+                        m += 1
+                if m > 0:
+                    break
+            ref = np.median(near[:m])
+            gap = np.inf
+            for k in range(n_run[c]):
+                if s0[c, k] > 0 and abs(s1[c, k] / s0[c, k] - ref) < gap:
+                    gap = abs(s1[c, k] / s0[c, k] - ref)
+                    v = s1[c, k] / s0[c, k]
         r0 = int(np.rint(v))
         for _ in range(passes):
             a = b = 0.0

@@ -3,47 +3,83 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import cv2
+import numpy as np
 
-from torchseam.core.config import load_cell
 from torchseam.core.dataset import read_frame
 from torchseam.core.errors import FrameError
-from torchseam.vision.tipm import Tipm, draw_overlay
+from torchseam.core.orient import STRIPE_AXES, StripeAxis
+from torchseam.vision.tipm import Tipm, TipmResult, draw_overlay, find_stripe_axis
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "detect", help="find the weld feature point in frames (TIPM, clean frames)",
-        description="Run TIPM on each frame and print 'FILE u v' or 'FILE none: <reason>'.")
-    p.add_argument("frames", nargs="+", type=Path, metavar="FRAME", help="BGR image files")
+        description="Run TIPM on each frame and print 'FILE u v' or 'FILE none: <reason>'. "
+                    "Frames may be colour or mono, 8 or 16 bit, of any size (the camera's "
+                    "size matters for 3D, not for finding the corner). Unreadable files are "
+                    "reported on stderr and skipped.")
+    p.add_argument("frames", nargs="+", type=Path, metavar="FRAME",
+                   help="image files (PNG, JPEG, TIFF, ...)")
     p.add_argument("--overlay", type=Path, metavar="DIR",
                    help="write an overlay image per frame into DIR")
-    p.add_argument("--cell", type=Path,
-                   help="cell config giving the camera size (default configs/cell.yaml)")
+    p.add_argument("--stripe-axis", choices=STRIPE_AXES, default="auto",
+                   help="how the stripe runs in the image: along the rows, along the columns "
+                        "(sensor mounted at 90 degrees), or auto: found per frame (default)")
     p.add_argument("--centre-line", choices=("subpixel", "thinning"), default="subpixel",
                    help="centre-line method (default subpixel; thinning as in the paper)")
     p.set_defaults(func=run)
 
 
+def _detect(tipm: Tipm, img: np.ndarray, axis_name: str) -> tuple[TipmResult, StripeAxis]:
+    """TIPM on ``img`` in the layout ``axis_name`` (auto: the one that finds a corner); the
+    result's point is in camera pixels."""
+    if axis_name == "auto":
+        axis = find_stripe_axis(img, tipm) or StripeAxis("rows", img.shape[0])
+    else:
+        axis = StripeAxis(axis_name, img.shape[0])
+    res = tipm(np.ascontiguousarray(axis.frame(img)))
+    return res, axis
+
+
+def _overlay_name(path: Path, used: set[str]) -> str:
+    """``STEM_tipm.png``, with the frame's position added when two inputs share a stem."""
+    name = f"{path.stem}_tipm.png"
+    k = 1
+    while name in used:
+        k += 1
+        name = f"{path.stem}_{k}_tipm.png"
+    used.add(name)
+    return name
+
+
 def run(args: argparse.Namespace) -> int:
-    cam = load_cell(args.cell).camera
-    size = (cam.width, cam.height)
     tipm = Tipm(centre_line=args.centre_line)
     if args.overlay:
-        args.overlay.mkdir(parents=True, exist_ok=True)
-    found = 0
+        try:
+            args.overlay.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            print(f"--overlay {args.overlay}: cannot create the folder ({e.strerror})",
+                  file=sys.stderr)
+            return 2
+    found, used = 0, set()
     for path in args.frames:
         try:
-            img = read_frame(path, size)
+            img = read_frame(path)
         except FrameError as e:
-            print(f"{path} error: {e}")
+            print(f"error: {e}", file=sys.stderr)
             continue
-        res = tipm(img)
+        res, axis = _detect(tipm, img, args.stripe_axis)
+        uv = axis.to_camera(res.uv)
         found += res.ok
-        print(f"{path} {res.uv[0]:.3f} {res.uv[1]:.3f}" if res.ok else f"{path} none: {res.reason}")
+        print(f"{path} {uv[0]:.3f} {uv[1]:.3f}" if res.ok else f"{path} none: {res.reason}")
         if args.overlay:
-            cv2.imwrite(str(args.overlay / f"{path.stem}_tipm.png"), draw_overlay(img, res))
+            shown = draw_overlay(np.ascontiguousarray(axis.frame(img)), res)
+            if axis.turned:
+                shown = cv2.rotate(shown, cv2.ROTATE_90_COUNTERCLOCKWISE)
+            cv2.imwrite(str(args.overlay / _overlay_name(path, used)), shown)
     # exit 1 when no frame gave a point, so scripts notice
     return 0 if found else 1

@@ -38,6 +38,7 @@ import numpy as np
 
 from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.dataset import check_frame
+from torchseam.core.orient import StripeAxis
 
 
 @dataclass(frozen=True)
@@ -45,12 +46,14 @@ class TipmConfig:
     """Parameters of TIPM (``configs/tipm.yaml``)."""
 
     min_red: float = config_field(lo=0.0)
+    noise_k: float = config_field(lo=0.0)
     rel_threshold: float = config_field(lo=0.0, hi=1.0)
     ridge_px: int = config_field(lo=3)
     min_area: int = config_field(lo=0)
     dilate_px: int = config_field(lo=0)
     centre_half_px: float = config_field(lo=0.0, lo_open=True)
     centre_passes: int = config_field(lo=0)
+    run_span_px: int = config_field(lo=1)
     corner_gap_px: float = config_field(lo=0.0)
     fit_window_px: float = config_field(lo=0.0, lo_open=True)
     min_points_per_arm: int = config_field(lo=3)
@@ -61,13 +64,28 @@ class TipmConfig:
 
 def red_response(frame: np.ndarray, with_green: bool = False,
                  out: list[np.ndarray] | None = None):
-    """Red-stripe response ``R - max(G, B)`` (H, W) uint8 of a BGR frame.
+    """Stripe response (H, W) uint8 of a frame: ``R - max(G, B)`` of a BGR (H, W, 3) frame, the
+    intensity itself of a mono (H, W) one.
 
-    The 650 nm stripe is red; arc light bright enough to saturate the sensor is white. This is
-    also the grey image the trackers work on. With ``with_green`` also returns the G channel.
-    ``out``: three (H, W) uint8 buffers to reuse (B, G, R planes; the response goes into the
-    first), because allocating fresh frame-sized planes costs more than the arithmetic.
+    The 650 nm stripe is red; arc light bright enough to saturate the sensor is white, so in
+    colour the red excess tells the stripe from the arc. A mono camera has a band-pass filter
+    in front of it that did that work optically: what passes is the laser's wavelength (and
+    the arc's light in that band, which the ridge filter of :meth:`Tipm.stripe_mask` takes
+    away where it is broad). This is also the grey image the trackers work on.
+
+    With ``with_green`` also returns the plane that tells saturation by arc light: G of a
+    colour frame (the stripe saturates R only, white arc light G as well), the intensity of
+    a mono one. ``out``: three (H, W) uint8 buffers to reuse (B, G, R planes; the response
+    goes into the first), because allocating fresh frame-sized planes costs more than the
+    arithmetic.
+
+    Example:
+        >>> red_response(np.full((2, 2), 7, np.uint8))[0, 0]
+        np.uint8(7)
     """
+    if frame.ndim == 2:
+        red = frame if out is None else np.copyto(out[0], frame) or out[0]
+        return (red, frame) if with_green else red
     if out is None:
         b, g, r = cv2.split(frame)
         red = cv2.subtract(r, cv2.max(g, b))
@@ -177,10 +195,7 @@ class Tipm:
         # (a 3-column box runs 3x faster but lets more spatter through under heavy arc)
         ridge = cv2.blur(red, (1, cfg.ridge_px), dst=planes[1])
         ridge = cv2.subtract(red, ridge, dst=ridge)
-        # relative to the strongest ridge: a brighter spatter streak only raises the threshold
-        # to rel_threshold * 255, still well below a lit stripe
-        peak = cv2.minMaxLoc(ridge)[1]
-        thr = max(cfg.min_red, cfg.rel_threshold * peak)
+        thr = self._threshold(ridge)
         _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY, dst=planes[2])
         bx, by, bw, bh = cv2.boundingRect(binary)
         if bw == 0:
@@ -207,6 +222,27 @@ class Tipm:
         mask[roi] = cv2.dilate(box, self._kernel)
         return ridge, mask, ""
 
+    def _threshold(self, ridge: np.ndarray) -> float:
+        """The stripe threshold of one frame's ridge (H, W) uint8, from the frame's own
+        statistics rather than absolute grey levels (a faint stripe under room light and a
+        lit stripe behind a band-pass filter differ by 10x in level): the largest of
+
+        - the noise: ``noise_k`` times the ridge's 90th percentile (the stripe covers a few %
+          of the frame; the rest is texture, speckle and read noise);
+        - ``rel_threshold`` times the stripe's level, the median of the column maxima that
+          rise above that noise (its typical brightness, which one brighter spatter streak or
+          specular highlight does not move; a global maximum does);
+        - ``min_red``.
+        """
+        cfg = self.cfg
+        hist = cv2.calcHist([ridge], [0], None, [256], [0, 256]).ravel()
+        cdf = np.cumsum(hist)
+        noise = cfg.noise_k * max(float(np.searchsorted(cdf, 0.9 * cdf[-1])), 1.0)
+        colmax = cv2.reduce(ridge, 0, cv2.REDUCE_MAX).ravel()
+        strong = colmax[colmax > noise]
+        level = float(np.median(strong)) if len(strong) else 0.0
+        return max(cfg.min_red, noise, cfg.rel_threshold * level)
+
     def mask_around(self, frame: np.ndarray, uv: np.ndarray, radius: int
                     ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
         """Stripe response and mask (see :meth:`stripe_mask`) in the square ROI of ``radius``
@@ -226,7 +262,10 @@ class Tipm:
 
     def centre(self, response: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """(N, 2) centre-line points (u, v) of the masked stripe: per column the centroid of
-        ``response`` (the stripe response of :meth:`stripe_mask`) within the mask.
+        ``response`` (the stripe response of :meth:`stripe_mask`) within the mask; where a
+        column holds several runs of mask (a spatter streak or a reflection beside the
+        stripe: in a mono frame nothing tells them apart by colour), the run that continues
+        the stripe of the neighbouring columns (``run_span_px``), not their mixture.
 
         Columns where the stripe comes within the ridge filter's reach of the top or bottom
         row of the image (or of the window the tracker cut) are left out: the border skews the
@@ -252,13 +291,13 @@ class Tipm:
             return pts[~self._k.border_columns(mask, reach)[u[order]]]
         return self._k.centre_line(np.ascontiguousarray(response, dtype=np.uint8), mask,
                                    float(self.cfg.centre_half_px), int(self.cfg.centre_passes),
-                                   reach)
+                                   reach, int(self.cfg.run_span_px))
 
     # ------------------------------------------------------------------ main
     def __call__(self, frame: np.ndarray, prior: np.ndarray | None = None) -> TipmResult:
-        """Find the feature point in one BGR (H, W, 3) uint8 frame (``prior``: see
-        :meth:`corner`)."""
-        check_frame(frame)
+        """Find the feature point in one frame: BGR (H, W, 3) or mono (H, W), 8 or 16 bit, any
+        size (``prior``: see :meth:`corner`)."""
+        frame = check_frame(frame)
         red, mask, why = self.stripe_mask(frame)
         if why:
             return _fail(why, mask)
@@ -360,8 +399,9 @@ def _quadfit(x: np.ndarray, y: np.ndarray, prior: np.ndarray | None = None
 
 def draw_overlay(frame: np.ndarray, res: TipmResult, truth: np.ndarray | None = None
                  ) -> np.ndarray:
-    """Frame with the stripe centre line (green), arm fits (blue) and feature point (yellow)."""
-    out = frame.copy()
+    """Frame with the stripe centre line (green), arm fits (blue) and feature point (yellow);
+    a mono frame is drawn on in colour."""
+    out = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR) if frame.ndim == 2 else frame.copy()
     if res.centre is not None and len(res.centre):
         for u, v in res.centre[:: max(1, len(res.centre) // 400)].astype(int):
             cv2.circle(out, (int(u), int(v)), 0, (0, 255, 0), -1)
@@ -383,3 +423,24 @@ def draw_overlay(frame: np.ndarray, res: TipmResult, truth: np.ndarray | None = 
         cv2.drawMarker(out, tuple(int(round(x)) for x in truth), (0, 255, 0),
                        cv2.MARKER_TILTED_CROSS, 12, 1, cv2.LINE_AA)
     return out
+
+
+def find_stripe_axis(frame: np.ndarray, tipm: Tipm | None = None) -> StripeAxis | None:
+    """Which way the stripe runs in a clean camera frame (H, W[, 3]): TIPM is run on the frame
+    as it is and turned a quarter (see :mod:`torchseam.core.orient`); the layout in which it
+    finds a corner wins, the one with the tighter arm fit when both do. None: no corner either
+    way (not a clean stripe frame: try the next one).
+
+    Example:
+        >>> find_stripe_axis(np.zeros((64, 64), np.uint8)) is None
+        True
+    """
+    tipm = tipm or Tipm()
+    frame = check_frame(frame)
+    best: tuple[float, StripeAxis] | None = None
+    for name in ("rows", "columns"):
+        axis = StripeAxis(name, frame.shape[0])
+        res = tipm(np.ascontiguousarray(axis.frame(frame)))
+        if res.ok and (best is None or res.rms_px < best[0]):
+            best = (res.rms_px, axis)
+    return None if best is None else best[1]
