@@ -191,3 +191,48 @@ def test_mono_frame_detects_like_colour(heavy):
         a, b = tipm(f), tipm(_mono(f))
         assert a.ok and b.ok
         assert np.linalg.norm(b.uv - uv) < 0.5
+
+
+@pytest.fixture(scope="module")
+def mono_dirs(tmp_path_factory, cell, part, noise):
+    """A recorded folder (with meta.json and labels) and its mono 8-bit and 12-in-16-bit
+    copies, as a mono camera would have written them."""
+    import shutil
+
+    from torchseam.sim.record import write_sequence
+
+    root = tmp_path_factory.mktemp("mono")
+    colour = root / "colour"
+    write_sequence(colour, cell, part, noise, SequenceSpec(n_frames=16, level=0.6, seed=9),
+                   progress=False)
+    out = {}
+    for name, scale, dtype in (("mono8", 1, np.uint8), ("mono16", 16, np.uint16)):
+        d = root / name
+        shutil.copytree(colour, d)
+        for p in sorted(d.glob("*.png")):
+            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+            cv2.imwrite(str(p), _mono(img).astype(dtype) * scale)
+        out[name] = d
+    return colour, out
+
+
+@pytest.mark.parametrize("name", ["mono8", "mono16"])
+def test_mono_folders_through_track_eval_and_replay(mono_dirs, name, tmp_path, capsys):
+    import csv
+
+    colour, dirs = mono_dirs
+    d = dirs[name]
+    assert cv2.imread(str(d / "00000.png"), cv2.IMREAD_UNCHANGED).ndim == 2
+    out = tmp_path / "track.csv"
+    assert main(["track", str(d), "--out", str(out)]) == 0
+    rows = list(csv.DictReader(out.open()))
+    labels = list(csv.DictReader((d / "labels.csv").open()))
+    err = [np.hypot(float(r["u"]) - float(l["u"]), float(r["v"]) - float(l["v"]))
+           for r, l in zip(rows, labels, strict=True)]
+    assert max(err) < 2.0 and sum(r["status"] == "tracked" for r in rows) >= 12
+    capsys.readouterr()
+    assert main(["eval", str(d)]) == 0
+    assert "RMSE" in capsys.readouterr().out
+    assert main(["replay", str(d), "--out", str(tmp_path / "replay.csv")]) == 0
+    text = capsys.readouterr().out
+    assert "feature point vs label, RMSE" in text

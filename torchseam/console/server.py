@@ -214,6 +214,8 @@ def render_frame(lf: LatestFrame, scale: float, quality: int) -> bytes:
         img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     else:
         img = img.copy()
+    if img.ndim == 2:  # a mono camera: draw the marks in colour
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
     colour = STATUS_BGR.get(lf.status, STATUS_BGR[2])
     if lf.uv_true is not None and np.all(np.isfinite(lf.uv_true)):
         c = tuple(int(round(x * scale)) for x in lf.uv_true)

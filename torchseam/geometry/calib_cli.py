@@ -230,6 +230,8 @@ def _round(section: str, data: dict[str, Any]) -> dict[str, Any]:
 def _yaml_value(v: Any) -> str:
     if isinstance(v, list):
         return "[" + ", ".join(_yaml_value(x) for x in v) + "]"
+    if isinstance(v, str) and re.fullmatch(r"[A-Za-z_][A-Za-z0-9_-]*", v):
+        return v  # a setting's name (camera.stripe_axis: auto)
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise TypeError(f"cannot write {v!r}")  # programming error: sections hold numbers
     text = repr(v)

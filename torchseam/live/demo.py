@@ -404,7 +404,7 @@ def _summary(res: DemoResult, unsafe: int) -> dict:
 
 
 def _overlay(frame, truth, loc, rep, seg) -> np.ndarray:
-    out = frame.copy()
+    out = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR) if frame.ndim == 2 else frame.copy()
     if loc is not None and np.all(np.isfinite(loc.uv)):
         colour = {0: (0, 255, 0), 1: (0, 200, 255), 2: (0, 0, 255)}[int(loc.status)]
         c = tuple(int(round(x)) for x in loc.uv)
