@@ -40,10 +40,17 @@ class Clock:
         return self.t
 
 
+T0_US = 1_700_000_000 * 10**6  # the controller clock (feedBack.time) at seqno 0, us
+
+
 def robot_bytes(seq: int, pos=FB_POS, quat=FB_QUAT, mtype: int = EgmHeader.MSGTYPE_DATA,
-                joints=(0.0, 10.0, 10.0, 0.0, 80.0, 0.0)) -> bytes:
+                joints=(0.0, 10.0, 10.0, 0.0, 80.0, 0.0), clock_us: int | None = None) -> bytes:
+    """An ``EgmRobot`` as RobotWare 6.07+ sends it: its clock ``feedBack.time`` (the link
+    refuses datagrams without one, issue 25) runs 4 ms a seqno unless ``clock_us`` is given."""
     r = EgmRobot()
     r.header.seqno, r.header.tm, r.header.mtype = seq, (4 * seq) & 0xFFFFFFFF, mtype
+    us = T0_US + 4000 * seq if clock_us is None else clock_us
+    r.feedBack.time.sec, r.feedBack.time.usec = divmod(us, 10**6)
     r.feedBack.joints.joints.extend(joints)
     c = r.feedBack.cartesian
     c.pos.x, c.pos.y, c.pos.z = (float(v) for v in pos)
@@ -268,7 +275,11 @@ def test_pose_mode_guards_every_target():
     assert link.stats.refused["too_far_from_robot"] == 1
 
 
-def test_pose_watchdog_stops_the_robot_where_it_is():
+def test_pose_watchdog_holds_the_last_accepted_pose():
+    """Issue 25: a hold commands the last accepted pose, never the pose the datagram being
+    answered reports (that pose comes from the wire, where anyone can forge or replay it). The
+    robot finishes the last vetted step and stops there (it used to stop "where it is", at the
+    fed-back pose: a forged EgmRobot could move it 50 mm)."""
     clock = Clock()
     link = make_link("pose", clock=clock)
     ctl = Controller(link, clock)
@@ -276,8 +287,9 @@ def test_pose_watchdog_stops_the_robot_where_it_is():
     ctl.cycle()
     moving = FB_POS + [0.4, 0.0, 0.0]
     for _ in range(60):  # 240 ms: past the watchdog
-        p, _ = pose_of(ctl.cycle(pos=moving))
-    np.testing.assert_allclose(p, moving)  # the robot's own fed-back pose
+        p, q = pose_of(ctl.cycle(pos=moving))
+    np.testing.assert_allclose(p, FB_POS + [1.0, 0, 0])  # the last sent target
+    np.testing.assert_allclose(q, FB_QUAT)
     assert link.holding and link.stats.watchdog_trips == 1
 
 
@@ -342,10 +354,13 @@ def test_sequence_numbers_drop_duplicates_and_reordered_only():
     assert link2.handle_datagram(robot_bytes(0xFFFFFFFF), CTRL) is not None
     assert link2.handle_datagram(robot_bytes(0), CTRL) is not None
     assert link2.stats.robot_missing == 0
-    # far behind the window: the controller restarted its EGM session
-    assert link2.handle_datagram(robot_bytes(5000), CTRL) is not None
-    assert link2.handle_datagram(robot_bytes(1), CTRL) is not None
-    assert link2.stats.dropped == {}
+    # one datagram far from the newest is never a new session (issue 25: a replay more than
+    # reorder_window behind used to restart the session and be answered; tests/
+    # test_egm_attacks.py has what a restart takes)
+    assert link2.handle_datagram(robot_bytes(5000), CTRL) is None  # far ahead, no time ran
+    assert link2.handle_datagram(robot_bytes(0xFFFFFF00), CTRL) is None  # behind, old clock
+    assert link2.handle_datagram(robot_bytes(1), CTRL) is not None  # the stream goes on
+    assert link2.stats.dropped == {"unconfirmed_jump": 1, "replayed": 1}
 
 
 def test_fields_of_newer_controllers_are_accepted():
@@ -428,11 +443,18 @@ def test_fuzz_datagram_parsers_never_crash_and_answer_only_safely(seed, raw):
 
 
 def test_fuzz_inputs_reach_every_outcome():
-    """The fuzz generator is worth its examples: it reaches replies and every drop reason."""
-    link = make_link(latency_samples=1)
+    """The fuzz generator is worth its examples: it reaches replies and every drop reason.
+
+    The link's clock runs 8 ms a datagram, 40 ms a seed: the controller's seqno steps by 10 a
+    seed, and since issue 25 a jump ahead is taken only as far as the link's own clock explains
+    it (one 4 ms period a seqno; a frozen clock took jumps of 10 at once, as it took the forged
+    one of 60 that then blocked the genuine stream)."""
+    clock = Clock()
+    link = make_link(latency_samples=1, clock=clock, max_age_ms=1e9, watchdog_ms=1e9)
     link.set_correction([0.0, 0.5, 0.0])
     for seed in range(0, 2000, 10):
         for kind in range(5):
+            clock.t += 0.008
             link.handle_datagram(_datagram(kind, seed + kind, b""), CTRL)
     stats = link.stats
     assert stats.sent > 10

@@ -1,4 +1,4 @@
-"""Sensor side of ABB Externally Guided Motion (EGM) over UDP, with the safety of issue 6.
+"""Sensor side of ABB Externally Guided Motion (EGM) over UDP, with the safety of issues 6 and 25.
 
 The controller sends an ``EgmRobot`` every cycle (4 ms at 250 Hz) to the sensor's address; the
 link answers every valid one, to its sender, with the latest accepted command:
@@ -18,33 +18,52 @@ every check. What is never sent (each refusal is logged with its reason and coun
 - a NaN / inf, a quaternion that is not unit length, a correction larger than
   ``safety.max_correction_mm``;
 - a pose the pluggable ``gate`` refuses (the reachability gate of the live loop);
-- a step larger than ``safety.max_step_mm`` (``max_step_deg`` for orientation) from the last
-  sent command, or, before anything was sent, from the robot's fed-back pose (pathcorr: from
-  a zero offset); in pose mode a target further than ``safety.max_lead_mm`` from the fed-back
-  TCP;
+- a step larger than ``safety.max_step_mm`` (``max_step_deg`` for orientation) from the
+  previous reply of the session (pose mode: before any reply, from the fed-back pose of the
+  datagram that started the session; pathcorr: from a zero offset); in pose mode a target
+  further than ``safety.max_lead_mm`` from the fed-back TCP;
 - a measurement older than ``safety.max_age_ms`` when the reply leaves.
 
 A refused measurement is logged and counted once (not once per 4 ms cycle it stays refused).
 
 Instead of a refused command the link sends a *hold*; the watchdog sends holds as well when no
-new measurement arrived for ``safety.watchdog_ms`` (and before the first one):
+new measurement arrived for ``safety.watchdog_ms`` (and before the first one). A hold commands
+the last accepted command again, never anything taken from the datagram it answers
+(:func:`~torchseam.robot.egm_policy.hold_pose`):
 
-- pose mode: after a refusal, the last sent target again (the robot finishes the last vetted
-  move, and one bad measurement does not strand the tracker); on the watchdog or before the
-  first measurement, the robot's own fed-back TCP pose (the robot stops where it is);
+- pose mode: the last sent pose (the robot finishes the last vetted step and stops there);
+  before anything was sent in a session, the fed-back pose of the datagram that started the
+  session, which becomes the reference of the next step;
 - pathcorr mode: the last sent offset again (zero before the first), with age 0: a hold is a
   command, not a measurement. A zero offset is *not* a hold under EGM's absolute semantics:
   it would pull the torch back onto the programmed path by up to ``max_correction_mm``. The
   programmed path itself keeps running; stopping it is RAPID's job.
 
+Every reply, hold included, is within ``max_step_mm`` / ``max_step_deg`` of the previous reply
+of the session (checked once more as the reply is built).
+
+Which datagrams belong to the controller's session is decided by
+:class:`~torchseam.robot.egm_policy.SequenceTracker` from ``header.seqno``, the controller's
+clock ``feedBack.time`` and the link's own clock: duplicates, reordered datagrams (behind the
+newest), replays of this session (far behind, with a clock this session has already shown) are
+dropped; a jump ahead is taken at once only as far as the link's clock explains it
+(``link.max_gap`` more for free), further ahead only after ``link.session_confirm`` consistent
+successors while the session stays silent. A new session (the controller restarted: sequence
+number and clock both restarting) is recognised the same way, never from one datagram; its
+first reply is a hold (``new_session``) on its own start pose (pathcorr: a zero offset). The
+very first datagram of a link starts its first session.
+
 When the controller falls silent for longer than ``safety.watchdog_ms`` the link logs it, and
-answers its first ``EgmRobot`` afterwards with a hold (pose mode: the fed-back pose, which also
-becomes the reference of the next step): the robot may have moved or stopped meanwhile.
+answers its first ``EgmRobot`` afterwards with a hold (``controller_silence``).
 
 Datagrams that are oversized, empty, unparseable, of the wrong type (``header.mtype`` not
-``DATA``), missing a required field, non-finite, from a foreign sender, duplicated or older
-than the newest seen (reordered) are counted by reason and dropped; they never raise out of
-the loop. The first of each reason is logged as a warning, the rest at debug level.
+``DATA``), missing a required field, non-finite, without ``header.seqno``, without
+``feedBack.time`` (RobotWare before 6.07, which mixes radians and degrees: refused), from a
+foreign sender, or refused by the sequence policy are counted by reason and dropped; they never
+raise out of the loop. The first of each reason is logged as a warning, the rest at debug level.
+Every datagram the link reads lands in exactly one counter: ``received`` or one ``dropped``
+reason. Datagrams the kernel dropped because the socket's receive buffer was full (Linux
+``SO_RXQ_OVFL``) are counted in ``EgmStats.kernel_dropped``.
 
 Binding: ``network.host`` (loopback by default); a non-loopback address is logged as a warning.
 ``link.rt_priority`` asks for SCHED_FIFO for the serving thread. Keep the link out of a process
@@ -76,6 +95,16 @@ from numpy.typing import ArrayLike
 from torchseam.core.errors import TorchseamError
 from torchseam.robot.egm_config import EgmConfig, load_egm_config
 from torchseam.robot.egm_messages import EgmHeader, EgmRobot, EgmSensor, EgmSensorPathCorr
+from torchseam.robot.egm_policy import (
+    DROP,
+    NEW_SESSION,
+    SequenceTracker,
+    feedback_clock_us,
+    feedback_pose,
+    hold_pose,
+    quat_angle_deg,
+    reply_step,
+)
 
 log = logging.getLogger("torchseam.robot.egm")
 
@@ -86,7 +115,29 @@ _U32 = 0xFFFFFFFF
 # Linux: kernel receive time stamps on a datagram socket (SO_TIMESTAMPNS, CLOCK_REALTIME).
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35) if sys.platform == "linux" else None
 _TIMESPEC = struct.Struct("@qq")
+# Linux: the socket's drop counter (receive buffer full) in each datagram's ancillary data
+_SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40) if sys.platform == "linux" else None
+_U32_STRUCT = struct.Struct("@I")
+_ANC_BYTES = socket.CMSG_SPACE(_TIMESPEC.size) + socket.CMSG_SPACE(_U32_STRUCT.size) + 64
 _QUAT_TOL = 1e-3  # |q| may differ from 1 by this much (float32 sources, rounding)
+# what a drop reason means, for the first warning of each
+_DROP_DETAIL = {
+    "no_feedback_time": "EgmRobot without feedBack.time: RobotWare before 6.07 (which mixes "
+                        "radians and degrees in its feedback) is not supported",
+    "bad_feedback_time": "feedBack.time.usec is a million or more",
+    "no_seqno": "EgmRobot without header.seqno: its place in the stream is unknown",
+    "no_feedback_pose": "pose mode needs the fed-back TCP pose",
+    "bad_feedback_pose": "the fed-back quaternion is not unit length",
+    "duplicate": "the newest sequence number again",
+    "out_of_order": "behind the newest sequence number (reordered)",
+    "replayed": "far behind the newest sequence number, with a controller clock this session "
+                "already showed: an old datagram sent again",
+    "unconfirmed_jump": "further ahead than the time the stream has run explains; believed "
+                        "only after consistent successors while the session is silent",
+    "unconfirmed_session": "behind the newest with a clock outside the session's: a restart "
+                           "is believed only after consistent successors while the session "
+                           "is silent",
+}
 
 
 class EgmError(TorchseamError):
@@ -130,17 +181,24 @@ class EgmStats:
     """Counters of one link (all cumulative since start).
 
     Attributes:
-        received: valid ``EgmRobot`` datagrams.
+        received: valid ``EgmRobot`` datagrams accepted (every datagram read is counted in
+            ``received`` or in one ``dropped`` reason, never both).
         sent: replies sent.
         commands: replies that carried an accepted measurement (the rest are holds).
         holds: reply cycles answered with a hold, by cause (``no_measurement``, ``watchdog``,
-            ``refused``, ``controller_silence``).
+            ``refused``, ``controller_silence``, ``new_session``).
         refused: refused measurements, by reason (each counted once per measurement and reason).
         dropped: dropped datagrams, by reason.
         late_replies: replies that left more than ``link.late_reply_ms`` after their
             ``EgmRobot`` arrived.
         superseded: valid ``EgmRobot`` left unanswered because a newer one was already queued.
-        robot_missing: ``EgmRobot`` sequence numbers never seen (gaps in ``header.seqno``).
+        robot_missing: ``EgmRobot`` sequence numbers never seen (gaps in ``header.seqno``
+            that the session accepted at once; a confirmed far jump is not counted).
+        sessions: controller sessions started (the first datagram, then confirmed restarts).
+        jumps: far jumps ahead in ``header.seqno`` believed after confirmation.
+        kernel_dropped: datagrams the kernel dropped on the link's socket because its receive
+            buffer was full (Linux ``SO_RXQ_OVFL``; cumulative, as the last datagram read
+            reported it; 0 where the kernel does not report it).
         watchdog_trips: times the watchdog started holding (measurements stopped).
         controller_silences: times the controller stopped sending for longer than
             ``safety.watchdog_ms``; the first reply after one is a hold.
@@ -160,6 +218,9 @@ class EgmStats:
     late_replies: int = 0
     superseded: int = 0
     robot_missing: int = 0
+    sessions: int = 0
+    jumps: int = 0
+    kernel_dropped: int = 0
     watchdog_trips: int = 0
     controller_silences: int = 0
     send_errors: int = 0
@@ -181,6 +242,8 @@ class EgmStats:
                 "holds": dict(self.holds), "refused": dict(self.refused),
                 "dropped": dict(self.dropped), "late_replies": self.late_replies,
                 "superseded": self.superseded, "robot_missing": self.robot_missing,
+                "sessions": self.sessions, "jumps": self.jumps,
+                "kernel_dropped": self.kernel_dropped,
                 "watchdog_trips": self.watchdog_trips,
                 "controller_silences": self.controller_silences, "send_errors": self.send_errors,
                 "latency_ms": self.latency_summary()}
@@ -304,12 +367,6 @@ def parse_sensor(data: bytes, mode: str, max_bytes: int = 1024) -> tuple[Any | N
     return msg, ""
 
 
-def quat_angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
-    """Rotation angle between two unit quaternions (w, x, y, z), degrees."""
-    d = min(1.0, abs(float(np.dot(q1, q2))))
-    return math.degrees(2.0 * math.acos(d))
-
-
 # --------------------------------------------------------------------------- the link
 
 @dataclass(frozen=True)
@@ -354,14 +411,23 @@ class EgmLink:
         self._watchdog_holding = False
         self._seqno = 0
         self._t0 = clock()
-        self._last_rx_seq: int | None = None
+        lk = self.config.link
+        self._tracker = SequenceTracker(
+            reorder_window=lk.reorder_window, max_gap=lk.max_gap,
+            min_period_s=lk.min_period_ms / 1e3, confirm=lk.session_confirm,
+            silence_s=lk.session_silence_ms / 1e3)
         self._last_rx_time: float | None = None   # clock s of the last valid EgmRobot
         self._controller_silent = False
-        self._resync = False  # the next reply holds: the robot may have moved meanwhile
+        self._resync = False       # the next reply holds: the controller was silent
+        self._new_session = False  # the next reply holds on the new session's start pose
         self._peer_port = self.config.network.controller_port or None
-        # last sent command: pose (position, quaternion) or pathcorr offset
+        # last sent command (the reference of the next step and what a hold commands): pose
+        # (position, quaternion) or pathcorr offset; None at the start of a session
         self._sent_vec: np.ndarray | None = None
         self._sent_quat: np.ndarray | None = None
+        # pose mode: the fed-back pose of the datagram that started the session (its checks
+        # passed); the first reply of the session holds there when there is nothing to send
+        self._session_pose: tuple[np.ndarray, np.ndarray] | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._sock: socket.socket | None = None
@@ -388,6 +454,11 @@ class EgmLink:
                 sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
             except OSError:
                 pass  # fall back to user-space receive times
+        if _SO_RXQ_OVFL is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
+            except OSError:
+                log.info("EGM: this kernel does not report receive-buffer drops (SO_RXQ_OVFL)")
         if not net.is_loopback:
             log.warning("EGM sensor bound to %s:%d, not loopback: reachable from the network",
                         net.host, net.port)
@@ -454,17 +525,21 @@ class EgmLink:
         first_rx_ns = 0
         while True:
             try:
-                data, anc, flags, sender = sock.recvmsg(self._max_bytes + 1, 64)
+                data, anc, flags, sender = sock.recvmsg(self._max_bytes + 1, _ANC_BYTES)
             except (BlockingIOError, InterruptedError):
                 break
             except OSError as e:  # e.g. ICMP port unreachable surfacing as ECONNREFUSED
                 self._drop(f"socket_error_{e.errno}", sender=None)
                 break
             rx_ns = _rx_time_ns(anc)
+            self._kernel_drops(anc)
             if flags & socket.MSG_TRUNC:
                 self._drop("oversized", sender)
                 continue
-            robot = self._accept(data, sender)
+            # its arrival on the link's clock: the kernel's receive time, not when it was read
+            # (datagrams read in one batch after a stall arrived a period apart)
+            at = self._clock() - max(0, time.time_ns() - rx_ns) / 1e9
+            robot = self._accept(data, sender, at)
             if robot is not None:
                 if newest is not None:
                     with self._lock:
@@ -651,10 +726,27 @@ class EgmLink:
             self._stats.dropped[reason] += 1
             first = self._stats.dropped[reason] == 1
         # the first of each kind as a warning, the rest at debug: a flood must not flood the log
+        detail = _DROP_DETAIL.get(reason)
         log.log(logging.WARNING if first else logging.DEBUG,
-                "EGM dropped a datagram from %s: %s", sender, reason)
+                "EGM dropped a datagram from %s: %s%s", sender, reason,
+                f" ({detail})" if detail else "")
 
-    def _accept(self, data: bytes, sender: tuple[Any, ...]) -> Any | None:
+    def _kernel_drops(self, ancdata: list[tuple[int, int, bytes]]) -> None:
+        """Take the socket's drop counter (SO_RXQ_OVFL) from a datagram's ancillary data."""
+        n = _rx_overflow(ancdata)
+        if n is None:
+            return
+        with self._lock:
+            before = self._stats.kernel_dropped
+            if n <= before:
+                return
+            self._stats.kernel_dropped = n
+        log.warning("EGM: the kernel dropped %d datagram(s) on the link's socket (receive "
+                    "buffer full; %d in all): the link did not read fast enough", n - before, n)
+
+    def _accept(self, data: bytes, sender: tuple[Any, ...], at: float | None = None) -> Any | None:
+        """Validate one datagram; the ``EgmRobot`` to answer, or None (dropped and counted).
+        ``at``: its arrival on the link's clock (default: now)."""
         net = self.config.network
         try:
             host, port = str(sender[0]), int(sender[1])
@@ -671,32 +763,38 @@ class EgmLink:
         if robot is None:
             self._drop(reason, sender)
             return None
-        if self.mode == "pose" and not (robot.feedBack.HasField("cartesian")
-                                        and robot.feedBack.cartesian.HasField("pos")
-                                        and robot.feedBack.cartesian.HasField("orient")):
-            self._drop("no_feedback_pose", sender)  # pose mode cannot hold without it
+        if not robot.header.HasField("seqno"):
+            self._drop("no_seqno", sender)
             return None
-        if robot.header.HasField("seqno"):
-            seq = robot.header.seqno
-            if self._last_rx_seq is not None:
-                diff = (seq - self._last_rx_seq) & _U32
-                if diff == 0:
-                    self._drop("duplicate", sender)
-                    return None
-                if diff > _U32 // 2:  # behind the newest
-                    if (-diff) & _U32 <= self.config.link.reorder_window:
-                        self._drop("out_of_order", sender)
-                        return None
-                    log.info("EGM controller seqno jumped back %d -> %d: new session",
-                             self._last_rx_seq, seq)
-                else:
-                    with self._lock:
-                        self._stats.robot_missing += diff - 1
-            self._last_rx_seq = seq
+        clock_us, reason = feedback_clock_us(robot)
+        if clock_us is None:
+            self._drop(reason, sender)
+            return None
+        fb_pose = None
+        if self.mode == "pose":  # pose mode cannot hold at a session start without it
+            fb_pose, reason = feedback_pose(robot)
+            if fb_pose is None:
+                self._drop(reason, sender)
+                return None
+        now = self._clock()
+        decision = self._tracker.decide(robot.header.seqno, clock_us, now if at is None else at)
+        if decision.action == DROP:
+            self._drop(decision.reason, sender)
+            return None
+        if decision.action == NEW_SESSION:
+            self._start_session(decision.reason, fb_pose, robot.header.seqno)
+        elif decision.reason == "jump":
+            with self._lock:
+                self._stats.jumps += 1
+            log.warning("EGM controller seqno jumped ahead to %d: believed after %d consistent "
+                        "datagrams and a silent session", robot.header.seqno,
+                        self.config.link.session_confirm)
+        elif decision.missing:
+            with self._lock:
+                self._stats.robot_missing += decision.missing
         if self._peer_port is None:
             self._peer_port = port
             log.info("EGM session locked onto controller %s:%d", host, port)
-        now = self._clock()
         self._check_silence(now)
         if self._controller_silent:
             log.info("EGM controller is back after %.0f ms: holding for one cycle",
@@ -707,6 +805,21 @@ class EgmLink:
         with self._lock:
             self._stats.received += 1
         return robot
+
+    def _start_session(self, why: str, fb_pose: tuple[np.ndarray, np.ndarray] | None,
+                       seq: int) -> None:
+        """A controller session starts: the last command is no reference any more; the
+        fed-back pose of this datagram (which passed every check of a session start) is."""
+        with self._lock:
+            self._stats.sessions += 1
+        self._session_pose = fb_pose
+        if why == "first":
+            return
+        log.warning("EGM controller restarted (seqno and feedBack.time both restarted, "
+                    "consistently, after a silence): new session at seqno %d; the first reply "
+                    "holds on its start pose", seq)
+        self._sent_vec = self._sent_quat = None
+        self._new_session = True
 
     def _check_silence(self, now: float) -> None:
         """Flag (once) a controller that stopped sending for longer than the watchdog."""
@@ -727,12 +840,11 @@ class EgmLink:
         now = self._clock()
         meas = self._meas
         s = self._safety
-        if self._resync:
-            # after a controller silence the last sent command is no reference any more:
-            # answer with a hold on the robot's own pose and measure the next step from it
+        if self._new_session:  # a restarted controller: hold on the session's start pose
+            self._new_session = self._resync = False
+            hold, verdict = "new_session", ACCEPTED
+        elif self._resync:  # after a controller silence: hold the last accepted command once
             self._resync = False
-            self._sent_vec = self._sent_vec if self.mode == "pathcorr" else None
-            self._sent_quat = None
             hold, verdict = "controller_silence", ACCEPTED
         elif meas is None:
             hold, verdict = "no_measurement", ACCEPTED
@@ -748,7 +860,7 @@ class EgmLink:
                 hold = "refused"
         self._watchdog_state(hold == "watchdog", now, meas)
         if self.mode == "pose":
-            msg = self._pose_reply(robot, meas, hold)
+            msg = self._pose_reply(meas, hold)
         else:
             msg = self._pathcorr_reply(meas, hold, now)
         with self._lock:
@@ -769,28 +881,26 @@ class EgmLink:
             log.info("EGM watchdog: measurements are back, guiding again")
         self._watchdog_holding = holding
 
+    def _reference_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Pose mode: what the next step is measured from and what a hold commands."""
+        ref = None if self._sent_vec is None else (self._sent_vec, self._sent_quat)
+        return hold_pose(ref, self._session_pose)  # type: ignore[arg-type]
+
     def _step_check(self, meas: _Measurement, robot: Any) -> Verdict:
         s = self._safety
         if self.mode == "pose":
-            fb = robot.feedBack.cartesian
-            fb_p = np.array([fb.pos.x, fb.pos.y, fb.pos.z])
-            ref_p = self._sent_vec if self._sent_vec is not None else fb_p
+            ref_p, ref_q = self._reference_pose()
             step = float(np.linalg.norm(meas.vec - ref_p))
             if step > s.max_step_mm:
                 return Verdict(False, "step_too_large",
                                f"target moves {step:.3f} mm > max_step_mm {s.max_step_mm}")
             assert meas.quat is not None
-            if self._sent_quat is not None:
-                ref_q = self._sent_quat
-            else:
-                o = fb.orient
-                ref_q = np.array([o.u0, o.u1, o.u2, o.u3])
-                ref_q = ref_q / (np.linalg.norm(ref_q) or 1.0)
             turn = quat_angle_deg(meas.quat, ref_q)
             if turn > s.max_step_deg:
                 return Verdict(False, "rotation_step_too_large",
                                f"target turns {turn:.3f} deg > max_step_deg {s.max_step_deg}")
-            lead = float(np.linalg.norm(meas.vec - fb_p))
+            fb = robot.feedBack.cartesian  # may only refuse: it comes from the wire
+            lead = float(np.linalg.norm(meas.vec - np.array([fb.pos.x, fb.pos.y, fb.pos.z])))
             if lead > s.max_lead_mm:
                 return Verdict(False, "too_far_from_robot",
                                f"target is {lead:.3f} mm from the robot > max_lead_mm "
@@ -803,39 +913,48 @@ class EgmLink:
                            f"correction changes by {step:.3f} mm > max_step_mm {s.max_step_mm}")
         return ACCEPTED
 
+    def _within_step(self, vec: np.ndarray, quat: np.ndarray | None) -> bool:
+        """Is a reply within max_step_mm / max_step_deg of the previous one (the last check
+        before the wire; a command passed the same check against the same reference)?"""
+        if self._sent_vec is None:
+            return True
+        mm, deg = reply_step(self._sent_vec, vec, self._sent_quat, quat)
+        s = self._safety
+        return mm <= s.max_step_mm * (1 + 1e-9) and deg <= s.max_step_deg * (1 + 1e-9)
+
     def _header(self, msg: Any, mtype: int) -> None:
         self._seqno = (self._seqno + 1) & _U32
         msg.header.seqno = self._seqno
         msg.header.tm = int((self._clock() - self._t0) * 1e3) & _U32
         msg.header.mtype = mtype
 
-    def _pose_reply(self, robot: Any, meas: _Measurement | None, hold: str) -> Any:
+    def _pose_reply(self, meas: _Measurement | None, hold: str) -> Any:
         if not hold:
             assert meas is not None and meas.quat is not None
             p, q = meas.vec, meas.quat
-        elif hold == "refused" and self._sent_vec is not None:
-            assert self._sent_quat is not None
-            p, q = self._sent_vec, self._sent_quat
-        else:  # stop where the robot is
-            fb = robot.feedBack.cartesian
-            p = np.array([fb.pos.x, fb.pos.y, fb.pos.z])
-            q = np.array([fb.orient.u0, fb.orient.u1, fb.orient.u2, fb.orient.u3])
+            if not self._within_step(p, q):  # unreachable: _step_check used this reference
+                p, q = self._reference_pose()
+        else:  # the last accepted pose; at a session start, its start pose
+            p, q = self._reference_pose()
         msg = EgmSensor()
         self._header(msg, EgmHeader.MSGTYPE_CORRECTION)
         c = msg.planned.cartesian
         c.pos.x, c.pos.y, c.pos.z = (float(x) for x in p)
         c.orient.u0, c.orient.u1, c.orient.u2, c.orient.u3 = (float(x) for x in q)
         self._sent_vec, self._sent_quat = p.copy(), q.copy()
+        self._session_pose = None  # the reference from now on is the last reply
         return msg
 
     def _pathcorr_reply(self, meas: _Measurement | None, hold: str, now: float) -> Any:
+        held = self._sent_vec if self._sent_vec is not None else np.zeros(3)
         if hold:
-            offset = self._sent_vec if self._sent_vec is not None else np.zeros(3)
-            age = 0
+            offset, age = held, 0
         else:
             assert meas is not None
             offset = meas.vec
             age = max(0, int(round((now - meas.measured_at) * 1e3)))
+            if not self._within_step(offset, None):  # unreachable: _step_check did it
+                offset, age = held, 0
         msg = EgmSensorPathCorr()
         self._header(msg, EgmHeader.MSGTYPE_PATH_CORRECTION)
         pc = msg.pathCorr
@@ -881,6 +1000,14 @@ def set_realtime_priority(priority: int, what: str) -> bool:
         return False
     log.info("%s: running at SCHED_FIFO priority %d", what, priority)
     return True
+
+
+def _rx_overflow(ancdata: list[tuple[int, int, bytes]]) -> int | None:
+    """The socket's drop counter (SO_RXQ_OVFL) from ancillary data, or None (not reported)."""
+    for level, kind, data in ancdata:
+        if level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(data) >= 4:
+            return int(_U32_STRUCT.unpack_from(data)[0])
+    return None
 
 
 def _rx_time_ns(ancdata: list[tuple[int, int, bytes]]) -> int:
