@@ -17,8 +17,9 @@ of the same scene. The column ``fit on`` says where the tracker's fitted paramet
 ``configs/tipm.yaml``) were chosen: a row whose family is not among them is scored on data
 nothing was chosen on (``held out: yes``). Variants: ``colour`` as rendered; ``mono`` the
 single channel a camera behind a 650 nm band-pass delivers (:func:`torchseam.sim.variants.to_mono`);
-``mono16`` the same at 16 bit; ``columns`` the frame turned 90 degrees (sensor mounted sideways;
-the tracker is given ``--stripe-axis auto``), scored in the turned frame's pixels.
+``mono16`` the same at 16 bit; ``columns`` the frame turned 90 degrees (sensor mounted sideways),
+scored in the turned frame's pixels. Every tracker gets the view (stripe axis, colour response)
+found on frame 0, as the live loop does with ``auto`` in the cell config.
 
 Threads: torch.set_num_threads(1) and cv2.setNumThreads(1) for the single-stream figures (the
 live loop's setting: one core per camera); the batched run uses --batch-threads (default 2).
@@ -64,16 +65,16 @@ def fitted_on() -> tuple[str, ...]:
 
 
 def variant(frames: list[np.ndarray], labels: np.ndarray, name: str
-            ) -> tuple[list[np.ndarray], np.ndarray, str]:
-    """Frames and labels of a variant, and the stripe-axis setting the tracker gets."""
+            ) -> tuple[list[np.ndarray], np.ndarray]:
+    """Frames and labels of a variant."""
     if name == "colour":
-        return frames, labels, "rows"
+        return frames, labels
     if name in ("mono", "mono16"):
         bits = 16 if name == "mono16" else 8
-        return [to_mono(f, bits=bits, rng=k) for k, f in enumerate(frames)], labels, "rows"
+        return [to_mono(f, bits=bits, rng=k) for k, f in enumerate(frames)], labels
     if name == "columns":
         out = [rotate90(f, uv) for f, uv in zip(frames, labels, strict=True)]
-        return [f for f, _ in out], np.stack([uv for _, uv in out]), "auto"
+        return [f for f, _ in out], np.stack([uv for _, uv in out])
     raise ValueError(f"unknown variant {name!r}: use {', '.join(VARIANTS)}")
 
 
@@ -133,10 +134,12 @@ def main() -> None:
                     grey_bank.append((np.stack([red_response(f) for f in frames0]),
                                       labels0[0]))
                 for v in variants:
-                    frames, labels, axis = variant(frames0, labels0, v)
+                    frames, labels = variant(frames0, labels0, v)
                     for t in trackers:
+                        # the view (stripe axis, colour response) found on frame 0, as the
+                        # live loop's default cell config has it
                         uv, st, sec, idle_sec, _ = run_tracker(make_tracker(t), frames, None,
-                                                               axis=axis)
+                                                               axis="auto", response="auto")
                         e = np.linalg.norm(uv - labels, axis=1)
                         keep = arc if arc.any() else np.arange(len(e)) > 0
                         err, stat, secs, idle, seeds = cell_rows[(v, t)]

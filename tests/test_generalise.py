@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from torchseam.cli import main
-from torchseam.core.orient import StripeAxis
+from torchseam.core.orient import FrameView
 from torchseam.sim.sequence import SequenceSpec, simulate_labelled
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import AnchoredTracker, run_tracker
-from torchseam.vision.tipm import Tipm, find_stripe_axis
+from torchseam.vision.tipm import Tipm, find_view
 
 TRACKED, COASTING, LOST = (int(s) for s in TrackStatus)
 
@@ -122,7 +122,7 @@ def test_mono_16bit_and_turned_frames_track_like_colour(heavy, variant):
 
 def test_stripe_axis_maps_points_and_is_found(heavy):
     frames, labels, _ = heavy
-    ax = StripeAxis("columns", 492)
+    ax = FrameView("columns", 492)
     uv = np.array([[10.0, 20.0], [655.0, 491.0]])
     np.testing.assert_allclose(ax.to_camera(ax.to_canonical(uv)), uv)
     img = np.zeros((492, 656), np.uint8)
@@ -132,8 +132,8 @@ def test_stripe_axis_maps_points_and_is_found(heavy):
     np.testing.assert_allclose(ax.to_canonical(np.array([10.0, 20.0])), [u, v])
     # a quarter turn left of a clean frame: the stripe runs along the columns
     left = np.ascontiguousarray(np.rot90(frames[0]))
-    assert find_stripe_axis(frames[0]).axis == "rows"
-    assert find_stripe_axis(left).axis == "columns"
+    assert find_view(frames[0]) == FrameView("rows", 492, "red")
+    assert find_view(left) == FrameView("columns", 656, "red")
 
 
 def _photo(seed: int, w: int = 640, h: int = 480) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,7 @@ import numpy as np
 import yaml
 
 from torchseam.core.errors import TorchseamError
-from torchseam.core.orient import STRIPE_AXES
+from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES
 
 T = TypeVar("T")
 
@@ -83,6 +83,9 @@ class CameraConfig:
     #: how the laser stripe runs in the image (see torchseam.core.orient): along the rows,
     #: along the columns (sensor mounted at 90 degrees), or auto: found on the first clean frame
     stripe_axis: str = _f(default="auto", choices=STRIPE_AXES)
+    #: the stripe response of a colour camera: red excess, the red channel's intensity (a
+    #: stripe overexposed into white), or auto: chosen on the first clean frame
+    stripe_response: str = _f(default="auto", choices=STRIPE_RESPONSES)
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the math's name

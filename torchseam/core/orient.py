@@ -1,4 +1,4 @@
-"""How the stripe lies in the camera image, and the map to the orientation TIPM works in.
+"""How the stripe shows in the camera image, and the map to the view TIPM works in.
 
 TIPM, the trackers and ECAL follow a stripe that runs along the image rows (one centre-line
 point per column). A sensor mounted at 90 degrees shows it running along the columns. Rather
@@ -6,6 +6,11 @@ than teach every stage both layouts, the frame is turned once at the boundary (a
 clockwise: ``cv2.rotate``, a fraction of a millisecond) and points are mapped back before
 anything geometric (triangulation uses the camera's own pixel coordinates). Which way the V
 opens needs no setting: TIPM's corner search and the trackers do not assume it.
+
+The same boundary picks the stripe response: a colour camera's red excess ``R - max(G, B)``
+(white arc light drops out) unless the stripe itself is overexposed into white (then the red
+excess collapses where the stripe is brightest, and the red channel's brightness is the better
+response, as a mono camera's is); see :func:`torchseam.vision.tipm.find_view`.
 
 Pixel coordinates are (u, v) = (column, row) with pixel centres on integers, so the maps are
 exact. For a camera image of height ``H`` turned clockwise (``"columns"``)::
@@ -23,15 +28,19 @@ import numpy as np
 
 #: the settings a cell config's ``camera.stripe_axis`` takes
 STRIPE_AXES = ("auto", "rows", "columns")
+#: the settings of ``camera.stripe_response``
+STRIPE_RESPONSES = ("auto", "red", "intensity")
 
 
 @dataclass(frozen=True)
-class StripeAxis:
-    """The stripe's direction in a camera image of ``height`` rows: ``"rows"`` (as TIPM
-    works) or ``"columns"`` (the frame is turned a quarter clockwise first).
+class FrameView:
+    """How TIPM and the trackers see a camera image of ``height`` rows: the stripe's
+    direction, ``"rows"`` (as TIPM works) or ``"columns"`` (the frame is turned a quarter
+    clockwise first), and its response, ``"red"`` (a colour frame as it is: TIPM takes the red
+    excess) or ``"intensity"`` (a colour frame's red channel alone, like a mono frame).
 
     Example:
-        >>> ax = StripeAxis("columns", height=4)
+        >>> ax = FrameView("columns", height=4)
         >>> ax.to_canonical(np.array([1.0, 0.0]))
         array([3., 1.])
         >>> ax.to_camera(ax.to_canonical(np.array([1.0, 0.0])))
@@ -40,17 +49,22 @@ class StripeAxis:
 
     axis: str = "rows"
     height: int = 0
+    response: str = "red"
 
     def __post_init__(self) -> None:
         if self.axis not in ("rows", "columns"):
             raise ValueError(f"stripe axis {self.axis!r}: use rows or columns")
+        if self.response not in ("red", "intensity"):
+            raise ValueError(f"stripe response {self.response!r}: use red or intensity")
 
     @property
     def turned(self) -> bool:
         return self.axis == "columns"
 
     def frame(self, img: np.ndarray) -> np.ndarray:
-        """The frame (H, W[, 3]) as TIPM reads it (the same array when nothing turns)."""
+        """The frame (H, W[, 3]) as TIPM reads it (the same array when nothing changes)."""
+        if self.response == "intensity" and img.ndim == 3:
+            img = cv2.extractChannel(img, 2)  # BGR: the red channel
         if not self.turned:
             return img
         if img.shape[0] != self.height:

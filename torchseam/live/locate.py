@@ -15,12 +15,12 @@ import numpy as np
 
 from torchseam.core.config import CellConfig
 from torchseam.core.errors import TorchseamError
-from torchseam.core.orient import StripeAxis
+from torchseam.core.orient import FrameView
 from torchseam.geometry.ecal import Ecal, EcalResult
 from torchseam.geometry.triangulate import FastTriangulator
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import FrameTracker
-from torchseam.vision.tipm import Tipm, find_stripe_axis
+from torchseam.vision.tipm import Tipm, find_view
 
 EXPECT_POINTS = 40     # recent located points kept for the expected pixel (~1.5 s at 25 Hz)
 EXPECT_SPAN_MM = 4.0   # the seam's local direction from two of them at least this far apart
@@ -46,10 +46,11 @@ class SeamLocator:
     """Tracker + triangulation + ECAL for one camera stream.
 
     Frames may be colour or mono (8 bit; see :func:`~torchseam.core.dataset.check_frame`),
-    with the stripe along the rows or the columns (``cell.camera.stripe_axis``; ``auto``:
-    found on the start frame). The tracker and ECAL see the frame turned so that the stripe
-    runs along the rows (:class:`~torchseam.core.orient.StripeAxis`); pixels go back to the
-    camera's own before triangulation, and :class:`Location` holds camera pixels.
+    with the stripe along the rows or the columns (``cell.camera.stripe_axis``) and, in
+    colour, read by its red excess or its brightness (``stripe_response``); ``auto``: found
+    on the start frame. The tracker and ECAL see the frame in that view
+    (:class:`~torchseam.core.orient.FrameView`); pixels go back to the camera's own before
+    triangulation, and :class:`Location` holds camera pixels.
 
     Args:
         cell: calibration (camera, laser plane, hand-eye).
@@ -59,9 +60,11 @@ class SeamLocator:
     def __init__(self, cell: CellConfig, tracker: FrameTracker) -> None:
         self.cell = cell
         self.tracker = tracker
-        setting = cell.camera.stripe_axis
-        self.axis: StripeAxis | None = (None if setting == "auto"
-                                        else StripeAxis(setting, cell.camera.height))
+        cam = cell.camera
+        self._view_setting = (cam.stripe_axis, cam.stripe_response)
+        self.axis: FrameView | None = (
+            None if "auto" in self._view_setting
+            else FrameView(cam.stripe_axis, cam.height, cam.stripe_response))
         self.tipm = Tipm()
         self.ecal = Ecal()
         self._agree_cos = float(np.cos(np.radians(self.ecal.cfg.tipm_agreement_deg)))
@@ -75,10 +78,12 @@ class SeamLocator:
         start pixel (camera pixels). With ``stripe_axis: auto`` the frame also tells which
         way the stripe runs."""
         if self.axis is None:
-            self.axis = find_stripe_axis(frame, self.tipm)
+            self.axis = find_view(frame, self.tipm, *self._view_setting)
             if self.axis is None:
                 raise TorchseamError("cannot start tracking: no stripe corner in the start "
-                                     "frame, along the rows or the columns")
+                                     "frame (camera.stripe_axis "
+                                     f"{self._view_setting[0]}, stripe_response "
+                                     f"{self._view_setting[1]})")
         view = self.axis.frame(frame)
         if uv0 is None:
             res = self.tipm(view)
@@ -143,7 +148,7 @@ class SeamLocator:
         """Locate the seam in ``frame`` taken with the flange at ``T_B_F`` (4, 4) mm."""
         t0 = time.perf_counter()
         if self.axis is None:  # a tracker started by the caller, not by start(): find it here
-            self.axis = find_stripe_axis(frame, self.tipm) or StripeAxis(
+            self.axis = find_view(frame, self.tipm, *self._view_setting) or FrameView(
                 "rows", frame.shape[0])
         axis = self.axis
         frame = axis.frame(frame)  # the stripe along the rows (the same array if it is)

@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from torchseam.core.dataset import Dataset
 from torchseam.core.errors import TorchseamError
-from torchseam.core.orient import STRIPE_AXES
+from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES
 from torchseam.core.report import error_stats, format_table, percentiles_ms
 from torchseam.track.peers import STATUS_NAMES, TRACKERS, make_tracker, run_tracker
 
@@ -44,6 +44,10 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stripe-axis", choices=STRIPE_AXES, default="auto",
                    help="how the stripe runs in the frames: rows, columns (sensor mounted at "
                         "90 degrees) or auto: found on the first frame (default)")
+    p.add_argument("--stripe-response", choices=STRIPE_RESPONSES, default="auto",
+                   help="a colour stream's stripe response: red (red excess), intensity (the "
+                        "red channel: a stripe overexposed into white) or auto: chosen on the "
+                        "first frame (default)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch and OpenCV threads (default 1: the live loop's setting)")
 
@@ -78,7 +82,8 @@ def _track(args: argparse.Namespace, ds: Dataset, uv0: np.ndarray | None
     frames = (ds.read(i) for i in range(len(ds)))
     uv, status, secs, _, note = run_tracker(tracker, frames, uv0,
                                             progress=lambda k: bar.update(1),
-                                            axis=args.stripe_axis)
+                                            axis=args.stripe_axis,
+                                            response=args.stripe_response)
     bar.close()
     return uv, status, secs, note
 

@@ -24,7 +24,7 @@ import torch
 from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.dataset import check_frame
 from torchseam.core.errors import TorchseamError
-from torchseam.core.orient import StripeAxis
+from torchseam.core.orient import FrameView
 from torchseam.track.fusion import EAKFSTC, TrackStatus
 from torchseam.track.lite import LiteEAKFSTC
 from torchseam.track.stc import STC
@@ -32,7 +32,7 @@ from torchseam.vision.tipm import (
     Tipm,
     TipmResult,
     arm_shape,
-    find_stripe_axis,
+    find_view,
     power_sums,
     quad_normal_adjugate,
     red_response,
@@ -589,7 +589,8 @@ def make_tracker(name: str, model: dict | None = None) -> FrameTracker:
 
 
 def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
-                progress: Callable[[int], None] | None = None, axis: str = "rows"
+                progress: Callable[[int], None] | None = None, axis: str = "rows",
+                response: str = "red"
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]:
     """Track an iterable of frames (colour or mono), the way the live loop drives a tracker:
     ``update`` on each frame, then its ``idle()`` (the learning for the next frame, e.g.
@@ -600,6 +601,8 @@ def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
             stripe there).
         axis: how the stripe runs: ``rows``, ``columns`` (the tracker sees each frame turned,
             see :mod:`torchseam.core.orient`) or ``auto`` (found on frame 0).
+        response: a colour frame's stripe response: ``red`` (red excess), ``intensity`` (the
+            red channel) or ``auto`` (found on frame 0, see :func:`find_view`).
 
     Returns:
         ``(uv (N, 2), status (N,), seconds (N,), idle_seconds (N,), init_note)``: points in
@@ -614,14 +617,14 @@ def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
         raise TorchseamError("no frames to track") from None
     tipm = Tipm()
     first = check_frame(first, name="frame 0")
-    if axis == "auto":
-        found = find_stripe_axis(first, tipm)
+    if "auto" in (axis, response):
+        found = find_view(first, tipm, axis, response)
         if found is None:
-            raise TorchseamError("frame 0: no stripe corner along the rows or the columns; "
-                                 "give --stripe-axis (and --init U,V)")
+            raise TorchseamError(f"frame 0: no stripe corner (stripe axis {axis}, response "
+                                 f"{response}); give --stripe-axis and --stripe-response")
         view = found
     else:
-        view = StripeAxis(axis, first.shape[0])
+        view = FrameView(axis, first.shape[0], response)
     note = "given"
     first = view.frame(first)
     if uv0 is None:

@@ -11,8 +11,8 @@ import numpy as np
 
 from torchseam.core.dataset import read_frame
 from torchseam.core.errors import FrameError
-from torchseam.core.orient import STRIPE_AXES, StripeAxis
-from torchseam.vision.tipm import Tipm, TipmResult, draw_overlay, find_stripe_axis
+from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES, FrameView
+from torchseam.vision.tipm import Tipm, TipmResult, draw_overlay, find_view
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,20 +29,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stripe-axis", choices=STRIPE_AXES, default="auto",
                    help="how the stripe runs in the image: along the rows, along the columns "
                         "(sensor mounted at 90 degrees), or auto: found per frame (default)")
+    p.add_argument("--stripe-response", choices=STRIPE_RESPONSES, default="auto",
+                   help="a colour image's stripe response: red (red excess), intensity (the "
+                        "red channel: a stripe overexposed into white) or auto: per image "
+                        "(default)")
     p.add_argument("--centre-line", choices=("subpixel", "thinning"), default="subpixel",
                    help="centre-line method (default subpixel; thinning as in the paper)")
     p.set_defaults(func=run)
 
 
-def _detect(tipm: Tipm, img: np.ndarray, axis_name: str) -> tuple[TipmResult, StripeAxis]:
-    """TIPM on ``img`` in the layout ``axis_name`` (auto: the one that finds a corner); the
-    result's point is in camera pixels."""
-    if axis_name == "auto":
-        axis = find_stripe_axis(img, tipm) or StripeAxis("rows", img.shape[0])
-    else:
-        axis = StripeAxis(axis_name, img.shape[0])
-    res = tipm(np.ascontiguousarray(axis.frame(img)))
-    return res, axis
+def _detect(tipm: Tipm, img: np.ndarray, axis: str, response: str
+            ) -> tuple[TipmResult, FrameView]:
+    """TIPM on ``img`` in the view the settings give (auto: the one that finds a corner); the
+    result's point is in the view's pixels."""
+    view = (find_view(img, tipm, axis, response)
+            or FrameView("rows" if axis == "auto" else axis, img.shape[0],
+                         "red" if response == "auto" else response))
+    return tipm(np.ascontiguousarray(view.frame(img))), view
 
 
 def _overlay_name(path: Path, used: set[str]) -> str:
@@ -72,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         except FrameError as e:
             print(f"error: {e}", file=sys.stderr)
             continue
-        res, axis = _detect(tipm, img, args.stripe_axis)
+        res, axis = _detect(tipm, img, args.stripe_axis, args.stripe_response)
         uv = axis.to_camera(res.uv)
         found += res.ok
         print(f"{path} {uv[0]:.3f} {uv[1]:.3f}" if res.ok else f"{path} none: {res.reason}")

@@ -38,7 +38,7 @@ import numpy as np
 
 from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.dataset import check_frame
-from torchseam.core.orient import StripeAxis
+from torchseam.core.orient import FrameView
 
 
 @dataclass(frozen=True)
@@ -60,6 +60,7 @@ class TipmConfig:
     max_rms_px: float = config_field(lo=0.0, lo_open=True)
     min_corner_deg: float = config_field(lo=0.0, hi=180.0)
     max_saturated_fraction: float = config_field(lo=0.0, hi=1.0)
+    white_core_fraction: float = config_field(lo=0.0, hi=1.0)
 
 
 def red_response(frame: np.ndarray, with_green: bool = False,
@@ -425,22 +426,54 @@ def draw_overlay(frame: np.ndarray, res: TipmResult, truth: np.ndarray | None = 
     return out
 
 
-def find_stripe_axis(frame: np.ndarray, tipm: Tipm | None = None) -> StripeAxis | None:
-    """Which way the stripe runs in a clean camera frame (H, W[, 3]): TIPM is run on the frame
-    as it is and turned a quarter (see :mod:`torchseam.core.orient`); the layout in which it
-    finds a corner wins, the one with the tighter arm fit when both do. None: no corner either
-    way (not a clean stripe frame: try the next one).
+def white_core(frame: np.ndarray, res: TipmResult) -> float:
+    """Fraction of a found stripe's centre-line points (``res`` of TIPM on BGR ``frame``)
+    where the stripe is overexposed into white: R clipped (>= 250) and G or B above half of
+    it. There the red excess ``R - max(G, B)`` falls as the stripe gets brighter (more light
+    raises only G and B), so it no longer tells the stripe from arc light."""
+    if frame.ndim != 3 or res.centre is None or not len(res.centre):
+        return 0.0
+    h, w = frame.shape[:2]
+    u = np.clip(np.rint(res.centre[:, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.rint(res.centre[:, 1]).astype(int), 0, h - 1)
+    px = frame[v, u].astype(int)  # (N, 3) B, G, R
+    return float(np.mean((px[:, 2] >= 250) & (px[:, :2].max(axis=1) > 125)))
+
+
+def find_view(frame: np.ndarray, tipm: Tipm | None = None, axis: str = "auto",
+              response: str = "auto") -> FrameView | None:
+    """How to look at a stream, from one clean camera frame (H, W[, 3]): which way the stripe
+    runs (``axis``: rows, columns or auto) and, for a colour camera, which response shows it
+    (``response``: red, intensity or auto; see :mod:`torchseam.core.orient`).
+
+    Auto axis: TIPM is run on the frame as it is and turned a quarter; the layout in which it
+    finds a corner wins, the one with the tighter arm fit when both do. Auto response: the
+    red excess, unless the stripe TIPM found is overexposed into white on more than
+    ``white_core_fraction`` of its centre line (:func:`white_core`), or only the red channel
+    shows a corner. None: no corner in any view allowed (not a clean stripe frame: try the
+    next one).
 
     Example:
-        >>> find_stripe_axis(np.zeros((64, 64), np.uint8)) is None
+        >>> find_view(np.zeros((64, 64), np.uint8)) is None
         True
     """
     tipm = tipm or Tipm()
     frame = check_frame(frame)
-    best: tuple[float, StripeAxis] | None = None
-    for name in ("rows", "columns"):
-        axis = StripeAxis(name, frame.shape[0])
-        res = tipm(np.ascontiguousarray(axis.frame(frame)))
-        if res.ok and (best is None or res.rms_px < best[0]):
-            best = (res.rms_px, axis)
-    return None if best is None else best[1]
+    axes = ("rows", "columns") if axis == "auto" else (axis,)
+    responses = ("red", "intensity") if response == "auto" else (response,)
+    for resp in responses:
+        best: tuple[float, FrameView, TipmResult] | None = None
+        for name in axes:
+            view = FrameView(name, frame.shape[0], resp)
+            res = tipm(np.ascontiguousarray(view.frame(frame)))
+            if res.ok and (best is None or res.rms_px < best[0]):
+                best = (res.rms_px, view, res)
+        if best is None:
+            continue
+        _, view, res = best
+        if (response == "auto" and resp == "red" and frame.ndim == 3
+                and white_core(np.ascontiguousarray(FrameView(view.axis, frame.shape[0]).frame(
+                    frame)), res) > tipm.cfg.white_core_fraction):
+            return FrameView(view.axis, frame.shape[0], "intensity")
+        return view
+    return None
