@@ -10,6 +10,7 @@ from torchseam.core.transforms import apply, invert
 from torchseam.live.locate import SeamLocator
 from torchseam.sim.scene import Scene
 from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.track.base import Tracker, TrackResult
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import AnchoredTracker, arm_directions
 from torchseam.vision.tipm import Tipm
@@ -36,7 +37,7 @@ def test_arm_directions_are_the_drawn_arms():
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
 
 
-class _Lender:
+class _Lender(Tracker):
     """A tracker at a fixed pixel that lends given arm directions (or none)."""
 
     def __init__(self, uv, dirs):
@@ -47,6 +48,9 @@ class _Lender:
 
     def update(self, frame):
         return self.uv.copy(), int(TrackStatus.TRACKED)
+
+    def track(self, frame):
+        return TrackResult(self.uv.copy(), int(TrackStatus.TRACKED), arm_dirs=self.arm_dirs)
 
 
 def test_lent_arm_directions_are_used_only_when_ecal_agrees(cell):
@@ -116,10 +120,8 @@ def _arm_errors_deg(locator, cell, scene, seq):
 
 
 class _NoLending(AnchoredTracker):
-    def update(self, frame):
-        out = super().update(frame)
-        self.arm_dirs = None
-        return out
+    def track(self, frame):
+        return dataclasses.replace(super().track(frame), arm_dirs=None)
 
 
 @pytest.mark.parametrize("angle", [60.0, 90.0])

@@ -106,14 +106,13 @@ class SeamLocator:
                 return self.tri.expect(p_a, p_b, T_B_F)
         return None
 
-    def _stripe(self, frame: np.ndarray, uv: np.ndarray
+    def _stripe(self, frame: np.ndarray, uv: np.ndarray,
+                lent: tuple[np.ndarray, np.ndarray, tuple[int, int]] | None
                 ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
-        """Stripe response (TIPM's ridge), mask and ROI corner around ``uv`` for ECAL. A
-        tracker that has just made them for this frame (the anchored tracker's TIPM window:
-        attribute ``stripe`` = (response, mask, (x0, y0)) or None) lends them when its window
-        holds ECAL's whole ROI; else they are made here (computing them twice cost ~0.4 ms a
-        frame)."""
-        lent = getattr(self.tracker, "stripe", None)
+        """Stripe response (TIPM's ridge), mask and ROI corner around ``uv`` for ECAL. What
+        the tracker made for this frame (:attr:`TrackResult.stripe`: its TIPM window) is
+        ``lent`` and used when its window holds ECAL's whole ROI; else they are made here
+        (computing them twice cost ~0.4 ms a frame)."""
         if lent is not None:
             red, mask, (x0, y0) = lent
             h, w = frame.shape[:2]
@@ -125,18 +124,19 @@ class SeamLocator:
                 return red[win], mask[win], (u0, v0)
         return self.tipm.mask_around(frame, uv, self._roi)
 
-    def _tangent_points(self, arms: EcalResult, local: np.ndarray) -> np.ndarray:
+    def _tangent_points(self, arms: EcalResult, local: np.ndarray, lent: np.ndarray | None
+                        ) -> np.ndarray:
         """(2, 2) points on the left and right arm's tangent at the corner (window pixels).
 
         ECAL finds and checks the arms (both seen, spurious crossings rejected). A tracker that
-        fitted the arms on this frame (the anchored tracker's TIPM fix: attribute ``arm_dirs``,
-        (2, 2) unit image directions or None) lends their directions, which are 2-3x tighter
+        fitted the arms on this frame (the anchored tracker's clean TIPM fix:
+        :attr:`TrackResult.arm_dirs`, (2, 2) unit image directions or None) lends their
+        directions, which are 2-3x tighter
         than ECAL's circle crossings and not biased by a feature point off an arm (per frame
         against the true surfaces on heavy-arc rings: main-pipe arm std 0.3-0.5 against
         0.8-1.2 degrees): they are taken when both agree with ECAL's arms within
         ``tipm_agreement_deg`` (never for ECAL's occluded-arm fallback), placed ``r_max_px``
         out so that they vote as full-length arms in the look-ahead buffer."""
-        lent = getattr(self.tracker, "arm_dirs", None)
         if lent is None or arms.fallback:
             return arms.p_tangent
         ecal = np.stack([np.cos(arms.angles), np.sin(arms.angles)], axis=1)
@@ -152,18 +152,17 @@ class SeamLocator:
                 "rows", frame.shape[0])
         axis = self.axis
         frame = axis.frame(frame)  # the stripe along the rows (the same array if it is)
-        expect = getattr(self.tracker, "expect", None)
-        if expect is not None:  # a tracker that takes the robot's motion into account
-            seen = self._expect(T_B_F)
-            expect(None if seen is None else axis.to_canonical(seen))
-        uv, status = self.tracker.update(frame)
+        seen = self._expect(T_B_F)  # where the robot's motion puts the point
+        self.tracker.expect(None if seen is None else axis.to_canonical(seen))
+        res = self.tracker.track(frame)
+        uv, status = res.uv, res.status
         t1 = time.perf_counter()
         nan3, q = np.full(3, np.nan), np.full((2, 3), np.nan)
         arms_ok = fallback = False
         if status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
             return Location(axis.to_camera(uv), status, nan3, q, False, False,
                             {"track": (t1 - t0) * 1e3})
-        red, mask, (x0, y0) = self._stripe(frame, uv)
+        red, mask, (x0, y0) = self._stripe(frame, uv, res.stripe)
         local = uv - (x0, y0)
         arms = self.ecal(mask, local, red, self.prev_angles)
         t2 = time.perf_counter()
@@ -171,7 +170,7 @@ class SeamLocator:
         if arms.ok:
             arms_ok, fallback = True, arms.fallback
             self.prev_angles = arms.angles
-            pix += list(self._tangent_points(arms, local) + (x0, y0))
+            pix += list(self._tangent_points(arms, local, res.arm_dirs) + (x0, y0))
         X = self.tri(axis.to_camera(np.stack(pix)), T_B_F)
         if np.all(np.isfinite(X[0])) and status == TrackStatus.TRACKED:
             self._seen.append(X[0])
