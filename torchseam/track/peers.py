@@ -1,7 +1,8 @@
 """One interface over every tracker the CLI and the benchmarks compare.
 
-``FrameTracker``: ``init(frame, uv)`` on the first frame, then ``update(frame) -> (uv, status)``
-per BGR frame. Peers: TIPM on every frame, plain STC, EAKF-STC (the fitted module's numpy
+``FrameTracker`` (:class:`~torchseam.track.base.Tracker`): ``init(frame, uv)`` on the first
+frame, then ``track(frame) -> TrackResult`` (or ``update(frame) -> (uv, status)``) per frame,
+colour or mono. Peers: TIPM on every frame, plain STC, EAKF-STC (the fitted module's numpy
 twin, B = 1), ``anchored`` (EAKF-STC and TIPM fused by a Kalman filter on the point,
 EAKF-STC re-anchored on TIPM's fixes: the live loop's default, see
 :class:`AnchoredTracker`), and OpenCV's KCF, CSRT and MOSSE (a box around the feature
@@ -15,7 +16,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 import cv2
 import numpy as np
@@ -25,6 +25,7 @@ from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.dataset import check_frame
 from torchseam.core.errors import TorchseamError
 from torchseam.core.orient import FrameView
+from torchseam.track.base import Fix, Tracker, TrackResult
 from torchseam.track.fusion import EAKFSTC, TrackStatus
 from torchseam.track.lite import LiteEAKFSTC
 from torchseam.track.stc import STC
@@ -45,15 +46,8 @@ STRUCTURAL_STC = ("reg", "anchor", "anchor_frames")
 OPENCV_BOX_PX = 64  # side of the box the OpenCV trackers follow (twice the target, like STC)
 
 
-class FrameTracker(Protocol):
-    """What the live loop and the CLI drive. A tracker may also offer ``idle()``: work
-    for the next frame that the live loop runs between frames, after its command is out."""
-
-    name: str
-
-    def init(self, frame: np.ndarray, uv: np.ndarray) -> None: ...
-
-    def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]: ...
+#: what the live loop and the CLI drive (see :class:`~torchseam.track.base.Tracker`)
+FrameTracker = Tracker
 
 
 def grey_tensor(frame: np.ndarray, planes: list[np.ndarray] | None = None) -> torch.Tensor:
@@ -64,7 +58,7 @@ def grey_tensor(frame: np.ndarray, planes: list[np.ndarray] | None = None) -> to
     return torch.from_numpy(red_response(frame, out=planes)).unsqueeze(0)
 
 
-class TipmPerFrame:
+class TipmPerFrame(Tracker):
     """TIPM on every frame: no memory; a frame without a point is LOST (NaN)."""
 
     name = "tipm"
@@ -80,7 +74,7 @@ class TipmPerFrame:
         return res.uv, int(TrackStatus.TRACKED if res.ok else TrackStatus.LOST)
 
 
-class TorchTracker:
+class TorchTracker(Tracker):
     """Plain STC from :mod:`torchseam.track` (the batched torch module), one stream (B = 1);
     it never declares the track lost (the paper's STC has no such test)."""
 
@@ -105,7 +99,7 @@ class TorchTracker:
         return uv[0].numpy().astype(float), int(TrackStatus.TRACKED)  # STC has no status
 
 
-class LiteTracker:
+class LiteTracker(Tracker):
     """EAKF-STC for one stream: the fitted module's parameters run by its numpy twin
     :class:`~torchseam.track.lite.LiteEAKFSTC` (same equations, a third of the time at B = 1,
     where the module's tensor-op dispatch dominates)."""
@@ -131,7 +125,7 @@ class LiteTracker:
         self.lite.idle()
 
 
-class OpenCVTracker:
+class OpenCVTracker(Tracker):
     """KCF / CSRT / MOSSE following a box centred on the feature point."""
 
     def __init__(self, name: str) -> None:
@@ -186,6 +180,8 @@ class AnchorConfig:
     lost_px: float = config_field(lo=0.0, lo_open=True)
     reacquire_frames: int = config_field(lo=1)
     reacquire_step_px: float = config_field(lo=0.0, lo_open=True)
+    support_px: float = config_field(lo=0.0, lo_open=True)
+    support_points: int = config_field(lo=1)
 
 
 def load_anchor_config(path: str | Path | None = None) -> AnchorConfig:
@@ -296,23 +292,26 @@ def _inv2(A: np.ndarray) -> np.ndarray:
     return np.array([[d, -b], [-c, a]]) / det
 
 
-@dataclass(frozen=True)
-class Fix:
-    """A TIPM corner the :class:`AnchoredTracker` weighed on one frame.
+def corner_seen(res: TipmResult, support_px: float, points: int) -> bool:
+    """Whether the stripe is seen at a found corner: each arm has at least ``points``
+    centre-line points within ``support_px`` columns of it. A corner whose arms stop short
+    (glare or a gap over it) is extrapolated: a good estimate, but no evidence that the stripe
+    bends there.
 
-    Attributes:
-        uv: (2,) the corner, frame px. cov: (2, 2) its covariance before the glare term
-            (:func:`corner_cov`); inflate: the glare term's factor on it (1: no glare).
-        taken: whether the filter took it (or restarted on it).
+    Example:
+        >>> r = Tipm().corner(np.stack([np.arange(0.0, 200), 100 - np.abs(np.arange(0.0, 200)
+        ...                             - 100) * 0.5], axis=1))
+        >>> corner_seen(r, 10.0, 5)
+        True
     """
+    if res.centre is None or not len(res.centre):
+        return False
+    d = res.centre[:, 0] - res.uv[0]
+    return bool(np.sum((d < 0) & (d >= -support_px)) >= points
+                and np.sum((d > 0) & (d <= support_px)) >= points)
 
-    uv: np.ndarray
-    cov: np.ndarray
-    inflate: float
-    taken: bool
 
-
-class AnchoredTracker:
+class AnchoredTracker(Tracker):
     """EAKF-STC with TIPM as an absolute anchor, fused by a small Kalman filter on the point.
 
     Per frame: EAKF-STC tracks; TIPM looks for the stripe corner in a window around the
@@ -424,8 +423,8 @@ class AnchoredTracker:
             return
         c = self.cfg
         res = self.tipm(frame)
-        if not res.ok or (self.x is not None
-                          and np.linalg.norm(res.uv - self.x) <= c.evidence_px):
+        if (not res.ok or not corner_seen(res, c.support_px, c.support_points)
+                or (self.x is not None and np.linalg.norm(res.uv - self.x) <= c.evidence_px)):
             self._found.clear()
             return
         if self._found and np.linalg.norm(res.uv - self._found[-1]) > c.reacquire_step_px:
@@ -475,10 +474,15 @@ class AnchoredTracker:
             taken = True
         if taken:
             self.shape, self.age = arm_shape(res), 0
-        self.fix = Fix(np.asarray(anchor, float).copy(), cov, inflate, taken)
+        self.fix = Fix(np.asarray(anchor, float).copy(), cov, inflate, taken,
+                       corner_seen(res, c.support_px, c.support_points))
         return taken
 
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
+        res = self.track(frame)
+        return res.uv, res.status
+
+    def track(self, frame: np.ndarray) -> TrackResult:
         """The point on ``frame`` and its status, decided by what the image shows there:
         ``TRACKED`` only when this frame's TIPM corner (the stripe bends: two arms meet) lies
         within ``evidence_px`` of the point; ``COASTING`` when the point is predicted (no
@@ -503,7 +507,8 @@ class AnchoredTracker:
             if res.ok:
                 self.inner.init(frame, res.uv)
                 self._restart(res.uv, self.Q.copy(), arm_shape(res))
-                return self._verdict(res.uv, True)
+                return self._verdict(res.uv, corner_seen(res, self.cfg.support_px,
+                                                         self.cfg.support_points))
             return self._verdict(self.x if self.x is not None else uv, False)
         cfg = self.cfg
         self.age += 1
@@ -536,12 +541,12 @@ class AnchoredTracker:
         out = self.x.copy()
         if taken and np.linalg.norm(out - uv) > cfg.reanchor_px:
             self.inner.reanchor(frame, out)
-        evidence = self.fix is not None and float(
+        evidence = self.fix is not None and self.fix.seen and float(
             np.linalg.norm(self.fix.uv - out)) <= cfg.evidence_px
         return self._verdict(out, evidence)
 
-    def _verdict(self, out: np.ndarray, evidence: bool) -> tuple[np.ndarray, int]:
-        """``(out, status)`` of a frame with or without evidence at ``out`` (see update)."""
+    def _verdict(self, out: np.ndarray, evidence: bool) -> TrackResult:
+        """The result of a frame with or without evidence at ``out`` (see track)."""
         c = self.cfg
         if evidence:
             self.coast, self.last_evidence = 0, np.asarray(out, float).copy()
@@ -552,33 +557,51 @@ class AnchoredTracker:
                    or float(np.linalg.norm(out - self.last_evidence)) > c.lost_px)
             self.status = int(TrackStatus.LOST if far or self.coast > c.lost_frames
                               else TrackStatus.COASTING)
-        return out, self.status
+        return TrackResult(np.asarray(out, float), self.status, self.fix, self.stripe,
+                           self.arm_dirs, self.glare)
 
 
-def fitted_eakf_stc(model: dict | None = None) -> EAKFSTC:
-    """EAKF-STC with the fitted parameters of ``models/`` when present (else the paper's
-    defaults, with a warning). An explicit ``model`` configuration (TrackerConfig fields) is
-    taken as given: the fitted file would silently overwrite the values asked for."""
+def fitted_eakf_stc(model: dict | EAKFSTC | None = None,
+                    model_path: str | Path | None = None) -> EAKFSTC:
+    """EAKF-STC with fitted parameters: those of ``model_path`` (an EAKF-STC model file, as
+    ``torchseam train`` writes; FitError naming it when it is missing or does not fit), else
+    those of ``models/eakf_stc.safetensors`` when present (else the paper's defaults, with a
+    warning). An explicit ``model`` configuration (TrackerConfig fields) is taken as given: the
+    fitted file would silently overwrite the values asked for; a module already built is
+    returned as it is."""
+    if isinstance(model, EAKFSTC):
+        return model
+    if model and model_path is not None:
+        raise TorchseamError("give a tracker configuration or a model file, not both")
     if model:
         return EAKFSTC(model)
     from torchseam.fit import model_io  # the fitting stage owns the model file
 
     # the STC extensions are structural (their parameters exist only when switched on): build
     # the module the file was fitted as
-    path = model_io.DEFAULT_MODEL
-    fitted = (model_io.read_model(path)[1].get("tracker_config") or {}) if path.is_file() else {}
+    path = Path(model_path) if model_path is not None else model_io.DEFAULT_MODEL
+    fitted = ((model_io.read_model(path)[1].get("tracker_config") or {})
+              if model_path is not None or path.is_file() else {})
     module = EAKFSTC({k: fitted[k] for k in STRUCTURAL_STC if k in fitted})
-    model_io.load_fitted(module)
+    model_io.load_fitted(module, model_path)
     return module
 
 
-def make_tracker(name: str, model: dict | None = None) -> FrameTracker:
-    """A tracker by CLI name (see ``TRACKERS``). The EAKF-STC trackers load
-    ``models/eakf_stc.safetensors`` unless ``model`` (a TrackerConfig mapping) is given."""
+def make_tracker(name: str, model: dict | None = None,
+                 model_path: str | Path | None = None) -> FrameTracker:
+    """A tracker by CLI name (see ``TRACKERS``). The EAKF-STC trackers load ``model_path``
+    (an EAKF-STC model file), else ``models/eakf_stc.safetensors``, unless ``model`` (a
+    TrackerConfig mapping) is given. A ``model_path`` for a tracker without EAKF-STC is an
+    error (it would be ignored)."""
+    if model_path is not None and name not in ("eakf-stc", "anchored"):
+        raise TorchseamError(f"--model {model_path}: tracker {name} loads no model (only "
+                             "eakf-stc and anchored do)")
     if name == "eakf-stc":
-        return LiteTracker(fitted_eakf_stc(model))
+        return LiteTracker(fitted_eakf_stc(model, model_path))
     if name == "anchored":
-        return AnchoredTracker(model)
+        # the module is built here, so that the model file given is the one it holds
+        return AnchoredTracker(fitted_eakf_stc(model, model_path) if model_path is not None
+                               else model)
     if name == "stc":
         return TorchTracker(name, STC())
     if name == "tipm":
@@ -634,7 +657,6 @@ def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
                                  "give the start point with --init U,V")
         uv0, note = view.to_camera(res.uv), "TIPM on frame 0"
     tracker.init(first, view.to_canonical(np.asarray(uv0, float)))
-    idle = getattr(tracker, "idle", None)
     uvs, stats, secs = [np.asarray(uv0, float)], [int(TrackStatus.TRACKED)], [0.0]
     idle_secs = [0.0]
     for k, frame in enumerate(it, start=1):
@@ -642,8 +664,7 @@ def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
         uv, st = tracker.update(view.frame(check_frame(frame, name=f"frame {k}")))
         uv = view.to_camera(uv)
         t1 = time.perf_counter()
-        if idle is not None:
-            idle()
+        tracker.idle()
         idle_secs.append(time.perf_counter() - t1)
         secs.append(t1 - t0)
         uvs.append(np.asarray(uv, float))
