@@ -1,5 +1,6 @@
 """Appearance families of the frame simulator, and the benchmark's frame transforms."""
 
+import dataclasses
 import hashlib
 
 import cv2
@@ -8,9 +9,11 @@ import pytest
 import yaml
 
 from torchseam.core.config import CONFIG_DIR, FAMILY_NAMES, ConfigError, load_noise
+from torchseam.core.transforms import apply, invert
 from torchseam.sim.noise import ARC_BGR, SPATTER_BGR, STRIPE_BGR, ArcNoise
-from torchseam.sim.sensor import DEFAULT_STRIPE
-from torchseam.sim.sequence import SequenceSpec, simulate, simulate_labelled
+from torchseam.sim.scene import Scene
+from torchseam.sim.sensor import DEFAULT_STRIPE, LaserSensor
+from torchseam.sim.sequence import ARC_LIFT_MM, SequenceSpec, simulate, simulate_labelled
 from torchseam.sim.variants import rotate90, rotate90_uv, to_mono, unrotate90_uv
 
 # sha256 (first 16 hex digits) of frames rendered by the simulator before it had families:
@@ -78,13 +81,21 @@ def test_sim_family_is_the_historical_look(noise):
     np.testing.assert_array_equal(np.float32(sim.glare.bgr), ARC_BGR)
     np.testing.assert_array_equal(np.float32(sim.spatter.bgr), SPATTER_BGR)
     g, sp, ex, hz = sim.glare, sim.spatter, sim.exposure, sim.haze
-    assert (g.core, g.halo, g.size, g.aspect, g.tilt_deg, g.offset_px) == (
-        1.6, 0.8, 1.0, 1.0, 0.0, (0.0, 0.0))
+    assert (g.core, g.halo, g.size, g.aspect, g.tilt_deg, g.offset_px, g.glint) == (
+        1.6, 0.8, 1.0, 1.0, 0.0, (0.0, 0.0), 0.0)
     assert (sp.style, sp.length_scale, sp.size_px, sp.head) == ("streaks", 1.0, (1, 2), 0.0)
     assert (ex.gain, ex.gamma, ex.bleed, ex.band_prob) == (1.0, 1.0, (0.0, 0.0), 0.0)
     assert hz.amount == 0.0
     assert (sim.reflections_gain, sim.dropout_gain, sim.motion_blur_px, sim.read_noise) == (
         1.0, 1.0, 0, 0.0)
+
+
+def test_knobs_added_later_are_neutral_in_the_earlier_families(noise):
+    # split_px and glint came with the glint family: off in the four families before it (their
+    # frames are those of the renderer without the knobs)
+    for f in ("sim", "wide", "thin", "smoke"):
+        look = noise.appearance(f)
+        assert look.stripe.split_px == 0.0 and look.glare.glint == 0.0, f
 
 
 @pytest.mark.parametrize("level", [0.0, 0.6, 1.0])
@@ -138,6 +149,60 @@ def test_stripe_cross_sections_differ(clean_frames):
     assert len(core) > 500 and np.median(core[:, 1]) > 120
     # the thin one is dim
     assert np.percentile(clean_frames["thin"][0][..., 2], 99.9) < 200
+
+
+def _two_lobed(img, uv) -> float:
+    """Share of the stripe's cross-sections with two peaks and a dip between them."""
+    cols = _columns(img, uv)
+    n = 0
+    for c in cols:
+        k = int(np.argmax(c))
+        for j in range(max(1, k - 6), min(len(c) - 1, k + 7)):
+            if abs(j - k) >= 2 and c[j] >= c[j - 1] and c[j] >= c[j + 1] and c[j] > 0.3 * c[k]:
+                lo, hi = sorted((j, k))
+                if c[lo:hi + 1].min() < 0.85 * c[j]:
+                    n += 1
+                    break
+    return n / len(cols)
+
+
+def test_glint_stripe_has_two_lobes(clean_frames):
+    share = {f: _two_lobed(clean_frames[f][0], clean_frames[f][1].uv) for f in FAMILY_NAMES}
+    assert share["glint"] > 0.5, share
+    assert max(v for f, v in share.items() if f != "glint") < 0.15, share
+
+
+def test_glint_band_runs_along_the_main_pipe_across_the_stripe(cell, part, noise):
+    scene = Scene(part)
+    spec = SequenceSpec(n_frames=6, level=1.0, seed=4, family="glint")
+    frames = list(simulate(cell, part, noise, spec))
+    img, truth = frames[-1]
+    T_B_T = scene.part_pose(truth.t_s)
+    T_T_C = invert(T_B_T) @ truth.T_B_C
+    light = apply(invert(T_B_T), truth.T_B_W[:3, 3] - ARC_LIFT_MM * truth.T_B_W[:3, 2])
+    sensor = LaserSensor(cell)
+    g = sensor.arc_glint(scene.true_joint, T_T_C, light)
+    assert g.shape == (492, 656) and g.dtype == np.float32 and g.min() >= 0
+    # brightest by the arc, a long thin band from it
+    yx = np.unravel_index(np.argmax(g), g.shape)
+    assert np.hypot(yx[1] - truth.arc_uv[0], yx[0] - truth.arc_uv[1]) < 80
+    ys, xs = np.nonzero(g > 0.1 * g.max())
+    ev = np.linalg.eigvalsh(np.cov(np.stack([xs, ys])))
+    assert np.sqrt(ev[1] / ev[0]) > 3
+    # it lies on the main pipe only: it crosses the stripe's main arm, not the branch arm
+    view = sensor.view(scene.true_joint, T_T_C)
+    uv = np.round(view.uv).astype(int)
+    ok = sensor.in_image(uv)
+    on = g[uv[ok, 1], uv[ok, 0]]
+    assert on[view.surface[ok] == 1].max() > 0.1 and on[view.surface[ok] == 2].max() == 0
+    # the renderer adds it with the arc only, with no random draw of its own
+    off = dataclasses.replace(noise.families.glint,
+                              glare=dataclasses.replace(noise.families.glint.glare, glint=0.0))
+    quiet = dataclasses.replace(noise, families=dataclasses.replace(noise.families, glint=off))
+    plain = list(simulate(cell, part, quiet, spec))
+    np.testing.assert_array_equal(plain[0][0], frames[0][0])     # arc off: the same frame
+    diff = frames[-1][0].astype(int) - plain[-1][0].astype(int)
+    assert diff.min() >= 0 and (diff.max(axis=2) > 30).sum() > 300
 
 
 def _spatter_elongation(noise, family) -> float:
@@ -198,7 +263,7 @@ def test_unknown_family_is_named(cell, part, noise, tmp_path):
         return load_noise(p)
 
     with pytest.raises(ConfigError, match=r"family: expected one of sim, wide, thin, smoke, "
-                                          r"got 'bogus'"):
+                                          r"glint, got 'bogus'"):
         load(lambda d: d.update(family="bogus"))
     with pytest.raises(ConfigError, match=r"families\.bogus: unknown field"):
         load(lambda d: d["families"].update(bogus=d["families"]["sim"]))
@@ -211,6 +276,12 @@ def test_unknown_family_is_named(cell, part, noise, tmp_path):
     with pytest.raises(ConfigError, match=r"families\.smoke: missing"):
         load(lambda d: d["families"].pop("smoke"))
     assert load(lambda d: d.update(family="thin")).appearance().stripe.sigma_px == 0.9
+    # the knobs added with the glint family may be left out (files written before them)
+    old = load(lambda d: (d["families"]["sim"]["stripe"].pop("split_px"),
+                          d["families"]["sim"]["glare"].pop("glint")))
+    assert old.families.sim.stripe.split_px == 0.0 and old.families.sim.glare.glint == 0.0
+    with pytest.raises(ConfigError, match=r"families\.glint\.stripe\.split_px: expected"):
+        load(lambda d: d["families"]["glint"]["stripe"].update(split_px=-1.0))
 
 
 def test_simulate_cli_family(tmp_path, capsys):

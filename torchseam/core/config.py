@@ -200,7 +200,7 @@ class SensorNoise:
 
 
 #: The appearance families of the simulated sensor (``families:`` in ``configs/noise.yaml``).
-FAMILY_NAMES = ("sim", "wide", "thin", "smoke")
+FAMILY_NAMES = ("sim", "wide", "thin", "smoke", "glint")
 
 
 @dataclass(frozen=True)
@@ -214,6 +214,9 @@ class StripeLook:
     speckle: float = _f(lo=0.0, hi=2.0)    # log-normal speckle depth along the stripe
     speckle_px: float = _f(lo=0.25, hi=64.0)  # speckle correlation length along the stripe
     grain: float = _f(lo=0.0, hi=0.9)      # depth of the fixed surface grain
+    #: two parallel lobes this far apart across the stripe (a diode lasing in two modes; the
+    #: second weaker); 0: one line
+    split_px: float = _f(lo=0.0, hi=8.0, default=0.0)
 
 
 @dataclass(frozen=True)
@@ -227,6 +230,8 @@ class GlareLook:
     tilt_deg: float = _f(lo=-90.0, hi=90.0)  # rotation of the long axis from the vertical
     offset_px: tuple[float, ...] = _f(2)   # arc light centre relative to the torch tip pixel
     bgr: tuple[float, ...] = _f(3, lo=0.0, hi=2.0)
+    #: specular glint of the arc on the main pipe, relative to ``glare.peak``; 0: none
+    glint: float = _f(lo=0.0, hi=4.0, default=0.0)
 
 
 @dataclass(frozen=True)
@@ -288,6 +293,7 @@ class AppearanceFamilies:
     wide: AppearanceFamily
     thin: AppearanceFamily
     smoke: AppearanceFamily
+    glint: AppearanceFamily
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,8 @@ The appearance family (:class:`~torchseam.core.config.AppearanceFamily`) sets th
 glare's aspect, tilt, offset and core/halo mix; spatter as streaks (with or without bright
 heads) or round dots; the fume veil; saturated row bands of flashes caught by a rolling
 shutter. Family ``sim`` leaves every extra off, and its random stream is the historical one.
+The arc's specular glint on the main pipe (``GlareLook.glint``) needs the scene's geometry: the
+renderer adds it to the glare layer (:meth:`~torchseam.sim.sensor.LaserSensor.arc_glint`).
 """
 
 from __future__ import annotations

@@ -4,8 +4,10 @@ Physics kept: the fan leaves the projector and lights the first surface it meets
 seen only if nothing of the part lies between it and the camera; points are projected with the
 pinhole + OpenCV distortion model (``cv2.projectPoints`` is the reference); the stripe has a
 Gaussian (or flat-top super-Gaussian) cross-section, brightness falling with incidence angle, and
-speckle along it, as set by a :class:`~torchseam.core.config.StripeLook`.
-Everything geometric is done in the part frame {T}.
+speckle along it, as set by a :class:`~torchseam.core.config.StripeLook` (optionally split
+into two parallel lobes, a laser diode lasing in two modes). :meth:`LaserSensor.arc_glint` is
+the specular reflection of the arc on the main pipe. Everything geometric is done in the part
+frame {T}.
 """
 
 from __future__ import annotations
@@ -27,6 +29,20 @@ BLUR_MARGIN_PX = 16    # stripe box margin for the blur: > the Gaussian kernel's
 #: without a family, e.g. on the calibration board.
 DEFAULT_STRIPE = StripeLook(sigma_px=1.8, order=1.0, peak=235.0, bgr=(0.18, 0.24, 1.0),
                             speckle=0.25, speckle_px=2.0, grain=0.12)
+#: A split stripe (``StripeLook.split_px`` > 0): the second lobe's share of the light relative
+#: to the first (the weaker mode of the diode).
+SPLIT_SECOND_LOBE = 0.6
+# Specular glint of the arc on the main pipe (:meth:`LaserSensor.arc_glint`), an anisotropic
+# (Ward) lobe of steel ground round the pipe before welding: its slope spread along the pipe
+# axis and across it (the grinding marks run round the pipe, so the glint spreads along the
+# axis), distance (mm) from the arc at which the glint has half its brightness, evaluation grid
+# step (px; bilinear in between), depth and spacing (mm) of the grinding marks that break it up.
+GLINT_ROUGH_ALONG = 0.35
+GLINT_ROUGH_ACROSS = 0.05
+GLINT_HALF_MM = 60.0
+GLINT_STEP_PX = 4
+GLINT_MARK_DEPTH = 0.4
+GLINT_MARK_MM = 2.0
 
 
 @dataclass
@@ -86,6 +102,7 @@ class LaserSensor:
         grain = np.random.default_rng(7).standard_normal(((h + 32) // 2, (w + 32) // 2))
         self._grain_field = cv2.resize(grain.astype(np.float32), (w + 32, h + 32))
         self._grains: dict[float, np.ndarray] = {}
+        self._glint_rays: np.ndarray | None = None
 
     # ---------------------------------------------------------------- projection
     def project(self, X_C: np.ndarray) -> np.ndarray:
@@ -221,7 +238,10 @@ class LaserSensor:
         from the feature point (negative: towards the first arm) where the stripe is missing.
         ``look`` sets the cross-section, peak and speckle (default :data:`DEFAULT_STRIPE`).
         A cross-section of order p > 1 is the super-Gaussian ``exp(-(x^2 / 2 sigma^2)^p)``:
-        flat-topped, with steeper flanks than the Gaussian of the same sigma.
+        flat-topped, with steeper flanks than the Gaussian of the same sigma. A ``split_px`` > 0
+        draws that cross-section twice, ``split_px`` apart across the stripe on either side of
+        the fan's mid-plane (where the labels are), the second lobe weaker
+        (:data:`SPLIT_SECOND_LOBE`); the light of the stripe is shared between them.
         """
         look = DEFAULT_STRIPE if look is None else look
         w, h = self.size
@@ -251,6 +271,10 @@ class LaserSensor:
             arc = arc - arc[k0]
             for a0, a1 in gaps:
                 weight[(arc >= a0) & (arc <= a1)] *= 0.04
+        unit = step
+        if look.split_px > 0:
+            pts, weight, unit = _split(pts, weight, step, seg[starts], seg_len[starts],
+                                       look.split_px)
         img, box = _splat(pts, weight, w, h)
         # grainy laser speckle on the surface: a random crop of a fixed speckle field
         dy, dx = rng.integers(0, 32, 2)
@@ -265,11 +289,90 @@ class LaserSensor:
         ys, xs = slice(max(0, y0 - m), min(h, y1 + m)), slice(max(0, x0 - m), min(w, x1 + m))
         sub = cv2.GaussianBlur(img[ys, xs], (0, 0), sigma)
         if look.order != 1.0:
-            sub = _super_gaussian(sub, _splat(pts, step, w, h)[0][ys, xs], sigma, look.order)
+            sub = _super_gaussian(sub, _splat(pts, unit, w, h)[0][ys, xs], sigma, look.order)
         sub *= look.peak * np.sqrt(2 * np.pi) * sigma
         sub *= self.grain(look.grain)[dy:dy + h, dx:dx + w][ys, xs]
         img[ys, xs] = sub
         return img
+
+    def arc_glint(self, joint: PipeJoint, T_T_C: np.ndarray, light_T: np.ndarray) -> np.ndarray:
+        """Float32 (H, W) specular glint of a point light (the arc) at ``light_T`` ({T}, mm)
+        on the main pipe, about [0, 1]: an anisotropic lobe, sharp across the pipe and spread
+        along it, on the pixels that see the main pipe where the light reaches it, fading with
+        the distance from the light and broken by the grinding marks. On the cylinder it is a
+        band along the pipe from the arc outwards. Evaluated every ``GLINT_STEP_PX`` pixels
+        and interpolated."""
+        w, h = self.size
+        rays = self._glint_grid()
+        R, c = T_T_C[:3, :3], T_T_C[:3, 3]
+        d = rays @ R.T
+        t, surf = joint.raycast(c, d)
+        out = np.zeros(len(d))
+        idx = np.nonzero(surf == 1)[0]
+        if len(idx):
+            P = c + t[idx, None] * d[idx]
+            n = joint.normal_main(P)
+            to_l = light_T - P
+            dist = np.linalg.norm(to_l, axis=1)
+            to_l /= np.maximum(dist, 1e-9)[:, None]
+            half = to_l - d[idx]
+            half /= np.maximum(np.linalg.norm(half, axis=1), 1e-12)[:, None]
+            # half vector in the surface frame: along the axis (x of {T}), round the pipe, normal
+            hn = np.maximum(np.einsum("ij,ij->i", n, half), 1e-3)
+            ha = half[:, 0]
+            hr = n[:, 1] * half[:, 2] - n[:, 2] * half[:, 1]
+            lobe = np.exp(-((ha / GLINT_ROUGH_ALONG) ** 2 + (hr / GLINT_ROUGH_ACROSS) ** 2)
+                          / hn**2)
+            lit = np.einsum("ij,ij->i", n, to_l) > 0.0
+            # the light must reach the point (the branch shadows the far side)
+            k = np.nonzero(lit & (lobe > 1e-4))[0]
+            t_l, _ = joint.raycast(P[k] + 0.5 * n[k], to_l[k])
+            reach = np.zeros(len(idx), bool)
+            reach[k] = t_l >= dist[k] - 1.0
+            val = lobe / (1.0 + (dist / GLINT_HALF_MM) ** 2) * _grinding_marks(P[:, 0])
+            out[idx] = np.where(reach, val, 0.0)
+        s = GLINT_STEP_PX
+        gw, gh = -(-w // s), -(-h // s)
+        img = cv2.resize(out.reshape(gh, gw).astype(np.float32), (gw * s, gh * s),
+                         interpolation=cv2.INTER_LINEAR)
+        return np.ascontiguousarray(img[:h, :w])
+
+    def _glint_grid(self) -> np.ndarray:
+        """(N, 3) unit rays in {C} through the centres of ``GLINT_STEP_PX`` pixel cells (the
+        points ``cv2.resize`` interpolates between), row by row; computed once."""
+        if self._glint_rays is None:
+            w, h = self.size
+            s = GLINT_STEP_PX
+            u = np.arange(-(-w // s)) * s + (s - 1) / 2
+            v = np.arange(-(-h // s)) * s + (s - 1) / 2
+            uv = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 1, 2)
+            xy = cv2.undistortPoints(uv, self.K, self.dist).reshape(-1, 2)
+            r = np.c_[xy, np.ones(len(xy))]
+            self._glint_rays = r / np.linalg.norm(r, axis=1, keepdims=True)
+        return self._glint_rays
+
+
+_MARKS = np.random.default_rng(11).standard_normal(4096)
+
+
+def _grinding_marks(x_mm: np.ndarray) -> np.ndarray:
+    """(N,) reflectance of the grinding marks round the main pipe at axial positions ``x_mm``:
+    a fixed smooth random profile along the axis (mean about 1)."""
+    prof = np.interp(x_mm / GLINT_MARK_MM, np.arange(len(_MARKS)), _MARKS, period=len(_MARKS))
+    return np.clip(1.0 + GLINT_MARK_DEPTH * prof, 0.0, None)
+
+
+def _split(pts: np.ndarray, weight: np.ndarray, step: np.ndarray, seg: np.ndarray,
+           seg_len: np.ndarray, split_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The splat samples of a stripe split into two parallel lobes ``split_px`` apart across
+    it (along each sample's segment normal), the second :data:`SPLIT_SECOND_LOBE` as bright
+    as the first. Returns the points, their weights and their unit weights (``step`` per
+    lobe, for the super-Gaussian profile)."""
+    along = seg / np.maximum(seg_len, 1e-9)[:, None]
+    off = 0.5 * split_px * np.stack([-along[:, 1], along[:, 0]], axis=1)
+    a = 1.0 / (1.0 + SPLIT_SECOND_LOBE)
+    return (np.concatenate([pts + off, pts - off]),
+            np.concatenate([a * weight, (1.0 - a) * weight]), np.concatenate([step, step]))
 
 
 def _super_gaussian(blurred: np.ndarray, unit: np.ndarray, sigma: float, order: float

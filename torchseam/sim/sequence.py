@@ -5,9 +5,9 @@ deviates from the design; so the feature point wanders in the image the way it d
 cell. Every frame carries its ground truth (:class:`FrameTruth`).
 
 The appearance family (``families:`` in ``configs/noise.yaml``) sets how the frame looks:
-stripe cross-section and colour, glare and spatter shapes, fume, motion blur and the camera's
-exposure and response. It never changes the geometry, so the labels are the same in every
-family.
+stripe cross-section and colour, glare and spatter shapes, the arc's specular glint on the
+main pipe, fume, motion blur and the camera's exposure and response. It never changes the
+geometry, so the labels are the same in every family.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from torchseam.sim.sensor import LaserSensor, camera_pose
 BACKGROUND_GREY = 6.0       # ambient light behind the band-pass filter
 WOBBLE_MM = 0.15            # robot path wobble (std, smooth)
 WOBBLE_DEG = 0.15
+ARC_LIFT_MM = 3.0           # the arc's light centre above the torch tip, along the torch axis
 # (B, G, R) <- (stripe, glare, spatter) grey layers of the ``sim`` family
 COLOUR_MIX = np.stack([STRIPE_BGR, ARC_BGR, SPATTER_BGR], axis=1).astype(np.float32)
 
@@ -125,10 +126,15 @@ class SensorRenderer:
         src = self.arc_noise if arc_on else self.clean
         centre = np.array([w / 2.0, h / 2.0])
         layers = src.next(arc_uv, view.seam_uv if np.all(np.isfinite(view.seam_uv)) else centre)
+        look = self.look
+        if arc_on and look.glare.glint > 0 and src.level > 0:
+            # the arc mirrored by the main pipe: a specular band along the pipe (no random draw)
+            light = apply(invert(T_B_T), T_B_W[:3, 3] - ARC_LIFT_MM * T_B_W[:3, 2])
+            gain = look.glare.glint * src.cfg.glare.peak * src.level * src.flicker
+            layers.glare += np.float32(gain) * sensor.arc_glint(scene.true_joint, T_T_C, light)
         if force_flash:
             layers.glare += 400.0
             layers.flags.flash = True
-        look = self.look
         stripe = (sensor.stripe_layer(view, rng, layers.gaps, look.stripe) if laser_on
                   else np.zeros((h, w), np.float32))
         chans = [stripe, layers.glare, layers.spatter]
