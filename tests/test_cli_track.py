@@ -91,3 +91,20 @@ def test_a_gap_in_the_numbering_is_reported_not_dropped(seq_dir, tmp_path, capsy
     assert {int(r["frame"]) for r in rows if r["status"] == "missing"} == {3, 4}
     io = capsys.readouterr()
     assert "2 frame number(s) missing (3, 4)" in io.err and "missing 2" in io.out
+
+
+def test_eval_counts_an_unreadable_frame_as_lost(seq_dir, tmp_path, capsys):
+    """A frame that cannot be decoded is skipped by the tracker and scored as lost (no point),
+    not tracked through and not a reason to stop."""
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for p in sorted(seq_dir.glob("0*.png"))[:10]:
+        (bad / p.name).write_bytes(p.read_bytes())
+    lines = (seq_dir / "labels.csv").read_text().splitlines()[:11]
+    (bad / "labels.csv").write_text("\n".join(lines) + "\n")
+    (bad / "00005.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
+    assert main(["eval", str(bad), "--tracker", "tipm"]) == 0
+    io = capsys.readouterr()
+    assert "1 unreadable, counted lost" in io.out and "00005.png" in io.err
+    row = io.out.strip().splitlines()[-1].split()
+    assert int(row[1]) == 10 and float(row[5]) == pytest.approx(10.0)

@@ -34,7 +34,7 @@ def _folder(tmp_path, n=3, labels="frame,u,v\n0,1.5,2.5\n1,3,4\n2,5,6\n"):
     d = tmp_path / "rec"
     d.mkdir()
     for i in range(n):
-        cv2.imwrite(str(d / f"{i:05d}.png"), np.zeros((4, 4, 3), np.uint8))
+        cv2.imwrite(str(d / f"{i:05d}.png"), np.zeros((16, 16, 3), np.uint8))
     if labels is not None:
         (d / "labels.csv").write_text(labels)
     return d
@@ -58,11 +58,31 @@ def test_real_recording_with_only_frames_and_labels(tmp_path):
         ("frame,u,v\n0,1,2\n0,1,2\n", r"line 3: frame 0 is labelled twice"),
         ("frame,u,v\n0,1\n", r"line 2: expected 3 fields"),
         ("frame,u,v\n", "no labels below the header"),
+        ("frame,u,v\n0,16,2\n", r"line 2: u 16 lies outside the 16 x 16 px frames"),
+        ("frame,u,v\n0,1,-0.6\n", r"line 2: v -0.6 lies outside the 16 x 16 px frames"),
+        ("frame,u,v\n0,1,3e11\n", r"line 2: v 3e11 lies outside"),
     ],
 )
 def test_mislabelled_folders(tmp_path, labels, message):
     with pytest.raises(DatasetError, match=message):
         Dataset.open(_folder(tmp_path, labels=labels))
+
+
+def test_labels_on_the_image_edge_and_with_a_byte_order_mark(tmp_path):
+    """Pixel centres are on integers: -0.5 .. 15.5 lies on a 16 px frame. A spreadsheet's
+    UTF-8 byte-order mark before the header is skipped."""
+    d = _folder(tmp_path, labels=None)
+    (d / "labels.csv").write_bytes(b"\xef\xbb\xbfframe,u,v\r\n0,-0.5,15.5\r\n")
+    np.testing.assert_allclose(Dataset.open(d).labels[0], [-0.5, 15.5])
+
+
+def test_labels_can_be_left_unread(tmp_path):
+    """``track`` needs no labels: a labels.csv naming a frame without an image is not read."""
+    d = _folder(tmp_path, labels="frame,u,v\n7,1,2\n")
+    with pytest.raises(DatasetError, match="frame 7 has no image"):
+        Dataset.open(d)
+    ds = Dataset.open(d, labels=False)
+    assert ds.labels is None and len(ds) == 3
 
 
 def test_missing_or_empty_folders(tmp_path):

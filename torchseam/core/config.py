@@ -13,6 +13,7 @@ import dataclasses
 import ipaddress
 import math
 import os
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,6 +55,14 @@ def config_field(n: int | None = None, default: Any = dataclasses.MISSING, **kw:
 
 _f = config_field  # the short name used inside this module
 
+#: Camera image sides a config may give (px): a larger one is a typo, not a sensor (and would
+#: allocate gigabytes per frame).
+MIN_IMAGE_PX, MAX_IMAGE_PX = 32, 16384
+#: Pipe outer diameters a part may give (mm): what a welding cell can hold and the sensor see.
+MIN_PIPE_OD_MM, MAX_PIPE_OD_MM = 10.0, 3000.0
+#: No number in a config is larger in magnitude (the rest of the code can square it safely).
+MAX_CONFIG_NUMBER = 1e12
+
 
 @dataclass(frozen=True)
 class Pose:
@@ -73,12 +82,12 @@ class Pose:
 class CameraConfig:
     """Pinhole camera with OpenCV distortion (k1, k2, p1, p2, k3)."""
 
-    width: int = _f(lo=1)
-    height: int = _f(lo=1)
-    fx: float = _f(lo=0.0, lo_open=True)
-    fy: float = _f(lo=0.0, lo_open=True)
-    cx: float = _f()
-    cy: float = _f()
+    width: int = _f(lo=MIN_IMAGE_PX, hi=MAX_IMAGE_PX)
+    height: int = _f(lo=MIN_IMAGE_PX, hi=MAX_IMAGE_PX)
+    fx: float = _f(lo=0.0, lo_open=True, hi=1e6)
+    fy: float = _f(lo=0.0, lo_open=True, hi=1e6)
+    cx: float = _f(lo=-MAX_IMAGE_PX, hi=2 * MAX_IMAGE_PX)
+    cy: float = _f(lo=-MAX_IMAGE_PX, hi=2 * MAX_IMAGE_PX)
     dist: tuple[float, ...] = _f(5)
     #: how the laser stripe runs in the image (see torchseam.core.orient): along the rows,
     #: along the columns (sensor mounted at 90 degrees), or auto: found on the first clean frame
@@ -129,13 +138,13 @@ class CellConfig:
 class PartConfig:
     """Pipe-to-pipe joint geometry and its real-part deviations (``configs/parts/*.yaml``)."""
 
-    main_od_mm: float = _f(lo=0.0, lo_open=True)
-    branch_od_mm: float = _f(lo=0.0, lo_open=True)
+    main_od_mm: float = _f(lo=MIN_PIPE_OD_MM, hi=MAX_PIPE_OD_MM)
+    branch_od_mm: float = _f(lo=MIN_PIPE_OD_MM, hi=MAX_PIPE_OD_MM)
     intersection_angle_deg: float = _f(lo=60.0, hi=90.0)
-    branch_offset_mm: tuple[float, ...] = _f(2)
+    branch_offset_mm: tuple[float, ...] = _f(2, lo=-100.0, hi=100.0)
     main_ovality: float = _f(lo=0.0, hi=0.1)
     distortion_mm: float = _f(lo=0.0, hi=10.0)
-    distortion_period_s: float = _f(lo=0.0, lo_open=True)
+    distortion_period_s: float = _f(lo=1.0, hi=86400.0)
     placement: Pose = field(default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
     placement_error: Pose = field(
         default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
@@ -342,19 +351,43 @@ class NoiseConfig:
 
 # --------------------------------------------------------------------------- parsing
 
+_FLOAT_TEXT = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+
+
+def _shown(v: Any) -> str:
+    """``v`` for a message: a value too long to print whole is described instead."""
+    text = repr(v)
+    if len(text) <= 40:
+        return text
+    if isinstance(v, int):
+        return f"a {len(text.lstrip('-'))}-digit number"
+    return f"{text[:30]}... ({len(text)} characters)"
+
+
 def _check_number(v: Any, meta: dict[str, Any], want_int: bool) -> float | int:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ValueError(f"expected a {'whole number' if want_int else 'number'}, got {v!r}")
-    if want_int and not float(v).is_integer():
-        raise ValueError(f"expected a whole number, got {v!r}")
-    if not math.isfinite(v):
-        raise ValueError(f"expected a finite number, got {v!r}")
+        hint = ""
+        if isinstance(v, str) and _FLOAT_TEXT.match(v.strip()):
+            # YAML 1.1 reads 1e3 (no point, no exponent sign) as text
+            hint = " (YAML reads this as text: write the number with a point and an " \
+                   "exponent sign, e.g. 1.0e+3)"
+        raise ValueError(f"expected a {'whole number' if want_int else 'number'}, "
+                         f"got {_shown(v)}{hint}")
+    # (a Python int may be too large for a float: no float() or math.* on it before the bounds)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            raise ValueError(f"expected a finite number, got {v!r}")
+        if want_int and not v.is_integer():
+            raise ValueError(f"expected a whole number, got {v!r}")
     lo, hi = meta.get("lo"), meta.get("hi")
     if lo is not None and (v <= lo if meta.get("lo_open") else v < lo):
         op = ">" if meta.get("lo_open") else ">="
-        raise ValueError(f"expected a number {op} {lo}, got {v!r}")
+        raise ValueError(f"expected a number {op} {lo}, got {_shown(v)}")
     if hi is not None and v > hi:
-        raise ValueError(f"expected a number <= {hi}, got {v!r}")
+        raise ValueError(f"expected a number <= {hi}, got {_shown(v)}")
+    if abs(v) > MAX_CONFIG_NUMBER:
+        raise ValueError(f"expected a number of magnitude <= {MAX_CONFIG_NUMBER:g}, "
+                         f"got {_shown(v)}")
     return int(v) if want_int else float(v)
 
 

@@ -129,7 +129,10 @@ class Dataset:
     meta: dict[str, Any] | None
 
     @classmethod
-    def open(cls, root: str | os.PathLike[str], require_labels: bool = False) -> Dataset:
+    def open(cls, root: str | os.PathLike[str], require_labels: bool = False,
+             labels: bool = True) -> Dataset:
+        """Open and check ``root``. ``labels=False``: leave ``labels.csv`` unread (``labels``
+        is then None), for commands that need none (``track``)."""
         root = Path(root)
         if not root.exists():
             raise DatasetError(f"{root}: no such folder")
@@ -149,10 +152,12 @@ class Dataset:
             raise DatasetError(f"{root}: frame number {dup[0]} appears twice (e.g. 1.png and "
                                "00001.png)")
         paths = [p for _, p in found]
-        labels = None
+        uv = None
         lp = root / "labels.csv"
-        if lp.exists():
-            labels = _read_labels(lp, frames)
+        if not labels:
+            pass
+        elif lp.exists():
+            uv = _read_labels(lp, frames, _image_size(paths))
         elif require_labels:
             raise DatasetError(f"{root}: labels.csv is missing (header: frame,u,v)")
         meta = None
@@ -162,7 +167,7 @@ class Dataset:
                 meta = json.loads(mp.read_text())
             except (OSError, ValueError) as e:
                 raise DatasetError(f"{mp}: not valid JSON ({e})") from None
-        return cls(root, frames, paths, labels, meta)
+        return cls(root, frames, paths, uv, meta)
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -191,11 +196,39 @@ class Dataset:
         return ~np.isnan(self.labels[:, 0])
 
 
-def _read_labels(path: Path, frames: np.ndarray) -> np.ndarray:
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG file's header (its first 24 bytes), None when the file is not
+    a readable PNG."""
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    return (w, h) if w > 0 and h > 0 else None
+
+
+def _image_size(paths: list[Path]) -> tuple[int, int] | None:
+    """The frames' size (width, height): that of the first frame with a readable PNG header
+    (the reader marks a frame of another size as unreadable)."""
+    for p in paths:
+        size = _png_size(p)
+        if size is not None:
+            return size
+    return None
+
+
+def _read_labels(path: Path, frames: np.ndarray,
+                 size: tuple[int, int] | None = None) -> np.ndarray:
+    """The labels of ``labels.csv`` per frame position (NaN: unlabelled). ``size``: the frames'
+    (width, height); a label outside them (pixel centres on integers, so -0.5 .. W - 0.5) is
+    refused. A UTF-8 byte-order mark (spreadsheet programs write one) is skipped."""
     pos = {int(f): i for i, f in enumerate(frames)}
     labels = np.full((len(frames), 2), np.nan)
     try:
-        with path.open(newline="") as fh:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
             rows = list(csv.reader(fh))
     except (OSError, UnicodeDecodeError) as e:
         raise DatasetError(f"{path}: cannot read ({e})") from None
@@ -222,6 +255,13 @@ def _read_labels(path: Path, frames: np.ndarray) -> np.ndarray:
                                    ) from None
             if not math.isfinite(x):
                 raise DatasetError(f"{path}: line {line}: {name} is {cell!r}")
+            if size is not None:
+                side = size[0] if name == "u" else size[1]
+                if not -0.5 <= x <= side - 0.5:
+                    raise DatasetError(
+                        f"{path}: line {line}: {name} {cell.strip()} lies outside the "
+                        f"{size[0]} x {size[1]} px frames ({name} must be in -0.5 .. "
+                        f"{side - 0.5:g})")
             vals.append(x)
         if f not in pos:
             raise DatasetError(f"{path}: line {line}: frame {f} has no image {frame_name(f)}")

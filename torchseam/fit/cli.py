@@ -8,15 +8,19 @@ Several processes (DistributedDataParallel over gloo; each takes a shard of ever
 
     torchrun --nproc_per_node 2 train/fit_tracker.py --generate 16 --levels heavy,strike
 
-Options come from ``configs/train.yaml`` (or ``--config``), then the command line.
+Options come from ``configs/train.yaml`` (or ``--config``), then the command line. Each run
+writes into its own folder, ``runs/<--name or the start time>/``; ``--install`` makes its model
+the one the trackers load (``models/eakf_stc.safetensors``, the old one kept as a backup).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import platform
+import re
 import sys
 import time
 from pathlib import Path
@@ -31,6 +35,7 @@ import yaml
 from torchseam.core.config import ConfigError
 from torchseam.core.errors import DatasetError, TorchseamError
 from torchseam.core.report import format_table
+from torchseam.fit import model_io
 from torchseam.fit.config import TRAIN_YAML, FitConfig, load_fit_config, parse_seeds
 from torchseam.fit.data import find_sequences, generate_sequences, load_sequences
 from torchseam.fit.model_io import save_fitted
@@ -57,60 +62,140 @@ _OPTS = ("data", "val_data", "val_fraction", "generate", "levels", "seeds", "val
          "lost_px", "test_levels", "test_seeds", "test_frames", "test_data")
 
 
+def _defaults() -> dict[str, Any]:
+    """The option defaults for ``--help``: FitConfig's, over them ``configs/train.yaml``'s
+    (read leniently: a broken file is reported when the command runs, not here)."""
+    d = FitConfig().to_dict()
+    try:
+        data = yaml.safe_load(TRAIN_YAML.read_text())
+    except (OSError, yaml.YAMLError):
+        data = None
+    if isinstance(data, dict):
+        d.update({k: v for k, v in data.items() if k in d})
+    return d
+
+
+def _shown(v: Any) -> str:
+    if v is None:
+        return "none"
+    if isinstance(v, (list, tuple)):
+        return ",".join(str(x) for x in v) or "none"
+    return str(v)
+
+
+def run_name_arg(text: str) -> str:
+    """``--name``: a plain folder name under ``runs/``."""
+    if not _NAME_RE.match(text) or text in (".", ".."):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: use a plain folder name (letters, digits, '.', '_', '-')")
+    return text
+
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9._-]{1,100}$")
+#: where a training run goes unless --out names a folder: RUNS_DIR/<--name or a timestamp>
+RUNS_DIR = Path("runs")
+#: the model file's name inside a run folder
+RUN_MODEL = "eakf_stc.safetensors"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``torchseam train`` and ``train/fit_tracker.py`` (defaults: the config)."""
+    d = _defaults()
+
+    def dflt(key: str) -> str:
+        return f"(default {_shown(d[key])})"
+
     p.add_argument("--config", type=Path, default=None,
                    help=f"options file (default {TRAIN_YAML.relative_to(TRAIN_YAML.parents[1])}"
-                        " when present)")
-    d = p.add_argument_group("data")
-    d.add_argument("--data", metavar="DIR",
+                        " when present); the options below override it")
+    g = p.add_argument_group("data")
+    g.add_argument("--data", metavar="DIR",
                    help="labelled sequences: a dataset folder (frames + labels.csv) or a folder "
-                        "of them (e.g. your own recordings)")
-    d.add_argument("--val-data", metavar="DIR", help="held-out sequences for validation "
+                        f"of them (e.g. your own recordings) {dflt('data')}")
+    g.add_argument("--val-data", metavar="DIR", help="held-out sequences for validation "
                    "(default: --val-fraction of --data, or --val-seeds when generating)")
-    d.add_argument("--val-fraction", type=float, metavar="F")
-    d.add_argument("--generate", type=int, metavar="N",
-                   help="simulate N sequences per level into --cache and fit on them")
-    d.add_argument("--levels", metavar="L,L", help="noise levels to simulate (names or 0..1)")
-    d.add_argument("--seeds", metavar="SPEC", help="training seeds, e.g. 0-15 or 1,4,9")
-    d.add_argument("--val-seeds", metavar="SPEC", help="validation seeds (simulated)")
-    d.add_argument("--val-levels", metavar="L,L",
-                   help="noise levels of the simulated validation set (default: --levels)")
-    d.add_argument("--frames", type=int, metavar="N", help="frames per simulated sequence")
-    d.add_argument("--max-frames", type=int, metavar="N",
-                   help="use at most N frames per sequence (0: all)")
-    d.add_argument("--cache", metavar="DIR", help="simulated sequences and crop cache")
-    d.add_argument("--roi", type=int, metavar="PX", help="square crop side around each track")
-    d.add_argument("--margin", type=int, metavar="PX", help="crop margin around the track")
+    g.add_argument("--val-fraction", type=float, metavar="F",
+                   help=f"share of --data held out for validation {dflt('val_fraction')}")
+    g.add_argument("--generate", type=int, metavar="N",
+                   help="simulate N sequences per level into --cache and fit on them "
+                        f"{dflt('generate')}")
+    g.add_argument("--levels", metavar="L,L",
+                   help=f"noise levels to simulate (names or 0..1) {dflt('levels')}")
+    g.add_argument("--seeds", metavar="SPEC",
+                   help=f"training seeds, e.g. 0-15 or 1,4,9 {dflt('seeds')}")
+    g.add_argument("--val-seeds", metavar="SPEC",
+                   help=f"validation seeds (simulated) {dflt('val_seeds')}")
+    g.add_argument("--val-levels", metavar="L,L",
+                   help="noise levels of the simulated validation set (empty: --levels) "
+                        f"{dflt('val_levels')}")
+    g.add_argument("--frames", type=int, metavar="N",
+                   help=f"frames per simulated sequence {dflt('frames')}")
+    g.add_argument("--max-frames", type=int, metavar="N",
+                   help=f"use at most N frames per sequence (0: all) {dflt('max_frames')}")
+    g.add_argument("--cache", metavar="DIR",
+                   help=f"simulated sequences and crop cache {dflt('cache')}")
+    g.add_argument("--roi", type=int, metavar="PX",
+                   help=f"square crop side around each track {dflt('roi')}")
+    g.add_argument("--margin", type=int, metavar="PX",
+                   help=f"crop margin around the track {dflt('margin')}")
     o = p.add_argument_group("optimisation")
     o.add_argument("--fit", metavar="G,G", help="parameter groups to fit: lam,a,b,q,r,rho,guard"
-                   " and optionally alpha,sigma,beta")
-    o.add_argument("--epochs", type=int)
-    o.add_argument("--batch", type=int, help="sequences per step (global under torchrun)")
-    o.add_argument("--chunk", type=int, help="truncated-BPTT length (frames)")
-    o.add_argument("--lr", type=float)
-    o.add_argument("--huber", type=float, metavar="PX", help="Huber delta")
-    o.add_argument("--clip", type=float, help="gradient-norm clip (0: none)")
-    o.add_argument("--seed", type=int)
-    o.add_argument("--threads", type=int, help="torch threads per process")
-    o.add_argument("--dtype", choices=("float32", "float64"))
+                   f" and optionally alpha,sigma,beta {dflt('fit')}")
+    o.add_argument("--epochs", type=int, metavar="N", help=f"passes over the data {dflt('epochs')}")
+    o.add_argument("--batch", type=int, metavar="N",
+                   help=f"sequences per step (global under torchrun) {dflt('batch')}")
+    o.add_argument("--chunk", type=int, metavar="N",
+                   help=f"truncated-BPTT length (frames) {dflt('chunk')}")
+    o.add_argument("--lr", type=float, metavar="LR",
+                   help=f"Adam learning rate on the raw parameters {dflt('lr')}")
+    o.add_argument("--huber", type=float, metavar="PX", help=f"Huber delta {dflt('huber')}")
+    o.add_argument("--clip", type=float, metavar="NORM",
+                   help=f"gradient-norm clip (0: none) {dflt('clip')}")
+    o.add_argument("--seed", type=int, metavar="N",
+                   help=f"random seed: batch order, validation split {dflt('seed')}")
+    o.add_argument("--threads", type=int, metavar="N",
+                   help=f"torch threads per process {dflt('threads')}")
+    o.add_argument("--dtype", choices=("float32", "float64"),
+                   help=f"arithmetic of the fit {dflt('dtype')}")
     o.add_argument("--tracker", metavar="K=V,...",
                    help="starting-point TrackerConfig overrides, e.g. rho=0.05,crop=bilinear "
-                        "(merged over the config file's tracker section)")
-    b = p.add_argument_group("output")
-    b.add_argument("--out", metavar="DIR", help="checkpoints, history and metrics")
-    b.add_argument("--model", metavar="FILE", help="fitted model (safetensors)")
+                        "(merged over the config file's tracker section; default: the paper's "
+                        "values)")
+    b = p.add_argument_group("output (a run folder; the model the trackers load is replaced "
+                             "only with --install)")
+    b.add_argument("--name", type=run_name_arg, metavar="NAME",
+                   help=f"run name: the run goes to {RUNS_DIR}/NAME/ (default: the start time, "
+                        "YYYYmmdd-HHMMSS)")
+    b.add_argument("--out", metavar="DIR",
+                   help=f"the run folder instead of {RUNS_DIR}/NAME: checkpoint last.pt, "
+                        "metrics.json, report.md, loss_curve.png and the model")
+    b.add_argument("--model", metavar="FILE",
+                   help=f"fitted model file to write (default RUN/{RUN_MODEL}); the shipped "
+                        "model is replaced only with --install")
+    b.add_argument("--install", action="store_true",
+                   help="also make the fitted model the one the trackers load "
+                        "(models/eakf_stc.safetensors), keeping the one it replaces as "
+                        "eakf_stc.safetensors.bak-<time> (default: off)")
     b.add_argument("--resume", nargs="?", const=True, default=False, metavar="CKPT",
-                   help="continue from OUT/last.pt (or CKPT)")
-    b.add_argument("--val-every", type=int, metavar="N")
-    b.add_argument("--lost-px", type=float)
-    b.add_argument("--no-progress", action="store_true", help="no progress bars")
+                   help="continue the run named by --name or --out from its last.pt (or from "
+                        "CKPT) (default: a new run)")
+    b.add_argument("--val-every", type=int, metavar="N",
+                   help=f"validate every N epochs {dflt('val_every')}")
+    b.add_argument("--lost-px", type=float, metavar="PX",
+                   help=f"error beyond which a frame counts as lost {dflt('lost_px')}")
+    b.add_argument("--no-progress", action="store_true",
+                   help="no progress bars (default: shown)")
     t = p.add_argument_group("held-out table (paper defaults vs fitted)")
-    t.add_argument("--test-levels", metavar="L,L")
-    t.add_argument("--test-seeds", metavar="SPEC")
-    t.add_argument("--test-frames", type=int, metavar="N")
-    t.add_argument("--test-data", metavar="DIR")
-    t.add_argument("--no-test", action="store_true", help="skip the held-out table")
+    t.add_argument("--test-levels", metavar="L,L",
+                   help=f"noise levels of the simulated test set {dflt('test_levels')}")
+    t.add_argument("--test-seeds", metavar="SPEC",
+                   help=f"seeds of the simulated test set {dflt('test_seeds')}")
+    t.add_argument("--test-frames", type=int, metavar="N",
+                   help=f"frames per test sequence {dflt('test_frames')}")
+    t.add_argument("--test-data", metavar="DIR",
+                   help=f"a labelled folder to test on instead {dflt('test_data')}")
+    t.add_argument("--no-test", action="store_true",
+                   help="skip the held-out table (default: printed when there is test data)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -293,17 +378,87 @@ def _loss_png(history: list[EpochRecord], path: Path) -> None:
     plt.close(fig)
 
 
+def _file_keys(config: Path | None) -> set[str]:
+    """The options the options file sets (``--config``, else ``configs/train.yaml`` when
+    present); :func:`load_fit_config` has read and checked it already."""
+    p = Path(config) if config is not None else TRAIN_YAML
+    if config is None and not p.exists():
+        return set()
+    try:
+        data = yaml.safe_load(p.read_text())
+    except (OSError, yaml.YAMLError):
+        return set()
+    return set(data) if isinstance(data, dict) else set()
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve()
+    except OSError:
+        return False
+
+
+def run_outputs(cfg: FitConfig, args: argparse.Namespace) -> FitConfig:
+    """``cfg`` with its run folder (``out``) and model file (``model``) decided.
+
+    The run folder: ``--out``, else the options file's ``out``, else ``runs/<--name>``
+    (default name: the start time). The model: ``--model``, else the file's ``model``, else
+    ``RUN/eakf_stc.safetensors``. The model the trackers load (``models/eakf_stc.safetensors``)
+    is never the target: ``--install`` copies the run's model over it, keeping a backup. A run
+    folder already holding a run is continued only with ``--resume``.
+
+    Raises:
+        TorchseamError: naming the option that asks for something refused.
+    """
+    name = getattr(args, "name", None)
+    keys = _file_keys(getattr(args, "config", None))
+    given_out = getattr(args, "out", None) is not None or "out" in keys
+    if name is not None and getattr(args, "out", None) is not None:
+        raise TorchseamError("--name and --out both name the run folder: give one of them")
+    resume = getattr(args, "resume", False)
+    if name is not None:
+        out = RUNS_DIR / name
+    elif given_out:
+        out = Path(cfg.out)
+    else:
+        if resume is True:
+            raise TorchseamError("--resume: name the run to continue with --name NAME (its "
+                                 f"folder {RUNS_DIR}/NAME) or --out DIR")
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        out, n = RUNS_DIR / stamp, 2
+        while out.exists():  # two runs started in the same second
+            out, n = RUNS_DIR / f"{stamp}-{n}", n + 1
+    model = (Path(cfg.model) if getattr(args, "model", None) is not None or "model" in keys
+             else out / RUN_MODEL)
+    shipped = model_io.DEFAULT_MODEL
+    if _same_file(model, shipped):
+        if not getattr(args, "install", False):
+            where = "--model" if getattr(args, "model", None) is not None else "model"
+            raise TorchseamError(
+                f"{where} {model} is the model the trackers load: training writes into its run "
+                f"folder ({out}); give --install to make the result the loaded model (the old "
+                "one is kept as a backup)")
+        model = out / RUN_MODEL  # --install copies it over, with a backup
+    if out.exists() and not out.is_dir():
+        raise TorchseamError(f"run folder {out} is a file")
+    if not resume and ((out / "last.pt").exists() or model.exists()):
+        held = out / "last.pt" if (out / "last.pt").exists() else model
+        raise TorchseamError(f"{held} exists: that run would be overwritten; give another "
+                             "--name (or --out), or --resume to continue it")
+    return dataclasses.replace(cfg, out=str(out), model=str(model))
+
+
 def run(args: argparse.Namespace) -> int:
-    cfg = config_from_args(args)
+    cfg = run_outputs(config_from_args(args), args)
     info = init_distributed()
     try:
-        return _run(cfg, args.resume, info)
+        return _run(cfg, args.resume, info, install=getattr(args, "install", False))
     finally:
         if info.active and dist.is_initialized():
             dist.destroy_process_group()
 
 
-def _run(cfg: FitConfig, resume: bool | str, info: DistInfo) -> int:
+def _run(cfg: FitConfig, resume: bool | str, info: DistInfo, install: bool = False) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(cfg.threads)
     cv2.setNumThreads(1)
@@ -357,6 +512,13 @@ def _run(cfg: FitConfig, resume: bool | str, info: DistInfo) -> int:
     _loss_png(history, out / "loss_curve.png")
     print(f"\nwrote {path} ({time.perf_counter() - t0:.0f} s in all; history and metrics in "
           f"{out})")
+    if install:
+        dest, backup = model_io.install_model(path)
+        print(f"installed {path} as {dest}"
+              + (f" (the model it replaced: {backup})" if backup else ""))
+    else:
+        print(f"use it with --model {path} (track, eval, replay), or install it as the "
+              "trackers' default with train --install")
     return 0
 
 
@@ -435,7 +597,9 @@ def _tracker_fingerprint() -> dict[str, str]:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``train/fit_tracker.py`` (errors become one-line messages)."""
-    p = argparse.ArgumentParser(prog="fit_tracker", description=__doc__.splitlines()[0])
+    from torchseam.cli import OneLineParser
+
+    p = OneLineParser(prog="fit_tracker", description=__doc__.splitlines()[0])
     add_arguments(p)
     args = p.parse_args(argv)
     try:

@@ -20,8 +20,8 @@ from torch import nn
 
 from torchseam.core.errors import TorchseamError
 
-__all__ = ["DEFAULT_MODEL", "MODEL_DIR", "MODEL_FORMAT", "FitError", "load_fitted",
-           "read_model", "save_fitted"]
+__all__ = ["DEFAULT_MODEL", "MODEL_DIR", "MODEL_FORMAT", "FitError", "install_model",
+           "load_fitted", "read_model", "save_fitted"]
 
 log = logging.getLogger("torchseam.fit")
 
@@ -65,6 +65,40 @@ def save_fitted(module: nn.Module, path: str | os.PathLike[str],
     os.chmod(tmp, 0o666 & ~mask)  # an ordinary readable file, like open() would make
     os.replace(tmp, path)
     return path
+
+
+def install_model(src: str | os.PathLike[str], dest: str | os.PathLike[str] | None = None,
+                  stamp: str | None = None) -> tuple[Path, Path | None]:
+    """Replace the model the trackers load (``dest``, default :data:`DEFAULT_MODEL`) with the
+    model file ``src``, keeping the one it replaces as ``<dest>.bak-<stamp>`` (``stamp``:
+    default the local time, ``YYYYmmdd-HHMMSS``; ``-2``, ``-3``... when that name is taken).
+    ``src`` is checked to be an EAKF-STC model first; the new file appears atomically.
+
+    Returns:
+        ``(dest, backup)``; backup is None when there was no model to replace.
+
+    Raises:
+        FitError: ``src`` is not a readable EAKF-STC model file.
+    """
+    import shutil
+    import time
+
+    read_model(src)  # refuse to install something the trackers cannot load
+    dest = Path(dest) if dest is not None else DEFAULT_MODEL
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    backup = None
+    if dest.exists():
+        stamp = stamp or time.strftime("%Y%m%d-%H%M%S")
+        backup = dest.with_name(f"{dest.name}.bak-{stamp}")
+        n = 2
+        while backup.exists():
+            backup = dest.with_name(f"{dest.name}.bak-{stamp}-{n}")
+            n += 1
+        shutil.copy2(dest, backup)
+    tmp = dest.with_name(f".{dest.name}.tmp{os.getpid()}")
+    shutil.copyfile(src, tmp)
+    os.replace(tmp, dest)
+    return dest, backup
 
 
 def read_model(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:

@@ -12,6 +12,7 @@ import cv2
 import torch
 from tqdm import tqdm
 
+from torchseam.cli import MAX_SEED, model_arg, out_dir_arg, out_file_arg, seed_arg, segments_arg
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import format_table
@@ -30,14 +31,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "summary.json into --out.")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
     p.add_argument("--noise", default="heavy", help="arc-noise level: name or 0..1 (heavy)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("demo_out"),
+    p.add_argument("--seed", type=seed_arg, default=0,
+                   help=f"random seed of the simulation, 0 .. {MAX_SEED} (default 0)")
+    p.add_argument("--out", type=out_dir_arg, default=Path("demo_out"),
                    help="report folder (default demo_out)")
     p.add_argument("--no-video", action="store_true", help="skip the MP4")
     p.add_argument("--fault", action="append", default=[], metavar="FAULT",
                    help=f"inject a fault mid-segment ({', '.join(FAULTS)}); repeat or "
                         "comma-separate to combine")
-    p.add_argument("--segments", default="abcdef", help="which segments (default abcdef)")
+    p.add_argument("--segments", type=segments_arg, default="abcdef",
+                   help="which segments, each letter of abcdef at most once (default abcdef)")
     p.add_argument("--tracker", choices=TRACKERS, default="anchored",
                    help="feature-point tracker (default anchored: EAKF-STC fused with TIPM)")
     p.add_argument("--length-mm", type=float, default=None,
@@ -65,8 +68,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="frame rate for time stamps the source lacks (default: the file's, "
                         "else 25)")
     r.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
-    r.add_argument("--out", type=Path, default=None,
-                   help="CSV of frame,t_s,u,v,status,x,y,z per frame")
+    r.add_argument("--out", type=out_file_arg, default=None,
+                   help="CSV of frame,t_s,u,v,status,x,y,z per frame (default: none)")
+    r.add_argument("--model", type=model_arg, default=None, metavar="FILE",
+                   help="EAKF-STC model file for the eakf-stc and anchored trackers (default "
+                        "models/eakf_stc.safetensors)")
     r.set_defaults(func=run_replay_cmd)
 
 
@@ -112,7 +118,8 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
                  for e in meta["frames"] if "seam_mm" in e and "frame" in e}
     t0 = time.perf_counter()
     with source:
-        res = run_replay(cell, source, make_tracker(args.tracker), pose, uv0,
+        res = run_replay(cell, source, make_tracker(args.tracker, model_path=args.model),
+                         pose, uv0,
                          max_frames=args.max_frames, truth=truth)
     wall = time.perf_counter() - t0
     n = len(res.index)

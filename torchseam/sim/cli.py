@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from torchseam.cli import MAX_SEED, out_dir_arg, seed_arg
 from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.sim.record import contact_sheet, write_sequence
 from torchseam.sim.sequence import SequenceSpec
+
+#: largest ``--start-mm`` (the seam is a closed ring of well under a metre: larger values are
+#: typos, and at 1e16 mm a frame's step no longer changes the float)
+MAX_START_MM = 1e6
 
 
 def add_world_options(p: argparse.ArgumentParser) -> None:
@@ -26,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "simulate", help="render a simulated laser-sensor sequence with ground truth",
         description="Render frames of the simulated sensor riding along the seam and write them "
                     "as a dataset folder: NNNNN.png, labels.csv (frame,u,v), meta.json.")
-    p.add_argument("out", type=Path, help="output folder")
+    p.add_argument("out", type=out_dir_arg, help="output folder")
     p.add_argument("--frames", type=int, default=100, help="number of frames (default 100)")
     p.add_argument("--noise", default="clean",
                    help="arc-noise level: a name from configs/noise.yaml (clean, light, strike, "
@@ -34,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--family", choices=FAMILY_NAMES, default=None, metavar="NAME",
                    help="appearance family from the noise model's families: "
                         f"{', '.join(FAMILY_NAMES)} (default: its `family`)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0,
+                   help=f"random seed, 0 .. {MAX_SEED} (default 0)")
     p.add_argument("--start-mm", type=float, default=None,
                    help="seam arc length at the first frame (default: random from the seed)")
     p.add_argument("--preview", action="store_true",
@@ -47,6 +54,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.frames < 1:
         raise TorchseamError(f"--frames must be at least 1, got {args.frames}")
+    if args.start_mm is not None and not (math.isfinite(args.start_mm)
+                                          and abs(args.start_mm) <= MAX_START_MM):
+        raise TorchseamError(f"--start-mm must be an arc length within +-{MAX_START_MM:g} mm "
+                             f"(the seam repeats every lap), got {args.start_mm}")
     cell, part, noise = load_cell(args.cell), load_part(args.part), load_noise(args.noise_model)
     try:
         level = noise.level(args.noise)

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -12,13 +15,21 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from torchseam.cli import model_arg, out_file_arg
 from torchseam.core.dataset import Dataset
-from torchseam.core.errors import TorchseamError
-from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES
+from torchseam.core.errors import FrameError, TorchseamError
+from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES, FrameView
 from torchseam.core.report import error_stats, format_table, percentiles_ms
-from torchseam.track.peers import STATUS_NAMES, TRACKERS, make_tracker, run_tracker
+from torchseam.track.fusion import TrackStatus
+from torchseam.track.peers import STATUS_NAMES, TRACKERS, make_tracker
+from torchseam.vision.tipm import Tipm, find_view
 
 MISSING = "missing"  # track.csv status of a frame number the folder has no image for
+#: track.csv status of a frame that cannot be decoded or is not the size of the folder's
+#: first frame (the tracker skips it and goes on with the next one)
+UNREADABLE = "unreadable"
+#: unreadable frames named one by one on stderr; the rest are counted
+WARN_FRAMES = 10
 
 
 def _parse_init(text: str | None) -> np.ndarray | None:
@@ -50,42 +61,119 @@ def _common(p: argparse.ArgumentParser) -> None:
                         "first frame (default)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch and OpenCV threads (default 1: the live loop's setting)")
+    p.add_argument("--model", type=model_arg, default=None, metavar="FILE",
+                   help="EAKF-STC model file for the eakf-stc and anchored trackers, e.g. a "
+                        "run's runs/NAME/eakf_stc.safetensors (default "
+                        "models/eakf_stc.safetensors)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "track", help="track the feature point through a folder of frames",
         description="Track the weld feature point through FRAMES_DIR (frames in file-name "
-                    "order; labels are not needed) and write frame,u,v,status per frame "
-                    "number (status tracked, coasting, lost, or missing for a number the "
-                    "folder has no image for).")
+                    "order; labels.csv is not read) and write frame,u,v,status per frame "
+                    "number as it goes (status tracked, coasting, lost; unreadable for a frame "
+                    "that cannot be decoded or is not the size of the first one, which the "
+                    "tracker skips; missing for a number the folder has no image for).")
     _common(p)
-    p.add_argument("--out", type=Path, default=Path("track.csv"),
-                   help="output CSV (default track.csv)")
+    p.add_argument("--out", type=out_file_arg, default=Path("track.csv"),
+                   help="output CSV, written row by row (default track.csv)")
     p.set_defaults(func=run_track)
     e = sub.add_parser(
         "eval", help="track a labelled folder and print the error table",
         description="Track FRAMES_DIR and compare with its labels.csv: RMSE, max error, "
                     "%% frames > 5 px, %% lost (> 15 px or no point), ms per frame (frame -> "
                     "point; the tracker's learning between frames, as the live loop runs it, "
-                    "is not counted).")
+                    "is not counted). A frame that cannot be read counts as lost.")
     _common(e)
     e.set_defaults(func=run_eval)
 
 
-def _track(args: argparse.Namespace, ds: Dataset, uv0: np.ndarray | None
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+def _start(img: np.ndarray, tipm: Tipm, uv0: np.ndarray | None, args: argparse.Namespace,
+           name: str, number: int) -> tuple[FrameView, np.ndarray, str]:
+    """How to view the stream and where to start, from its first readable frame ``img``
+    (as :func:`~torchseam.track.peers.run_tracker` starts)."""
+    axis, response = args.stripe_axis, args.stripe_response
+    if "auto" in (axis, response):
+        view = find_view(img, tipm, axis, response)
+        if view is None:
+            raise TorchseamError(f"{name}: no stripe corner on the first frame (stripe axis "
+                                 f"{axis}, response {response}); give --stripe-axis and "
+                                 "--stripe-response")
+    else:
+        view = FrameView(axis, img.shape[0], response)
+    if uv0 is not None:
+        return view, np.asarray(uv0, float), "given"
+    res = tipm(view.frame(img))
+    if not res.ok:
+        raise TorchseamError(f"{name}: TIPM cannot start the tracker on the first frame "
+                             f"({res.reason}); give the start point with --init U,V")
+    return view, view.to_camera(res.uv), f"TIPM on frame {number}"
+
+
+def _make_tracker(args: argparse.Namespace):
+    """The tracker ``--tracker`` names, with ``--model``'s parameters (checked here, before
+    any output is written)."""
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
-    tracker = make_tracker(args.tracker)
+    return make_tracker(args.tracker, model_path=args.model)
+
+
+def _follow(args: argparse.Namespace, tracker, ds: Dataset, uv0: np.ndarray | None,
+            on_frame: Callable[[int, np.ndarray, str], None]) -> tuple[str, list[float]]:
+    """Track ``ds`` frame by frame with ``tracker`` as the live loop drives it (``update``,
+    then its ``idle``), calling ``on_frame(position, uv, status name)`` for each frame in
+    order.
+
+    A frame that cannot be decoded or is not the size of the first readable one is reported
+    ``unreadable`` (NaN point, a warning on stderr) and skipped: the tracker goes on with the
+    next frame. The tracker starts on the first readable frame.
+
+    Returns:
+        ``(start note, seconds of each update)``.
+    """
+    idle = getattr(tracker, "idle", None)
+    tipm = Tipm()
+    view: FrameView | None = None
+    size: tuple[int, ...] = ()
+    note, secs, bad = "", [], 0
+    nan = np.full(2, np.nan)
     bar = tqdm(total=len(ds), desc=f"{args.tracker} {ds.root.name}", unit="frame", leave=False)
-    frames = (ds.read(i) for i in range(len(ds)))
-    uv, status, secs, _, note = run_tracker(tracker, frames, uv0,
-                                            progress=lambda k: bar.update(1),
-                                            axis=args.stripe_axis,
-                                            response=args.stripe_response)
-    bar.close()
-    return uv, status, secs, note
+    try:
+        for i in range(len(ds)):
+            bar.update(1)
+            try:
+                img = ds.read(i)
+                if size and img.shape[:2] != size:
+                    raise FrameError(f"{ds.paths[i]}: frame is {img.shape[1]} x {img.shape[0]} "
+                                     f"px, the folder's frames are {size[1]} x {size[0]}")
+            except FrameError as e:
+                bad += 1
+                if bad <= WARN_FRAMES:
+                    tqdm.write(f"warning: {e}: marked {UNREADABLE}, skipped", file=sys.stderr)
+                on_frame(i, nan, UNREADABLE)
+                continue
+            if view is None:
+                view, uv0, note = _start(img, tipm, uv0, args, str(ds.paths[i]),
+                                         int(ds.frames[i]))
+                size = img.shape[:2]
+                tracker.init(view.frame(img), view.to_canonical(uv0))
+                on_frame(i, uv0, STATUS_NAMES[int(TrackStatus.TRACKED)])
+                continue
+            t0 = time.perf_counter()
+            uv, st = tracker.update(view.frame(img))
+            uv = view.to_camera(uv)
+            secs.append(time.perf_counter() - t0)
+            if idle is not None:
+                idle()
+            on_frame(i, np.asarray(uv, float), STATUS_NAMES[int(st)])
+    finally:
+        bar.close()
+    if bad > WARN_FRAMES:
+        print(f"warning: {ds.root}: {bad} frames in all marked {UNREADABLE}", file=sys.stderr)
+    if view is None:
+        raise TorchseamError(f"{ds.root}: no readable frame to start on")
+    return note, secs
 
 
 def _warn_missing(ds: Dataset) -> np.ndarray:
@@ -101,23 +189,35 @@ def _warn_missing(ds: Dataset) -> np.ndarray:
 
 def run_track(args: argparse.Namespace) -> int:
     uv0 = _parse_init(args.init)
-    ds = Dataset.open(args.frames_dir)
-    gone = _warn_missing(ds)
-    uv, status, _, note = _track(args, ds, uv0)
-    rows = [[int(f), f"{u:.3f}" if np.isfinite(u) and np.isfinite(v) else "",
-             f"{v:.3f}" if np.isfinite(u) and np.isfinite(v) else "", STATUS_NAMES[int(s)]]
-            for f, (u, v), s in zip(ds.frames, uv, status, strict=True)]
-    rows += [[int(f), "", "", MISSING] for f in gone]  # one row per frame number, none dropped
-    rows.sort(key=lambda r: r[0])
-    with args.out.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["frame", "u", "v", "status"])
-        w.writerows(rows)
-    counts = {STATUS_NAMES[k]: int(np.sum(status == k)) for k in STATUS_NAMES}
-    if len(gone):
-        counts[MISSING] = len(gone)
-    print(f"{args.tracker}: {len(ds)} frames -> {args.out} (start: {note}; "
-          + ", ".join(f"{k} {n}" for k, n in counts.items()) + ")")
+    ds = Dataset.open(args.frames_dir, labels=False)  # track needs no labels
+    gone = {int(f) for f in _warn_missing(ds)}
+    tracker = _make_tracker(args)
+    counts = dict.fromkeys([*STATUS_NAMES.values(), UNREADABLE, MISSING], 0)
+    state = {"next": int(ds.frames[0])}
+    with contextlib.ExitStack() as stack:
+        out: list = []  # [file, csv writer] once the first row is due
+
+        def row(i: int, uv: np.ndarray, status: str) -> None:
+            if not out:
+                fh = stack.enter_context(args.out.open("w", newline=""))
+                out[:] = [fh, csv.writer(fh)]
+                out[1].writerow(["frame", "u", "v", "status"])
+            fh, w = out
+            f = int(ds.frames[i])
+            for g in range(state["next"], f):  # one row per frame number, none dropped
+                if g in gone:
+                    w.writerow([g, "", "", MISSING])
+                    counts[MISSING] += 1
+            state["next"] = f + 1
+            ok = bool(np.all(np.isfinite(uv)))
+            w.writerow([f, f"{uv[0]:.3f}" if ok else "", f"{uv[1]:.3f}" if ok else "", status])
+            counts[status] = counts.get(status, 0) + 1
+            fh.flush()  # a run that stops early keeps the rows so far
+
+        note, _ = _follow(args, tracker, ds, uv0, row)
+    shown = ", ".join(f"{k} {n}" for k, n in counts.items()
+                      if n or k in STATUS_NAMES.values())
+    print(f"{args.tracker}: {len(ds)} frames -> {args.out} (start: {note}; {shown})")
     return 0
 
 
@@ -125,13 +225,21 @@ def run_eval(args: argparse.Namespace) -> int:
     uv0 = _parse_init(args.init)
     ds = Dataset.open(args.frames_dir, require_labels=True)
     _warn_missing(ds)
-    uv, status, secs, note = _track(args, ds, uv0)
+    uv = np.full((len(ds), 2), np.nan)
+    n_bad = 0
+
+    def keep(i: int, p: np.ndarray, status: str) -> None:
+        nonlocal n_bad
+        uv[i] = p
+        n_bad += status == UNREADABLE
+
+    note, secs = _follow(args, _make_tracker(args), ds, uv0, keep)
     labelled = ds.labelled
     err = np.linalg.norm(uv - ds.labels, axis=1)[labelled]
     s = error_stats(err)
-    p50, p99 = percentiles_ms(secs[1:] if len(secs) > 1 else secs)
+    p50, p99 = percentiles_ms(secs if secs else [0.0])
     print(f"{args.tracker} on {ds.root} ({int(labelled.sum())} of {len(ds)} frames labelled; "
-          f"start: {note})")
+          f"start: {note}" + (f"; {n_bad} unreadable, counted lost" if n_bad else "") + ")")
     print(format_table(["tracker", "frames", "RMSE px", "max px", "> 5 px %", "lost %",
                         "ms p50", "ms p99"],
                        [[args.tracker, s["n"], s["rmse"], s["max"], s["pct_gt5"], s["pct_lost"],
