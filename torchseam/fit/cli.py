@@ -55,7 +55,8 @@ __all__ = ["add_arguments", "main", "register", "run"]
 log = logging.getLogger("torchseam.fit")
 
 # option name -> FitConfig field (value None = not given on the command line)
-_OPTS = ("data", "val_data", "val_fraction", "generate", "levels", "seeds", "val_seeds",
+_OPTS = ("data", "val_data", "val_fraction", "generate", "levels", "families", "seeds",
+         "val_seeds",
          "val_levels",
          "frames", "max_frames", "cache", "roi", "margin", "fit", "epochs", "batch", "chunk",
          "lr", "huber", "clip", "seed", "threads", "dtype", "out", "model", "val_every",
@@ -121,6 +122,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         f"{dflt('generate')}")
     g.add_argument("--levels", metavar="L,L",
                    help=f"noise levels to simulate (names or 0..1) {dflt('levels')}")
+    g.add_argument("--families", metavar="F,F",
+                   help="appearance families to simulate (configs/noise.yaml; hold one out to "
+                        f"score on it) {dflt('families')}")
     g.add_argument("--seeds", metavar="SPEC",
                    help=f"training seeds, e.g. 0-15 or 1,4,9 {dflt('seeds')}")
     g.add_argument("--val-seeds", metavar="SPEC",
@@ -271,7 +275,7 @@ def _resolve(cfg: FitConfig, info: DistInfo
         if overlap:
             raise TorchseamError(f"seeds {sorted(overlap)} are used for training and for "
                                  "validation or testing: choose disjoint seeds")
-        kw = {"progress": cfg.progress}
+        kw = {"progress": cfg.progress, "families": cfg.families}
         val_levels = cfg.val_levels or cfg.levels
         if info.main:
             train_dirs = generate_sequences(cfg.cache, cfg.levels, tr_seeds, cfg.frames, **kw)
@@ -283,14 +287,15 @@ def _resolve(cfg: FitConfig, info: DistInfo
         _barrier(info)
         if not info.main:  # the folders rank 0 made (generate reuses finished ones)
             train_dirs = generate_sequences(cfg.cache, cfg.levels, tr_seeds, cfg.frames,
-                                            progress=False)
+                                            progress=False, families=cfg.families)
             val_dirs = ([] if cfg.val_data else
                         generate_sequences(cfg.cache, val_levels, va_seeds, cfg.frames,
-                                           progress=False))
+                                           progress=False, families=cfg.families))
         desc["train"] = {"simulated": True, "levels": list(cfg.levels), "seeds": list(tr_seeds),
-                         "frames": cfg.frames}
+                         "frames": cfg.frames, "families": list(cfg.families)}
         if not cfg.val_data:
             desc["val"] = {"simulated": True, "levels": list(val_levels),
+                           "families": list(cfg.families),
                            "seeds": list(va_seeds), "frames": cfg.frames}
         if test:
             desc["test"] = {"simulated": True, "levels": list(cfg.test_levels),

@@ -96,6 +96,7 @@ class FitConfig:
     val_fraction: float = 0.2          # of --data held out when no val_data is given
     generate: int = 0                  # > 0: simulate this many sequences per level
     levels: tuple[str, ...] = ("heavy", "strike")
+    families: tuple[str, ...] = ("sim",)  # appearance families of the simulated sequences
     seeds: str = "0-15"
     val_seeds: str = "500-505"
     val_levels: tuple[str, ...] = ("heavy", "strike", "light", "clean")  # (): the same as levels
@@ -165,6 +166,12 @@ def _check(cfg: FitConfig) -> None:
     for name in ("seeds", "val_seeds", "test_seeds"):
         parse_seeds(getattr(cfg, name), name)
     need(bool(cfg.levels), "levels", "at least one noise level")
+    need(bool(cfg.families), "families", "at least one appearance family")
+    from torchseam.core.config import FAMILY_NAMES
+
+    bad = [f for f in cfg.families if f not in FAMILY_NAMES]
+    need(not bad, "families", f"appearance families of configs/noise.yaml "
+         f"({', '.join(FAMILY_NAMES)}), not {', '.join(map(str, bad))}")
     need(bool(cfg.test_levels), "test_levels", "at least one noise level")
     try:
         EAKFSTC(cfg.tracker_config())  # the tracker validates its own values

@@ -155,8 +155,10 @@ def _level_folder(name: str, level: float) -> str:
 def generate_sequences(cache: str | os.PathLike[str], levels: Sequence[str],
                        seeds: Sequence[int], n_frames: int, *, cell: str | None = None,
                        part: str | None = None, noise_model: str | None = None,
-                       progress: bool = True) -> list[Path]:
-    """Simulate one sequence per (level, seed) into ``cache/<level>-s<seed>`` (dataset format).
+                       progress: bool = True, families: Sequence[str] = ("sim",)
+                       ) -> list[Path]:
+    """Simulate one sequence per (family, level, seed) into ``cache/<level>-s<seed>`` (family
+    ``sim``) or ``cache/<family>-<level>-s<seed>`` (dataset format).
 
     A folder already holding a finished sequence of the same level, seed and length is reused.
 
@@ -171,20 +173,23 @@ def generate_sequences(cache: str | os.PathLike[str], levels: Sequence[str],
     cache = Path(cache)
     cell_c, part_c, noise_c = load_cell(cell), load_part(part), load_noise(noise_model)
     jobs = []
-    for name in levels:
-        try:
-            level = noise_c.level(name)
-        except ValueError as e:
-            raise DatasetError(f"levels: {e}") from None
-        for s in seeds:
-            jobs.append((name, level, s, cache / f"{_level_folder(name, level)}-s{s:05d}"))
+    for fam in families:
+        for name in levels:
+            try:
+                level = noise_c.level(name)
+            except ValueError as e:
+                raise DatasetError(f"levels: {e}") from None
+            for s in seeds:
+                head = "" if fam == "sim" else f"{fam}-"
+                jobs.append((fam, name, level, s,
+                             cache / f"{head}{_level_folder(name, level)}-s{s:05d}"))
     out = []
-    todo = [j for j in jobs if not _finished(j[3], j[1], j[2], n_frames)]
+    todo = [j for j in jobs if not _finished(j[4], j[2], j[3], n_frames)]
     bar = tqdm(total=len(todo) * n_frames, desc="simulate", unit="frame",
                disable=not progress or not todo)
-    for name, level, s, d in jobs:
-        if (name, level, s, d) in todo:
-            spec = SequenceSpec(n_frames=n_frames, level=level, seed=s)
+    for fam, name, level, s, d in jobs:
+        if (fam, name, level, s, d) in todo:
+            spec = SequenceSpec(n_frames=n_frames, level=level, seed=s, family=fam)
             (d / "meta.json").unlink(missing_ok=True)
             write_sequence(d, cell_c, part_c, noise_c, spec,
                            name if name in noise_c.levels else None, progress=False,
