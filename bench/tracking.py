@@ -33,6 +33,7 @@ import argparse
 import ast
 import platform
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -82,12 +83,14 @@ def reacquire_frames(err: np.ndarray, status: np.ndarray, hidden: np.ndarray) ->
     return worst
 
 
-def fitted_on() -> tuple[str, ...]:
-    """The appearance families the shipped model's training data came from (a model file
-    from before families names none: it was fitted on the only renderer there was, ``sim``)."""
-    if not model_io.DEFAULT_MODEL.is_file():
+def fitted_on(path: Path | None = None) -> tuple[str, ...]:
+    """The appearance families a model's training data came from (``path``; default the
+    shipped model; a model file from before families names none: it was fitted on the only
+    renderer there was, ``sim``)."""
+    path = path or model_io.DEFAULT_MODEL
+    if not path.is_file():
         return ()
-    info = model_io.read_model(model_io.DEFAULT_MODEL)[1].get("info") or "{}"
+    info = model_io.read_model(path)[1].get("info") or "{}"
     try:
         data = ast.literal_eval(info).get("data", {}).get("train", {})
     except (ValueError, SyntaxError):
@@ -122,6 +125,9 @@ def main() -> None:
     ap.add_argument("--trackers", default=",".join(ORDER))
     ap.add_argument("--first-seed", type=int, default=1000,
                     help="seed of the first sequence (default 1000)")
+    ap.add_argument("--model", type=Path, metavar="FILE",
+                    help="EAKF-STC model file for eakf-stc and anchored (default: the shipped "
+                         "one); the 'held out' column follows its training families")
     ap.add_argument("--batch", type=int, default=64,
                     help="B of the batched torch run (0: skip it; default 64)")
     ap.add_argument("--batch-threads", type=int, default=2)
@@ -147,7 +153,9 @@ def main() -> None:
             noise.level("heavy" if name == BEYOND else name)
         except ValueError as e:
             ap.error(f"--levels: {e} (or {BEYOND})")
-    fit = fitted_on()
+    if args.model is not None and not args.model.is_file():
+        ap.error(f"--model {args.model}: no such file")
+    fit = fitted_on(args.model)
     chosen = sorted(set(fit) | set(TUNED_ON))
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -173,8 +181,10 @@ def main() -> None:
                     for t in trackers:
                         # the view (stripe axis, colour response) found on frame 0, as the
                         # live loop's default cell config has it
-                        uv, st, sec, idle_sec, _ = run_tracker(make_tracker(t), frames, None,
-                                                               axis="auto", response="auto")
+                        path = args.model if t in ("eakf-stc", "anchored") else None
+                        uv, st, sec, idle_sec, _ = run_tracker(
+                            make_tracker(t, model_path=path), frames, None, axis="auto",
+                            response="auto")
                         e = np.linalg.norm(uv - labels, axis=1)
                         keep = arc if arc.any() else np.arange(len(e)) > 0
                         err, stat, secs, idle, seeds, coast, reacq = cell_rows[(v, t)]
