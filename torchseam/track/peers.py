@@ -137,7 +137,13 @@ class OpenCVTracker(Tracker):
         self.offset = np.zeros(2)
         self.last = np.full(2, np.nan)
 
+    @staticmethod
+    def _bgr(frame: np.ndarray) -> np.ndarray:
+        """OpenCV's trackers take colour frames: a mono frame is given as grey BGR."""
+        return cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR) if frame.ndim == 2 else frame
+
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
+        frame = self._bgr(frame)
         self.tracker = self._make()
         h = OPENCV_BOX_PX // 2
         box = (int(round(uv[0])) - h, int(round(uv[1])) - h, OPENCV_BOX_PX, OPENCV_BOX_PX)
@@ -146,7 +152,7 @@ class OpenCVTracker(Tracker):
         self.last = np.asarray(uv, float)
 
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
-        ok, box = self.tracker.update(frame)
+        ok, box = self.tracker.update(self._bgr(frame))
         if not ok:
             return self.last, int(TrackStatus.LOST)
         x, y, w, h = box
