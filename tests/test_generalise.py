@@ -286,3 +286,29 @@ def test_an_extrapolated_corner_is_no_evidence():
         res = trk.track(frame)
         assert res.fix is not None and res.fix.taken
         assert res.status == want, (res.status, res.fix)
+
+
+def test_mono_recording_runs_through_the_console(mono_dirs):
+    """The operator console replays a mono camera's recording like a colour one: tracked,
+    located, and its frame rendered for the page (in colour, with the marks)."""
+    import dataclasses
+
+    from torchseam.console.config import load_console_config
+    from torchseam.console.replay import replay_console
+    from torchseam.console.server import render_frame
+
+    _, dirs = mono_dirs
+    cfg = dataclasses.replace(load_console_config(), pace=0.0)
+    con = replay_console(dirs["mono8"], cfg)
+    params = con.validate({"step_mm": 2, "look_ahead_mm": 20, "weld_speed_mm_s": 8,
+                           "segments": "a", "length_mm": "", "noise": "heavy", "seed": 0,
+                           "faults": [], "tracker": "anchored"})
+    con.session.start(params)
+    assert con.session.join(60), [m[3] for m in con.session.messages]
+    s = con.session.summary
+    assert s["frames"] == 16 and s["pixel_rmse_px"] < 2.0, s
+    latest = con.session.latest
+    assert latest.image.ndim == 2
+    jpeg = render_frame(latest, 1.0, 80)
+    shown = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    assert shown.shape[:2] == latest.image.shape and shown.std(axis=2).max() > 0  # colour marks
