@@ -50,3 +50,27 @@ def test_torch_axis_errors_measure_the_angle_to_the_true_bisector(part):
     angle, dist = torch_axis_errors(scene, p, R_off, np.full(7, 1.0))
     np.testing.assert_allclose(angle, np.degrees(tilt), atol=0.02)
     assert dist.max() < 0.02   # the poses sit on the true seam (20 001 samples round it)
+
+
+def test_ring_poses_csv_round_trips_through_robot_check(cell, part, noise, tmp_path, capsys):
+    """Every planned command's torch pose (t, x, y, z, q1..q4 in the base frame) in the file
+    ``torchseam robot check`` reads, which accepts it unchanged and passes every pose."""
+    import numpy as np
+
+    from torchseam.live.ring import run_ring, write_ring_poses
+
+    runs = run_ring(cell, part, noise, noise.level("strike"), 1, segments=[0], length_mm=20.0)
+    assert runs[0].report is not None and runs[0].report.ok
+    path = write_ring_poses(runs, tmp_path / "poses.csv")
+    lines = path.read_text().splitlines()
+    assert lines[0] == "t,x,y,z,q1,q2,q3,q4"
+    n = len(runs[0].commands)
+    assert len(lines) == n + 1 and n >= 8
+    rows = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]])
+    np.testing.assert_allclose(rows[:, 1:4], np.array(runs[0].commands), atol=1e-4)
+    np.testing.assert_allclose(rows[:, 4:], runs[0].quats, atol=1e-8)
+    assert (np.diff(rows[:, 0]) > 0).all()  # at weld speed: 2 mm in 0.25 s
+    np.testing.assert_allclose(np.diff(rows[:, 0]), 0.25, atol=0.01)
+    capsys.readouterr()
+    assert main(["robot", "check", str(path)]) == 0
+    assert f"{n} poses: {n} ok, 0 refused" in capsys.readouterr().out

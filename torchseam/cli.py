@@ -28,6 +28,7 @@ COMMAND_MODULES = (
     "torchseam.fit.cli",       # train
     "torchseam.geometry.calib_cli",  # calibrate
     "torchseam.live.ring_cli",  # ring
+    "torchseam.plan.cli",      # plan (placement, segments, torch angles; pre-flight gate check)
     "torchseam.robot.cli",     # robot fk | ik | check | sim-controller
     "torchseam.live.cli",      # demo
     "torchseam.console.cli",   # console

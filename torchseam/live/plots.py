@@ -16,8 +16,12 @@ def quaternion_plot(segments: list[tuple[str, np.ndarray]], path: Path) -> Path:
     n = max(1, len(segments))
     fig, axes = plt.subplots(1, n, figsize=(3.2 * n, 3.0), sharey=True, squeeze=False)
     for ax, (name, q) in zip(axes[0], segments, strict=True):
+        q = np.asarray(q, dtype=float).reshape(-1, 4)  # a segment with no pose welded: (0, 4)
         for i, lab in enumerate(("q1 (w)", "q2 (x)", "q3 (y)", "q4 (z)")):
             ax.plot(np.arange(len(q)) * 2.0, q[:, i], label=lab, lw=1.2)
+        if not len(q):
+            ax.text(0.5, 0.5, "no pose welded", ha="center", va="center",
+                    transform=ax.transAxes)
         ax.set_title(f"segment {name}")
         ax.set_xlabel("path (mm)")
         ax.grid(alpha=0.3)

@@ -12,12 +12,19 @@ planned path instead.
 Each segment starts with an approach: the torch starts ``look_ahead + approach_mm`` before
 the segment with the arc off, so the stripe has seen the segment start (and TIPM has found the
 stripe on a clean frame) when the arc strikes.
+
+The segments, the part's placement and the torch's angles are the weld plan's
+(:func:`torchseam.plan.preflight.preflight`: the configured plan when the IRB 1410 can weld it,
+else the one the search finds with the reachability gate); :func:`write_ring_poses` writes the
+planned torch poses in the format of ``torchseam robot check``.
 """
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -26,7 +33,10 @@ from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
 from torchseam.core.transforms import apply, invert
 from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
 from torchseam.live.locate import Location, SeamLocator
-from torchseam.plan.path import Located, LookAheadBuffer, Segment, load_plan_config, six_segments
+from torchseam.plan.path import Located, LookAheadBuffer, Segment, load_plan_config
+from torchseam.plan.preflight import PlanReport, preflight
+from torchseam.plan.weld import SegmentPlan, torch_angles
+from torchseam.robot.poses_csv import write_pose_csv
 from torchseam.sim.joint import SeamSample
 from torchseam.sim.scene import Scene, torch_frames
 from torchseam.sim.sequence import FrameTruth, SequenceSpec, simulate
@@ -49,26 +59,43 @@ class SegmentRun:
     command_t: list[float] = field(default_factory=list)
     nominal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     scene: Scene | None = None
+    weld_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per command: when the
+    # torch gets there at weld speed, s (from the segment's arc strike)
+    report: PlanReport | None = None  # the weld plan this run followed and its pre-flight
 
 
 def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: float, seed: int,
              tracker: str = "anchored", segments: list[int] | None = None,
-             progress: Callable[[int], None] | None = None) -> list[SegmentRun]:
+             progress: Callable[[int], None] | None = None,
+             report: PlanReport | None = None,
+             length_mm: float | None = None) -> list[SegmentRun]:
     """Weld the ring in open loop; returns one :class:`SegmentRun` per segment.
 
     ``segments``: which of the six to run (default all). ``progress(n)`` is called per frame.
+    ``report``: the weld plan's pre-flight (default :func:`~torchseam.plan.preflight.preflight`
+    of ``part``); its plan's placement, segments and torch angles are used. When the robot
+    cannot weld that plan the table goes to stderr and the open-loop run goes on (it moves no
+    robot; the closed loop refuses such a plan). ``length_mm`` runs only the first mm of each
+    segment (quick runs and tests).
     """
     proc = cell.process
     plan = load_plan_config()
+    if report is None:
+        report = preflight(cell, part, config=plan)
+        if not report.ok:
+            print(report.text() + "\n(open loop: the ring is run all the same)", file=sys.stderr)
+    part = report.plan.part  # placed as planned
     runs = []
     t0 = 0.0
-    for seg in six_segments():
+    for seg in report.plan.segments:
         if segments is not None and seg.index not in segments:
             continue
         scene = Scene(part, seg.rotation_deg)
         s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
         s1 = float(scene.s_at(np.array([seg.phi_end]))[0])
         seg_len = (s1 - s0) % scene.seam_length_mm
+        if length_mm is not None:
+            seg_len = min(seg_len, float(length_mm))
         approach = proc.look_ahead_mm + plan.approach_mm
         mm_per_frame = proc.weld_speed_mm_s / proc.frame_rate_hz
         arc_on = int(np.ceil(approach / mm_per_frame))
@@ -76,7 +103,7 @@ def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
         spec = SequenceSpec(n_frames=n_frames, level=level, seed=seed * 10 + seg.index,
                             start_mm=s0 - approach, rotation_deg=seg.rotation_deg,
                             arc_on_frame=arc_on, t0_s=t0)
-        run = SegmentRun(seg, scene=scene)
+        run = SegmentRun(seg, scene=scene, report=report)
         locator = SeamLocator(cell, make_tracker(tracker))
         buf = LookAheadBuffer(maxlen=plan.buffer_points, smooth_mm=plan.smooth_mm,
                               outlier_mm=plan.outlier_mm)
@@ -100,6 +127,10 @@ def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                 progress(1)
         t0 += n_frames / proc.frame_rate_hz
         _plan_segment(run, buf, cell, s0, seg_len)
+        if run.commands:  # at weld speed from the arc strike (the first command's time)
+            steps = np.linalg.norm(np.diff(np.array(run.commands), axis=0), axis=1)
+            run.weld_t = run.truths[arc_on].t_s + np.concatenate(
+                [[0.0], np.cumsum(steps)]) / proc.weld_speed_mm_s
         # judge the located points the plan's fits did not reach (the approach, the stripe
         # past the segment end), for the located-point statistics
         entries = list({id(e): e for e in run.entries if e is not None}.values())
@@ -144,8 +175,10 @@ def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: f
     P = torch.tensor(np.array(ips))
     A = torch.tensor(np.array(arms))
     R, ok = torch_frame(P, P + A[:, 0], P + A[:, 1], tangent=torch.tensor(np.array(tangents)))
-    plan = load_plan_config()
-    R = tilt(R, plan.work_angle_deg, plan.travel_angle_deg)
+    work, travel, roll = _angles(run.segment)
+    R = tilt(R, work, travel)
+    if roll:
+        R = R @ torch.as_tensor(torch_angles(0.0, 0.0, roll), dtype=R.dtype)
     # no torch frame (no arms near the point, degenerate arms): keep the last good one and
     # say so (the axis error counts it as missing), never an identity or NaN pose
     for i in range(len(R)):
@@ -158,18 +191,32 @@ def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: f
     run.nominal = scene.nominal_tcp(s0 + np.arange(0.0, seg_len, step))[:, :3, 3]
 
 
+def _angles(seg: Segment) -> tuple[float, float, float]:
+    """Work, travel and roll angles of a planned segment (``configs/plan.yaml``'s for a
+    plain one, no roll)."""
+    if isinstance(seg, SegmentPlan):
+        return seg.angles
+    plan = load_plan_config()
+    return plan.work_angle_deg, plan.travel_angle_deg, 0.0
+
+
 def torch_axis_errors(scene: Scene, p: np.ndarray, R: np.ndarray, t_s: np.ndarray,
-                      seam: SeamSample | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      seam: SeamSample | None = None,
+                      angles: tuple[float, float] | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """Torch axis of poses (``p`` (N, 3) mm, ``R`` (N, 3, 3), robot base) against the true
     one at the nearest point of the true seam, with the part where it was at ``t_s`` (N,):
     ``(angle (N,) degrees, distance to that seam point (N,) mm)``. The true frame gets the
-    work and travel angles of ``configs/plan.yaml`` as the planned one does. ``seam``: the
-    true seam densely sampled (default: 20 001 points round it)."""
+    work and travel ``angles`` (default those of ``configs/plan.yaml``) as the planned one
+    does (a roll about the torch axis does not move it). ``seam``: the true seam densely
+    sampled (default: 20 001 points round it)."""
     if seam is None:
         seam = scene.true_joint.seam(np.linspace(0, 2 * np.pi, 20001))
-    plan = load_plan_config()
+    if angles is None:
+        plan = load_plan_config()
+        angles = (plan.work_angle_deg, plan.travel_angle_deg)
     frames = torch.tensor(torch_frames(seam)[:, :3, :3])
-    z_T = tilt(frames, plan.work_angle_deg, plan.travel_angle_deg)[:, :, 2].numpy()
+    z_T = tilt(frames, *angles)[:, :, 2].numpy()
     angle, dist = np.full(len(p), np.nan), np.full(len(p), np.nan)
     for i in range(len(p)):
         T_B_T = scene.part_pose(float(t_s[i]))
@@ -206,7 +253,7 @@ def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
         s = scene.true_joint.seam(np.linspace(0, 2 * np.pi, 20001))
         # the part as it was when the stripe saw each point
         ax, dist = torch_axis_errors(scene, np.array(run.commands), np.array(run.rotations),
-                                     np.array(run.command_t), s)
+                                     np.array(run.command_t), s, _angles(run.segment)[:2])
         planned += list(dist)
         axis += list(np.where(run.frame_ok, ax, np.nan))
         seg_of += [run.segment.name] * len(ax)
@@ -220,3 +267,17 @@ def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
                                          ("planned_mm", planned), ("nominal_mm", nominal),
                                          ("axis_deg", axis), ("command_segment", seg_of),
                                          ("command_index", index_of))}
+
+
+def write_ring_poses(runs: list[SegmentRun], path: str | Path) -> Path:
+    """``poses.csv`` of a ring: every planned command's torch TCP pose in the base frame (t,
+    x, y, z, q1..q4; ``t`` when the torch gets there at weld speed), segment after segment, in
+    the format ``torchseam robot check`` reads (:func:`~torchseam.robot.poses_csv.
+    write_pose_csv`). The part turns between segments: check a segment other than a with its
+    turned part (``torchseam plan --out`` writes ``part_<s>.yaml``)."""
+    have = [r for r in runs if r.commands]
+    if not have:
+        return write_pose_csv(path, np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0))
+    return write_pose_csv(path, np.concatenate([np.array(r.commands) for r in have]),
+                          np.concatenate([r.quats for r in have]),
+                          np.concatenate([r.weld_t for r in have]))

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchseam.core.config import CONFIG_DIR, load_config
+from torchseam.core.config import CONFIG_DIR, config_field, load_config
 
 SEGMENTS = 6
 SEGMENT_NAMES = "abcdef"
@@ -26,6 +26,39 @@ MERGE_MM = 0.1  # located points closer than this to the newest one are merged i
 MIN_MEASURED_ARMS = 3  # measured arms needed to outvote ECAL's guessed (fallback) ones
 MSAC_HYPOTHESES = 200  # point triples tried per robust fit
 WINDOW_MARGIN_MM = 1.0  # fit candidates reach this much past smooth_mm (outliers sit aside)
+
+
+@dataclass(frozen=True)
+class PlanSearch:
+    """What the weld planner may change when the configured plan fails the reachability gate
+    (``search`` in ``configs/plan.yaml``; see :mod:`torchseam.plan.weld`). Ranges are
+    ``[min, max]``; every range includes the configured value (0 for the placement)."""
+
+    min_joint_margin_deg: float = config_field(default=10.0, lo=0.0)
+    segment_start_step_deg: float = config_field(default=15.0, lo=1.0, hi=60.0)
+    yaw_deg: tuple[float, ...] = config_field(2, default=(-90.0, 90.0), lo=-180.0, hi=180.0)
+    yaw_step_deg: float = config_field(default=30.0, lo=0.0, lo_open=True)
+    tilt_deg: tuple[float, ...] = config_field(2, default=(-30.0, 30.0), lo=-90.0, hi=90.0)
+    tilt_step_deg: float = config_field(default=15.0, lo=0.0, lo_open=True)
+    shift_mm: tuple[float, ...] = config_field(2, default=(-100.0, 100.0))
+    shift_step_mm: float = config_field(default=50.0, lo=0.0, lo_open=True)
+    work_angle_deg: tuple[float, ...] = config_field(2, default=(-10.0, 10.0), lo=-45.0, hi=45.0)
+    travel_angle_deg: tuple[float, ...] = config_field(2, default=(-15.0, 15.0), lo=-45.0,
+                                                       hi=45.0)
+    roll_deg: tuple[float, ...] = config_field(2, default=(0.0, 0.0), lo=-180.0, hi=180.0)
+    angle_step_deg: float = config_field(default=5.0, lo=0.0, lo_open=True)
+    roll_step_deg: float = config_field(default=15.0, lo=0.0, lo_open=True)
+    screen_stride: int = config_field(default=3, lo=1)
+
+    def _check(self) -> None:
+        for name in ("yaw_deg", "tilt_deg", "shift_mm", "work_angle_deg", "travel_angle_deg",
+                     "roll_deg"):
+            lo, hi = getattr(self, name)
+            if not lo <= 0.0 <= hi and name in ("yaw_deg", "tilt_deg", "shift_mm", "roll_deg"):
+                raise ValueError(f"{name}: [{lo:g}, {hi:g}] must include 0 (the configured "
+                                 "placement / no roll)")
+            if lo > hi:
+                raise ValueError(f"{name}: [{lo:g}, {hi:g}] is empty (min > max)")
 
 
 @dataclass(frozen=True)
@@ -39,6 +72,14 @@ class PlanConfig:
     buffer_points: int
     work_angle_deg: float
     travel_angle_deg: float
+    search: PlanSearch = PlanSearch()
+
+    def _check(self) -> None:
+        for name in ("work_angle_deg", "travel_angle_deg"):
+            lo, hi = getattr(self.search, name)
+            v = getattr(self, name)
+            if not lo <= v <= hi:
+                raise ValueError(f"{name}: {v:g} lies outside search.{name} [{lo:g}, {hi:g}]")
 
 
 def load_plan_config(path: str | Path | None = None) -> PlanConfig:

@@ -12,6 +12,8 @@ plus an ABB quaternion q1..q4 = w, x, y, z)::
 pose in the base frame, mm, quaternion w, x, y, z; any order, extra columns ignored) and
 optionally ``t`` (time stamp of the pose, s). Without ``t`` the time between poses is the TCP
 distance at the cell's weld speed. Blank lines and lines starting with ``#`` are skipped.
+:func:`torchseam.robot.poses_csv.write_pose_csv` writes such files (``torchseam plan --out``,
+:func:`torchseam.live.ring.write_ring_poses` for a ring's commands).
 
 Exit codes: 0 all poses fine, 1 a pose is unreachable / refused, 2 bad input.
 """
@@ -25,9 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from torchseam.core.errors import TorchseamError
-
-#: Required CSV columns of ``torchseam robot check`` (``t`` is optional).
-CSV_COLUMNS = ("x", "y", "z", "q1", "q2", "q3", "q4")
+from torchseam.robot.poses_csv import CSV_COLUMNS  # the format, shared with its writer
 
 
 class PoseFileError(TorchseamError, ValueError):

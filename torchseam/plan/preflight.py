@@ -1,0 +1,186 @@
+"""Pre-flight check: the whole weld plan through the reachability gate before any motion.
+
+:func:`preflight` plans the part (:func:`torchseam.plan.weld.plan_weld`: the configured plan,
+or the searched one when the configured plan fails the gate), then runs every pose of every
+segment (the approach included) through the gate the live loop will use, and returns a
+:class:`PlanReport`: one row per segment with the poses, how many pass, the worst axis's margin
+to its range or the reason a pose is refused, the clearance to the pipes, and the positioner
+turn and torch angles chosen. ``torchseam plan --part FILE`` prints it (exit code 2 when the
+robot cannot weld the part).
+
+Example:
+    >>> from torchseam.core.config import load_cell, load_part
+    >>> report = preflight(load_cell(), load_part())
+    >>> report.ok, [v.passed for v in report.verdicts]
+    (True, [True, True, True, True, True, True])
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from torchseam.core.config import CellConfig, PartConfig
+from torchseam.plan.path import PlanConfig
+from torchseam.plan.weld import (
+    PlanEvaluator,
+    SegmentVerdict,
+    WeldPlan,
+    configured_plan,
+    plan_weld,
+)
+from torchseam.robot.kinematics import IRB1410
+
+__all__ = ["PlanReport", "preflight"]
+
+
+@dataclass(frozen=True)
+class PlanReport:
+    """A plan and the gate's verdict on every pose of it.
+
+    Attributes:
+        plan: the plan to weld (``plan.part`` carries its placement).
+        verdicts: one :class:`~torchseam.plan.weld.SegmentVerdict` per segment, every pose.
+        configured_plan: the plan as configured.
+        configured: its verdicts when it failed the gate and the plan was searched (else None:
+            ``plan`` is the configured plan).
+        part_name: what to call the part in the table (its file).
+        elapsed_s: time taken, search included.
+    """
+
+    plan: WeldPlan
+    verdicts: tuple[SegmentVerdict, ...]
+    configured_plan: WeldPlan
+    configured: tuple[SegmentVerdict, ...] | None
+    part_name: str = "part"
+    elapsed_s: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        """The robot can weld every pose of the plan."""
+        return all(v.passed for v in self.verdicts)
+
+    @property
+    def refused(self) -> list[str]:
+        """Names of the segments with a refused pose."""
+        return [s.name for s, v in zip(self.plan.segments, self.verdicts, strict=True)
+                if not v.passed]
+
+    def table(self, configured: bool = False) -> str:
+        """The per-segment table of the plan (or of the configured plan, when searched)."""
+        plan = self.configured_plan if configured else self.plan
+        verdicts = self.configured if configured else self.verdicts
+        if verdicts is None:
+            raise ValueError("the configured plan is the plan: table() shows it")
+        rows = []
+        for seg, v in zip(plan.segments, verdicts, strict=True):
+            a, b = np.degrees(seg.phi_start) % 360, np.degrees(seg.phi_end) % 360
+            if v.passed:
+                verdict = f"margin {v.margin_deg:.1f} deg (axis {v.margin_axis})"
+            else:
+                where = f"pose {v.first_refused} at {v.phi_deg[v.first_refused]:.0f} deg"
+                counts = ", ".join(f"{k} {n}" for k, n in v.counts.items())
+                verdict = f"REFUSED {v.poses - v.ok} ({counts}), first {where}: {v.reason}"
+            rows.append([seg.name, f"{a:.0f}-{b:.0f}", str(v.poses), str(v.ok),
+                         f"{v.clearance_mm:.1f}", f"{seg.rotation_deg + 0.0:.0f}",
+                         "/".join(f"{x + 0.0:g}" for x in seg.angles), verdict])
+        return _table(["segment", "branch deg", "poses", "reachable", "clearance mm",
+                       "turn deg", "work/travel/roll deg", "worst joint margin or reason"], rows)
+
+    def text(self) -> str:
+        """The whole report: the plan's choices, its table (after the configured plan's, when
+        that failed and the plan was searched) and the verdict."""
+        p, c = self.plan, self.configured_plan
+        pos = ", ".join(f"{x:.1f}" for x in p.part.placement.position_mm)
+        quat = ", ".join(f"{x:.4f}" for x in p.part.placement.quaternion)
+        out = [f"pre-flight of {self.part_name}: every pose of the six segments (approach "
+               f"included) through the reachability gate ({self.elapsed_s:.1f} s)"]
+        if self.configured is not None:
+            out += ["", f"configured plan (placement as in the part file, segment a from "
+                    f"{c.segment_start_deg:g} deg): refused on segment(s) "
+                    + ", ".join(s.name for s, v in zip(c.segments, self.configured, strict=True)
+                                if not v.passed), self.table(configured=True), "",
+                    f"searched plan ({p.candidates} candidates screened in {p.search_s:.1f} s):"]
+        else:
+            out += ["", "configured plan (it passes the gate: no search)"]
+        out += [f"  placement: {p.placement.describe()} (joint frame at ({pos}) mm, quaternion "
+                f"({quat}))",
+                f"  segment a starts at {p.segment_start_deg:g} deg of branch angle"
+                + ("" if p.segment_start_deg == c.segment_start_deg
+                   else f" (configured {c.segment_start_deg:g})"),
+                self.table()]
+        if self.ok:
+            out.append(f"plan OK: {sum(v.poses for v in self.verdicts)} poses, worst joint margin "
+                       f"{min(v.margin_deg for v in self.verdicts):.1f} deg, smallest clearance "
+                       f"{min(v.clearance_mm for v in self.verdicts):.1f} mm")
+        else:
+            out.append("the robot cannot weld this plan: segment(s) " + ", ".join(self.refused)
+                       + " refused (see the reason column)")
+            if p.searched and all(set(v.counts) <= {"clearance"} for v in self.verdicts):
+                out.append("  only clearance refusals: the torch body (configs/robot.yaml torch: "
+                           "radius, tip exclusion, clearance margin) does not fit the joint "
+                           "there at any work/travel angle within configs/plan.yaml's search "
+                           "limits")
+        return "\n".join(out)
+
+    def to_dict(self) -> dict:
+        def rows(plan: WeldPlan, verdicts) -> list[dict]:
+            return [{"segment": s.name, "poses": v.poses, "reachable": v.ok, "passed": v.passed,
+                     "joint_margin_deg": v.margin_deg if np.isfinite(v.margin_deg) else None,
+                     "margin_axis": v.margin_axis, "clearance_mm": v.clearance_mm,
+                     "refused": v.counts, "first_refused": v.first_refused, "reason": v.reason}
+                    for s, v in zip(plan.segments, verdicts, strict=True)]
+
+        out = {"part": self.part_name, "ok": self.ok, "plan": self.plan.to_dict(),
+               "segments": rows(self.plan, self.verdicts), "elapsed_s": round(self.elapsed_s, 3)}
+        if self.configured is not None:
+            out["configured"] = {"plan": self.configured_plan.to_dict(),
+                                 "segments": rows(self.configured_plan, self.configured)}
+        return out
+
+
+def _table(headers: list[str], rows: list[list[str]]) -> str:
+    """Columns aligned, the last (text) column left-aligned, the others right-aligned."""
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(headers)]
+    last = len(headers) - 1
+
+    def line(cells: list[str]) -> str:
+        return "  ".join(c.ljust(w) if i in (0, last) else c.rjust(w)
+                         for i, (c, w) in enumerate(zip(cells, widths, strict=True))).rstrip()
+
+    return "\n".join([line(headers), line(["-" * w for w in widths])] + [line(r) for r in rows])
+
+
+def preflight(cell: CellConfig, part: PartConfig, *, config: PlanConfig | None = None,
+              robot: IRB1410 | None = None, search: bool = True,
+              part_name: str | Path = "part") -> PlanReport:
+    """Plan ``part`` and check every pose of the plan with the reachability gate.
+
+    Args:
+        cell: the cell (tool, weld speed, step, look-ahead).
+        part: the part as its file describes it (its ``placement`` is the configured one).
+        config: planning settings and search limits (default ``configs/plan.yaml``).
+        robot: the kinematic model whose config holds the gate's limits (default
+            ``IRB1410()`` with ``configs/robot.yaml``).
+        search: search a plan when the configured one fails (False: check the configured plan
+            only).
+        part_name: what to call the part in the report.
+
+    Returns:
+        :class:`PlanReport`; ``report.ok`` says whether the robot can weld it, ``report.plan``
+        is the plan to weld (``report.plan.part`` the part as placed).
+    """
+    t0 = time.perf_counter()
+    ev = PlanEvaluator(cell, part, config, robot)
+    conf = configured_plan(part, ev.config)
+    conf_v = ev.check_plan(conf)
+    if all(v.passed for v in conf_v) or not search:
+        return PlanReport(conf, tuple(conf_v), conf, None, str(part_name),
+                          time.perf_counter() - t0)
+    plan = plan_weld(cell, part, evaluator=ev, configured=conf_v)
+    verdicts = tuple(ev.check_plan(plan))
+    return PlanReport(plan, verdicts, conf, tuple(conf_v), str(part_name),
+                      time.perf_counter() - t0)
