@@ -30,6 +30,12 @@ def test_ring_on_one_segment_writes_its_figures_and_every_command(tmp_path, caps
     over = [f"a{i} {a:.2f}" for i, a in enumerate(axis) if a > 1.0]
     for o in over[:12]:
         assert o in printed
+    # poses.csv: one row per command, read unchanged by `torchseam robot check`
+    poses = list(csv.DictReader((out / "poses.csv").open()))
+    assert len(poses) == n and list(poses[0]) == ["t", "x", "y", "z", "q1", "q2", "q3", "q4"]
+    capsys.readouterr()
+    assert main(["robot", "check", str(out / "poses.csv")]) == 0
+    assert f"poses: {n} ok, 0 refused" in capsys.readouterr().out
 
 
 def test_torch_axis_errors_measure_the_angle_to_the_true_bisector(part):

@@ -68,7 +68,8 @@ def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
              tracker: str = "anchored", segments: list[int] | None = None,
              progress: Callable[[int], None] | None = None,
              report: PlanReport | None = None,
-             length_mm: float | None = None) -> list[SegmentRun]:
+             length_mm: float | None = None,
+             model_path: str | Path | None = None) -> list[SegmentRun]:
     """Weld the ring in open loop; returns one :class:`SegmentRun` per segment.
 
     ``segments``: which of the six to run (default all). ``progress(n)`` is called per frame.
@@ -104,7 +105,7 @@ def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                             start_mm=s0 - approach, rotation_deg=seg.rotation_deg,
                             arc_on_frame=arc_on, t0_s=t0)
         run = SegmentRun(seg, scene=scene, report=report)
-        locator = SeamLocator(cell, make_tracker(tracker))
+        locator = SeamLocator(cell, make_tracker(tracker, model_path=model_path))
         buf = LookAheadBuffer(maxlen=plan.buffer_points, smooth_mm=plan.smooth_mm,
                               outlier_mm=plan.outlier_mm)
         T_F_C_inv = invert(cell.hand_eye.matrix())

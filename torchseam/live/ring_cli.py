@@ -11,11 +11,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from torchseam.cli import model_arg, out_dir_arg, seed_arg, segments_arg
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import format_table
 from torchseam.live.plots import quaternion_plot
-from torchseam.live.ring import ring_errors, run_ring
+from torchseam.live.ring import ring_errors, run_ring, write_ring_poses
 from torchseam.track.peers import TRACKERS
 
 
@@ -27,14 +28,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "the errors against the simulator's true seam (tracked path vs the nominal "
                     "path) and write q1..q4 along each segment.")
     p.add_argument("--noise", default="heavy", help="arc-noise level (default heavy)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_arg, default=0, help="random seed (default 0)")
     p.add_argument("--tracker", choices=TRACKERS, default="anchored",
                    help="feature-point tracker (default anchored: EAKF-STC fused with TIPM)")
-    p.add_argument("--segments", default="abcdef", help="which segments (default abcdef)")
+    p.add_argument("--segments", type=segments_arg, default="abcdef",
+                   help="which segments, each letter once (default abcdef)")
+    p.add_argument("--model", type=model_arg, metavar="FILE",
+                   help="EAKF-STC model file for eakf-stc / anchored (default: the shipped one)")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
-    p.add_argument("--out", type=Path, default=Path("ring_out"),
-                   help="folder for quaternions.png, ring.json and commands.csv (default "
-                        "ring_out)")
+    p.add_argument("--out", type=out_dir_arg, default=Path("ring_out"),
+                   help="folder for quaternions.png, ring.json, commands.csv and poses.csv "
+                        "(default ring_out)")
     p.set_defaults(func=run)
 
 
@@ -46,14 +50,11 @@ def run(args: argparse.Namespace) -> int:
         level = noise.level(args.noise)
     except ValueError as e:
         raise TorchseamError(f"--noise: {e}") from None
-    bad = sorted(set(args.segments) - set("abcdef"))
-    if bad or not args.segments:
-        raise TorchseamError(f"--segments {args.segments!r}: use letters from abcdef")
     which = sorted({"abcdef".index(c) for c in args.segments})
     args.out.mkdir(parents=True, exist_ok=True)
     bar = tqdm(desc="ring", unit="frame")
     runs = run_ring(cell, part, noise, level, args.seed, args.tracker, which,
-                    progress=bar.update)
+                    progress=bar.update, model_path=args.model)
     bar.close()
     e = ring_errors(runs)
 
@@ -106,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
         for seg, i, d, a in zip(e["command_segment"], e["command_index"], e["planned_mm"], ax,
                                 strict=True):
             f.write(f"{seg},{i},{d:.4f},{a:.3f}\n")
-    print(f"wrote {args.out / 'quaternions.png'}, {args.out / 'ring.json'} and "
-          f"{args.out / 'commands.csv'}")
+    write_ring_poses(runs, args.out / "poses.csv")  # for `torchseam robot check`
+    print(f"wrote {args.out / 'quaternions.png'}, {args.out / 'ring.json'}, "
+          f"{args.out / 'commands.csv'} and {args.out / 'poses.csv'}")
     return 0
