@@ -171,7 +171,8 @@ def _photo(seed: int, w: int = 640, h: int = 480) -> tuple[np.ndarray, np.ndarra
 
 def test_faint_thin_stripe_in_a_photograph(tmp_path, capsys):
     """detect on 640 x 480 photographs (not the camera's size) of a faint thin stripe under
-    uneven room light: the corner within 2.5 px on every one, from the command line."""
+    uneven room light, and on a mono 16-bit frame turned 90 degrees: the corner within 2.5 px
+    on every one, from the command line."""
     paths, truth = [], []
     for seed in range(5):
         img, uv = _photo(seed)
@@ -179,9 +180,18 @@ def test_faint_thin_stripe_in_a_photograph(tmp_path, capsys):
         cv2.imwrite(str(p), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
         paths.append(str(p))
         truth.append(uv)
+    # and a mono 16-bit (12 bits used) frame of the simulator, turned 90 degrees
+    from torchseam.core.config import load_cell, load_noise, load_part
+
+    f, lab, _ = simulate_labelled(load_cell(), load_part(), load_noise(),
+                                  SequenceSpec(n_frames=1, seed=4))
+    mono = np.ascontiguousarray(np.rot90(_mono(f[0]).astype(np.uint16) * 16))
+    cv2.imwrite(str(tmp_path / "mono16.png"), mono)
+    paths.append(str(tmp_path / "mono16.png"))
+    truth.append(np.array([lab[0][1], f[0].shape[1] - 1 - lab[0][0]]))
     assert main(["detect", *paths]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 5
+    assert len(lines) == 6
     for line, uv in zip(lines, truth, strict=True):
         parts = line.split()
         assert parts[1] != "none:", line
