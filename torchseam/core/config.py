@@ -134,15 +134,33 @@ class CellConfig:
     process: ProcessConfig
 
 
-@dataclass(frozen=True)
-class PartConfig:
-    """Pipe-to-pipe joint geometry and its real-part deviations (``configs/parts/*.yaml``)."""
+#: The kinds of part (``kind:`` in ``configs/parts/*.yaml``): what the branch pipe is set on
+#: (see :mod:`torchseam.sim.joint`).
+PART_KINDS = ("pipe", "offset", "plate", "sphere")
 
-    main_od_mm: float = _f(lo=MIN_PIPE_OD_MM, hi=MAX_PIPE_OD_MM)
+
+@dataclass(frozen=True, kw_only=True)
+class PartConfig:
+    """The joint's geometry and its real-part deviations (``configs/parts/*.yaml``).
+
+    ``kind`` says what the branch pipe is set on (:mod:`torchseam.sim.joint`): ``pipe`` (the
+    default: a main pipe, METHOD.md section 0), ``offset`` (a main pipe with the branch axis
+    ``design_offset_mm`` off its axis by design), ``plate`` (a flat plate) or ``sphere`` (a
+    spherical head of ``sphere_radius_mm``; ``design_offset_mm`` there puts a hillside nozzle
+    off the centre). ``main_od_mm`` and ``main_ovality`` belong to the pipe kinds only;
+    ``branch_ovality``, ``branch_offset_mm``, the clamping error and the thermal drift apply
+    to every kind.
+    """
+
+    kind: str = _f(default="pipe", choices=PART_KINDS)
+    main_od_mm: float = _f(lo=0.0, hi=MAX_PIPE_OD_MM, default=0.0)  # 0: none (plate, sphere)
     branch_od_mm: float = _f(lo=MIN_PIPE_OD_MM, hi=MAX_PIPE_OD_MM)
     intersection_angle_deg: float = _f(lo=60.0, hi=90.0)
+    design_offset_mm: float = _f(lo=-MAX_PIPE_OD_MM, hi=MAX_PIPE_OD_MM, default=0.0)
+    sphere_radius_mm: float = _f(lo=0.0, hi=MAX_PIPE_OD_MM, default=0.0)  # 0: no sphere
     branch_offset_mm: tuple[float, ...] = _f(2, lo=-100.0, hi=100.0)
-    main_ovality: float = _f(lo=0.0, hi=0.1)
+    main_ovality: float = _f(lo=0.0, hi=0.1, default=0.0)
+    branch_ovality: float = _f(lo=0.0, hi=0.1, default=0.0)
     distortion_mm: float = _f(lo=0.0, hi=10.0)
     distortion_period_s: float = _f(lo=1.0, hi=86400.0)
     placement: Pose = field(default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
@@ -150,12 +168,35 @@ class PartConfig:
         default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
 
     def _check(self) -> None:
-        R = self.main_od_mm / 2 * (1 - self.main_ovality)
-        r = self.branch_od_mm / 2
-        if r + abs(self.branch_offset_mm[1]) >= R:
-            raise ValueError(
-                "branch_od_mm: branch radius plus its y offset must stay inside the main pipe "
-                f"({r + abs(self.branch_offset_mm[1]):.1f} mm >= {R:.1f} mm)")
+        kind = self.kind
+        pipe = kind in ("pipe", "offset")
+        for name, applies in (("main_od_mm", pipe), ("main_ovality", pipe),
+                              ("sphere_radius_mm", kind == "sphere"),
+                              ("design_offset_mm", kind in ("offset", "sphere"))):
+            if not applies and getattr(self, name) != 0.0:
+                raise ValueError(f"{name}: a part of kind {kind} has none (leave it out)")
+        r = self.branch_od_mm / 2 * (1 + self.branch_ovality)
+        y = self.design_offset_mm + self.branch_offset_mm[1]
+        if pipe:
+            if self.main_od_mm == 0.0:
+                raise ValueError("main_od_mm: missing (the main pipe's outer diameter)")
+            if self.main_od_mm < MIN_PIPE_OD_MM:
+                raise ValueError(f"main_od_mm: expected a number >= {MIN_PIPE_OD_MM}, got "
+                                 f"{self.main_od_mm!r}")
+            R = self.main_od_mm / 2 * (1 - self.main_ovality)
+            if r + abs(y) >= R:
+                what = "its y offset" if kind == "pipe" else "its y offset (design and error)"
+                raise ValueError(
+                    f"branch_od_mm: branch radius plus {what} must stay inside the main pipe "
+                    f"({r + abs(y):.1f} mm >= {R:.1f} mm)")
+        if kind == "sphere":
+            if self.sphere_radius_mm == 0.0:
+                raise ValueError("sphere_radius_mm: missing (the sphere's radius)")
+            off = math.hypot(self.branch_offset_mm[0], y)
+            if r + off >= self.sphere_radius_mm:
+                raise ValueError(
+                    "branch_od_mm: branch radius plus its offset from the sphere's centre must "
+                    f"stay inside the sphere ({r + off:.1f} mm >= {self.sphere_radius_mm:.1f} mm)")
 
 
 @dataclass(frozen=True)

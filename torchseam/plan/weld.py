@@ -51,7 +51,7 @@ from torchseam.core.transforms import matrix_to_quat, rotation_about
 from torchseam.plan.path import SEGMENT_NAMES, SEGMENTS, PlanConfig, Segment, load_plan_config
 from torchseam.robot.kinematics import IRB1410, checked_values
 from torchseam.robot.reach import ReachGate, ReachResult, Reason
-from torchseam.sim.joint import PipeJoint
+from torchseam.sim.joint import make_joint
 from torchseam.sim.scene import Scene, nominal_part, torch_frames
 
 __all__ = ["Placement", "SegmentPlan", "WeldPlan", "SegmentVerdict", "PlanEvaluator",
@@ -118,8 +118,8 @@ class Placement:
 
 def _seam_centre(part: PartConfig) -> np.ndarray:
     """Centre of the design seam in {T} (on the branch axis, at the seam's mean height)."""
-    return PipeJoint(nominal_part(part)).seam(np.linspace(0, 2 * np.pi, 72, endpoint=False)
-                                              ).point.mean(axis=0)
+    return make_joint(nominal_part(part)).seam(np.linspace(0, 2 * np.pi, 72, endpoint=False)
+                                               ).point.mean(axis=0)
 
 
 @dataclass(frozen=True)
@@ -261,10 +261,10 @@ class PlanEvaluator:
         self.robot = robot if robot is not None else IRB1410()
         ax = self.robot.config.axes
         self._lo, self._hi = np.asarray(ax.min_deg, float), np.asarray(ax.max_deg, float)
-        self.joint = PipeJoint(part)
+        self.joint = make_joint(part)
         self._phi_tab, self._s_tab = self.joint.arc_length_table()
         self._length = float(self._s_tab[-1])
-        self._axis = PipeJoint(nominal_part(part)).d     # the positioner's axis, in {T}
+        self._axis = make_joint(nominal_part(part)).d     # the positioner's axis, in {T}
         self._frames: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._placements: dict[Placement, tuple[PartConfig, np.ndarray]] = {}
         self.evaluations = 0

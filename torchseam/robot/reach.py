@@ -15,7 +15,8 @@ every reason that applies, the first one as its :class:`Reason` code):
 5. **Torch-vs-part clearance**: the torch body is a capsule along the TCP z axis (the tip's last
    mm excluded: it touches the seam by design); the main pipe is its oval cross-section (an
    elliptic cylinder with flat ends, semi-axes from ``main_ovality``), the branch a capsule
-   around its axis, from the part configuration and its nominal placement.
+   around its axis, from the part configuration and its nominal placement. On the other kinds
+   of part (:mod:`torchseam.sim.joint`) the main body is the plate (a box) or the sphere.
 
 Batched (:meth:`ReachGate.check`) for a whole seam, or one pose at a time
 (:meth:`ReachGate.step`, which keeps the last accepted joints) for the live loop; a gate is also
@@ -54,7 +55,7 @@ from torchseam.robot.kinematics import (
     rotation_angle,
     validate_poses,
 )
-from torchseam.sim.joint import BRANCH_LENGTH_MM, PipeJoint
+from torchseam.sim.joint import make_joint
 
 __all__ = ["Reason", "ReachResult", "PoseVerdict", "ReachGate", "nominal_torch_poses"]
 
@@ -378,8 +379,9 @@ class ReachGate:
             collide = clear < margin
             for i, j in zip(*np.nonzero(per_pipe < margin), strict=True):
                 c = per_pipe[i, j]
-                clear_msgs.append((i, f"torch hits {_PIPE_NAMES[j]} (clearance {c:.1f} mm)"
-                                   if c < 0 else f"torch too close to {_PIPE_NAMES[j]} "
+                name = self._pipes.names[j]
+                clear_msgs.append((i, f"torch hits {name} (clearance {c:.1f} mm)"
+                                   if c < 0 else f"torch too close to {name} "
                                    f"(clearance {c:.1f} mm < {margin:g})"))
 
         # 4. joint speed, from the previous pose that passed every other check (a refused pose
@@ -417,7 +419,7 @@ class ReachGate:
         return f"no IK solution (residual {pos_err:.3f} mm, {rot_err:.3f} deg)"
 
     def _clearance(self, T: np.ndarray) -> np.ndarray:
-        """(N, 2) clearance (mm) of the torch capsule to the main pipe and the branch pipe."""
+        """(N, 2) clearance (mm) of the torch capsule to the main body and the branch pipe."""
         tc = self.config.torch
         z, tip = T[:, :3, 2], T[:, :3, 3]
         a = tip - tc.tip_exclusion_mm * z
@@ -425,7 +427,13 @@ class ReachGate:
         s = self._pipes
         # the main pipe in its own frame (x along its axis): the torch axis's nearest approach
         a_m, b_m = (a - s.main_origin) @ s.main_rotation, (b - s.main_origin) @ s.main_rotation
-        main = _segment_oval_distance(a_m, b_m, s.main_a, s.main_b, s.main_half_length)
+        if s.main_kind == "pipe":
+            main = _segment_oval_distance(a_m, b_m, s.main_a, s.main_b, s.main_half_length)
+        elif s.main_kind == "plate":
+            main = _segment_convex_distance(a_m, b_m, lambda x, y, z: _box_distance(
+                x, y, z, s.main_a, s.main_half_length))
+        else:
+            main = _point_segment_distance(np.zeros(3), a_m, b_m) - s.main_a
         branch = _segment_distance(a, b, s.branch_A[None], s.branch_B[None]) - s.branch_r
         return np.stack([main, branch], axis=1) - tc.radius_mm
 
@@ -451,33 +459,41 @@ def _speeds(q: np.ndarray, ref: np.ndarray, dt: np.ndarray, q_prev: np.ndarray |
     return np.where(has_prev[:, None], speed, 0.0), dq, has_prev
 
 
-_PIPE_NAMES = ("main pipe", "branch pipe")
-
-
 @dataclass(frozen=True)
 class _PartSolids:
-    """The pipes the torch must clear, in the base frame (mm)."""
+    """The solids the torch must clear, in the base frame (mm): the main body (main pipe,
+    plate or sphere) and the branch."""
 
-    main_origin: np.ndarray     # (3,) joint frame origin, on the main pipe's axis
+    main_origin: np.ndarray     # (3,) on the main pipe's axis / the plate's top / the centre
     main_rotation: np.ndarray   # (3, 3) joint frame axes (x: main pipe axis)
-    main_a: float               # main pipe semi-axis along the joint frame's y
-    main_b: float               # ... along its z
-    main_half_length: float
+    main_a: float               # main pipe semi-axis along the joint frame's y (sphere: radius;
+    main_b: float               # ... along its z                             plate: half side)
+    main_half_length: float     # (plate: its thickness)
     branch_A: np.ndarray        # (3,) branch axis ends (a capsule: the low end is inside the main
-    branch_B: np.ndarray        # pipe, the high end BRANCH_LENGTH_MM up the branch)
+    branch_B: np.ndarray        # body, the high end at the branch's top)
     branch_r: float
+    main_kind: str = "pipe"     # "pipe", "plate" or "sphere"
+    names: tuple[str, str] = ("main pipe", "branch pipe")
 
 
 def _part_solids(part: PartConfig, pose: np.ndarray | None, main_length: float) -> _PartSolids:
-    """Main pipe (oval, along x of the joint frame) and branch capsule, placed in the base."""
-    joint = PipeJoint(part)
+    """Main body (oval pipe along x of the joint frame, plate or sphere) and branch capsule,
+    placed in the base."""
+    joint = make_joint(part)
     P = np.asarray(pose, dtype=float) if pose is not None else part.placement.matrix()
     if P.shape != (4, 4) or not np.isfinite(P).all():
         raise RobotInputError(f"part_pose_mm: expected a finite (4, 4) pose, got {P.shape}")
     R, p = P[:3, :3], P[:3, 3]
-    return _PartSolids(p.copy(), R.copy(), float(joint.a), float(joint.b), main_length / 2,
-                       R @ joint.o + p, R @ (joint.o + BRANCH_LENGTH_MM * joint.d) + p,
-                       float(joint.r))
+    main = joint.main_solid()
+    kind = main["kind"]
+    dims = {"pipe": lambda: (main["a"], main["b"], main_length / 2),
+            "plate": lambda: (main["half"], main["half"], main["thickness"]),
+            "sphere": lambda: (main["radius"], main["radius"], 0.0)}[kind]()
+    return _PartSolids(R @ main["origin"] + p, R.copy(), *(float(v) for v in dims),
+                       R @ (joint.o + joint.branch_bottom * joint.d) + p,
+                       R @ (joint.o + joint.branch_top * joint.d) + p,
+                       float(joint.r * max(joint.k1, joint.k2)), kind,
+                       (joint.main_name, "branch pipe"))
 
 
 def _oval_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray, a: float, b: float,
@@ -505,11 +521,28 @@ def _oval_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray, a: float, b: flo
             + np.hypot(np.maximum(radial, 0.0), np.maximum(axial, 0.0)))
 
 
+def _box_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray, half: float, thickness: float
+                  ) -> np.ndarray:
+    """Signed distance (mm, negative inside) of points (x, y, z) in the plate's frame from the
+    plate: ``|x|, |y| <= half``, ``-thickness <= z <= 0``."""
+    q = np.stack([np.abs(x) - half, np.abs(y) - half, np.abs(z + thickness / 2) - thickness / 2])
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=0)
+    return outside + np.minimum(q.max(axis=0), 0.0)
+
+
 def _segment_oval_distance(p: np.ndarray, q: np.ndarray, a: float, b: float, half_length: float,
                            samples: int = 17, rounds: int = 3) -> np.ndarray:
     """Smallest signed distance of segments p-q ((N, 3) each, in the pipe's frame) from the oval
-    pipe of :func:`_oval_distance`. The distance from a convex solid is convex along a line, so
-    the best of ``samples`` equally spaced points brackets the minimum within two spacings;
+    pipe of :func:`_oval_distance` (:func:`_segment_convex_distance`)."""
+    return _segment_convex_distance(
+        p, q, lambda x, y, z: _oval_distance(x, y, z, a, b, half_length), samples, rounds)
+
+
+def _segment_convex_distance(p: np.ndarray, q: np.ndarray, sdf, samples: int = 17,
+                             rounds: int = 3) -> np.ndarray:
+    """Smallest signed distance of segments p-q ((N, 3) each) from a convex solid given by its
+    signed distance ``sdf(x, y, z)``. The distance from a convex solid is convex along a line,
+    so the best of ``samples`` equally spaced points brackets the minimum within two spacings;
     each round samples that bracket again (``rounds`` rounds shrink it (samples - 1) / 2 times
     each: to 0.3 mm along a 325 mm torch with the defaults, where the distance is flat)."""
     n = p.shape[0]
@@ -520,7 +553,7 @@ def _segment_oval_distance(p: np.ndarray, q: np.ndarray, a: float, b: float, hal
     for _ in range(rounds):
         t = lo[:, None] + (hi - lo)[:, None] * u                                     # (N, S)
         pts = p[:, None] + t[..., None] * (q - p)[:, None]                           # (N, S, 3)
-        d = _oval_distance(pts[..., 0], pts[..., 1], pts[..., 2], a, b, half_length)
+        d = sdf(pts[..., 0], pts[..., 1], pts[..., 2])
         k = d.argmin(axis=1)
         best = np.minimum(best, d[rows, k])
         step = (hi - lo) / (samples - 1)
@@ -546,6 +579,13 @@ def _segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.nda
     s = np.where(t < 0, _unit(-c / a), np.where(t > 1, _unit((b - c) / a), s))
     t = _unit(t)
     return np.linalg.norm((p1 + s[..., None] * d1) - (p2 + t[..., None] * d2), axis=-1)
+
+
+def _point_segment_distance(x: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Distance of the point ``x`` (3,) from the segments p-q ((N, 3) each)."""
+    d = q - p
+    t = _unit(((x - p) * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-12))
+    return np.linalg.norm(p + t[:, None] * d - x, axis=-1)
 
 
 def _same(a: tuple, b: tuple) -> bool:
@@ -579,4 +619,4 @@ def nominal_torch_poses(part: PartConfig, n: int, *, part_pose_mm: np.ndarray | 
 
     phi = phi0 + np.arange(n) * (2 * np.pi / n)
     P = np.asarray(part_pose_mm, float) if part_pose_mm is not None else part.placement.matrix()
-    return torch.as_tensor(P @ torch_frames(PipeJoint(part).seam(phi)), dtype=dtype)
+    return torch.as_tensor(P @ torch_frames(make_joint(part).seam(phi)), dtype=dtype)

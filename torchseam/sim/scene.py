@@ -1,8 +1,10 @@
 """The simulated cell over time: the true part (with deviations), the nominal part, the torch path.
 
-* The **nominal** part is the design: pipe diameters and intersection angle at the nominal
-  placement, no offset, ovality or drift. A robot programmed from the design follows it.
-* The **true** part adds the branch offset, ovality, clamping error and a slow thermal drift.
+* The **nominal** part is the design: the kind of part (:mod:`torchseam.sim.joint`), its
+  diameters, intersection angle and designed offset at the nominal placement, no unwanted
+  offset, ovality or drift. A robot programmed from the design follows it.
+* The **true** part adds the branch offset, ovality (main pipe and branch), clamping error and
+  a slow thermal drift.
 * The part sits on a positioner that turns it about the branch axis by ``rotation_deg`` (the
   six-segment welding of METHOD.md section 6).
 """
@@ -15,7 +17,7 @@ import numpy as np
 
 from torchseam.core.config import PartConfig
 from torchseam.core.transforms import rotation_about
-from torchseam.sim.joint import PipeJoint, SeamSample
+from torchseam.sim.joint import SeamSample, make_joint
 
 # Direction of the thermal drift in {T} (fixed: the part warps one way as it heats).
 DRIFT_DIRECTION = np.array([0.6, -0.55, 0.58]) / np.linalg.norm([0.6, -0.55, 0.58])
@@ -39,11 +41,11 @@ def torch_frames(sample: SeamSample) -> np.ndarray:
 
 
 def nominal_part(part: PartConfig) -> PartConfig:
-    """The design of ``part``: same pipes and angle, no deviations."""
+    """The design of ``part``: same kind, pipes, angle and designed offset, no deviations."""
     ident = dataclasses.replace(part.placement, position_mm=(0.0, 0.0, 0.0),
                                 quaternion=(1.0, 0.0, 0.0, 0.0))
     return dataclasses.replace(part, branch_offset_mm=(0.0, 0.0), main_ovality=0.0,
-                               distortion_mm=0.0, placement_error=ident)
+                               branch_ovality=0.0, distortion_mm=0.0, placement_error=ident)
 
 
 class Scene:
@@ -58,8 +60,8 @@ class Scene:
 
     def __init__(self, part: PartConfig, rotation_deg: float = 0.0) -> None:
         self.part = part
-        self.true_joint = PipeJoint(part)
-        self.nominal_joint = PipeJoint(nominal_part(part))
+        self.true_joint = make_joint(part)
+        self.nominal_joint = make_joint(nominal_part(part))
         # positioner turn about the branch axis of the nominal part
         Rz = np.eye(4)
         Rz[:3, :3] = rotation_about(self.nominal_joint.d, np.deg2rad(rotation_deg))

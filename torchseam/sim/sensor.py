@@ -1,4 +1,4 @@
-"""Simulated laser-stripe sensor: the laser fan cut through the pipes, seen by the camera.
+"""Simulated laser-stripe sensor: the laser fan cut through the part, seen by the camera.
 
 Physics kept: the fan leaves the projector and lights the first surface it meets; a lit point is
 seen only if nothing of the part lies between it and the camera; points are projected with the
@@ -6,8 +6,9 @@ pinhole + OpenCV distortion model (``cv2.projectPoints`` is the reference); the 
 Gaussian (or flat-top super-Gaussian) cross-section, brightness falling with incidence angle, and
 speckle along it, as set by a :class:`~torchseam.core.config.StripeLook` (optionally split
 into two parallel lobes, a laser diode lasing in two modes). :meth:`LaserSensor.arc_glint` is
-the specular reflection of the arc on the main pipe. Everything geometric is done in the part
-frame {T}.
+the specular reflection of the arc on the main body (pipe, plate or sphere). Everything
+geometric is done in the part frame {T}, through the :class:`~torchseam.sim.joint.Joint`
+interface (every kind of part alike).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 
 from torchseam.core.config import CellConfig, StripeLook
 from torchseam.core.transforms import apply, invert
-from torchseam.sim.joint import PipeJoint
+from torchseam.sim.joint import Joint
 
 ARM_DISTANCE_MM = 5.0  # truth points on each stripe arm lie this far (3D) from the seam point
 SPLAT_STEP_PX = 0.25   # spacing of splatted samples along the imaged stripe
@@ -52,10 +53,11 @@ class StripeView:
     Attributes:
         uv: (N, 2) distorted pixel coordinates of the visible stripe samples, in fan order.
         brightness: (N,) relative brightness (incidence falloff) of each sample.
-        surface: (N,) 1 main pipe, 2 branch, 3 the exact seam point.
+        surface: (N,) 1 main body (pipe, plate, sphere), 2 branch, 3 the exact seam point.
         seam_uv: (2,) pixel of the seam point (the weld feature point).
         seam_T: (3,) seam point in {T}.
-        arm_T: (2, 3) points on the branch arm and the main arm, ``ARM_DISTANCE_MM`` from the seam.
+        arm_T: (2, 3) points on the branch arm and the main arm, ``ARM_DISTANCE_MM`` from the
+            seam.
         arm_uv: (2, 2) their pixels.
         visible: whether the seam point is lit, unoccluded and inside the image.
     """
@@ -71,7 +73,7 @@ class StripeView:
 
 
 class LaserSensor:
-    """Camera + line laser of ``cell``, looking at a :class:`PipeJoint`.
+    """Camera + line laser of ``cell``, looking at a :class:`~torchseam.sim.joint.Joint`.
 
     Example:
         >>> from torchseam.core.config import load_cell, load_part
@@ -117,7 +119,7 @@ class LaserSensor:
                 & (uv[..., 1] >= margin) & (uv[..., 1] <= h - 1 - margin))
 
     # ---------------------------------------------------------------- stripe geometry
-    def view(self, joint: PipeJoint, T_T_C: np.ndarray, phi_hint: float | None = None
+    def view(self, joint: Joint, T_T_C: np.ndarray, phi_hint: float | None = None
              ) -> StripeView:
         """Stripe seen by a camera at pose ``T_T_C`` ({C} in {T}, 4x4 mm) on ``joint``."""
         R, c = T_T_C[:3, :3], T_T_C[:3, 3]
@@ -185,7 +187,7 @@ class LaserSensor:
                           arm_uv, visible)
 
     @staticmethod
-    def _seam_in_plane(joint: PipeJoint, n: np.ndarray, d: float, c: np.ndarray,
+    def _seam_in_plane(joint: Joint, n: np.ndarray, d: float, c: np.ndarray,
                        phi_hint: float | None) -> np.ndarray:
         """Where the seam crosses the laser plane: the crossing nearest ``phi_hint`` (or, with
         no hint, the camera)."""
@@ -295,10 +297,11 @@ class LaserSensor:
         img[ys, xs] = sub
         return img
 
-    def arc_glint(self, joint: PipeJoint, T_T_C: np.ndarray, light_T: np.ndarray) -> np.ndarray:
+    def arc_glint(self, joint: Joint, T_T_C: np.ndarray, light_T: np.ndarray) -> np.ndarray:
         """Float32 (H, W) specular glint of a point light (the arc) at ``light_T`` ({T}, mm)
-        on the main pipe, about [0, 1]: an anisotropic lobe, sharp across the pipe and spread
-        along it, on the pixels that see the main pipe where the light reaches it, fading with
+        on the main body, about [0, 1]: an anisotropic lobe, sharp across the pipe and spread
+        along it (along x of {T} on a plate or sphere: the direction of the grinding marks),
+        on the pixels that see the main body where the light reaches it, fading with
         the distance from the light and broken by the grinding marks. On the cylinder it is a
         band along the pipe from the arc outwards. Evaluated every ``GLINT_STEP_PX`` pixels
         and interpolated."""
@@ -321,6 +324,10 @@ class LaserSensor:
             hn = np.maximum(np.einsum("ij,ij->i", n, half), 1e-3)
             ha = half[:, 0]
             hr = n[:, 1] * half[:, 2] - n[:, 2] * half[:, 1]
+            if np.any(n[:, 0]):  # a surface not parallel to x (a sphere): x along the surface
+                across = np.sqrt(np.maximum(1.0 - n[:, 0] ** 2, 1e-6))
+                ha = (ha - n[:, 0] * np.einsum("ij,ij->i", n, half)) / across
+                hr = hr / across
             lobe = np.exp(-((ha / GLINT_ROUGH_ALONG) ** 2 + (hr / GLINT_ROUGH_ACROSS) ** 2)
                           / hn**2)
             lit = np.einsum("ij,ij->i", n, to_l) > 0.0
@@ -397,7 +404,7 @@ def _super_gaussian(blurred: np.ndarray, unit: np.ndarray, sigma: float, order: 
 _GRID_PHI = np.linspace(0.0, 2 * np.pi, 721)
 
 
-def _seam_grid(joint: PipeJoint) -> tuple[np.ndarray, np.ndarray]:
+def _seam_grid(joint: Joint) -> tuple[np.ndarray, np.ndarray]:
     """The seam sampled every half degree, (721,) angles and (721, 3) points, computed once per
     joint (a joint does not change) and kept on it."""
     grid = getattr(joint, "_sensor_seam_grid", None)
