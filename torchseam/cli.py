@@ -1,7 +1,10 @@
 """The ``torchseam`` command line.
 
 Each stage of the data flow registers its own sub-commands from a ``cli.py`` module of its own
-(``register(subparsers)``), so this file only lists them.
+(``register(subparsers)``), so this file only lists them: :data:`COMMANDS` gives each command's
+name, module and one-line help, so ``torchseam --help`` (and ``--version``) imports no stage; a
+stage module is imported only when its command runs (or shows its own ``--help``).
+``tests/test_package.py`` checks the table against what the modules register.
 
 Every bad input ends the same way: one line on stderr naming the file, field, frame or option
 (``torchseam COMMAND: error: ...``), nothing on stdout, exit code 2. The argument types below
@@ -12,27 +15,44 @@ sub-commands refuse bad options before any work starts.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import sys
-from pathlib import Path
-from typing import NoReturn
+from collections.abc import Iterable, Iterator
+from pathlib import Path, PurePath
+from typing import Any, NoReturn
 
+from torchseam import CONFIGS_ENV, MODELS_ENV, config_dir, model_dir
 from torchseam.core.errors import TorchseamError
 
-#: Stage modules that add sub-commands, in the order ``--help`` lists them.
-COMMAND_MODULES = (
-    "torchseam.sim.cli",       # simulate
-    "torchseam.vision.cli",    # detect
-    "torchseam.track.cli",     # track, eval
-    "torchseam.fit.cli",       # train
-    "torchseam.geometry.calib_cli",  # calibrate
-    "torchseam.live.ring_cli",  # ring
-    "torchseam.plan.cli",      # plan (placement, segments, torch angles; pre-flight gate check)
-    "torchseam.robot.cli",     # robot fk | ik | check | sim-controller
-    "torchseam.live.cli",      # demo
-    "torchseam.console.cli",   # console
+#: Every sub-command: name, the stage module whose ``register(subparsers)`` adds it, and its
+#: one-line help (the same text the module gives ``add_parser``), in the order ``--help`` lists
+#: them. A module adding several commands lists them next to each other.
+COMMANDS: tuple[tuple[str, str, str], ...] = (
+    ("simulate", "torchseam.sim.cli",
+     "render a simulated laser-sensor sequence with ground truth"),
+    ("detect", "torchseam.vision.cli",
+     "find the weld feature point in frames (TIPM, clean frames)"),
+    ("track", "torchseam.track.cli", "track the feature point through a folder of frames"),
+    ("eval", "torchseam.track.cli", "track a labelled folder and print the error table"),
+    ("train", "torchseam.fit.cli", "fit the EAKF-STC parameters on labelled sequences"),
+    ("calibrate", "torchseam.geometry.calib_cli",
+     "calibrate camera, laser plane, hand-eye or TCP from a folder"),
+    ("ring", "torchseam.live.ring_cli",
+     "locate and plan the whole ring in open loop; error table and plots"),
+    ("plan", "torchseam.plan.cli",  # placement, segments, torch angles; pre-flight gate check
+     "plan a part's weld and check every pose with the reachability gate"),
+    ("robot", "torchseam.robot.cli",  # fk | ik | check | sim-controller
+     "IRB 1410 kinematics, reachability checks and the EGM link"),
+    ("demo", "torchseam.live.cli", "weld the simulated T joint in closed loop and write a report"),
+    ("replay", "torchseam.live.cli",
+     "feed recorded frames (folder, video or camera) through the live loop, open loop"),
+    ("console", "torchseam.console.cli",
+     "operator console: a local web page to run and watch the weld"),
 )
+#: Stage modules that add sub-commands, in the order ``--help`` lists them.
+COMMAND_MODULES = tuple(dict.fromkeys(module for _, module, _ in COMMANDS))
 
 #: largest seed the commands take (NumPy, torch and OpenCV all accept it)
 MAX_SEED = 2**31 - 1
@@ -109,25 +129,114 @@ def segments_arg(text: str) -> str:
     return text
 
 
+def config_dir_arg(text: str) -> Path:
+    """``--config-dir``: an existing folder (made absolute: the command may change folder)."""
+    p = Path(text).expanduser()
+    if not p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: no such folder" if not p.exists()
+                                         else f"{text} is a file, not a folder")
+    return p.resolve()
+
+
 # --------------------------------------------------------------------------- the command
 
-def build_parser() -> argparse.ArgumentParser:
+class _VersionAction(argparse.Action):
+    """``--version``: the installed package's version (its metadata, read only when asked)."""
+
+    def __init__(self, option_strings: list[str], dest: str, **kw: Any) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kw)
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: Any) -> NoReturn:
+        import torchseam
+
+        print(f"{parser.prog} {torchseam.__version__}")
+        parser.exit(0)
+
+
+def build_parser(commands: Iterable[str] | None = None) -> argparse.ArgumentParser:
+    """The ``torchseam`` parser. ``commands``: the sub-commands whose stage modules are imported
+    to give them their options (None: all); the others are listed from :data:`COMMANDS` alone
+    (their name and help: enough for ``torchseam --help`` and to pick the command)."""
+    wanted = {name for name, _, _ in COMMANDS} if commands is None else set(commands)
+    modules = {module for name, module, _ in COMMANDS if name in wanted}
     parser = OneLineParser(
         prog="torchseam",
         description="Laser-vision seam tracking of pipe-to-pipe welds (EAKF-STC) in torch.",
+        epilog=f"configs: {config_dir()}\nmodels:  {model_dir()}\n\n"
+               "Your own configs: copy the configs folder, edit the copy and run\n"
+               f"  torchseam --config-dir COPY COMMAND ...   (or set {CONFIGS_ENV}=COPY);\n"
+               f"your own fitted model: --model FILE, or {MODELS_ENV}=DIR.\n"
+               "A command's options: torchseam COMMAND --help",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action=_VersionAction,
+                        help="print the installed version and exit")
+    parser.add_argument("--config-dir", type=config_dir_arg, metavar="DIR",
+                        help="read every config from DIR instead of the shipped configs (a "
+                             f"full copy of them, edited; default ${CONFIGS_ENV}, else the "
+                             "shipped ones, listed below)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True,
                                 parser_class=OneLineParser)
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+    registered: set[str] = set()
+    for name, module, text in COMMANDS:
+        if module not in modules:
+            sub.add_parser(name, help=text, add_help=False)  # its options are not read here
+        elif module not in registered:
+            registered.add(module)
+            importlib.import_module(module).register(sub)
     return parser
+
+
+@contextlib.contextmanager
+def use_config_dir(path: Path | None) -> Iterator[None]:
+    """Read the configs from ``path`` while the block runs (None: leave them as they are).
+
+    Sets ``$TORCHSEAM_CONFIGS`` before any stage module reads it (``CONFIG_DIR`` is fixed when
+    :mod:`torchseam.core.config` is imported); when called in a process that has imported them
+    already (``main`` called twice, tests), every torchseam module's path into the old config
+    folder (``CONFIG_DIR`` and the paths made from it) is pointed into ``path`` instead, and
+    put back afterwards."""
+    if path is None:
+        yield
+        return
+    old_env = os.environ.get(CONFIGS_ENV)
+    os.environ[CONFIGS_ENV] = str(path)
+    moved: list[tuple[Any, str, PurePath]] = []
+    cfg = sys.modules.get("torchseam.core.config")
+    old = getattr(cfg, "CONFIG_DIR", None)
+    if old is not None and Path(old) != path:
+        for mod in [m for n, m in sys.modules.items() if n.split(".")[0] == "torchseam"]:
+            for attr, value in list(vars(mod).items()):
+                if isinstance(value, PurePath) and (value == old or old in value.parents):
+                    moved.append((mod, attr, value))
+                    setattr(mod, attr, type(value)(path, value.relative_to(old)))
+    try:
+        yield
+    finally:
+        for mod, attr, value in reversed(moved):
+            setattr(mod, attr, value)
+        if old_env is None:
+            os.environ.pop(CONFIGS_ENV, None)
+        else:
+            os.environ[CONFIGS_ENV] = old_env
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point: parse, run the command's ``func(args)``, turn known errors into messages:
     a :class:`TorchseamError` (a config's ``ConfigError`` included) or a file the system
-    refused (:class:`OSError` naming it) is one line on stderr and exit code 2."""
-    args = build_parser().parse_args(argv)
+    refused (:class:`OSError` naming it) is one line on stderr and exit code 2.
+
+    Parses twice: first with the table alone (``--help``, ``--version``, ``--config-dir`` and
+    which command; no stage imported), then, with the config folder in place, with the chosen
+    command's module imported for its options."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    first, _ = build_parser(commands=()).parse_known_args(argv)
+    with use_config_dir(first.config_dir):
+        args = build_parser(commands=(first.command,)).parse_args(argv)
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         rc = args.func(args)
     except TorchseamError as e:

@@ -22,14 +22,15 @@ from typing import Any, TypeVar
 import numpy as np
 import yaml
 
+from torchseam import config_dir
 from torchseam.core.errors import TorchseamError
 from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES
 
 T = TypeVar("T")
 
-#: Folder holding the shipped configuration (override with ``TORCHSEAM_CONFIGS``).
-CONFIG_DIR = Path(
-    os.environ.get("TORCHSEAM_CONFIGS", Path(__file__).resolve().parents[2] / "configs"))
+#: Folder the configs are read from: ``$TORCHSEAM_CONFIGS`` (``torchseam --config-dir DIR`` sets
+#: it), else the configs shipped in the package (the repository's ``configs/`` in a checkout).
+CONFIG_DIR = config_dir()
 
 
 class ConfigError(TorchseamError, ValueError):

@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from torchseam import model_dir
 from torchseam.core.errors import TorchseamError
 
 __all__ = ["DEFAULT_MODEL", "MODEL_DIR", "MODEL_FORMAT", "FitError", "install_model",
@@ -25,9 +26,9 @@ __all__ = ["DEFAULT_MODEL", "MODEL_DIR", "MODEL_FORMAT", "FitError", "install_mo
 
 log = logging.getLogger("torchseam.fit")
 
-#: Folder of the shipped model (override with ``TORCHSEAM_MODELS``).
-MODEL_DIR = Path(os.environ.get("TORCHSEAM_MODELS",
-                                Path(__file__).resolve().parents[2] / "models"))
+#: Folder of the fitted model: ``$TORCHSEAM_MODELS``, else the one shipped in the package (the
+#: repository's ``models/`` in a checkout).
+MODEL_DIR = model_dir()
 #: The model the tracker loads by default.
 DEFAULT_MODEL = MODEL_DIR / "eakf_stc.safetensors"
 MODEL_FORMAT = "torchseam-eakf-stc/1"

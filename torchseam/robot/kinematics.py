@@ -30,11 +30,13 @@ import pytorch_kinematics as pk
 import torch
 from pytorch_kinematics.transforms import rotation_conversions as rc
 
+from torchseam import shipped
 from torchseam.core.errors import TorchseamError
 from torchseam.robot.config import RobotConfig, load_robot
 
-#: The shipped URDF (written from the DH table in shared/ROBOT.md).
-URDF_PATH = Path(__file__).resolve().parents[2] / "urdf" / "irb1410.urdf"
+#: The shipped URDF (written from the DH table in shared/ROBOT.md; the repository's
+#: ``urdf/irb1410.urdf``, shipped in the package).
+URDF_PATH = shipped("urdf") / "irb1410.urdf"
 JOINT_NAMES = tuple(f"joint_{i}" for i in range(1, 7))
 EEF_LINK = "tool0"
 
