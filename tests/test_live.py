@@ -41,13 +41,15 @@ def test_closed_loop_follows_the_true_seam(baseline):
 
 @pytest.mark.parametrize(("fault", "why"), [
     ("dropped-frames", "no camera frame"),
-    ("laser-off", "stale"),     # no stripe: nothing located, the link refuses stale poses
-    ("arc-flash", "stale"),
+    ("laser-off", "no tracked feature point"),  # no stripe: no evidence, max_blind_ms runs out
+    ("arc-flash", "no tracked feature point"),
 ])
 def test_input_faults_hold_and_recover(cell, part, noise, fault, why):
     res = _run(cell, part, noise, (fault,))
     s = res.summary
     assert s["unsafe_poses_sent"] == 0
+    # the loop holds before the link would refuse anything (one rule: max_blind_ms)
+    assert s["poses_refused"] == 0 and s["hold_reasons"] == {"blind": 1}
     faulted = [f for f in res.frames if f.fault]
     assert len(faulted) == FAULT_FRAMES
     # the loop held and said why
@@ -63,9 +65,15 @@ def test_input_faults_hold_and_recover(cell, part, noise, fault, why):
 @pytest.mark.parametrize("fault", ["packet-loss", "controller-silence"])
 def test_link_faults_do_not_move_the_robot_off_the_seam(cell, part, noise, fault):
     res = _run(cell, part, noise, (fault,))
-    assert res.summary["unsafe_poses_sent"] == 0
-    after = _after_fault(res)
-    assert any(f.state == "tracking" for f in after)
+    s = res.summary
+    assert s["unsafe_poses_sent"] == 0 and s["segments_incomplete"] == []
+    if fault == "packet-loss":  # lost cycles in bursts, all segment long: ridden through
+        assert s["holds"] == 0 and all(f.fault == "packet-loss" for f in res.frames)
+        assert res.frames[-1].state == "tracking"
+    else:  # the robot stands still: the loop holds (arc off) and says why, then resumes
+        assert s["hold_reasons"] == {"controller_silent": 1}, res.messages
+        assert any("no EGM datagram from the controller" in m for m in res.messages)
+        assert any(f.state == "tracking" for f in _after_fault(res))
     errs = np.array([f.torch_err_mm for f in res.frames if f.arc_on])
     assert errs.max() < 0.3
 
@@ -156,23 +164,23 @@ def test_locator_takes_the_trackers_stripe_window_when_it_covers_ecals(cell, par
     frame, truth = next(iter(simulate(cell, part, noise, SequenceSpec(n_frames=1, level=0.0,
                                                                       seed=3))))
 
-    class Lender:
-        name, stripe = "lender", None
+    class Tracker:
+        name = "lender"
 
-    loc = SeamLocator(cell, Lender())
+    loc = SeamLocator(cell, Tracker())
     uv = np.asarray(truth.uv, float)
-    own = loc._stripe(frame, uv)                      # nothing lent: made here
+    own = loc._stripe(frame, uv, None)                # nothing lent: made here
     red, mask, (x0, y0) = Tipm().mask_around(frame, uv + (7, -5), loc._roi + 20)
-    Lender.stripe = (red, mask, (x0, y0))             # a wider window around a nearby point
-    r2, m2, (u0, v0) = loc._stripe(frame, uv)
+    # a wider window around a nearby point, lent by the tracker (TrackResult.stripe)
+    r2, m2, (u0, v0) = loc._stripe(frame, uv, (red, mask, (x0, y0)))
     assert (u0, v0) == own[2] and m2.shape == own[1].shape
     np.testing.assert_array_equal(r2, red[v0 - y0:v0 - y0 + m2.shape[0],
                                           u0 - x0:u0 - x0 + m2.shape[1]])
     # the stripe found in either window is the same stripe (thresholds are per window)
     assert (m2 > 0).sum() > 0.8 * (own[1] > 0).sum() and ((m2 > 0) & (own[1] > 0)).sum() > \
         0.8 * (own[1] > 0).sum()
-    Lender.stripe = (red[:50, :50], mask[:50, :50], (x0, y0))   # does not cover: not used
-    r3, m3, corner3 = loc._stripe(frame, uv)
+    # a lent window that does not cover ECAL's: not used
+    r3, m3, corner3 = loc._stripe(frame, uv, (red[:50, :50], mask[:50, :50], (x0, y0)))
     assert corner3 == own[2] and m3.shape == own[1].shape
     np.testing.assert_array_equal(m3, own[1])
 
@@ -282,11 +290,11 @@ def test_demo_video_thread_is_idle_when_the_loop_takes_a_frame():
     vt.close()
 
 
-def test_a_refused_re_send_holds_the_loop_with_its_reason(cell):
-    """On its way to a target the loop re-sends it every frame (the link's watchdog needs
-    that). A tracked frame whose point was not located (no stripe arms) leaves the tracking
-    time behind; when the link refuses the re-send as stale, the robot is held, and the
-    operator must read it in the loop's state, not only in the link's counters."""
+def test_a_refused_re_send_is_reported_with_its_reason(cell):
+    """On its way to a target the loop re-sends it every frame with the time of its newest
+    evidence (the link's watchdog needs that). A refused re-send is counted by reason and
+    shown in the loop's message (the operator reads it there, not only in the link's
+    counters); an accepted one clears it. A run of them holds the loop (test_faults.py)."""
     from types import SimpleNamespace
 
     from torchseam.live.locate import Location
@@ -305,7 +313,7 @@ def test_a_refused_re_send_holds_the_loop_with_its_reason(cell):
     sink = Sink()
     loop = LiveLoop(cell, tracker=SimpleNamespace(name="fake"), sink=sink)
     loop.state, loop.target = LoopState.TRACKING, np.array([10.0, 0.0, 0.0])
-    loop.last_q, loop.fresh_t = np.array([1.0, 0.0, 0.0, 0.0]), 0.0
+    loop.last_q, loop.evidence_t = np.array([1.0, 0.0, 0.0, 0.0]), 0.9
     located = [False, True]  # the first frame has no arms, the second is located again
 
     def step(frame, T_B_F):
@@ -317,8 +325,9 @@ def test_a_refused_re_send_holds_the_loop_with_its_reason(cell):
     loop.locator.step = step
     torch_at = np.eye(4)  # 10 mm short of the target: on its way, re-sending
     rep = loop.on_frame(np.zeros((4, 4, 3), np.uint8), np.eye(4), torch_at, 1.0)
-    assert sink.calls == [0.0]
-    assert rep.state == LoopState.HOLD and "link refused the pose (stale)" in rep.message
+    assert sink.calls == [0.9]  # not located: the evidence is the older frame's
+    assert rep.state == LoopState.TRACKING and rep.message == "link refused the pose (stale)"
+    assert loop.stats.refused == {"stale": 1} and loop.stats.holds == 0
     rep = loop.on_frame(np.zeros((4, 4, 3), np.uint8), np.eye(4), torch_at, 1.04)
-    assert sink.calls[-1] == 1.04  # located again: fresh tracking, accepted
+    assert sink.calls[-1] == 1.04  # located and tracked: fresh evidence, accepted
     assert rep.state == LoopState.TRACKING and rep.message == ""

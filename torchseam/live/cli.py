@@ -27,8 +27,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Weld the whole 203/152 mm T joint in six segments in closed loop: the "
                     "simulator renders what the sensor sees from where the simulated robot is, "
                     "the live loop tracks (EAKF-STC), locates, plans and guides the simulated "
-                    "IRB 1410 over EGM. Prints a summary table and writes plots, a video and "
-                    "summary.json into --out.")
+                    "IRB 1410 over EGM. Prints a summary table and writes plots, a video, "
+                    "summary.json, messages.txt and poses.csv (every pose sent, as `torchseam "
+                    "robot check` reads them) into --out. Exit code 1 when a segment was not "
+                    "welded to its end (summary.json: segments_incomplete, with the reason).")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
     p.add_argument("--noise", default="heavy", help="arc-noise level: name or 0..1 (heavy)")
     p.add_argument("--seed", type=seed_arg, default=0,
@@ -163,6 +165,12 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def demo_exit_code(summary: dict) -> int:
+    """``torchseam demo``'s exit code: 1 when a segment was not welded to its end
+    (``summary["segments_incomplete"]``), else 0."""
+    return 1 if summary.get("segments_incomplete") else 0
+
+
 def _expected_frames(cell, part, args: argparse.Namespace) -> int:
     """Frames the weld should take: approach + segment length at weld speed (the bar's 100 %)."""
     from torchseam.plan.path import load_plan_config
@@ -235,9 +243,13 @@ def run(args: argparse.Namespace) -> int:
           f"{s['latency_p50_ms']:.2f} / {s['latency_p99_ms']:.2f}", "ms"],
          ["poses sent", s["poses_sent"], ""],
          ["poses refused", s["poses_refused"], ""],
+         ["loop holds", s["holds"], ""],
+         ["arc held off past the approach", s["arc_off_s"], "s"],
          ["unsafe poses sent (independent re-check)", s["unsafe_poses_sent"], ""]]))
     if s["refused_reasons"]:
         print("refused: " + ", ".join(f"{k} {v}" for k, v in s["refused_reasons"].items()))
+    if s["hold_reasons"]:
+        print("holds: " + ", ".join(f"{k} {v}" for k, v in s["hold_reasons"].items()))
     print("latency per stage (p50 / p99 ms): " + ", ".join(
         f"{k} {a:.2f}/{b:.2f}" for k, (a, b) in res.latency.items()))
     for m in res.messages[:12]:
@@ -246,4 +258,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"  ... {len(res.messages) - 12} more in {args.out / 'messages.txt'}")
     print(f"report: {', '.join(str(f) for f in files)}"
           + (f", {args.out / 'weld.mp4'}" if video is not None else ""))
-    return 0
+    for seg in s["segments_incomplete"]:
+        print(f"segment {seg['segment']} NOT completed: {seg['reason']}")
+    return demo_exit_code(s)

@@ -4,7 +4,14 @@ Per frame (25 Hz of simulation time): the simulator renders what the sensor sees
 the simulated robot actually is; the live loop tracks, locates, plans and hands torch poses to
 the EGM link; ten 4 ms EGM cycles move the simulated IRC5 (lockstep, see
 :mod:`torchseam.live.simcell`). The part carries the deviations of ``--part`` and arc noise of
-``--noise``. Faults (``--fault``) are injected in the middle of each segment.
+``--noise``. Faults (``--fault``) are injected in the middle of each segment (packet loss:
+over the whole segment, a fraction of the EGM cycles in random bursts, ``demo`` in
+``configs/live.yaml``).
+
+The simulated arc follows the loop: it burns from the end of the approach on while the loop
+lets it (:attr:`~torchseam.live.loop.LiveLoop.arc_ok`: off while the loop holds or resumes). A
+segment whose end the torch did not reach is reported in ``summary["segments_incomplete"]``
+with the reason (``torchseam demo`` then exits with 1).
 """
 
 from __future__ import annotations
@@ -23,12 +30,21 @@ import torch
 
 from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
 from torchseam.core.transforms import apply, invert, quat_to_matrix
-from torchseam.live.loop import Command, LiveLoop, LoopState, StepReport
+from torchseam.live.loop import (
+    Command,
+    LiveConfig,
+    LiveLoop,
+    LoopState,
+    StepReport,
+    egm_config_for,
+    load_live_config,
+)
 from torchseam.live.ring import torch_axis_errors
 from torchseam.live.simcell import LockstepCell, SimClock
 from torchseam.plan.path import load_plan_config, six_segments
 from torchseam.robot.egm import EgmLink
 from torchseam.robot.egm_config import load_egm_config
+from torchseam.robot.egm_messages import EgmSensor
 from torchseam.robot.reach import ReachGate
 from torchseam.sim.scene import Scene
 from torchseam.sim.sequence import SensorRenderer
@@ -36,7 +52,12 @@ from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import make_tracker
 
 FAULTS = ("dropped-frames", "arc-flash", "laser-off", "packet-loss", "controller-silence")
-FAULT_FRAMES = 30          # how long each fault lasts, frames (1.2 s)
+FAULT_FRAMES = 30          # how long each fault lasts, frames (1.2 s); packet loss: the segment
+POSES_CSV_HEADER = "t,x,y,z,q1,q2,q3,q4"  # poses.csv: what ``torchseam robot check`` reads
+# the demo skips the positioner's turn and the torch's return between two segments (its clock
+# does not move); poses.csv counts this much time for each, so that its time stamps are ones
+# a robot can keep (the return is a joint move of tens of degrees)
+TRANSFER_S = 5.0
 
 
 @dataclass
@@ -123,7 +144,8 @@ class DemoControl:
 @dataclass
 class DemoResult:
     frames: list[FrameRecord] = field(default_factory=list)
-    sent: list[tuple[str, np.ndarray, np.ndarray, float]] = field(default_factory=list)
+    # every pose the link accepted: (segment, p (3,), q (4,), seen_t_s, command t_s)
+    sent: list[tuple[str, np.ndarray, np.ndarray, float, float]] = field(default_factory=list)
     # per pose sent with the arc on (not the approach), torch axis vs the true bisector
     axis_deg: list[float] = field(default_factory=list)
     refused: dict[str, int] = field(default_factory=dict)
@@ -133,6 +155,41 @@ class DemoResult:
     latency: dict[str, tuple[float, float]] = field(default_factory=dict)
     messages: list[str] = field(default_factory=list)
     summary: dict = field(default_factory=dict)
+    # segments not welded to their end: {"segment": name, "reason": why}
+    incomplete: list[dict[str, str]] = field(default_factory=list)
+    holds: int = 0                       # loop holds, all segments
+    hold_reasons: dict[str, int] = field(default_factory=dict)
+    loop_refused: dict[str, int] = field(default_factory=dict)  # refusals the loop saw
+    arc_off_s: float = 0.0               # past the approach with the arc held off by the loop
+    arc_interruptions: int = 0           # times the loop put the arc out past the approach
+    wire_unsafe: int = 0                 # poses on the wire (link -> robot) that fail a re-check
+    part: PartConfig | None = None       # the part welded, and its pose in the base per segment
+    part_poses: dict[str, np.ndarray] = field(default_factory=dict)  # (turned by the positioner)
+
+
+class _WireTap:
+    """The link as the simulated controller sees it: every reply passes through, and each
+    pose that differs from the previous reply is kept (what the robot was commanded)."""
+
+    def __init__(self, link: EgmLink) -> None:
+        self.link = link
+        self.poses: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def handle_datagram(self, data: bytes, sender) -> bytes | None:
+        reply = self.link.handle_datagram(data, sender)
+        if reply is not None:
+            msg = EgmSensor()
+            msg.ParseFromString(reply)
+            c = msg.planned.cartesian
+            p = np.array([c.pos.x, c.pos.y, c.pos.z])
+            q = np.array([c.orient.u0, c.orient.u1, c.orient.u2, c.orient.u3])
+            if not self.poses or not (np.array_equal(p, self.poses[-1][0])
+                                      and np.array_equal(q, self.poses[-1][1])):
+                self.poses.append((p, q))
+        return reply
+
+    def __getattr__(self, name: str):
+        return getattr(self.link, name)
 
 
 def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: float, seed: int,
@@ -140,13 +197,18 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
              video: cv2.VideoWriter | None = None, progress=None,
              length_mm: float | None = None,
              observer: Callable[[DemoEvent], None] | None = None,
-             control: DemoControl | None = None) -> DemoResult:
+             control: DemoControl | None = None,
+             live: LiveConfig | None = None) -> DemoResult:
     """Weld the ring; returns everything the report needs. ``length_mm`` welds only the first
     mm of each segment (quick runs and tests). ``observer`` is called once per frame with a
-    :class:`DemoEvent`; ``control`` lets an operator hold, resume or stop the weld."""
+    :class:`DemoEvent`; ``control`` lets an operator hold, resume or stop the weld. ``live``:
+    the loop's settings (default ``configs/live.yaml``; its ``demo`` section sets the packet
+    loss). The link's age limit follows from the loop's budget
+    (:func:`~torchseam.live.loop.egm_config_for`)."""
     plan = load_plan_config()
-    egm = load_egm_config()
+    live = live or load_live_config()
     proc = cell.process
+    egm = egm_config_for(load_egm_config(), live, proc.frame_rate_hz)
     # the IPI step must pass the link's step check; the controller moves at weld speed
     safety = dataclasses.replace(egm.safety,
                                  max_step_mm=max(egm.safety.max_step_mm, 1.25 * proc.step_mm))
@@ -154,7 +216,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
         egm, mode="pose", safety=safety,
         sim_controller=dataclasses.replace(egm.sim_controller,
                                            tcp_speed_mm_s=proc.weld_speed_mm_s))
-    res = DemoResult()
+    res = DemoResult(part=part)
     clock = SimClock()
     dt = 1.0 / proc.frame_rate_hz
     latency: dict[str, list[float]] = {}
@@ -163,28 +225,38 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     writer = _VideoThread(video) if video is not None else None
     try:
         for seg in six_segments():
-            if seg.name not in segments or stopped:
+            if seg.name not in segments:
+                continue
+            if stopped:
+                res.incomplete.append({"segment": seg.name,
+                                       "reason": "not welded: stopped by the operator"})
                 continue
             scene = Scene(part, seg.rotation_deg)
+            res.part_poses[seg.name] = scene.T_B_Tnom
             gate = ReachGate(cell=cell, part=part, part_pose_mm=scene.T_B_Tnom)
             link = EgmLink(egm, gate=gate, clock=clock, bind=False)
+            tap = _WireTap(link)
             s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
             seg_len = (float(scene.s_at(np.array([seg.phi_end]))[0]) - s0) % scene.seam_length_mm
             if length_mm is not None:
                 seg_len = min(seg_len, length_mm)
             approach = proc.look_ahead_mm + plan.approach_mm
             T0 = scene.nominal_tcp(np.array([s0 - approach]))[0]
-            simcell = LockstepCell(cell, egm, link, clock, T0, robot=gate.robot)
+            simcell = LockstepCell(cell, egm, tap, clock, T0, robot=gate.robot)  # type: ignore[arg-type]
+            if "packet-loss" in faults:
+                simcell.ctrl.set_loss(live.demo.packet_loss_fraction,
+                                      live.demo.packet_loss_burst_cycles, seed * 10 + seg.index)
             renderer = SensorRenderer(cell, scene, noise, level, seed * 10 + seg.index)
             ref = _SeamRef(scene)
             nominal = scene.nominal_tcp(s0 - approach + np.arange(
                 0.0, approach + seg_len + 10.0, 0.5))[:, :3, 3]
-            loop = LiveLoop(cell, make_tracker(tracker), link, plan, nominal=nominal)
+            loop = LiveLoop(cell, make_tracker(tracker), link, plan, live, nominal=nominal)
             start = T0[:3, 3]
             n_max = int((approach + seg_len) / (proc.weld_speed_mm_s * dt) * 1.6) + 50
             fault_at = int((approach + 0.5 * seg_len) / (proc.weld_speed_mm_s * dt))
             travelled, prev = 0.0, start
             first, last_msg = True, ""
+            completed, arc_was = False, False
             commands: list[Command] = []   # every pose handed to the link (the loop keeps few)
             welding: list[bool] = []       # the arc was on when it was handed over
             for k in range(n_max):
@@ -196,21 +268,29 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                 travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
                 prev = T_B_W[:3, 3]
                 if travelled >= approach + seg_len:
+                    completed = True
                     break
-                arc_on = travelled >= approach
-                active = [f for f in faults if fault_at <= k < fault_at + FAULT_FRAMES]
+                # the arc burns past the approach while the loop lets it (off in a hold)
+                weld_zone = travelled >= approach
+                arc_on = weld_zone and loop.arc_ok
+                if weld_zone and not arc_on:
+                    res.arc_off_s += dt
+                    res.arc_interruptions += int(arc_was)
+                arc_was = arc_on
+                active = [f for f in faults if f != "packet-loss"
+                          and fault_at <= k < fault_at + FAULT_FRAMES]
+                if "packet-loss" in faults:
+                    active.append("packet-loss")
                 frame, truth = renderer.render(T_B_W, clock.t, arc_on=arc_on,
                                                laser_on="laser-off" not in active,
                                                force_flash="arc-flash" in active)
-                if "packet-loss" in active:
-                    simcell.faults.drop_cycles = 10
                 if "controller-silence" in active:
                     simcell.faults.silent_cycles = 10
                 T_B_F = simcell.flange_pose()
                 if writer is not None:
                     writer.idle()  # the recorder finishes before the loop takes the frame
                 if first:
-                    loop.start(frame, T_B_W)
+                    loop.start(frame, T_B_W, t_s=clock.t)
                     first = False
                     rep = None
                 else:
@@ -233,13 +313,17 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                 simcell.advance(dt)
                 if progress:
                     progress(1)
+            if not completed:
+                why = _incomplete_reason(loop, stopped, travelled, approach, seg_len, n_max)
+                res.incomplete.append({"segment": seg.name, "reason": why})
+                res.messages.append(f"[{seg.name} t={clock.t:.2f}s] segment incomplete: {why}")
             loop.finish()
             simcell.close()
             for name, times in loop.stats.timings_ms.items():
                 latency.setdefault(name, []).extend(times)
             sent = [c for c in commands if c.ok]
             for c in sent:
-                res.sent.append((seg.name, c.p, c.q, c.seen_t_s))
+                res.sent.append((seg.name, c.p, c.q, c.seen_t_s, c.t_s))
             # (in the approach the torch turns from the programmed orientation onto the
             # seam's, at most max_turn_deg a step: up to ~5 degrees off, arc off)
             weld = [c for c, arc in zip(commands, welding, strict=True) if c.ok and arc]
@@ -249,25 +333,51 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                     quat_to_matrix(np.array([c.q for c in weld])),
                     np.array([c.seen_t_s for c in weld]))[0])
             # the link's count: new targets and the re-sends that keep its watchdog fed
-            # (a re-send refused as stale is the link holding the robot while tracking is old)
             link_stats = link.stats
             for r, n in link_stats.refused.items():
                 res.refused[r] = res.refused.get(r, 0) + n
             res.watchdog_trips += link_stats.watchdog_trips
-            res.quats[seg.name] = np.array([c.q for c in sent])
-            res.paths.setdefault("tracked", []).append(np.array([c.p for c in sent]))
+            st = loop.stats
+            res.holds += st.holds
+            for key, n in st.hold_reasons.items():
+                res.hold_reasons[key] = res.hold_reasons.get(key, 0) + n
+            for key, n in st.refused.items():
+                res.loop_refused[key] = res.loop_refused.get(key, 0) + n
+            if link_stats.refused:
+                res.messages.append(
+                    f"[{seg.name} t={clock.t:.2f}s] the link refused "
+                    f"{sum(link_stats.refused.values())} pose(s): " + ", ".join(
+                        f"{r} {n}" for r, n in link_stats.refused.most_common()))
+            res.quats[seg.name] = np.array([c.q for c in sent]).reshape(-1, 4)
+            res.paths.setdefault("tracked", []).append(np.array([c.p for c in sent]).reshape(-1, 3))
             res.paths.setdefault("nominal", []).append(
                 scene.nominal_tcp(s0 + np.arange(0.0, seg_len, proc.step_mm))[:, :3, 3])
             res.paths.setdefault("true seam", []).append(_true_curve(scene, clock.t, s0, seg_len))
-            unsafe += _unsafe(sent, gate, egm.safety.max_step_mm)
+            unsafe += _unsafe(sent, gate, None)
+            wire = [Command(0.0, p, q, True, "", 0.0) for p, q in tap.poses]
+            res.wire_unsafe += _unsafe(wire, gate, egm.safety.max_step_mm)
     finally:
         if writer is not None:
             writer.close()
     res.latency = {k: (float(np.percentile(v, 50)), float(np.percentile(v, 99)))
                    for k, v in latency.items() if v}
-    res.summary = _summary(res, unsafe)
+    res.summary = _summary(res, unsafe + res.wire_unsafe)
     res.summary["stopped"] = stopped
     return res
+
+
+def _incomplete_reason(loop: LiveLoop, stopped: bool, travelled: float, approach: float,
+                       seg_len: float, n_max: int) -> str:
+    """Why a segment's end was not reached, in words."""
+    if stopped:
+        return "stopped by the operator"
+    done = max(0.0, travelled - approach)
+    where = f"{done:.1f} of {seg_len:.1f} mm welded in {n_max} frames"
+    if loop.state == LoopState.HOLD:
+        return f"held ({loop.hold_key}): {loop.message}; {where}"
+    if loop.state == LoopState.RESUMING:
+        return f"resuming after a hold ({loop.hold_key}) when time ran out; {where}"
+    return f"time ran out; {where}"
 
 
 class _VideoThread:
@@ -356,9 +466,12 @@ def _true_curve(scene: Scene, t: float, s0: float, seg_len: float) -> np.ndarray
     return apply(scene.part_pose(t), scene.true_joint.seam(phi).point)
 
 
-def _unsafe(sent: list[Command], gate: ReachGate, max_step: float) -> int:
-    """Re-check every pose the link accepted (``sent``, in order) with a fresh gate: count
-    the ones it refuses, non-finite ones and steps longer than ``max_step`` mm."""
+def _unsafe(sent: list[Command], gate: ReachGate, max_step: float | None) -> int:
+    """Re-check poses (``sent``, in order) with a fresh gate: count the ones it refuses,
+    non-finite ones and, with ``max_step``, steps longer than ``max_step`` mm. The demo checks
+    the poses the link accepted without the step (after a hold the loop re-plans from where
+    the robot is, not from an accepted target the robot never got) and the poses the link put
+    on the wire with it (what the robot was commanded, holds included)."""
     if not sent:
         return 0
     from torchseam.core.transforms import pose_matrix
@@ -367,11 +480,14 @@ def _unsafe(sent: list[Command], gate: ReachGate, max_step: float) -> int:
     bad = ~np.isfinite(T).all(axis=(1, 2))
     verdict = gate.check(torch.tensor(T[~bad]))
     steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
-    return int(bad.sum() + (~verdict.ok.numpy()).sum() + (steps > max_step + 1e-9).sum())
+    over = 0 if max_step is None else int((steps > max_step * (1 + 1e-9)).sum())
+    return int(bad.sum() + (~verdict.ok.numpy()).sum() + over)
 
 
 def _summary(res: DemoResult, unsafe: int) -> dict:
-    fr = [f for f in res.frames if f.arc_on and not f.fault]
+    # frames under a sensor fault are left out of the accuracy figures (packet loss does not
+    # blind the sensor and lasts the whole segment: its frames count)
+    fr = [f for f in res.frames if f.arc_on and f.fault in ("", "packet-loss")]
     pix = np.array([np.linalg.norm(f.uv - f.uv_true) for f in fr if np.all(np.isfinite(f.uv))])
     loc = np.array([np.linalg.norm(f.p - f.p_true) for f in fr if np.all(np.isfinite(f.p))])
     torch_err = np.array([f.torch_err_mm for f in fr])
@@ -400,6 +516,11 @@ def _summary(res: DemoResult, unsafe: int) -> dict:
         "watchdog_trips": int(res.watchdog_trips),
         "unsafe_poses_sent": int(unsafe),
         "frames": len(res.frames),
+        "holds": int(res.holds), "hold_reasons": dict(res.hold_reasons),
+        "loop_refused": dict(res.loop_refused),
+        "arc_off_s": round(float(res.arc_off_s), 3),
+        "arc_interruptions": int(res.arc_interruptions),
+        "segments_incomplete": list(res.incomplete),
     }
 
 
@@ -441,4 +562,41 @@ def write_report(res: DemoResult, out: Path) -> list[Path]:
     files.append(out / "summary.json")
     (out / "messages.txt").write_text("\n".join(res.messages) + "\n")
     files.append(out / "messages.txt")
+    files += write_poses_csv(res, out / "poses.csv")
+    return files
+
+
+def write_poses_csv(res: DemoResult, path: Path) -> list[Path]:
+    """Every pose the link accepted, in order, in the pose CSV that ``torchseam robot check``
+    reads (:func:`~torchseam.robot.poses_csv.write_pose_csv`): ``t,x,y,z,q1,q2,q3,q4``, the
+    command time s on the simulation clock plus ``TRANSFER_S`` for each change of segment
+    before it, the torch TCP in the robot base (mm, quaternion w, x, y, z). The positioner
+    turns the part between segments, so ``robot check``'s clearance test with the part as
+    configured fits segment a only: per segment, ``poses_<s>.csv`` and ``part_<s>.yaml`` (the
+    part as turned for it) check each (``robot check poses_b.csv --part part_b.yaml``)."""
+    import dataclasses as dc
+
+    from torchseam.core.config import Pose, save_config
+    from torchseam.core.transforms import matrix_to_quat
+    from torchseam.robot.poses_csv import write_pose_csv
+
+    segs = list(dict.fromkeys(seg for seg, *_ in res.sent))
+    t = np.array([c[4] + TRANSFER_S * segs.index(c[0]) for c in res.sent])
+    P = np.array([c[1] for c in res.sent]).reshape(-1, 3)
+    Q = np.array([c[2] for c in res.sent]).reshape(-1, 4)
+    files = [write_pose_csv(path, P, Q, t)]
+    for name in segs:
+        rows = [c for c in res.sent if c[0] == name]
+        files.append(write_pose_csv(path.with_name(f"poses_{name}.csv"),
+                                    np.array([c[1] for c in rows]),
+                                    np.array([c[2] for c in rows]),
+                                    np.array([c[4] for c in rows])))
+        T = res.part_poses.get(name)
+        if res.part is not None and T is not None:
+            q = matrix_to_quat(T[:3, :3])
+            turned = dc.replace(res.part, placement=Pose(
+                tuple(float(v) for v in T[:3, 3]),
+                tuple(float(v) for v in q / np.linalg.norm(q))))
+            save_config(turned, path.with_name(f"part_{name}.yaml"))
+            files.append(path.with_name(f"part_{name}.yaml"))
     return files

@@ -7,15 +7,33 @@ has closed in on its current target it plans the next IPI step (2 mm), builds th
 from ECAL's arms, and hands the pose to the EGM link, which runs the reachability gate and its
 own safety checks before anything reaches the robot.
 
-It never moves blind: targets are only taken from located points, and points the tracker only
-coasted through (filter prediction, no trusted measurement) are used for at most
-``max_blind_mm`` of travel past the last trusted point; beyond that the loop holds (sends no
-new target; the link's watchdog then holds the robot) and says why, and it resumes when
-trusted measurements return.
+It never moves blind, and it never stalls silently:
+
+- **One rule for moving without evidence.** Evidence is a frame whose feature point was
+  ``tracked`` (the frame's own TIPM corner confirmed it) and located (ECAL's arms seen). The
+  loop moves only while its newest evidence is at most ``max_blind_ms`` old (the look-ahead
+  buffer holds the seam seen up to ~20 mm ahead, so it keeps welding through a short glare),
+  and hands the link that evidence's time as the measurement time: the link's age limit
+  (``safety.max_age_ms``) follows from the same budget (:func:`link_max_age_ms`,
+  :func:`egm_config_for`); a link that would refuse what the loop allows is a
+  :class:`~torchseam.core.config.ConfigError` when the loop is built.
+- **Holds are explicit.** When the budget runs out, when nothing can be planned, after
+  ``max_refusals`` refusals in a row, or when the torch stops following its targets (no
+  ``stall_mm`` of progress in ``stall_ms``: the link holding the robot, a silent controller) the
+  loop *holds*: state ``hold``, the reason in :attr:`LiveLoop.message` and counted by key in
+  :attr:`LoopStats.hold_reasons`, the arc off (:attr:`LiveLoop.arc_ok`: a torch standing still
+  with the arc on burns through), and the link told to hold the robot on the last pose it sent
+  (``clear_measurement``).
+- **Resuming re-plans from the robot.** A held loop waits for the robot to stand still
+  (``settle_mm`` in a frame) and for evidence, then plans from where the robot actually is (the
+  pose the link holds it on), so its first step is one the link accepts; it tries at most once
+  every ``retry_ms``. State ``resuming`` (arc still off) until the torch is seen to follow
+  (``stall_mm``), then tracking with the arc on again.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections import Counter, deque
@@ -29,11 +47,12 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar, overload
 import numpy as np
 from scipy.spatial import cKDTree
 
-from torchseam.core.config import CONFIG_DIR, CellConfig, load_config
+from torchseam.core.config import CONFIG_DIR, CellConfig, ConfigError, load_config
+from torchseam.core.config import config_field as _f
 from torchseam.core.transforms import matrix_to_quat, quat_to_matrix
 from torchseam.geometry.torch_frame import MIN_ARM_MM, MIN_SIN
 from torchseam.live.locate import Location, SeamLocator
-from torchseam.plan.path import LookAheadBuffer, PlanConfig, load_plan_config
+from torchseam.plan.path import LookAheadBuffer, PlanConfig, ipi_step, load_plan_config
 from torchseam.robot.egm import Verdict
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import FrameTracker
@@ -43,21 +62,81 @@ if TYPE_CHECKING:  # torchseam.live.demo imports this module
 
 
 @dataclass(frozen=True)
+class DemoFaults:
+    """How ``torchseam demo --fault packet-loss`` loses EGM cycles (``demo`` in
+    ``configs/live.yaml``): a fraction of the controller's datagrams, in random bursts
+    (:class:`~torchseam.robot.sim_controller.BurstLoss`)."""
+
+    packet_loss_fraction: float = _f(lo=0.0, hi=0.9)
+    packet_loss_burst_cycles: float = _f(lo=1.0)
+
+
+@dataclass(frozen=True)
 class LiveConfig:
     """Live-loop settings (``configs/live.yaml``)."""
 
-    lead_mm: float             # send the next target when the torch is this close to the last
-    max_blind_mm: float        # travel allowed past the last trusted measurement
-    max_turn_deg: float        # largest torch rotation between two targets
-    max_offset_mm: float       # largest distance of a target from the programmed path
-    max_frame_gap_ms: float    # no camera frame for longer than this: hold
-    timing_window: int         # per-stage timings kept (bounded)
-    history: int               # commands kept in LiveLoop.commands (bounded; oldest dropped)
+    lead_mm: float = _f(lo=0.0, lo_open=True)          # send the next target this close
+    max_blind_ms: float = _f(lo=0.0, lo_open=True)     # move at most this long after evidence
+    max_turn_deg: float = _f(lo=0.0, lo_open=True)     # largest torch rotation between targets
+    max_offset_mm: float = _f(lo=0.0, lo_open=True)    # largest target distance from the path
+    max_refusals: int = _f(lo=1)                       # refusals in a row that hold the loop
+    stall_ms: float = _f(lo=0.0, lo_open=True)         # no progress for this long: hold
+    stall_mm: float = _f(lo=0.0, lo_open=True)         # ... progress is this much towards it
+    settle_mm: float = _f(lo=0.0, lo_open=True)        # held robot standing: moved less a frame
+    retry_ms: float = _f(lo=0.0)                       # a held loop tries at most this often
+    timing_window: int = _f(lo=1)      # per-stage timings kept (bounded)
+    history: int = _f(lo=1)            # commands kept in LiveLoop.commands (bounded)
+    demo: DemoFaults = _f(default=DemoFaults(0.1, 4.0))  # the demo's simulated packet loss
 
     def _check(self) -> None:
         if self.timing_window < 1 or self.history < 1:
             raise ValueError("timing_window and history must be >= 1")
 
+
+def link_max_age_ms(live: LiveConfig, frame_rate_hz: float) -> float:
+    """The age limit (``safety.max_age_ms``) of the EGM link a :class:`LiveLoop` drives.
+
+    The loop hands the link the time of its newest evidence and decides once per frame whether
+    it may still move (``max_blind_ms``); a pose it sent stands until the next frame, and the
+    camera's clock jitters. So the link must accept measurements up to ``max_blind_ms`` plus one
+    and a half frame periods old: with less it refuses, and holds the robot on, what the loop
+    still allows (a stall); more would let it guide on older evidence than the loop's rule.
+    """
+    return float(live.max_blind_ms) + 1.5e3 / float(frame_rate_hz)
+
+
+def egm_config_for(egm: Any, live: LiveConfig, frame_rate_hz: float) -> Any:
+    """``egm`` (an :class:`~torchseam.robot.egm_config.EgmConfig`) with the age limit the live
+    loop's budget implies (:func:`link_max_age_ms`): build the link a loop drives from this."""
+    return dataclasses.replace(egm, safety=dataclasses.replace(
+        egm.safety, max_age_ms=link_max_age_ms(live, frame_rate_hz)))
+
+
+def check_link_budget(sink: Any, live: LiveConfig, frame_rate_hz: float) -> None:
+    """Refuse a sink (an EGM link) whose age limit is shorter than the loop's budget needs.
+
+    Raises:
+        ConfigError: the link's ``safety.max_age_ms`` is below :func:`link_max_age_ms`.
+    """
+    safety = getattr(getattr(sink, "config", None), "safety", None)
+    age = getattr(safety, "max_age_ms", None)
+    if not isinstance(age, (int, float)):
+        return  # not an EGM link (a recording sink, a test double): no age limit to match
+    need = link_max_age_ms(live, frame_rate_hz)
+    if age < need - 1e-9:
+        raise ConfigError(
+            f"the EGM link's safety.max_age_ms ({age:g} ms, configs/egm.yaml) is shorter than "
+            f"the live loop's budget needs: max_blind_ms {live.max_blind_ms:g} ms "
+            f"(configs/live.yaml) + 1.5 frames at {frame_rate_hz:g} Hz = {need:g} ms. The link "
+            "would refuse poses the loop still sends (the robot stands still with the arc on); "
+            f"set max_age_ms to {need:g} or build the link from "
+            "torchseam.live.loop.egm_config_for(egm, live, frame_rate_hz)")
+
+
+#: A target with no buffered point within this ahead of it lies at a hole of the look-ahead
+#: (the points come ~0.3 mm apart at weld speed): its frame is interpolated across the hole
+#: (LiveLoop._next)
+HOLE_MM = 1.0
 
 _T = TypeVar("_T")
 
@@ -96,6 +175,15 @@ def _turn_limited(q_prev: np.ndarray | None, q: np.ndarray, max_deg: float) -> n
     out = (math.sin((1 - f) * half) * q_prev
            + math.copysign(1.0, d) * math.sin(f * half) * q) / math.sin(half)
     return out / np.linalg.norm(out)
+
+
+def _blend(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
+    """Unit rows ``(1 - w) a + w b`` of two (n, 3) arrays of unit rows (a row that is not
+    finite in one of them is taken from the other)."""
+    out = (1.0 - w) * a + w * b
+    out = np.where(np.isfinite(a).all(axis=1, keepdims=True), out, b)
+    out = np.where(np.isfinite(b).all(axis=1, keepdims=True), out, a)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
 def _rot(axis: int, deg: float) -> np.ndarray:
@@ -159,6 +247,7 @@ class LoopState(str, Enum):
     TRACKING = "tracking"
     COASTING = "coasting"
     HOLD = "hold"
+    RESUMING = "resuming"   # after a hold: moving again from where the robot is, arc off
     DONE = "done"
 
 
@@ -191,11 +280,30 @@ class StepReport:
 
 @dataclass
 class LoopStats:
+    """What the loop counted (all since it was built).
+
+    Attributes:
+        frames / dropped_frames: frames handed in / of them ``None``.
+        sent: poses the sink accepted.
+        refused: poses the sink refused, by reason (the link's key: ``stale``, ``gate``, ...).
+        holds: times the loop went into hold; ``hold_reasons``: the same by reason key
+            (``blind``, ``plan``, ``refused``, ``stalled``, ``controller_silent``); a hold whose
+            resumption failed (the torch did not follow) is still the same hold.
+        resumed: holds the loop came back from (the torch followed its targets again).
+        held_s: time spent held or resuming (arc off), s.
+        unconfirmed: located points dropped because no evidence followed them within
+            ``max_blind_ms`` (a coast that never re-acquired in time).
+    """
+
     frames: int = 0
     dropped_frames: int = 0
     sent: int = 0
     refused: Counter = field(default_factory=Counter)
     holds: int = 0
+    hold_reasons: Counter = field(default_factory=Counter)
+    resumed: int = 0
+    held_s: float = 0.0
+    unconfirmed: int = 0
     timings_ms: dict[str, deque] = field(default_factory=dict)
 
     def add_time(self, stage: str, ms: float, maxlen: int) -> None:
@@ -208,21 +316,29 @@ class LiveLoop:
     Args:
         cell: calibration and process settings.
         tracker: the feature-point tracker (EAKF-STC by default in the demo).
-        sink: where poses go (:class:`~torchseam.robot.egm.EgmLink` in pose mode).
+        sink: where poses go (:class:`~torchseam.robot.egm.EgmLink` in pose mode; its
+            ``safety.max_age_ms`` must cover the loop's budget, see :func:`check_link_budget`).
         plan / live: settings (default ``configs/plan.yaml`` / ``configs/live.yaml``).
         nominal: (N, 3) the programmed (design) path, densely sampled (mm, base). A target
             farther than ``max_offset_mm`` from it is not sent: the tracker has left the seam
             (a box tracker sliding along the stripe, say) and the loop holds.
+        open_loop: nothing moves (a replay): no stall check, a held loop resumes without
+            waiting for the robot to stand still, and the sink is not told to hold.
+
+    Raises:
+        ConfigError: the sink's age limit is shorter than the loop's budget needs.
     """
 
     def __init__(self, cell: CellConfig, tracker: FrameTracker, sink: PoseSink,
                  plan: PlanConfig | None = None, live: LiveConfig | None = None,
-                 nominal: np.ndarray | None = None) -> None:
+                 nominal: np.ndarray | None = None, open_loop: bool = False) -> None:
         self.cell = cell
         self.plan = plan or load_plan_config()
         self.cfg = live or load_live_config()
+        check_link_budget(sink, self.cfg, cell.process.frame_rate_hz)
         self.locator = SeamLocator(cell, tracker)
         self.sink = sink
+        self.open_loop = open_loop
         self.nominal = None if nominal is None else np.asarray(nominal, float)
         # nearest programmed point per target in ~10 us (a dense path has thousands)
         self._nominal_tree = None if nominal is None else cKDTree(self.nominal)
@@ -231,9 +347,13 @@ class LiveLoop:
         self.state = LoopState.STARTING
         self.target: np.ndarray | None = None
         self.last_q: np.ndarray | None = None   # (4,) w, x, y, z of the last accepted pose
-        self.last_trusted: np.ndarray | None = None
-        self.fresh_t = float("-inf")   # time of the newest frame the tracker followed
+        self.evidence_t = float("-inf")  # time of the newest frame with evidence (see module)
         self.last_frame_t = float("inf")  # time of the newest frame that arrived
+        # the loop lets the arc burn (False while held or resuming: the torch stands still or
+        # has not yet been seen to follow); a weld's own approach is the caller's business
+        self.arc_ok = True
+        self.hold_key = ""               # why the current (or last) hold began
+        self.hold_since = float("nan")   # when it began (frame time, s)
         # the recent commands (bounded: ``history`` in configs/live.yaml); a caller that needs
         # every command collects StepReport.command itself
         self.commands: History[Command] = History(maxlen=self.cfg.history)
@@ -242,18 +362,32 @@ class LiveLoop:
         # prepare()'s pose: (the buffer's answer it came from, last_q then, tangent, pose)
         self._prepared: tuple[tuple, np.ndarray | None, np.ndarray,
                               tuple[np.ndarray, np.ndarray]] | None = None
+        self._refusal_run = 0
+        self._torch_prev: np.ndarray | None = None   # torch position at the previous frame
+        self._t_prev = float("nan")
+        # progress towards the target: (since when, closest distance then); None: none due
+        self._progress: tuple[float, float] | None = None
+        self._link_seen: dict[str, Any] | None = None  # the link's counters when it slowed
+        self._try_t = float("-inf")      # when a held loop last tried to move
+        self._resume_from: np.ndarray | None = None  # torch position when resuming began
+        self._note = ""  # a message for this frame only (the resumption)
+        # located points of coasting frames since the last evidence: (p, q, t, guessed)
+        self._pending: list[tuple[np.ndarray, np.ndarray, float, bool]] = []
 
     # ------------------------------------------------------------------ lifecycle
-    def start(self, frame: np.ndarray, T_B_W: np.ndarray, uv0: np.ndarray | None = None
-              ) -> None:
+    def start(self, frame: np.ndarray, T_B_W: np.ndarray, uv0: np.ndarray | None = None,
+              t_s: float | None = None) -> None:
         """Start on a clean frame with the torch at ``T_B_W`` (4, 4) mm: TIPM finds the
-        stripe's feature point, or ``uv0`` (2,) gives it."""
+        stripe's feature point, or ``uv0`` (2,) gives it. ``t_s``: the frame's time (the
+        start frame is the first evidence; without it the first tracked frame is)."""
         self.locator.start(frame, uv0)
-        self.last_frame_t = float("-inf")
+        self.last_frame_t = float("-inf") if t_s is None else float(t_s)
+        self.evidence_t = float("-inf") if t_s is None else float(t_s)
         self.target = np.asarray(T_B_W, float)[:3, 3].copy()
         self.last_q = matrix_to_quat(np.asarray(T_B_W, float)[:3, :3])
         self._prepared = None
         self.state = LoopState.TRACKING
+        self.arc_ok = True
 
     def finish(self) -> None:
         self.state = LoopState.DONE
@@ -268,13 +402,6 @@ class LiveLoop:
         loc = None
         if frame is None:
             self.stats.dropped_frames += 1
-            gap_ms = (t_s - self.last_frame_t) * 1e3
-            if gap_ms > self.cfg.max_frame_gap_ms and self.state not in (
-                    LoopState.DONE, LoopState.STARTING):
-                self._hold(f"no camera frame for {self.cfg.max_frame_gap_ms:g}+ ms: holding")
-                self.stats.add_time("frame->command", (time.perf_counter() - t0) * 1e3,
-                                    self.cfg.timing_window)
-                return StepReport(self.state, None, None, self.message)
         else:
             self.last_frame_t = t_s
             loc = self.locator.step(frame, T_B_F)
@@ -284,55 +411,96 @@ class LiveLoop:
         # a coasting filter's guess over a dark or blinded frame is not a seam point
         located = loc is not None and bool(
             np.all(np.isfinite(loc.p)) and loc.status != TrackStatus.LOST and loc.arms_ok)
-        if located:
-            self.fresh_t = t_s
-            if loc.status == TrackStatus.TRACKED:
-                self.last_trusted = loc.p
-        # The frame's point joins the buffer after the frame's command, which rests on the
+        # A point the tracker only coasted through (no evidence on its frame) waits until the
+        # next evidence confirms the track again, and joins the buffer then; a coast longer
+        # than max_blind_ms is never confirmed: its points are dropped, and the torch later
+        # bridges the hole between seam seen with evidence on either side (a point located on
+        # a frame with the laser off, say, sat alone in such a hole, and bent the fit there by
+        # 5 degrees).
+        new: list[tuple[np.ndarray, np.ndarray, float, bool]] = []
+        if located and loc.status == TrackStatus.TRACKED:
+            self.evidence_t = t_s
+            new, self._pending = [*self._pending, (loc.p, loc.q, t_s, loc.arms_fallback)], []
+        elif located and (t_s - self.evidence_t) * 1e3 <= self.cfg.max_blind_ms:
+            self._pending.append((loc.p, loc.q, t_s, loc.arms_fallback))
+        elif self._pending and (t_s - self.evidence_t) * 1e3 > self.cfg.max_blind_ms:
+            self.stats.unconfirmed += len(self._pending)
+            self._pending = []
+        # The frame's points join the buffer after the frame's command, which rests on the
         # plan prepare() made between frames from the points located before. The stripe is
         # ~20 mm ahead of the torch, so a new point reaches the fit at the next target only at
         # a segment's start; entered first, it made those commands re-plan and re-gate on the
         # frame (~1 % of frames, the slowest: 3-5 ms of plan). With nothing buffered yet there
-        # is nothing else to plan from: it goes in first.
-        late = located and len(self.buffer) > 0
-        if located and not late:
-            self.buffer.push(loc.p, loc.q, t_s, guessed=loc.arms_fallback)
+        # is nothing else to plan from: they go in first.
+        late = len(self.buffer) > 0
+        if not late:
+            self._push(new)
         t1 = time.perf_counter()
-        cmd = self._command(T_B_W[:3, 3], t_s, loc)
+        cmd = self._command(np.asarray(T_B_W, float), t_s, loc)
+        if self._note:
+            if self.state != LoopState.HOLD:
+                self.message = self._note
+            self._note = ""
         t2 = time.perf_counter()
         if late:
-            self.buffer.push(loc.p, loc.q, t_s, guessed=loc.arms_fallback)
+            self._push(new)
         self.stats.add_time("plan+gate+send", (t2 - t1) * 1e3, self.cfg.timing_window)
         self.stats.add_time("frame->command", (t2 - t0) * 1e3, self.cfg.timing_window)
         self.prepare()  # the next target, while the camera exposes the next frame
         self.stats.add_time("prepare", (time.perf_counter() - t2) * 1e3, self.cfg.timing_window)
         return StepReport(self.state, loc, cmd, self.message)
 
-    def _command(self, torch_p: np.ndarray, t_s: float, loc: Location | None) -> Command | None:
-        """Plan and send. The measurement time handed to the link is that of the newest frame
-        the tracker followed (not of the target's own frame, which is a look-ahead older):
-        it is how fresh the tracking is, and the link refuses stale tracking."""
+    def _push(self, points: list[tuple[np.ndarray, np.ndarray, float, bool]]) -> None:
+        for p, q, t, guessed in points:
+            self.buffer.push(p, q, t, guessed=guessed)
+
+    def _command(self, T_B_W: np.ndarray, t_s: float, loc: Location | None) -> Command | None:
+        """Plan and send, or hold, or try to resume (see the module docstring). The
+        measurement time handed to the link is that of the newest evidence (not of the
+        target's own frame, which is a look-ahead older): how fresh the tracking is."""
         if self.state in (LoopState.DONE, LoopState.STARTING) or self.target is None:
             return None
+        torch_p = T_B_W[:3, 3]
+        moved = (math.inf if self._torch_prev is None
+                 else float(np.linalg.norm(torch_p - self._torch_prev)))
+        if self.state in (LoopState.HOLD, LoopState.RESUMING) and math.isfinite(self._t_prev):
+            self.stats.held_s += max(0.0, t_s - self._t_prev)
+        self._torch_prev, self._t_prev = torch_p.copy(), t_s
+        if self.state == LoopState.HOLD:
+            return self._resume(T_B_W, t_s, loc, moved)
+        blind = self._blind(t_s, loc)
+        if blind:
+            return self._hold("blind", blind, t_s)
+        if self.state == LoopState.RESUMING and (
+                self.open_loop or np.linalg.norm(torch_p - self._resume_from)
+                >= self.cfg.stall_mm):
+            self._resumed(t_s, loc)  # the torch follows again: the arc may burn
+        if not self.open_loop:
+            stall = self._stalled(torch_p, t_s)
+            if stall is not None:
+                return self._hold(*stall, t_s)
         if np.linalg.norm(torch_p - self.target) > self.cfg.lead_mm:
-            # on its way to the current target: re-send it while tracking is alive, which
-            # keeps the link's watchdog fed; with tracking gone it lapses and the link holds
-            alive = loc is not None and loc.status != TrackStatus.LOST
-            if self.last_q is not None and alive and (
-                    self.state != LoopState.HOLD or loc.status == TrackStatus.TRACKED):
-                verdict = self.sink.set_target(self.target, self.last_q,
-                                               measured_at=self.fresh_t)
-                if bool(getattr(verdict, "ok", True)):
-                    self._set_state(loc)
-                else:  # the link holds the robot (stale tracking, say): say so, as below
-                    self._hold(f"link refused the pose ({getattr(verdict, 'reason', 'refused')})")
+            # on its way to the current target: re-send it with the evidence's time, which
+            # keeps the link's watchdog fed
+            verdict = self.sink.set_target(self.target, self.last_q,
+                                           measured_at=self.evidence_t)
+            if bool(getattr(verdict, "ok", True)):
+                self._refusal_run = 0
+                self._set_state(loc)
+            else:
+                self._refused(verdict, t_s)
             return None
-        pose = self._pose(self.buffer.next_command(self.target, self.cell.process.step_mm))
+        pose = self._pose(self._next(self.target))
         if isinstance(pose, str):
-            return self._hold(pose)
+            return self._hold("plan", pose, t_s)
+        return self._send(pose, torch_p, t_s, loc)
+
+    def _send(self, pose: tuple[np.ndarray, np.ndarray], torch_p: np.ndarray, t_s: float,
+              loc: Location | None) -> Command:
+        """Hand a new target to the sink; on acceptance it becomes the target."""
         ip, q = pose
         seen = self._seen_time(ip)
-        verdict = self.sink.set_target(ip, q, measured_at=self.fresh_t)
+        verdict = self.sink.set_target(ip, q, measured_at=self.evidence_t)
         ok_v = bool(getattr(verdict, "ok", True))
         reason = getattr(verdict, "detail", "") or getattr(verdict, "reason", "")
         cmd = Command(t_s, ip, q, ok_v, reason, seen)
@@ -341,12 +509,202 @@ class LiveLoop:
             self.stats.sent += 1
             self.target = ip
             self.last_q = q
+            self._refusal_run = 0
+            self._progress = (t_s, float(np.linalg.norm(torch_p - ip)))
+            self._link_seen = None
             self._set_state(loc)
         else:
-            key = getattr(verdict, "reason", "refused")
-            self.stats.refused[key] += 1
-            self._hold(f"link refused the pose ({key})")  # the detail is in the link's log
+            self._refused(verdict, t_s)
         return cmd
+
+    def _blind(self, t_s: float, loc: Location | None) -> str:
+        """Why the loop may not move now ('' when it may): its newest evidence is older than
+        ``max_blind_ms`` (the one rule, see the module docstring)."""
+        age_ms = (t_s - self.evidence_t) * 1e3
+        if age_ms <= self.cfg.max_blind_ms:
+            return ""
+        if not math.isfinite(age_ms):
+            return "no tracked feature point yet: refusing to move blind"
+        gap_ms = (t_s - self.last_frame_t) * 1e3
+        if loc is None and gap_ms >= 0.5 * self.cfg.max_blind_ms:
+            return (f"no camera frame for {gap_ms:.0f} ms (max_blind_ms "
+                    f"{self.cfg.max_blind_ms:g}): holding")
+        return (f"no tracked feature point for {age_ms:.0f} ms (max_blind_ms "
+                f"{self.cfg.max_blind_ms:g}): refusing to move blind")
+
+    def _stalled(self, torch_p: np.ndarray, t_s: float) -> tuple[str, str] | None:
+        """``(key, why)`` when the torch has not followed its target for ``stall_ms``."""
+        if self._progress is None:
+            return None
+        since, best = self._progress
+        d = float(np.linalg.norm(torch_p - self.target))
+        if d <= best - self.cfg.stall_mm or d <= 0.5 * self.cfg.stall_mm:
+            self._progress = (t_s, min(best, d))  # following (or arrived)
+            self._link_seen = None
+            return None
+        waited_ms = (t_s - since) * 1e3
+        if waited_ms >= 0.5 * self.cfg.stall_ms and self._link_seen is None:
+            self._link_seen = self._link_counters()  # to tell the cause if it goes on
+        if waited_ms < self.cfg.stall_ms:
+            return None
+        return self._stall_reason(waited_ms, best - d)
+
+    def _link_counters(self) -> dict[str, Any]:
+        """The sink's counters that tell why a robot does not move ({} without any). Read
+        only when the torch has stopped following (a copy of the link's statistics)."""
+        st = getattr(self.sink, "stats", None)
+        if st is None or not hasattr(st, "received"):
+            return {}
+        return {"received": st.received, "refused": Counter(st.refused),
+                "holds": Counter(st.holds)}
+
+    def _stall_reason(self, waited_ms: float, progress_mm: float) -> tuple[str, str]:
+        now, then = self._link_counters(), self._link_seen or {}
+        if now and then:
+            if now["received"] == then["received"]:
+                return ("controller_silent",
+                        f"no EGM datagram from the controller for {waited_ms / 2:.0f}+ ms: "
+                        "the robot stands still; holding, arc off")
+            refused = now["refused"] - then["refused"]
+            if refused:
+                key, n = refused.most_common(1)[0]
+                for k, v in refused.items():
+                    self.stats.refused[k] += v
+                return ("refused", f"the link refused the pose {n} times ({key}): the robot "
+                                   "stands still; holding, arc off")
+            holds = now["holds"] - then["holds"]
+            if holds:
+                key = holds.most_common(1)[0][0]
+                return ("stalled", f"the link holds the robot ({key}): the torch moved "
+                                   f"{max(progress_mm, 0.0):.2f} mm in {waited_ms:.0f} ms; "
+                                   "holding, arc off")
+        return ("stalled", f"the torch moved {max(progress_mm, 0.0):.2f} mm towards its target "
+                           f"in {waited_ms:.0f} ms: holding, arc off")
+
+    def _refused(self, verdict: Any, t_s: float) -> None:
+        """A pose the sink refused: counted; ``max_refusals`` in a row hold the loop."""
+        key = getattr(verdict, "reason", "") or "refused"
+        self.stats.refused[key] += 1
+        self._refusal_run += 1
+        if self._refusal_run >= self.cfg.max_refusals:
+            detail = getattr(verdict, "detail", "")
+            self._hold("refused", f"link refused the pose {self._refusal_run} times in a row "
+                                  f"({key}{': ' + detail if detail else ''}): holding, arc off",
+                       t_s)
+        else:
+            self.message = f"link refused the pose ({key})"
+
+    def _resume(self, T_B_W: np.ndarray, t_s: float, loc: Location | None,
+                moved: float) -> Command | None:
+        """A held loop: once the robot stands still, a frame has evidence and ``retry_ms``
+        have passed since the last try, plan from the robot's actual pose and send."""
+        if (t_s - self._try_t) * 1e3 < self.cfg.retry_ms - 1e-6:
+            return None
+        if not self.open_loop and moved > self.cfg.settle_mm:
+            return None  # the robot still finishes its last step
+        if self.evidence_t != t_s:
+            return None  # the cause has not cleared: no tracked point in this frame
+        self._try_t = t_s
+        # where the robot actually is: the pose the link holds it on, the reference of the
+        # link's next step check
+        self.target = T_B_W[:3, 3].copy()
+        q = matrix_to_quat(T_B_W[:3, :3])
+        if self.last_q is not None and q @ self.last_q < 0:
+            q = -q
+        self.last_q = q
+        self._prepared = None
+        pose = self._pose(self._next(self.target))
+        if isinstance(pose, str):
+            return None
+        cmd = self._send(pose, T_B_W[:3, 3], t_s, None)
+        if cmd.ok:
+            self.state = LoopState.RESUMING
+            self._resume_from = T_B_W[:3, 3].copy()
+            self.message = f"resuming from where the robot is (held: {self.hold_key})"
+        return cmd
+
+    def _resumed(self, t_s: float, loc: Location | None) -> None:
+        self.stats.resumed += 1
+        self.arc_ok = True
+        held = t_s - self.hold_since
+        self.state = LoopState.TRACKING  # _set_state refines it below when a frame came
+        self._set_state(loc)
+        self._note = f"resumed after {held:.2f} s held ({self.hold_key}); arc on"
+
+    def _next(self, cp: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray] | None:
+        """The look-ahead buffer's IPI step from ``cp`` (``(ip, tangent, arm directions)``),
+        never backwards, and bridged across a hole.
+
+        Where the torch moved without locating anything (a blind stretch: the stripe passed
+        over seam it could not see, and the robot finished its last step after the hold) the
+        buffer has a hole, which the torch reaches ~20 mm later. In a hole wider than two steps
+        the buffered point nearest ``cp`` lies behind it, and the buffer's search, which starts
+        there, steps back, then forward again, for ever: a step that does not advance along
+        the torch's travel direction is replaced by one towards the first buffered point at
+        least a step ahead (within the distance a blind stretch can open: ``max_blind_ms`` at
+        weld speed plus three steps). A target inside a hole takes its seam direction and arms
+        interpolated between the fits on either side of the hole (the fit ahead alone is the
+        seam up to a few mm further on, where the saddle has turned the joint's bisector by
+        1-2 degrees)."""
+        step = self.cell.process.step_mm
+        nxt = self.buffer.next_command(cp, step)
+        if nxt is None or self.last_q is None:
+            return nxt
+        x = quat_to_matrix(self.last_q)[:, 0]  # the travel direction (torch frame x)
+        if float((nxt[0] - cp) @ x) <= 0.0:
+            nxt = self._step_ahead(cp, x, step)
+            if nxt is None:
+                return None
+        return self._across_hole(nxt, x)
+
+    def _step_ahead(self, cp: np.ndarray, x: np.ndarray, step: float
+                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray] | None:
+        """IPI step towards the first unflagged buffered point a step or more ahead of ``cp``
+        along ``x`` (None: none within reach)."""
+        pts = self.buffer.points
+        P = np.array([loc.p for loc in pts])
+        reach = self.cell.process.weld_speed_mm_s * self.cfg.max_blind_ms / 1e3 + 3.0 * step
+        ok = ((P - cp) @ x >= step) & (np.linalg.norm(P - cp, axis=1) <= reach)
+        for k in np.flatnonzero(ok):
+            if pts[k].flagged:
+                continue
+            p, tangent, arms = self.buffer.fit(int(k))  # judges the window's points
+            if not pts[k].flagged:
+                return ipi_step(cp, p, step), tangent, arms
+        return None
+
+    def _across_hole(self, nxt: tuple[np.ndarray, np.ndarray | None, np.ndarray],
+                     x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """``nxt`` unchanged unless its target lies in or at a hole of the buffer (no point
+        within ``HOLE_MM`` ahead of it: its fit, taken at the next point a step from the last
+        target, lies across the hole): then its tangent and arms interpolated between the
+        fits at the nearest points behind and ahead of it, and the target moved onto the curve
+        through both (sideways only: its progress along the travel direction stays)."""
+        ip = nxt[0]
+        pts = self.buffer.points
+        P = np.array([loc.p for loc in pts])
+        along = (P - ip) @ x
+        flagged = np.array([loc.flagged for loc in pts])
+        behind = np.flatnonzero((along < 0) & ~flagged)
+        ahead = np.flatnonzero((along > 0) & ~flagged)
+        if not len(behind) or not len(ahead) or float(
+                np.min(np.linalg.norm(P[ahead] - ip, axis=1))) <= HOLE_MM:
+            return nxt  # seen right ahead of the target: the buffer's own fit holds
+        kb, ka = int(behind[np.argmax(along[behind])]), int(ahead[np.argmin(along[ahead])])
+        pb, tb, arms_b = self.buffer.fit(kb)
+        pa, ta, arms_a = self.buffer.fit(ka)
+        w = float(-along[kb] / (along[ka] - along[kb]))  # 0 at the point behind, 1 ahead
+        arms = _blend(arms_b, arms_a, w)
+        tangent = nxt[1]
+        if tb is not None and ta is not None:
+            tangent = _blend(tb[None], ta[None], w)[0]
+            # on the curve through both sides (cubic Hermite from their points and tangents),
+            # not on the chord towards the far side (0.2 mm inside the saddle over 10 mm)
+            span = float(np.linalg.norm(pa - pb))
+            h = ((2 * w**3 - 3 * w**2 + 1) * pb + (w**3 - 2 * w**2 + w) * span * tb
+                 + (-2 * w**3 + 3 * w**2) * pa + (w**3 - w**2) * span * ta)
+            ip = h + ((ip - h) @ x) * x  # across the seam from the curve, along it as planned
+        return ip, tangent, arms
 
     def _pose(self, nxt: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None
               ) -> tuple[np.ndarray, np.ndarray] | str:
@@ -357,17 +715,11 @@ class LiveLoop:
         ip, tangent, arms = nxt
         prep = self._prepared
         if prep is not None and prep[0] is nxt and prep[1] is self.last_q:
-            # prepare() made this pose from this very answer and the same previous pose: only
-            # the blind-move check can differ (a trusted point may have come in since)
-            tangent, pose = prep[2], prep[3]
-            return self._blind(ip, tangent) or pose
+            return prep[3]  # prepare() made this pose from this very answer and last pose
         if tangent is None:
             # too little of the seam seen to fit its direction (the start of a segment): keep
             # the torch's present travel direction rather than guess from a chord
             tangent = quat_to_matrix(self.last_q)[:, 0]
-        blind = self._blind(ip, tangent)
-        if blind:
-            return blind
         if self._nominal_tree is not None:
             off = float(self._nominal_tree.query(ip)[0])
             if off > self.cfg.max_offset_mm:
@@ -383,14 +735,6 @@ class LiveLoop:
             q = -q  # the sign nearest the previous pose: the controller turns the short way
         return ip, _turn_limited(self.last_q, q, self.cfg.max_turn_deg)
 
-    def _blind(self, ip: np.ndarray, tangent: np.ndarray) -> str:
-        """Why ``ip`` may not be commanded blind ('' when it may)."""
-        if self.last_trusted is None or self._beyond(ip, self.last_trusted, tangent,
-                                                      self.cfg.max_blind_mm):
-            return (f"no trusted measurement within {self.cfg.max_blind_mm:g} mm "
-                    "ahead: refusing to move blind")
-        return ""
-
     def prepare(self) -> None:
         """Work between frames: the tracker's learning for the next frame (its ``idle()``),
         and the plan of the target after the current one (the look-ahead
@@ -398,15 +742,16 @@ class LiveLoop:
         finds the torch at its target only has to send. Changes no decision: the buffer drops
         the plan when a new point could change it and the gate re-checks a pose that differs
         (:meth:`LookAheadBuffer.prepare`, :meth:`ReachGate.prepare`). ``on_frame`` calls
-        this after the frame's command is out; it is timed as the ``prepare`` stage."""
+        this after the frame's command is out; it is timed as the ``prepare`` stage. A held
+        loop plans nothing ahead (it re-plans from the robot when it resumes)."""
         idle = getattr(self.locator.tracker, "idle", None)
         if idle is not None:
             idle()  # the tracker's learning for the next frame (EAKF-STC's context model)
-        if self.state in (LoopState.DONE, LoopState.STARTING) or self.target is None:
+        if self.state in (LoopState.DONE, LoopState.STARTING, LoopState.HOLD) or (
+                self.target is None):
             return
-        step = self.cell.process.step_mm
-        self.buffer.prepare(self.target, step)
-        nxt = self.buffer.next_command(self.target, step)
+        self.buffer.prepare(self.target, self.cell.process.step_mm)
+        nxt = self._next(self.target)
         self._prepared = None
         pose = self._pose(nxt)
         if isinstance(pose, str):
@@ -417,11 +762,6 @@ class LiveLoop:
         if ready is not None:
             ready(*pose)
 
-    @staticmethod
-    def _beyond(ip: np.ndarray, ref: np.ndarray, tangent: np.ndarray, margin: float) -> bool:
-        """ip lies more than ``margin`` past ref along the travel direction."""
-        return float((ip - ref) @ tangent) > margin
-
     def _seen_time(self, ip: np.ndarray) -> float:
         """When the buffered point nearest ``ip`` was seen (one vectorised search: a norm
         per point cost ~0.3 ms a command with the ~100 points of the look-ahead)."""
@@ -431,15 +771,29 @@ class LiveLoop:
         P = np.array([loc.p for loc in pts])
         return pts[int(np.argmin(np.einsum("ij,ij->i", P - ip, P - ip)))].t_s
 
-    def _hold(self, why: str) -> None:
-        if self.state != LoopState.HOLD:
+    def _hold(self, key: str, why: str, t_s: float) -> None:
+        """Hold: no new target, the arc off, the link told to hold the robot on the last pose
+        it sent; ``key`` counts the hold in ``stats.hold_reasons``. A hold that began before
+        (the loop was resuming and the torch did not follow) goes on as the same hold."""
+        if self.state not in (LoopState.HOLD, LoopState.RESUMING):
             self.stats.holds += 1
+            self.stats.hold_reasons[key] += 1
+            self.hold_key, self.hold_since = key, t_s
+            self._try_t = t_s
         self.state = LoopState.HOLD
         self.message = why
+        self.arc_ok = False
+        self._refusal_run = 0
+        self._progress = None
+        self._link_seen = None
+        self._prepared = None
+        clear = getattr(self.sink, "clear_measurement", None)
+        if clear is not None and not self.open_loop:
+            clear()  # the link holds the robot from its next cycle (no stale refusals)
         return None
 
     def _set_state(self, loc: Location | None) -> None:
-        if loc is None:
+        if loc is None or self.state == LoopState.RESUMING:
             return
         self.state = (LoopState.TRACKING if loc.status == TrackStatus.TRACKED
                       else LoopState.COASTING)
@@ -552,7 +906,7 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
     from torchseam.core.transforms import invert
 
     cfg = live or load_live_config()
-    loop = LiveLoop(cell, tracker, sink or RecordingSink(), plan, cfg)
+    loop = LiveLoop(cell, tracker, sink or RecordingSink(), plan, cfg, open_loop=True)
     tool_inv = invert(cell.tool.matrix())
     fixed = (np.asarray(T_B_W, float) if T_B_W is not None else cell.tool.matrix())
     rows: list[tuple] = []
@@ -583,7 +937,7 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
         poses_known &= fr.T_B_W is not None
         if not started:
             try:
-                loop.start(fr.image, rec, uv0)
+                loop.start(fr.image, rec, uv0, t_s=fr.t_s)
             except TorchseamError as e:
                 raise TorchseamError(f"frame {fr.index}: {e}") from None
             started, start_index = True, fr.index

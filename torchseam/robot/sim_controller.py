@@ -32,7 +32,9 @@ Fault injection for tests (:meth:`SimController.inject`, applied to the next N c
 ``drop`` (send nothing), ``duplicate`` (send twice), ``reorder`` (hold back, send after the
 next cycle's datagram: N reorders in a row all arrive after the N+1th), ``corrupt`` (flip
 bytes and cut the tail), ``oversized`` (pad past the sensor's limit with an unknown field) and
-``silence`` (send nothing; the controller has stopped).
+``silence`` (send nothing; the controller has stopped). :meth:`SimController.set_loss` adds
+random packet loss: a fraction of the cycles' ``EgmRobot`` lost on the way, in bursts
+(:class:`BurstLoss`, a Gilbert-Elliott channel), in lockstep and on the socket alike.
 
 Everything is bounded: receive buffers, sample deques, and the wait per cycle.
 """
@@ -99,6 +101,50 @@ class Fault(str, enum.Enum):
     CORRUPT = "corrupt"
     OVERSIZED = "oversized"
     SILENCE = "silence"
+
+
+class BurstLoss:
+    """Packet loss in bursts (a Gilbert-Elliott channel): a good state that loses nothing and a
+    bad state that loses every datagram. Each cycle the channel goes bad with probability
+    ``p`` and back to good with ``r``: bursts last ``1 / r`` cycles on average and the long-run
+    loss is ``p / (p + r)``.
+
+    Args:
+        fraction: long-run fraction of cycles lost, in [0, 1).
+        mean_burst: mean burst length, cycles (>= 1).
+        seed: seed of the channel's random draws (the same seed loses the same cycles).
+
+    Example:
+        >>> ch = BurstLoss(0.1, 4.0, seed=1)
+        >>> lost = [ch.lose() for _ in range(100_000)]
+        >>> round(sum(lost) / len(lost), 2)
+        0.1
+    """
+
+    def __init__(self, fraction: float, mean_burst: float, seed: int = 0) -> None:
+        if not (0.0 <= fraction < 1.0) or not mean_burst >= 1.0:
+            raise ValueError(f"loss fraction must lie in [0, 1) and the mean burst be >= 1 "
+                             f"cycle, got {fraction!r}, {mean_burst!r}")
+        self.fraction, self.mean_burst = float(fraction), float(mean_burst)
+        self.r = 1.0 / self.mean_burst                      # bad -> good
+        self.p = self.fraction * self.r / (1.0 - self.fraction)  # good -> bad
+        self._rng = np.random.default_rng(seed)
+        self.bad = False
+        self.lost = 0
+        self.cycles = 0
+        self.bursts = 0
+
+    def lose(self) -> bool:
+        """Advance one cycle; True when this cycle's datagram is lost."""
+        u = float(self._rng.random())
+        if self.bad:
+            self.bad = u >= self.r
+        else:
+            self.bad = u < self.p
+            self.bursts += int(self.bad)
+        self.cycles += 1
+        self.lost += int(self.bad)
+        return self.bad
 
 
 @dataclass
@@ -271,6 +317,7 @@ class SimController:
 
         self._faults: collections.deque[Fault] = collections.deque(maxlen=100_000)
         self._held: list[bytes] = []       # datagrams held back by reorder faults
+        self.loss: BurstLoss | None = None  # random packet loss (set_loss), None: none
         self._lock = threading.Lock()
         self._stats = SimStats()
         self._seqno = 0
@@ -481,7 +528,8 @@ class SimController:
 
         Returns:
             "" when a valid reply was applied, else why not: ``"silent"``, ``"no_reply"`` or
-            the reason the reply failed validation.
+            the reason the reply failed validation; ``"lost"`` when random packet loss
+            (:meth:`set_loss`) took this cycle's ``EgmRobot``.
         """
         q, T, T_plan = self._update(self.period)
         with self._lock:
@@ -489,6 +537,8 @@ class SimController:
         if exchange is None:
             return "silent"
         data = self._stamp(self._robot_message(q, T, T_plan, 0.0))
+        if self._lost():
+            return "lost"  # on the way to the sensor: as a ``drop`` fault, nothing expected
         with self._lock:
             self._stats.sent += 1
             self._stats.expected += 1
@@ -514,6 +564,24 @@ class SimController:
             raise ValueError(f"cycles must be >= 0, got {cycles}")
         with self._lock:
             self._faults.extend([kind] * cycles)
+
+    def set_loss(self, fraction: float, mean_burst: float = 1.0, seed: int = 0) -> None:
+        """Lose ``fraction`` of the cycles' ``EgmRobot`` on the way, in bursts of
+        ``mean_burst`` cycles on average (:class:`BurstLoss`), from the next cycle on, until
+        :meth:`clear_loss`. A lost datagram counts as the fault ``loss`` (like ``drop``)."""
+        self.loss = BurstLoss(fraction, mean_burst, seed) if fraction > 0 else None
+
+    def clear_loss(self) -> None:
+        """No more random packet loss."""
+        self.loss = None
+
+    def _lost(self) -> bool:
+        """Whether random packet loss takes this cycle's datagram (counted)."""
+        if self.loss is None or not self.loss.lose():
+            return False
+        with self._lock:
+            self._stats.faults["loss"] += 1
+        return True
 
     def _tx_stamp(self) -> int | None:
         """The newest kernel transmit time stamp queued on the socket's error queue
@@ -542,7 +610,7 @@ class SimController:
                 self._stats.faults[fault.value] += 1
         out: list[bytes] = []
         expect = False
-        if fault in (Fault.DROP, Fault.SILENCE):
+        if fault in (Fault.DROP, Fault.SILENCE) or (fault is None and self._lost()):
             pass
         elif fault is Fault.DUPLICATE:
             out, expect = [data, data], True
