@@ -331,8 +331,9 @@ class AnchoredTracker(Tracker):
     A clean fix (arm-fit RMS <= ``max_rms_px``) outside the gate restarts the filter there: in
     closed loop the image jumps 5-10 px when the torch turns to a new target, and EAKF-STC can
     run away under arc light, dragging the filter with it; loose fixes outside the gate are
-    refused. When EAKF-STC declares the track lost, TIPM searches the whole frame
-    and restarts everything.
+    refused. When EAKF-STC declares the track lost it stops being a measurement (the filter
+    coasts on its prediction) and is moved onto the next fix taken; a corner far from the
+    track is taken only through the persistence test of :meth:`idle`.
     Under red glare around the predicted point (:func:`glare_level` above ``glare_start``) both
     measurements are trusted less: their covariances are multiplied by
     ``1 + ((glare - glare_start) / glare_scale)^2``, so the filter leans on its prediction
@@ -499,6 +500,11 @@ class AnchoredTracker(Tracker):
         expected, self._expected = self._expected, None  # for this frame only
         self._frame = frame  # for idle()'s search (valid until then)
         uv, status = self.inner.update(frame)
+        # EAKF-STC that gave up is no measurement; the filter goes on from its prediction,
+        # the window below looks around it, and a far corner is taken only through the
+        # persistence test of idle() (one whole-frame corner is not enough: glare edges and
+        # spatter make corners too)
+        inner_ok = status != TrackStatus.LOST and bool(np.all(np.isfinite(uv)))
         if self.x is None:
             self._restart(uv, self.Q.copy(), None)
         if self._reacquire is not None:
@@ -507,15 +513,6 @@ class AnchoredTracker(Tracker):
             self._restart(self._reacquire, self.Q.copy(), None)
             self._reacquire, expected = None, None
             self.reacquired += 1
-        elif status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
-            # re-acquire: look for the stripe corner in the whole frame
-            res = self.tipm(frame)
-            if res.ok:
-                self.inner.init(frame, res.uv)
-                self._restart(res.uv, self.Q.copy(), arm_shape(res))
-                return self._verdict(res.uv, corner_seen(res, self.cfg.support_px,
-                                                         self.cfg.support_points))
-            return self._verdict(self.x if self.x is not None else uv, False)
         cfg = self.cfg
         self.age += 1
         self.P = self.P + self.Q
@@ -543,9 +540,10 @@ class AnchoredTracker(Tracker):
                         # clean arms only: a fit over an arm cut short (glare, the other pipe)
                         # leaves the line, and its tangent turns (3-4 degrees seen)
                         self.arm_dirs = arm_directions(res)
-        self._measure(uv, inflate * self.R_track, cfg.track_gate)
+        if inner_ok:
+            self._measure(uv, inflate * self.R_track, cfg.track_gate)
         out = self.x.copy()
-        if taken and np.linalg.norm(out - uv) > cfg.reanchor_px:
+        if taken and (not inner_ok or np.linalg.norm(out - uv) > cfg.reanchor_px):
             self.inner.reanchor(frame, out)
         evidence = self.fix is not None and self.fix.seen and float(
             np.linalg.norm(self.fix.uv - out)) <= cfg.evidence_px
