@@ -133,6 +133,11 @@ class WeldSession:
         self._rings = self._new_rings()
         self._loop_ref: Any = None
         self._last_msg = ""
+        # holds and refusals of the weld's finished segments (each segment has its own loop),
+        # and the holds of the running one already logged
+        self._done_holds: collections.Counter = collections.Counter()
+        self._done_refused: collections.Counter = collections.Counter()
+        self._holds_seen = 0
         self.observer_s = 0.0          # time spent in the observer (all frames), s
         # told (on the weld thread) when a frame's record is stored: the publisher does its
         # work then, between frames, rather than beside the loop (ConsoleServer sets it)
@@ -156,6 +161,8 @@ class WeldSession:
             self.weld_id += 1
             self._rings = self._new_rings()
             self._loop_ref, self._last_msg = None, ""
+            self._done_holds, self._done_refused = collections.Counter(), collections.Counter()
+            self._holds_seen = 0
             self.latest, self.link, self.loop_stats = None, None, {}
             self.params, self.summary = params, None
             self.state = RunState.RUNNING
@@ -232,9 +239,17 @@ class WeldSession:
                     f"{s.get('located_rmse_mm')} mm" if s.get("open_loop") else
                     f"torch vs seam RMSE {s.get('seam_rmse_mm')} mm, axis RMSE "
                     f"{s.get('axis_rmse_deg')} deg")
+        holds, refused = self.hold_counts()
         self.log(f"weld {'stopped' if s.get('stopped') else 'finished'}: {s.get('frames')} "
                  f"frames, {accuracy}, poses sent {s.get('poses_sent')}, refused "
                  f"{s.get('poses_refused')}, frame->command p99 {s.get('latency_p99_ms')} ms")
+        if holds or refused:
+            self.log(f"weld {'stopped' if s.get('stopped') else 'finished'} with "
+                     f"{_counted(holds, 'hold')} and {_counted(refused, 'refusal')} seen by "
+                     "the loop", level="warn")
+        for seg in s.get("segments_incomplete") or []:
+            self.log(f"segment {seg.get('segment')} not completed: {seg.get('reason')}",
+                     level="warn")
 
     # ------------------------------------------------------------------ the observer
     def observe(self, ev: DemoEvent) -> None:
@@ -244,7 +259,13 @@ class WeldSession:
         loop = ev.loop
         new_seg = loop is not self._loop_ref
         if new_seg:
+            prev = self._loop_ref
+            if prev is not None:  # the finished segment's loop: its counts are final
+                with self.lock:
+                    self._done_holds.update(prev.stats.hold_reasons)
+                    self._done_refused.update(prev.stats.refused)
             self._loop_ref = loop
+            self._holds_seen = 0
             nominal = self._subsample(loop.nominal)
         cmd = ev.report.command if ev.report is not None else None
         timings = loop.stats.timings_ms.get("frame->command")
@@ -275,10 +296,16 @@ class WeldSession:
             st = loop.stats
             self.loop_stats = {"frames": st.frames, "dropped_frames": st.dropped_frames,
                                "sent": st.sent, "holds": st.holds,
-                               "refused": dict(st.refused)}
+                               "refused": dict(st.refused),
+                               "hold_reasons": dict(st.hold_reasons)}
         if msg and msg != self._last_msg:
             self.log(f"[{ev.seg} t={r.t_s:.2f}s] {r.state}: {msg}", level="warn")
         self._last_msg = msg
+        if st.holds != self._holds_seen:  # a new hold (one line per hold, not per frame)
+            self._holds_seen = st.holds
+            holds, _ = self.hold_counts()
+            self.log(f"[{ev.seg} t={r.t_s:.2f}s] hold ({getattr(loop, 'hold_key', '') or '?'}):"
+                     f" arc off; this weld so far: {_counted(holds, 'hold')}", level="warn")
         done = self.frame_done
         if done is not None:
             done()
@@ -289,6 +316,18 @@ class WeldSession:
             return []
         idx = np.linspace(0, len(path) - 1, min(len(path), self.cfg.history.nominal_points))
         return np.round(np.asarray(path)[idx.astype(int)], 2).tolist()
+
+    def hold_counts(self) -> tuple[collections.Counter, collections.Counter]:
+        """The weld's loop holds and the poses its link refused, each by reason (all segments
+        so far: the finished ones' and the running loop's)."""
+        with self.lock:
+            holds = collections.Counter(self._done_holds)
+            refused = collections.Counter(self._done_refused)
+            loop = self._loop_ref
+        if loop is not None:
+            holds.update(loop.stats.hold_reasons)
+            refused.update(loop.stats.refused)
+        return holds, refused
 
     # ------------------------------------------------------------------ messages
     def log(self, text: str, level: str = "info") -> None:
@@ -368,6 +407,15 @@ class WeldSession:
                               "p99": num(np.percentile(lat, 99)), "n": int(lat.size)}
                              if lat.size else None)
         return out
+
+
+def _counted(counts: collections.Counter, what: str) -> str:
+    """``"3 holds (blind 2, refused 1)"``: a total and its reasons, most frequent first."""
+    n = sum(counts.values())
+    if not n:
+        return f"no {what}s"
+    return (f"{n} {what}{'s' if n != 1 else ''} ("
+            + ", ".join(f"{k} {v}" for k, v in counts.most_common()) + ")")
 
 
 def _newer(ring: collections.deque, last_seq: int, since: int) -> list:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -24,14 +25,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser(
         "demo", help="weld the simulated T joint in closed loop and write a report",
-        description="Weld the whole 203/152 mm T joint in six segments in closed loop: the "
-                    "simulator renders what the sensor sees from where the simulated robot is, "
-                    "the live loop tracks (EAKF-STC), locates, plans and guides the simulated "
-                    "IRB 1410 over EGM. Prints a summary table and writes plots, a video, "
-                    "summary.json, messages.txt and poses.csv (every pose sent, as `torchseam "
-                    "robot check` reads them) into --out. Exit code 1 when a segment was not "
-                    "welded to its end (summary.json: segments_incomplete, with the reason).")
-    p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
+        description="Weld a part (default the 203/152 mm T joint) in six segments in closed "
+                    "loop, with its weld plan: the pre-flight (as `torchseam plan`) first "
+                    "chooses the placement, where the segments start and the torch's angles, "
+                    "and checks every pose with the reachability gate; then the simulator "
+                    "renders what the sensor sees from where the simulated robot is, and the "
+                    "live loop tracks (EAKF-STC), locates, plans and guides the simulated IRB "
+                    "1410 over EGM. Prints the plan and a summary table and writes plots, a "
+                    "video, summary.json, messages.txt and poses.csv (every pose sent, as "
+                    "`torchseam robot check` reads them) into --out. Exit code 1 when a segment "
+                    "was not welded to its end (summary.json: segments_incomplete, with the "
+                    "reason); 2 when the robot cannot weld the part (the pre-flight table names "
+                    "the segment and the reason; nothing moves) or on bad input.")
+    p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml; "
+                                             "others in configs/parts/)")
     p.add_argument("--noise", default="heavy", help="arc-noise level: name or 0..1 (heavy)")
     p.add_argument("--seed", type=seed_arg, default=0,
                    help=f"random seed of the simulation, 0 .. {MAX_SEED} (default 0)")
@@ -47,6 +54,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="feature-point tracker (default anchored: EAKF-STC fused with TIPM)")
     p.add_argument("--length-mm", type=float, default=None,
                    help="weld only this much of each segment (quick runs)")
+    p.add_argument("--model", type=model_arg, default=None, metavar="FILE",
+                   help="EAKF-STC model file for the eakf-stc and anchored trackers (default "
+                        "models/eakf_stc.safetensors)")
     p.set_defaults(func=run)
 
     r = sub.add_parser(
@@ -197,11 +207,25 @@ def run(args: argparse.Namespace) -> int:
         raise TorchseamError(f"--length-mm must be > 0, got {args.length_mm}")
     if not args.segments or set(args.segments) - set("abcdef"):
         raise TorchseamError(f"--segments {args.segments!r}: use letters from abcdef")
+    if args.model is not None:
+        from torchseam.track.peers import make_tracker
+
+        make_tracker(args.tracker, model_path=args.model)  # a bad file is refused here, not
+        # after the pre-flight and the first segment's approach
     cell, part, noise = load_cell(), load_part(args.part), load_noise()
     try:
         level = noise.level(args.noise)
     except ValueError as e:
         raise TorchseamError(f"--noise: {e}") from None
+    # the weld plan, every pose through the reachability gate, before anything moves
+    from torchseam.live.demo import PlanRefused
+    from torchseam.plan.preflight import preflight
+
+    report = preflight(cell, part, part_name=str(args.part or "configs/parts/t_joint.yaml"))
+    print(report.text(), flush=True)
+    if not report.ok:
+        print(f"torchseam demo: error: {PlanRefused(report).summary_line()}", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     video = None
     if not args.no_video:
@@ -216,15 +240,17 @@ def run(args: argparse.Namespace) -> int:
                mininterval=0.5)
     try:
         res = run_demo(cell, part, noise, level, args.seed, faults, args.segments,
-                       args.tracker, video, progress=bar.update, length_mm=args.length_mm)
+                       args.tracker, video, progress=bar.update, length_mm=args.length_mm,
+                       model_path=args.model, report=report)
     finally:
         bar.close()
         if video is not None:
             video.release()
     files = write_report(res, args.out)
     s = res.summary
-    print(f"\nclosed-loop weld: {len(args.segments)} segment(s), noise {level:g}, seed "
-          f"{args.seed}, tracker {args.tracker}"
+    print(f"\nclosed-loop weld of {report.part_name}: {len(args.segments)} segment(s), noise "
+          f"{level:g}, seed {args.seed}, tracker {args.tracker}"
+          + (f" (model {args.model})" if args.model is not None else "")
           + (f", faults {', '.join(faults)}" if faults else "")
           + f" ({time.perf_counter() - t0:.0f} s)")
     print(format_table(

@@ -1,4 +1,13 @@
-"""``torchseam demo``: weld the simulated T joint in closed loop, six segments, with a report.
+"""``torchseam demo``: weld a simulated part (the T joint by default) in closed loop, six
+segments, with a report.
+
+The weld follows the part's weld plan: :func:`~torchseam.plan.preflight.preflight` runs first
+(every pose of every segment, approach included, through the reachability gate the live loop
+uses) and chooses the part's placement on the positioner, where the six segments start and the
+torch's work and travel angles per segment (the configured plan when it passes, else a searched
+one). A part the robot cannot weld is refused before anything moves (:class:`PlanRefused`, whose
+text is the pre-flight table with the refused segments and the reason; ``torchseam demo`` prints
+it and exits with 2).
 
 Per frame (25 Hz of simulation time): the simulator renders what the sensor sees from where
 the simulated robot actually is; the live loop tracks, locates, plans and hands torch poses to
@@ -29,6 +38,7 @@ import numpy as np
 import torch
 
 from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
+from torchseam.core.errors import TorchseamError
 from torchseam.core.transforms import apply, invert, quat_to_matrix
 from torchseam.live.loop import (
     Command,
@@ -41,7 +51,8 @@ from torchseam.live.loop import (
 )
 from torchseam.live.ring import torch_axis_errors
 from torchseam.live.simcell import LockstepCell, SimClock
-from torchseam.plan.path import load_plan_config, six_segments
+from torchseam.plan.path import load_plan_config
+from torchseam.plan.preflight import PlanReport, preflight
 from torchseam.robot.egm import EgmLink
 from torchseam.robot.egm_config import load_egm_config
 from torchseam.robot.egm_messages import EgmSensor
@@ -165,6 +176,25 @@ class DemoResult:
     wire_unsafe: int = 0                 # poses on the wire (link -> robot) that fail a re-check
     part: PartConfig | None = None       # the part welded, and its pose in the base per segment
     part_poses: dict[str, np.ndarray] = field(default_factory=dict)  # (turned by the positioner)
+    report: PlanReport | None = None     # the weld plan followed and its pre-flight
+
+
+class PlanRefused(TorchseamError):
+    """The pre-flight found poses of the part's weld plan that the robot cannot weld: nothing
+    moved. ``report`` is the pre-flight; the message is its text (the table names each refused
+    segment, its first refused pose and the reason)."""
+
+    def __init__(self, report: PlanReport) -> None:
+        self.report = report
+        super().__init__(report.text() + "\nnothing moved: the demo welds a part only when the "
+                         "pre-flight passes every pose of its plan")
+
+    def summary_line(self) -> str:
+        """One line: which part, which segments, the first reason."""
+        r = self.report
+        v = next(v for v in r.verdicts if not v.passed)
+        return (f"the robot cannot weld {r.part_name}: pre-flight refused segment(s) "
+                f"{', '.join(r.refused)} ({v.reason}); nothing moved")
 
 
 class _WireTap:
@@ -198,14 +228,42 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
              length_mm: float | None = None,
              observer: Callable[[DemoEvent], None] | None = None,
              control: DemoControl | None = None,
-             live: LiveConfig | None = None) -> DemoResult:
+             live: LiveConfig | None = None,
+             model_path: str | Path | None = None,
+             report: PlanReport | None = None,
+             part_name: str = "part") -> DemoResult:
     """Weld the ring; returns everything the report needs. ``length_mm`` welds only the first
     mm of each segment (quick runs and tests). ``observer`` is called once per frame with a
     :class:`DemoEvent`; ``control`` lets an operator hold, resume or stop the weld. ``live``:
     the loop's settings (default ``configs/live.yaml``; its ``demo`` section sets the packet
     loss). The link's age limit follows from the loop's budget
-    (:func:`~torchseam.live.loop.egm_config_for`)."""
+    (:func:`~torchseam.live.loop.egm_config_for`). ``model_path``: the EAKF-STC model file of
+    the ``eakf-stc`` / ``anchored`` trackers (default the shipped one).
+
+    The weld follows ``part``'s weld plan: ``report`` (a
+    :func:`~torchseam.plan.preflight.preflight` of ``part``; default: run here, ``part_name``
+    names the part in its table) gives the placement (``report.plan.part`` is the part welded),
+    the segments' starts and each segment's torch work and travel angles.
+
+    Raises:
+        PlanRefused: the pre-flight refused a pose of the plan (any segment: a ring is not
+            started that cannot be closed); nothing moved.
+        TorchseamError: the plan rolls the torch about its axis (the live loop applies work
+            and travel angles only; ``search.roll_deg`` in configs/plan.yaml is [0, 0]).
+    """
     plan = load_plan_config()
+    if report is None:
+        report = preflight(cell, part, config=plan, part_name=part_name)
+    if not report.ok:
+        raise PlanRefused(report)
+    weld_plan = report.plan
+    rolled = [s.name for s in weld_plan.segments if s.name in segments and s.roll_deg]
+    if rolled:
+        raise TorchseamError(
+            f"the weld plan of {report.part_name} rolls the torch about its axis on segment(s) "
+            f"{', '.join(rolled)}: the live loop applies work and travel angles only (keep "
+            "search.roll_deg at [0, 0] in configs/plan.yaml)")
+    part = weld_plan.part  # placed as planned
     live = live or load_live_config()
     proc = cell.process
     egm = egm_config_for(load_egm_config(), live, proc.frame_rate_hz)
@@ -216,7 +274,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
         egm, mode="pose", safety=safety,
         sim_controller=dataclasses.replace(egm.sim_controller,
                                            tcp_speed_mm_s=proc.weld_speed_mm_s))
-    res = DemoResult(part=part)
+    res = DemoResult(part=part, report=report)
     clock = SimClock()
     dt = 1.0 / proc.frame_rate_hz
     latency: dict[str, list[float]] = {}
@@ -224,14 +282,14 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     stopped = False
     writer = _VideoThread(video) if video is not None else None
     try:
-        for seg in six_segments():
+        for seg in weld_plan.segments:
             if seg.name not in segments:
                 continue
             if stopped:
                 res.incomplete.append({"segment": seg.name,
                                        "reason": "not welded: stopped by the operator"})
                 continue
-            scene = Scene(part, seg.rotation_deg)
+            scene = weld_plan.scene(seg)
             res.part_poses[seg.name] = scene.T_B_Tnom
             gate = ReachGate(cell=cell, part=part, part_pose_mm=scene.T_B_Tnom)
             link = EgmLink(egm, gate=gate, clock=clock, bind=False)
@@ -241,7 +299,8 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             if length_mm is not None:
                 seg_len = min(seg_len, length_mm)
             approach = proc.look_ahead_mm + plan.approach_mm
-            T0 = scene.nominal_tcp(np.array([s0 - approach]))[0]
+            # the programmed start pose, with the segment's torch angles
+            T0 = weld_plan.nominal_tcp(seg, np.array([s0 - approach]))[0]
             simcell = LockstepCell(cell, egm, tap, clock, T0, robot=gate.robot)  # type: ignore[arg-type]
             if "packet-loss" in faults:
                 simcell.ctrl.set_loss(live.demo.packet_loss_fraction,
@@ -250,7 +309,8 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             ref = _SeamRef(scene)
             nominal = scene.nominal_tcp(s0 - approach + np.arange(
                 0.0, approach + seg_len + 10.0, 0.5))[:, :3, 3]
-            loop = LiveLoop(cell, make_tracker(tracker), link, plan, live, nominal=nominal)
+            loop = LiveLoop(cell, make_tracker(tracker, model_path=model_path), link,
+                            weld_plan.plan_config(seg, plan), live, nominal=nominal)
             start = T0[:3, 3]
             n_max = int((approach + seg_len) / (proc.weld_speed_mm_s * dt) * 1.6) + 50
             fault_at = int((approach + 0.5 * seg_len) / (proc.weld_speed_mm_s * dt))
@@ -331,7 +391,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                 res.axis_deg += list(torch_axis_errors(
                     scene, np.array([c.p for c in weld]),
                     quat_to_matrix(np.array([c.q for c in weld])),
-                    np.array([c.seen_t_s for c in weld]))[0])
+                    np.array([c.seen_t_s for c in weld]), angles=seg.angles[:2])[0])
             # the link's count: new targets and the re-sends that keep its watchdog fed
             link_stats = link.stats
             for r, n in link_stats.refused.items():
@@ -363,6 +423,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                    for k, v in latency.items() if v}
     res.summary = _summary(res, unsafe + res.wire_unsafe)
     res.summary["stopped"] = stopped
+    res.summary["plan"] = weld_plan.to_dict()
     return res
 
 

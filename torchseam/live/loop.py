@@ -86,6 +86,8 @@ class LiveConfig:
     retry_ms: float = _f(lo=0.0)                       # a held loop tries at most this often
     timing_window: int = _f(lo=1)      # per-stage timings kept (bounded)
     history: int = _f(lo=1)            # commands kept in LiveLoop.commands (bounded)
+    # where the seam turns faster than max_turn_deg a step, the step shortens down to this
+    min_step_mm: float = _f(default=1.0, lo=0.0, lo_open=True)
     demo: DemoFaults = _f(default=DemoFaults(0.1, 4.0))  # the demo's simulated packet loss
 
     def _check(self) -> None:
@@ -133,6 +135,24 @@ def check_link_budget(sink: Any, live: LiveConfig, frame_rate_hz: float) -> None
             "torchseam.live.loop.egm_config_for(egm, live, frame_rate_hz)")
 
 
+def check_link_turn(sink: Any, live: LiveConfig) -> None:
+    """Refuse a sink (an EGM link in pose mode) that refuses the turns the loop plans.
+
+    Raises:
+        ConfigError: the loop's ``max_turn_deg`` exceeds the link's ``safety.max_step_deg``.
+    """
+    cfg = getattr(sink, "config", None)
+    step = getattr(getattr(cfg, "safety", None), "max_step_deg", None)
+    if not isinstance(step, (int, float)) or getattr(cfg, "mode", "pose") != "pose":
+        return
+    if live.max_turn_deg > step:
+        raise ConfigError(
+            f"the live loop's max_turn_deg ({live.max_turn_deg:g}, configs/live.yaml) exceeds "
+            f"the EGM link's safety.max_step_deg ({step:g}, configs/egm.yaml): the link would "
+            "refuse the turns the loop plans. Where the seam turns fast the loop shortens its "
+            "step (min_step_mm) instead")
+
+
 #: A target with no buffered point within this ahead of it lies at a hole of the look-ahead
 #: (the points come ~0.3 mm apart at weld speed): its frame is interpolated across the hole
 #: (LiveLoop._next)
@@ -159,6 +179,29 @@ class History(deque[_T]):
                 return list(islice(self, start, max(start, stop)))
             return list(self)[i]
         return super().__getitem__(i)
+
+
+#: Where the seam's own frame turns more than ``max_turn_deg`` over an IPI step, the step is
+#: shortened (to ``min_step_mm`` at least) so that the seam turns this share of ``max_turn_deg``
+#: per target: the rest lets a torch that lags (a clamped noisy frame) catch up (LiveLoop._pose)
+TURN_SHARE = 0.8
+
+
+def _angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
+    """Rotation between two unit quaternions (4,), degrees."""
+    return 2.0 * math.degrees(math.acos(min(1.0, abs(float(q1 @ q2)))))
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
+    """Unit quaternion ``f`` of the way from ``q0`` to ``q1`` (the short way)."""
+    d = float(q0 @ q1)
+    if d < 0:
+        q1, d = -q1, -d
+    half = math.acos(min(1.0, d))
+    if half < 1e-9:
+        return q1
+    out = (math.sin((1 - f) * half) * q0 + math.sin(f * half) * q1) / math.sin(half)
+    return out / np.linalg.norm(out)
 
 
 def _turn_limited(q_prev: np.ndarray | None, q: np.ndarray, max_deg: float) -> np.ndarray:
@@ -336,6 +379,7 @@ class LiveLoop:
         self.plan = plan or load_plan_config()
         self.cfg = live or load_live_config()
         check_link_budget(sink, self.cfg, cell.process.frame_rate_hz)
+        check_link_turn(sink, self.cfg)
         self.locator = SeamLocator(cell, tracker)
         self.sink = sink
         self.open_loop = open_loop
@@ -347,6 +391,9 @@ class LiveLoop:
         self.state = LoopState.STARTING
         self.target: np.ndarray | None = None
         self.last_q: np.ndarray | None = None   # (4,) w, x, y, z of the last accepted pose
+        # the seam's own frame at the last accepted target (the pose before the turn limit;
+        # None when unknown: at the start, after a hold), for the seam's turn rate (_pose)
+        self.want_q: np.ndarray | None = None
         self.evidence_t = float("-inf")  # time of the newest frame with evidence (see module)
         self.last_frame_t = float("inf")  # time of the newest frame that arrived
         # the loop lets the arc burn (False while held or resuming: the torch stands still or
@@ -359,9 +406,10 @@ class LiveLoop:
         self.commands: History[Command] = History(maxlen=self.cfg.history)
         self.message = ""
         self._tilt = (_rot(0, self.plan.work_angle_deg) @ _rot(1, self.plan.travel_angle_deg))
-        # prepare()'s pose: (the buffer's answer it came from, last_q then, tangent, pose)
-        self._prepared: tuple[tuple, np.ndarray | None, np.ndarray,
-                              tuple[np.ndarray, np.ndarray]] | None = None
+        # prepare()'s pose: (the buffer's answer it came from, last_q then, the pose (ip, q,
+        # the seam's frame there))
+        self._prepared: tuple[tuple, np.ndarray | None,
+                              tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         self._refusal_run = 0
         self._torch_prev: np.ndarray | None = None   # torch position at the previous frame
         self._t_prev = float("nan")
@@ -385,6 +433,7 @@ class LiveLoop:
         self.evidence_t = float("-inf") if t_s is None else float(t_s)
         self.target = np.asarray(T_B_W, float)[:3, 3].copy()
         self.last_q = matrix_to_quat(np.asarray(T_B_W, float)[:3, :3])
+        self.want_q = None
         self._prepared = None
         self.state = LoopState.TRACKING
         self.arc_ok = True
@@ -495,10 +544,10 @@ class LiveLoop:
             return self._hold("plan", pose, t_s)
         return self._send(pose, torch_p, t_s, loc)
 
-    def _send(self, pose: tuple[np.ndarray, np.ndarray], torch_p: np.ndarray, t_s: float,
-              loc: Location | None) -> Command:
+    def _send(self, pose: tuple[np.ndarray, np.ndarray, np.ndarray], torch_p: np.ndarray,
+              t_s: float, loc: Location | None) -> Command:
         """Hand a new target to the sink; on acceptance it becomes the target."""
-        ip, q = pose
+        ip, q, want = pose
         seen = self._seen_time(ip)
         verdict = self.sink.set_target(ip, q, measured_at=self.evidence_t)
         ok_v = bool(getattr(verdict, "ok", True))
@@ -509,6 +558,7 @@ class LiveLoop:
             self.stats.sent += 1
             self.target = ip
             self.last_q = q
+            self.want_q = want
             self._refusal_run = 0
             self._progress = (t_s, float(np.linalg.norm(torch_p - ip)))
             self._link_seen = None
@@ -612,6 +662,7 @@ class LiveLoop:
         if self.last_q is not None and q @ self.last_q < 0:
             q = -q
         self.last_q = q
+        self.want_q = None
         self._prepared = None
         pose = self._pose(self._next(self.target))
         if isinstance(pose, str):
@@ -707,15 +758,27 @@ class LiveLoop:
         return ip, tangent, arms
 
     def _pose(self, nxt: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None
-              ) -> tuple[np.ndarray, np.ndarray] | str:
-        """The next target pose ``(ip (3,), q (4,))`` from the look-ahead buffer's IPI step
-        ``nxt``, or why there is none (the loop then holds with that message)."""
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+        """The next target pose ``(ip (3,), q (4,), the seam's frame at ip (4,))`` from the
+        look-ahead buffer's IPI step ``nxt`` from the current target, or why there is none (the
+        loop then holds with that message).
+
+        The torch turns at most ``max_turn_deg`` from the last pose (q is the seam's frame
+        turned towards by that much at most). Where the seam's own frame turns more than that
+        over the step (a branch offset towards the main pipe's side: the seam drops round the
+        flank and its frame turns up to 4.3 degrees per 2 mm; the link refuses more than its
+        ``safety.max_step_deg``, 3, between two targets), the step is shortened, to
+        ``min_step_mm`` at least, so that the seam turns ``TURN_SHARE * max_turn_deg`` per
+        target: the torch keeps up with the seam's turn (up to ``max_turn_deg / min_step_mm``
+        degrees per mm) instead of lagging it. The target and the frame there are interpolated
+        between the current target and the full step's (the seam bends by ~0.01 mm over 2 mm:
+        one fit serves both)."""
         if nxt is None:
             return "nothing located a step ahead of the torch"
         ip, tangent, arms = nxt
         prep = self._prepared
         if prep is not None and prep[0] is nxt and prep[1] is self.last_q:
-            return prep[3]  # prepare() made this pose from this very answer and last pose
+            return prep[2]  # prepare() made this pose from this very answer and last pose
         if tangent is None:
             # too little of the seam seen to fit its direction (the start of a segment): keep
             # the torch's present travel direction rather than guess from a chord
@@ -733,7 +796,26 @@ class LiveLoop:
         q = matrix_to_quat(R @ self._tilt)
         if self.last_q is not None and q @ self.last_q < 0:
             q = -q  # the sign nearest the previous pose: the controller turns the short way
-        return ip, _turn_limited(self.last_q, q, self.cfg.max_turn_deg)
+        ip, q = self._shortened(ip, q)
+        return ip, _turn_limited(self.last_q, q, self.cfg.max_turn_deg), q
+
+    def _shortened(self, ip: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(ip, q)``, or the shorter step towards them where the seam's frame turns faster
+        than ``max_turn_deg`` over the step (see :meth:`_pose`)."""
+        w, cp = self.want_q, self.target
+        if w is None or cp is None:
+            return ip, q
+        turn = _angle_deg(w, q)
+        if turn <= self.cfg.max_turn_deg:
+            return ip, q
+        d = float(np.linalg.norm(ip - cp))
+        f = max(TURN_SHARE * self.cfg.max_turn_deg / turn, self.cfg.min_step_mm / max(d, 1e-9))
+        if f >= 1.0:
+            return ip, q
+        qs = _slerp(w, q, f)
+        if qs @ q < 0:
+            qs = -qs
+        return cp + f * (ip - cp), qs
 
     def prepare(self) -> None:
         """Work between frames: the tracker's learning for the next frame (its ``idle()``),
@@ -756,11 +838,10 @@ class LiveLoop:
         pose = self._pose(nxt)
         if isinstance(pose, str):
             return
-        tangent = nxt[1] if nxt[1] is not None else quat_to_matrix(self.last_q)[:, 0]
-        self._prepared = (nxt, self.last_q, tangent, pose)
+        self._prepared = (nxt, self.last_q, pose)
         ready = getattr(self.sink, "prepare", None)
         if ready is not None:
-            ready(*pose)
+            ready(pose[0], pose[1])
 
     def _seen_time(self, ip: np.ndarray) -> float:
         """When the buffered point nearest ``ip`` was seen (one vectorised search: a norm
