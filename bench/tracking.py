@@ -90,10 +90,11 @@ def fitted_on(path: Path | None = None) -> tuple[str, ...]:
     path = path or model_io.DEFAULT_MODEL
     if not path.is_file():
         return ()
-    info = model_io.read_model(path)[1].get("info") or "{}"
+    info = model_io.read_model(path)[1].get("info") or {}
     try:
-        data = ast.literal_eval(info).get("data", {}).get("train", {})
-    except (ValueError, SyntaxError):
+        info = ast.literal_eval(info) if isinstance(info, str) else info
+        data = info.get("data", {}).get("train", {})
+    except (ValueError, SyntaxError, AttributeError):
         data = {}
     return tuple(data.get("families", ["sim"]))
 
