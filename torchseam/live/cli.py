@@ -57,6 +57,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", type=model_arg, default=None, metavar="FILE",
                    help="EAKF-STC model file for the eakf-stc and anchored trackers (default "
                         "models/eakf_stc.safetensors)")
+    p.add_argument("--start-offset-mm", type=float, default=0.0, metavar="D",
+                   help="start each segment D mm across the seam (the torch frame's y, at the "
+                        "search stand-off of configs/search.yaml); the torch then searches for "
+                        "the seam, arc off, within the search bound (35 mm / 20 deg); a seam not "
+                        "found: the segment is incomplete, exit 1; default 0")
+    p.add_argument("--start-angle-deg", type=float, default=0.0, metavar="A",
+                   help="start each segment turned A degrees about the torch axis (searches "
+                        "as --start-offset-mm); default 0")
     p.set_defaults(func=run)
 
     r = sub.add_parser(
@@ -175,6 +183,12 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+# what --start-offset-mm / --start-angle-deg accept (bad input beyond: exit 2); the search's
+# own bound (configs/search.yaml) is smaller: a start beyond it is a search that fails (exit 1)
+MAX_START_OFFSET_MM = 100.0
+MAX_START_ANGLE_DEG = 45.0
+
+
 def demo_exit_code(summary: dict) -> int:
     """``torchseam demo``'s exit code: 1 when a segment was not welded to its end
     (``summary["segments_incomplete"]``), else 0."""
@@ -205,6 +219,10 @@ def run(args: argparse.Namespace) -> int:
         raise TorchseamError(f"--fault {bad[0]!r}: use one of {', '.join(FAULTS)}")
     if args.length_mm is not None and not args.length_mm > 0:
         raise TorchseamError(f"--length-mm must be > 0, got {args.length_mm}")
+    for name, v, most in (("--start-offset-mm", args.start_offset_mm, MAX_START_OFFSET_MM),
+                          ("--start-angle-deg", args.start_angle_deg, MAX_START_ANGLE_DEG)):
+        if not math.isfinite(v) or abs(v) > most:
+            raise TorchseamError(f"{name} must be within +-{most:g}, got {v}")
     if not args.segments or set(args.segments) - set("abcdef"):
         raise TorchseamError(f"--segments {args.segments!r}: use letters from abcdef")
     if args.model is not None:
@@ -241,7 +259,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         res = run_demo(cell, part, noise, level, args.seed, faults, args.segments,
                        args.tracker, video, progress=bar.update, length_mm=args.length_mm,
-                       model_path=args.model, report=report)
+                       model_path=args.model, report=report,
+                       start_offset_mm=args.start_offset_mm, start_angle_deg=args.start_angle_deg)
     finally:
         bar.close()
         if video is not None:
@@ -284,6 +303,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"  ... {len(res.messages) - 12} more in {args.out / 'messages.txt'}")
     print(f"report: {', '.join(str(f) for f in files)}"
           + (f", {args.out / 'weld.mp4'}" if video is not None else ""))
+    for srch in s.get("search", []):
+        print(f"segment {srch['segment']}: " + (
+            f"seam found by the search in {srch['time_s']:.2f} s" if srch["found"]
+            else srch["reason"]))
     for seg in s["segments_incomplete"]:
         print(f"segment {seg['segment']} NOT completed: {seg['reason']}")
     return demo_exit_code(s)

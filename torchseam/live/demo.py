@@ -50,6 +50,13 @@ from torchseam.live.loop import (
     load_live_config,
 )
 from torchseam.live.ring import torch_axis_errors
+from torchseam.live.search import (
+    SeamSearch,
+    SearchConfig,
+    load_search_config,
+    offset_pose,
+    steps_between,
+)
 from torchseam.live.simcell import LockstepCell, SimClock
 from torchseam.plan.path import load_plan_config
 from torchseam.plan.preflight import PlanReport, preflight
@@ -61,6 +68,7 @@ from torchseam.sim.scene import Scene
 from torchseam.sim.sequence import SensorRenderer
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import make_tracker
+from torchseam.vision.tipm import Tipm
 
 FAULTS = ("dropped-frames", "arc-flash", "laser-off", "packet-loss", "controller-silence")
 FAULT_FRAMES = 30          # how long each fault lasts, frames (1.2 s); packet loss: the segment
@@ -177,6 +185,8 @@ class DemoResult:
     part: PartConfig | None = None       # the part welded, and its pose in the base per segment
     part_poses: dict[str, np.ndarray] = field(default_factory=dict)  # (turned by the positioner)
     report: PlanReport | None = None     # the weld plan followed and its pre-flight
+    # per segment started off the seam (start_offset_mm/start_angle_deg): the search for it
+    searches: list[dict] = field(default_factory=list)
 
 
 class PlanRefused(TorchseamError):
@@ -231,7 +241,9 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
              live: LiveConfig | None = None,
              model_path: str | Path | None = None,
              report: PlanReport | None = None,
-             part_name: str = "part") -> DemoResult:
+             part_name: str = "part",
+             start_offset_mm: float = 0.0, start_angle_deg: float = 0.0,
+             search: SearchConfig | None = None) -> DemoResult:
     """Weld the ring; returns everything the report needs. ``length_mm`` welds only the first
     mm of each segment (quick runs and tests). ``observer`` is called once per frame with a
     :class:`DemoEvent`; ``control`` lets an operator hold, resume or stop the weld. ``live``:
@@ -244,6 +256,17 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     :func:`~torchseam.plan.preflight.preflight` of ``part``; default: run here, ``part_name``
     names the part in its table) gives the placement (``report.plan.part`` is the part welded),
     the segments' starts and each segment's torch work and travel angles.
+
+    Start off the seam: with ``start_offset_mm`` or ``start_angle_deg`` non-zero each segment
+    starts from its programmed start pose displaced in the torch's own frame: lifted by the
+    search stand-off (``search``, default ``configs/search.yaml``), moved ``start_offset_mm``
+    across the seam (the torch frame's y: perpendicular to the travel direction and the torch
+    axis) and turned ``start_angle_deg`` about the torch axis. A
+    :class:`~torchseam.live.search.SeamSearch` then moves the torch, arc off, in a bounded
+    zig-zag around that start until TIPM confirms the stripe's corner, and an approach (arc
+    off, steps the link accepts, every pose through the gate) brings it onto the programmed
+    start: the weld then goes on as without a start offset. Not found within the bound: the
+    segment is incomplete with the search's reason (``summary["search"]`` has each search).
 
     Raises:
         PlanRefused: the pre-flight refused a pose of the plan (any segment: a ring is not
@@ -301,7 +324,25 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             approach = proc.look_ahead_mm + plan.approach_mm
             # the programmed start pose, with the segment's torch angles
             T0 = weld_plan.nominal_tcp(seg, np.array([s0 - approach]))[0]
-            simcell = LockstepCell(cell, egm, tap, clock, T0, robot=gate.robot)  # type: ignore[arg-type]
+            scfg, T_start = None, T0
+            if start_offset_mm or start_angle_deg:
+                scfg = search or load_search_config()
+                T_start = offset_pose(T0, lateral_mm=start_offset_mm,
+                                      angle_deg=start_angle_deg, lift_mm=scfg.standoff_mm)
+                v = gate.check(torch.tensor(T_start[None]))
+                if not bool(v.ok[0]):
+                    why = (f"start pose refused: {start_offset_mm:g} mm / {start_angle_deg:g} "
+                           f"deg off the seam, the reachability gate refuses it "
+                           f"({v.reasons[0]}); nothing "
+                           "moved in this segment")
+                    res.searches.append({"segment": seg.name, "found": False, "reason": why,
+                                         "time_s": 0.0, "extent_mm": 0.0, "extent_deg": 0.0,
+                                         "gate_refused": 1})
+                    res.incomplete.append({"segment": seg.name, "reason": why})
+                    res.messages.append(f"[{seg.name} t={clock.t:.2f}s] segment incomplete: "
+                                        f"{why}")
+                    continue
+            simcell = LockstepCell(cell, egm, tap, clock, T_start, robot=gate.robot)  # type: ignore[arg-type]
             if "packet-loss" in faults:
                 simcell.ctrl.set_loss(live.demo.packet_loss_fraction,
                                       live.demo.packet_loss_burst_cycles, seed * 10 + seg.index)
@@ -319,6 +360,14 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             completed, arc_was = False, False
             commands: list[Command] = []   # every pose handed to the link (the loop keeps few)
             welding: list[bool] = []       # the arc was on when it was handed over
+            search_failed = ""
+            if scfg is not None:
+                found = _search_seam(seg.name, scfg, T_start, T0, gate, simcell, renderer, tap,
+                                     clock, dt, commands, res)
+                welding += [False] * (len(commands) - len(welding))
+                if not found["found"]:
+                    search_failed = found["reason"]
+                    n_max = 0   # nothing more moves in this segment
             for k in range(n_max):
                 if control is not None and control.checkpoint():
                     stopped = True
@@ -374,7 +423,8 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                 if progress:
                     progress(1)
             if not completed:
-                why = _incomplete_reason(loop, stopped, travelled, approach, seg_len, n_max)
+                why = search_failed or _incomplete_reason(loop, stopped, travelled, approach,
+                                                          seg_len, n_max)
                 res.incomplete.append({"segment": seg.name, "reason": why})
                 res.messages.append(f"[{seg.name} t={clock.t:.2f}s] segment incomplete: {why}")
             loop.finish()
@@ -423,8 +473,75 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                    for k, v in latency.items() if v}
     res.summary = _summary(res, unsafe + res.wire_unsafe)
     res.summary["stopped"] = stopped
+    if res.searches:
+        res.summary["search"] = list(res.searches)
     res.summary["plan"] = weld_plan.to_dict()
     return res
+
+
+def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarray,
+                 gate: ReachGate, simcell: LockstepCell, renderer: SensorRenderer, link,
+                 clock: SimClock, dt: float, commands: list[Command], res: DemoResult) -> dict:
+    """Search for the seam from ``T_start`` (the robot is there), arc off, then approach the
+    programmed start ``T0``; every pose through ``gate`` and handed to ``link`` (kept in
+    ``commands``). Appends the search's record to ``res.searches`` and returns it."""
+    from torchseam.core.transforms import matrix_to_quat
+
+    def reachable(T: np.ndarray) -> bool:
+        return bool(gate.check(torch.tensor(T[None])).ok[0])
+
+    def send(T: np.ndarray) -> bool:
+        q = matrix_to_quat(T[:3, :3])
+        v = link.set_target(T[:3, 3], q, measured_at=clock.t)
+        commands.append(Command(clock.t, T[:3, 3].copy(), q, bool(v.ok), v.reason, clock.t))
+        return bool(v.ok)
+
+    tipm = Tipm()
+    t0 = clock.t
+    s = SeamSearch(T_start, cfg, 1.0 / dt, reachable, t0_s=t0)
+    rec: dict = {"segment": seg, "found": False, "reason": ""}
+    while True:
+        T_now = simcell.tcp_pose()
+        frame, _ = renderer.render(T_now, clock.t, arc_on=False)
+        r = tipm(frame)
+        if s.observe(r.ok, r.uv, clock.t, T_now):
+            break
+        T = s.step()
+        if T is None:
+            break
+        if not send(T):
+            s.failed, s.reason = True, f"the link refused a search pose ({commands[-1].reason})"
+            break
+        simcell.advance(dt)
+    rec.update(time_s=round(clock.t - t0, 3), extent_mm=round(s.extent[0], 3),
+               extent_deg=round(s.extent[1], 3), gate_refused=s.refused)
+    if not s.found:
+        rec["reason"] = s.reason
+        res.messages.append(f"[{seg} t={clock.t:.2f}s] {s.reason}")
+        res.searches.append(rec)
+        return rec
+    res.messages.append(f"[{seg} t={clock.t:.2f}s] seam found after {clock.t - t0:.2f} s "
+                        f"({s.y:+.1f} mm, {s.a:+.1f} deg from the start): approaching")
+    # the approach: at the stand-off over the programmed start, then down onto it
+    t1 = clock.t
+    step_mm, step_deg = cfg.speed_mm_s * dt, cfg.turn_deg_s * dt
+    T_last = s.pose(s.y, s.a)
+    above = offset_pose(T0, lift_mm=cfg.standoff_mm)
+    for T in steps_between(T_last, above, step_mm, step_deg) + steps_between(
+            above, T0, step_mm, step_deg):
+        if not reachable(T) or not send(T):
+            rec["reason"] = "the approach from the search to the seam was refused"
+            res.messages.append(f"[{seg} t={clock.t:.2f}s] {rec['reason']}")
+            res.searches.append(rec)
+            return rec
+        simcell.advance(dt)
+    for _ in range(int(2.0 / dt)):  # the robot arrives (it lags its targets by a few frames)
+        if np.linalg.norm(simcell.tcp_pose()[:3, 3] - T0[:3, 3]) < 0.05:
+            break
+        simcell.advance(dt)
+    rec.update(found=True, approach_s=round(clock.t - t1, 3))
+    res.searches.append(rec)
+    return rec
 
 
 def _incomplete_reason(loop: LiveLoop, stopped: bool, travelled: float, approach: float,
@@ -609,15 +726,16 @@ def write_report(res: DemoResult, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     files = []
     fr = res.frames
-    err_uv = np.array([f.uv - f.uv_true for f in fr])
+    err_uv = np.array([f.uv - f.uv_true for f in fr]).reshape(-1, 2)  # none: a search failed
     files.append(series_plot({"u error": err_uv[:, 0], "v error": err_uv[:, 1]}, "px",
                              out / "uv_error.png"))
-    err_p = np.array([f.p - f.p_true for f in fr])
+    err_p = np.array([f.p - f.p_true for f in fr]).reshape(-1, 3)
     files.append(series_plot({"x": err_p[:, 0], "y": err_p[:, 1], "z": err_p[:, 2]},
                              "located 3D error (mm)", out / "xyz_error.png"))
     files.append(series_plot({"torch to true seam": np.array([f.torch_err_mm for f in fr])},
                              "mm", out / "torch_error.png"))
-    files.append(quaternion_plot(list(res.quats.items()), out / "quaternions.png"))
+    if res.quats:  # (none: no segment started, e.g. a start pose the gate refused)
+        files.append(quaternion_plot(list(res.quats.items()), out / "quaternions.png"))
     files.append(seam_3d_plot({k: v for k, v in res.paths.items() if v}, out / "seam_3d.png"))
     (out / "summary.json").write_text(json.dumps(res.summary, indent=1))
     files.append(out / "summary.json")
