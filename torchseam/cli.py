@@ -45,7 +45,8 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
      "plan a part's weld and check every pose with the reachability gate"),
     ("robot", "torchseam.robot.cli",  # fk | ik | check | sim-controller
      "IRB 1410 kinematics, reachability checks and the EGM link"),
-    ("demo", "torchseam.live.cli", "weld the simulated T joint in closed loop and write a report"),
+    ("demo", "torchseam.live.cli",
+     "weld a simulated part (default the T joint) in closed loop and write a report"),
     ("replay", "torchseam.live.cli",
      "feed recorded frames (folder, video or camera) through the live loop, open loop"),
     ("console", "torchseam.console.cli",

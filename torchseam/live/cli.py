@@ -24,7 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     from torchseam.live.demo import FAULTS
 
     p = sub.add_parser(
-        "demo", help="weld the simulated T joint in closed loop and write a report",
+        "demo",
+        help="weld a simulated part (default the T joint) in closed loop and write a report",
         description="Weld a part (default the 203/152 mm T joint) in six segments in closed "
                     "loop, with its weld plan: the pre-flight (as `torchseam plan`) first "
                     "chooses the placement, where the segments start and the torch's angles, "
