@@ -52,6 +52,7 @@ from aiohttp import WSMsgType, web
 
 from torchseam.console.config import ConsoleConfig, ParamError, WeldParams
 from torchseam.console.session import Cursor, LatestFrame, WeldSession, num
+from torchseam.core.overlay import put_label
 
 #: Colours (BGR) of the tracker's status: TRACKED, COASTING, LOST (as in the demo video).
 STATUS_BGR = {0: (0, 255, 0), 1: (0, 200, 255), 2: (0, 0, 255)}
@@ -227,11 +228,9 @@ def render_frame(lf: LatestFrame, scale: float, quality: int) -> bytes:
     h, w = img.shape[:2]
     cv2.rectangle(img, (0, 0), (w - 1, h - 1), colour, 2)
     text = f"{lf.seg}  {STATUS_NAMES.get(lf.status, '?')}  {lf.state}  t={lf.t_s:.2f}s"
-    cv2.putText(img, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, FONT_SCALE, (255, 255, 255), 1,
-                cv2.LINE_AA)
+    put_label(img, text, (6, 16), FONT_SCALE)
     if lf.message:
-        cv2.putText(img, lf.message[:60], (6, h - 8), cv2.FONT_HERSHEY_SIMPLEX, FONT_SCALE,
-                    (0, 200, 255), 1, cv2.LINE_AA)
+        put_label(img, lf.message[:60], (6, h - 8), FONT_SCALE, (0, 200, 255))
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise RuntimeError("JPEG encoding failed")

@@ -15,6 +15,7 @@ from tqdm import tqdm
 from torchseam.core.config import CellConfig, NoiseConfig, PartConfig, to_dict
 from torchseam.core.dataset import frame_name, write_labels
 from torchseam.core.errors import DatasetError
+from torchseam.core.overlay import put_label
 from torchseam.core.transforms import matrix_to_quat
 from torchseam.sim.sequence import FrameTruth, SequenceSpec, simulate
 
@@ -92,8 +93,7 @@ def contact_sheet(frames: list[np.ndarray], points: list[np.ndarray | None],
             c = (int(round(p[0] * scale)), int(round(p[1] * scale)))
             cv2.drawMarker(t, c, (0, 255, 0), cv2.MARKER_CROSS, 14, 1, cv2.LINE_AA)
             cv2.circle(t, c, 7, (0, 255, 0), 1, cv2.LINE_AA)
-        cv2.putText(t, cap, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
-                    cv2.LINE_AA)
+        put_label(t, cap, (6, 16), 0.45)
         tiles.append(t)
     while len(tiles) % cols:
         tiles.append(np.zeros_like(tiles[0]))

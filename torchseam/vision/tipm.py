@@ -39,6 +39,7 @@ import numpy as np
 from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.dataset import check_frame
 from torchseam.core.orient import FrameView
+from torchseam.core.overlay import put_label
 
 
 @dataclass(frozen=True)
@@ -418,8 +419,7 @@ def draw_overlay(frame: np.ndarray, res: TipmResult, truth: np.ndarray | None = 
         cv2.drawMarker(out, tuple(int(round(x)) for x in res.uv), (0, 255, 255),
                        cv2.MARKER_CROSS, 18, 1, cv2.LINE_AA)
     label = f"TIPM ({res.uv[0]:.1f}, {res.uv[1]:.1f})" if res.ok else f"TIPM: {res.reason}"
-    cv2.putText(out, label, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1,
-                cv2.LINE_AA)
+    put_label(out, label, (8, 20), 0.5)
     if truth is not None:
         cv2.drawMarker(out, tuple(int(round(x)) for x in truth), (0, 255, 0),
                        cv2.MARKER_TILTED_CROSS, 12, 1, cv2.LINE_AA)
