@@ -98,14 +98,23 @@ def test_model_file_reaches_the_tracker(offset_flank, tmp_path, capsys):
 
 def test_a_part_the_robot_cannot_weld_is_refused_before_any_motion(tmp_path, capsys,
                                                                    monkeypatch):
-    """The 60-degree Y joint: the torch does not fit the 60-degree groove on segments d and e
-    (clearance below the gate's margin at any work/travel angle): the pre-flight table with
-    the segment and the reason, exit 2, no traceback, nothing simulated."""
+    """The 60-degree Y joint with the torch modelled as a 24 mm cylinder (no nozzle): it does
+    not fit the 60-degree groove on segments d and e (clearance below the gate's margin at any
+    work/travel angle): the pre-flight table with the segment and the reason, exit 2, no
+    traceback, nothing simulated."""
+    import dataclasses
+
     import torchseam.live.demo as demo
+    import torchseam.robot.kinematics as kinematics
+    from torchseam.robot.config import load_robot
 
     def no_motion(*a, **k):
         raise AssertionError("the cell was simulated")
 
+    cfg = load_robot()
+    cylinder = dataclasses.replace(cfg, torch=dataclasses.replace(cfg.torch,
+                                                                  nozzle_length_mm=0.0))
+    monkeypatch.setattr(kinematics, "load_robot", lambda *a: cylinder)
     monkeypatch.setattr(demo, "LockstepCell", no_motion)
     out = tmp_path / "demo"
     rc = main(["demo", "--part", str(PARTS / "y_joint_60.yaml"), "--segments", "a",

@@ -71,15 +71,29 @@ def test_y_joint_75_plan_passes_every_segment_after_the_search(cell, robot):
                                                 np.eye(3))
 
 
-def test_y_joint_60_search_clears_all_but_the_acute_crotch_the_torch_does_not_fit(cell, robot):
-    """The 60-degree joint: the search clears every axis-range refusal of the configured plan
-    (4 segments); what stays refused is the torch body's clearance where the groove is 60
-    degrees wide (25 mm behind the tip a 12 mm torch has 25 sin 30 - 12 = 0.5 mm to each
-    pipe, under the 2 mm margin, at any work or travel angle). A slimmer torch (10 mm) welds
-    all six segments with the same search."""
+def test_y_joint_60_the_nozzle_fits_the_groove_a_cylinder_does_not(cell, robot):
+    """The 60-degree joint: the search clears every axis-range refusal of the configured plan;
+    the torch as configured (a bottleneck nozzle, 16 mm across at its front, widening to the
+    24 mm body) fits the 60-degree groove with the 2 mm margin kept, on all six segments. The
+    same torch modelled as a 24 mm cylinder does not: where the groove is 60 degrees wide (25
+    mm behind the tip it has 25 sin 30 - 12 = 0.5 mm to each pipe, under the margin, at any
+    work or travel angle) only clearance refusals stay, all in the acute crotch."""
     part = load_part(PARTS / "y_joint_60.yaml")
+    tc = robot.config.torch
+    assert tc.nozzle_length_mm > tc.tip_exclusion_mm and tc.nozzle_radius_mm < tc.radius_mm
     report = preflight(cell, part, robot=robot)
     assert any("axis 5 out of range" in v.reason for v in report.configured)
+    assert report.ok, report.text()
+    assert [v.passed for v in report.verdicts] == [True] * 6
+    margin = robot.config.clearance.margin_mm
+    assert margin == 2.0
+    assert min(v.clearance_mm for v in report.verdicts) >= margin
+    # the groove decides it: its smallest clearance is the nozzle's front (25 sin 30 - 8)
+    assert min(v.clearance_mm for v in report.verdicts) < 5.0
+
+    cylinder = dataclasses.replace(robot.config, torch=dataclasses.replace(
+        tc, nozzle_length_mm=0.0))
+    report = preflight(cell, part, robot=IRB1410(config=cylinder))
     assert not report.ok
     for v in report.verdicts:
         assert v.other == 0, v.reason  # reach, ranges, singularity, speed: all clear
@@ -89,12 +103,6 @@ def test_y_joint_60_search_clears_all_but_the_acute_crotch_the_torch_does_not_fi
         if bad.any():
             assert 0.0 < v.clearance_mm < 1.0
     assert "only clearance refusals" in report.text()
-
-    slim = dataclasses.replace(robot.config, torch=dataclasses.replace(robot.config.torch,
-                                                                       radius_mm=10.0))
-    report = preflight(cell, part, robot=IRB1410(config=slim))
-    assert report.ok, report.text()
-    assert [v.passed for v in report.verdicts] == [True] * 6
 
 
 def test_plan_command_refuses_a_part_out_of_reach_with_the_table(tmp_path, capsys):
@@ -183,7 +191,8 @@ def test_oval_main_pipe_clearance_is_exact(robot, cell, part):
     T[:3, :3] = np.diag([1.0, -1.0, -1.0])
     T[:3, 3] = part.placement.matrix()[:3, 3] + [300.0, 0.0, 101.5 * (1 - part.main_ovality) + 40]
     tc = robot.config.torch
-    assert g._clearance(T[None])[0, 0] == pytest.approx(40 + tc.tip_exclusion_mm - tc.radius_mm,
+    assert g._clearance(T[None])[0, 0] == pytest.approx(40 + tc.tip_exclusion_mm
+                                                        - tc.radius_at(tc.tip_exclusion_mm),
                                                         abs=1e-6)
 
 

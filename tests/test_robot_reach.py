@@ -197,7 +197,7 @@ def test_clearance_hand_computed(robot, cell):
     T[:3, :3] = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=F64))
     T[:3, 3] = torch.tensor([900.0 + 300.0, 0.0, 350.0 + 101.5 + 40.0])
     tc = robot.config.torch
-    expected = 40.0 + tc.tip_exclusion_mm - tc.radius_mm
+    expected = 40.0 + tc.tip_exclusion_mm - tc.radius_at(tc.tip_exclusion_mm)
     assert g._clearance(T[None].numpy())[0, 0] == pytest.approx(expected, abs=1e-9)
 
 

@@ -121,9 +121,9 @@ class PlanReport:
                        + " refused (see the reason column)")
             if p.searched and all(set(v.counts) <= {"clearance"} for v in self.verdicts):
                 out.append("  only clearance refusals: the torch body (configs/robot.yaml torch: "
-                           "radius, tip exclusion, clearance margin) does not fit the joint "
-                           "there at any work/travel angle within configs/plan.yaml's search "
-                           "limits")
+                           "nozzle and body radii, tip exclusion, clearance margin) does not "
+                           "fit the joint there at any work/travel angle within "
+                           "configs/plan.yaml's search limits")
         return "\n".join(out)
 
     def to_dict(self) -> dict:

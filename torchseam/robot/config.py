@@ -45,16 +45,50 @@ class SingularityConfig:
 
 @dataclass(frozen=True)
 class TorchShape:
-    """The torch body as a capsule along the TCP z axis (see ``configs/robot.yaml``)."""
+    """The torch body along the TCP z axis (see ``configs/robot.yaml``): from
+    ``tip_exclusion_mm`` behind the TCP back to ``length_mm`` behind it. With a nozzle
+    (``nozzle_length_mm`` > 0) the front is the gas nozzle, a cone of radius
+    ``nozzle_radius_mm`` at ``tip_exclusion_mm`` widening to ``radius_mm`` at
+    ``nozzle_length_mm`` behind the TCP, and the body behind it a cylinder of ``radius_mm``;
+    without one, the whole torch is that cylinder."""
 
     radius_mm: float = _f(lo=0.0)
     length_mm: float = _f(lo=0.0, lo_open=True)
     tip_exclusion_mm: float = _f(lo=0.0)
+    nozzle_radius_mm: float = _f(lo=0.0, default=0.0)
+    nozzle_length_mm: float = _f(lo=0.0, default=0.0)   # 0: no nozzle (a plain cylinder)
 
     def _check(self) -> None:
         if self.tip_exclusion_mm >= self.length_mm:
             raise ValueError(f"tip_exclusion_mm: {self.tip_exclusion_mm} must be shorter than "
                              f"length_mm {self.length_mm}")
+        if self.nozzle_length_mm:
+            if not self.tip_exclusion_mm < self.nozzle_length_mm <= self.length_mm:
+                raise ValueError(f"nozzle_length_mm: {self.nozzle_length_mm} must lie between "
+                                 f"tip_exclusion_mm {self.tip_exclusion_mm} and length_mm "
+                                 f"{self.length_mm}")
+            if not 0.0 < self.nozzle_radius_mm <= self.radius_mm:
+                raise ValueError(f"nozzle_radius_mm: {self.nozzle_radius_mm} must be above 0 "
+                                 f"and at most radius_mm {self.radius_mm} (the nozzle widens "
+                                 "towards the body)")
+
+    def pieces(self) -> tuple[tuple[float, float, float, float], ...]:
+        """The checked body as pieces ``(d0, d1, r0, r1)``: from ``d0`` to ``d1`` mm behind the
+        TCP, the radius growing linearly from ``r0`` to ``r1`` mm."""
+        r, d0 = self.radius_mm, self.tip_exclusion_mm
+        if not self.nozzle_length_mm:
+            return ((d0, self.length_mm, r, r),)
+        out = [(d0, self.nozzle_length_mm, self.nozzle_radius_mm, r)]
+        if self.nozzle_length_mm < self.length_mm:
+            out.append((self.nozzle_length_mm, self.length_mm, r, r))
+        return tuple(out)
+
+    def radius_at(self, d_mm: float) -> float:
+        """The torch's radius ``d_mm`` behind the TCP (0 in front of the checked body)."""
+        for d0, d1, r0, r1 in self.pieces():
+            if d0 <= d_mm <= d1:
+                return r0 + (r1 - r0) * (d_mm - d0) / (d1 - d0)
+        return 0.0
 
 
 @dataclass(frozen=True)

@@ -12,8 +12,10 @@ every reason that applies, the first one as its :class:`Reason` code):
    distance at the cell's weld speed but at least one camera frame), against the axis speeds
    times a safety factor. It is measured from the previous pose that passed the other checks
    (a refused pose is not where the robot will be).
-5. **Torch-vs-part clearance**: the torch body is a capsule along the TCP z axis (the tip's last
-   mm excluded: it touches the seam by design); the main pipe is its oval cross-section (an
+5. **Torch-vs-part clearance**: the torch body lies along the TCP z axis (the tip's last mm
+   excluded: it touches the seam by design), a cylinder, or with a nozzle
+   (``configs/robot.yaml`` torch) a cone from the nozzle's front widening to the body's
+   radius, then the cylinder; the main pipe is its oval cross-section (an
    elliptic cylinder with flat ends, semi-axes from ``main_ovality``), the branch a capsule
    around its axis, from the part configuration and its nominal placement. On the other kinds
    of part (:mod:`torchseam.sim.joint`) the main body is the plate (a box) or the sphere.
@@ -419,23 +421,57 @@ class ReachGate:
         return f"no IK solution (residual {pos_err:.3f} mm, {rot_err:.3f} deg)"
 
     def _clearance(self, T: np.ndarray) -> np.ndarray:
-        """(N, 2) clearance (mm) of the torch capsule to the main body and the branch pipe."""
+        """(N, 2) clearance (mm) of the torch body to the main body and the branch pipe: the
+        smallest over its pieces (:meth:`~torchseam.robot.config.TorchShape.pieces`: the
+        nozzle's cone, the body's cylinder), each the distance of its axis from the solid less
+        its radius there (a cone is taken as the balls swept along its axis: never less than
+        the cone)."""
         tc = self.config.torch
         z, tip = T[:, :3, 2], T[:, :3, 3]
-        a = tip - tc.tip_exclusion_mm * z
-        b = tip - tc.length_mm * z
+        n = T.shape[0]
+        pieces = np.array(tc.pieces(), dtype=float)                             # (P, 4)
+        # every piece of every pose in one batch (P * N rows): one pass of the sampling
+        d0, d1, r0, r1 = (np.repeat(pieces[:, k], n) for k in range(4))
+        tip_p, z_p = np.tile(tip, (len(pieces), 1)), np.tile(z, (len(pieces), 1))
+        a, b = tip_p - d0[:, None] * z_p, tip_p - d1[:, None] * z_p
+        c = np.stack([self._main_distance(a, b, r0, r1), self._branch_distance(a, b, r0, r1)],
+                     axis=1)                                                   # (P * N, 2)
+        return c.reshape(len(pieces), n, 2).min(axis=0)
+
+    def _main_distance(self, a: np.ndarray, b: np.ndarray, r0: np.ndarray, r1: np.ndarray
+                       ) -> np.ndarray:
+        """Clearance of torch pieces along a-b ((M, 3), radius r0 at a to r1 at b, (M,)) to
+        the main pipe, plate or sphere."""
         s = self._pipes
         # the main pipe in its own frame (x along its axis): the torch axis's nearest approach
         a_m, b_m = (a - s.main_origin) @ s.main_rotation, (b - s.main_origin) @ s.main_rotation
         if s.main_kind == "pipe":
-            main = _segment_oval_distance(a_m, b_m, s.main_a, s.main_b, s.main_half_length)
-        elif s.main_kind == "plate":
-            main = _segment_convex_distance(a_m, b_m, lambda x, y, z: _box_distance(
-                x, y, z, s.main_a, s.main_half_length))
-        else:
-            main = _point_segment_distance(np.zeros(3), a_m, b_m) - s.main_a
-        branch = _segment_distance(a, b, s.branch_A[None], s.branch_B[None]) - s.branch_r
-        return np.stack([main, branch], axis=1) - tc.radius_mm
+            return _segment_oval_distance(a_m, b_m, s.main_a, s.main_b, s.main_half_length,
+                                          r0=r0, r1=r1)
+        if s.main_kind == "plate":
+            return _segment_convex_distance(a_m, b_m, lambda x, y, z: _box_distance(
+                x, y, z, s.main_a, s.main_half_length), r0=r0, r1=r1)
+        if np.array_equal(r0, r1):
+            return _point_segment_distance(np.zeros(3), a_m, b_m) - s.main_a - r0
+        return _segment_convex_distance(a_m, b_m, lambda x, y, z: np.sqrt(
+            x * x + y * y + z * z) - s.main_a, r0=r0, r1=r1)
+
+    def _branch_distance(self, a: np.ndarray, b: np.ndarray, r0: np.ndarray, r1: np.ndarray
+                         ) -> np.ndarray:
+        """Clearance of torch pieces along a-b to the branch (a capsule)."""
+        s = self._pipes
+        A, B = s.branch_A, s.branch_B
+        if np.array_equal(r0, r1):
+            return _segment_distance(a, b, A[None], B[None]) - s.branch_r - r0
+        d = B - A
+        dd = float(d @ d)
+
+        def sdf(x, y, z):
+            pts = np.stack([x, y, z], axis=-1)
+            t = _unit(((pts - A) @ d) / dd)
+            return np.linalg.norm(A + t[..., None] * d - pts, axis=-1) - s.branch_r
+
+        return _segment_convex_distance(a, b, sdf, r0=r0, r1=r1)
 
 
 def _speeds(q: np.ndarray, ref: np.ndarray, dt: np.ndarray, q_prev: np.ndarray | None
@@ -531,21 +567,25 @@ def _box_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray, half: float, thic
 
 
 def _segment_oval_distance(p: np.ndarray, q: np.ndarray, a: float, b: float, half_length: float,
-                           samples: int = 17, rounds: int = 3) -> np.ndarray:
+                           samples: int = 17, rounds: int = 3, r0=0.0, r1=0.0) -> np.ndarray:
     """Smallest signed distance of segments p-q ((N, 3) each, in the pipe's frame) from the oval
     pipe of :func:`_oval_distance` (:func:`_segment_convex_distance`)."""
     return _segment_convex_distance(
-        p, q, lambda x, y, z: _oval_distance(x, y, z, a, b, half_length), samples, rounds)
+        p, q, lambda x, y, z: _oval_distance(x, y, z, a, b, half_length), samples, rounds,
+        r0, r1)
 
 
 def _segment_convex_distance(p: np.ndarray, q: np.ndarray, sdf, samples: int = 17,
-                             rounds: int = 3) -> np.ndarray:
+                             rounds: int = 3, r0=0.0, r1=0.0) -> np.ndarray:
     """Smallest signed distance of segments p-q ((N, 3) each) from a convex solid given by its
-    signed distance ``sdf(x, y, z)``. The distance from a convex solid is convex along a line,
-    so the best of ``samples`` equally spaced points brackets the minimum within two spacings;
-    each round samples that bracket again (``rounds`` rounds shrink it (samples - 1) / 2 times
-    each: to 0.3 mm along a 325 mm torch with the defaults, where the distance is flat)."""
+    signed distance ``sdf(x, y, z)``, less a radius growing linearly from ``r0`` at p to ``r1``
+    at q (numbers or (N,); a cone's clearance; 0: the axis's). The distance from a convex solid
+    is convex along a line (and stays so less a linear radius), so the best of ``samples``
+    equally spaced points brackets the minimum within two spacings; each round samples that
+    bracket again (``rounds`` rounds shrink it (samples - 1) / 2 times each: to 0.3 mm along a
+    325 mm torch with the defaults, where the distance is flat)."""
     n = p.shape[0]
+    ra, rb = (np.asarray(r, float).reshape(-1, 1) for r in (r0, r1))   # (1 or N, 1)
     lo, hi = np.zeros(n), np.ones(n)
     best = np.full(n, np.inf)
     u = np.linspace(0.0, 1.0, samples)[None]
@@ -553,7 +593,7 @@ def _segment_convex_distance(p: np.ndarray, q: np.ndarray, sdf, samples: int = 1
     for _ in range(rounds):
         t = lo[:, None] + (hi - lo)[:, None] * u                                     # (N, S)
         pts = p[:, None] + t[..., None] * (q - p)[:, None]                           # (N, S, 3)
-        d = sdf(pts[..., 0], pts[..., 1], pts[..., 2])
+        d = sdf(pts[..., 0], pts[..., 1], pts[..., 2]) - (ra + (rb - ra) * t)
         k = d.argmin(axis=1)
         best = np.minimum(best, d[rows, k])
         step = (hi - lo) / (samples - 1)
