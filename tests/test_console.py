@@ -479,6 +479,13 @@ def test_page_runs_and_watches_a_simulated_weld(chromium, cfg, tmp_path):
             page.wait_for_function("document.querySelector('#run-state').dataset.state"
                                    " === 'idle'")
             assert "token" not in page.url, "the token stays in the address bar"
+            # idle: a placeholder, not a broken-image icon
+            assert page.is_hidden("#frame") and page.is_visible("#frame-idle")
+            assert "press Start" in page.inner_text("#frame-idle")
+            # the u/v scale holds the bulk of the values: one spike among 40 is clipped
+            lo, hi = page.evaluate("robustRange([...Array(40).keys()].map((i) => "
+                                   "i === 7 ? 200 : 0.3 * Math.sin(i)), 2)")
+            assert -3 < lo < 0 < hi < 3
 
             def num(sel: str, attr: str | None = None) -> float:
                 v = (page.get_attribute(sel, attr) if attr else page.inner_text(sel))
@@ -500,6 +507,7 @@ def test_page_runs_and_watches_a_simulated_weld(chromium, cfg, tmp_path):
             page.wait_for_function("+document.querySelector('#frames-shown').textContent > 0",
                                    timeout=30_000)
             src0 = page.get_attribute("#frame", "src")
+            assert page.is_visible("#frame") and page.is_hidden("#frame-idle")
             uv0 = num("#plot-uv", "data-points")
             page.wait_for_function(
                 f"document.querySelector('#frame').src !== {json.dumps(src0)} && "
