@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--allow-host", action="append", default=[], metavar="NAME",
                    help="also answer requests whose Host is NAME (with the port), e.g. the "
                         "cell PC's name or address for --host 0.0.0.0; repeatable (always "
-                        "answered: localhost, 127.0.0.1, [::1] and --host)")
+                        "answered: localhost, 127.0.0.1, [::1] and --host; default: no other)")
     p.add_argument("--port", type=int, default=None,
                    help="port (default configs/console.yaml server.port; 0: any free port)")
     p.add_argument("--config", type=Path, help="console config (default configs/console.yaml)")
@@ -46,8 +46,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "its noise, seed, faults, segments and "
                         "length do not (a folder named sim: ./sim)")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
-    p.add_argument("--noise", default="heavy", help="initial arc-noise level on the page")
-    p.add_argument("--segments", default="abcdef", help="initial segments on the page")
+    p.add_argument("--noise", default="heavy",
+                   help="initial arc-noise level on the page: a name from configs/noise.yaml "
+                        "or a number in [0, 1] (default heavy)")
+    p.add_argument("--segments", default="abcdef",
+                   help="initial segments on the page, letters of abcdef (default abcdef: "
+                        "the whole ring)")
     p.add_argument("--length-mm", type=float, default=None,
                    help="initial length per segment on the page (default: whole segments)")
     p.set_defaults(func=run)

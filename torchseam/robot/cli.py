@@ -53,28 +53,40 @@ def register(subparsers: Any) -> None:
     ik = sub.add_parser("ik", help="controller joints reaching a pose",
                         description="Print the controller joints (deg) reaching the pose, or "
                                     "'unreachable: <reason>' (exit code 1). Checks reach, axis "
-                                    "ranges and the singularity margin.")
+                                    "ranges and the singularity margin. The pose is of the "
+                                    "flange (tool0, as `robot fk` prints it) unless --tool "
+                                    "torch says it is the torch tip (the TCP of the cell "
+                                    "config's tool), as `robot check` and the weld take it.")
     for name in CSV_COLUMNS:
-        ik.add_argument(name.upper(), type=float, help=f"pose {name}")
+        unit = ("mm, robot base frame" if name in ("x", "y", "z")
+                else "unit quaternion, w x y z order")
+        ik.add_argument(name.upper(), type=float, help=f"pose {name} ({unit})")
     ik.add_argument("--tool", choices=("tool0", "torch"), default="tool0",
-                    help="the pose is of tool0 (flange, default) or of the torch TCP "
-                         "(tool of the cell config)")
+                    help="the pose is of tool0, the flange (default), or of the torch tip "
+                         "(the TCP of the cell config's tool)")
     ik.add_argument("--seed", metavar="A1,...,A6", default=None,
                     help="joints to stay close to (default: home_deg of the robot config)")
     _common(ik)
     ik.set_defaults(func=run_ik)
 
     ck = sub.add_parser("check", help="check a CSV list of torch poses",
-                        description="Check torch TCP poses from a CSV file (header "
+                        description="Check torch-tip poses from a CSV file (header "
                                     "x,y,z,q1,q2,q3,q4 and optional t in s) with the "
                                     "reachability gate; one verdict per pose, then a summary. "
-                                    "Exit code 1 if any pose is refused.")
-    ck.add_argument("path", type=Path, help="CSV file of poses, in path order")
+                                    "Exit code 1 if any pose is refused. The poses are of the "
+                                    "torch tip (the TCP of --cell's tool, as the weld "
+                                    "commands it and `demo`/`plan` write poses*.csv), not of "
+                                    "the flange: for a flange pose use `robot ik` (its "
+                                    "default --tool tool0).")
+    ck.add_argument("path", type=Path,
+                    help="CSV file of torch-tip poses in the robot base frame (mm, "
+                         "quaternion w x y z), in path order")
     ck.add_argument("--part", default=None, metavar="YAML|none",
                     help="part for the clearance check (default configs/parts/t_joint.yaml; "
                          "'none' skips it)")
     ck.add_argument("--seed", metavar="A1,...,A6", default=None,
-                    help="joints the path starts from (default: home_deg)")
+                    help="joints the path starts from (default: home_deg of the robot "
+                         "config)")
     _common(ck)
     ck.set_defaults(func=run_check)
 

@@ -25,7 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("frames", nargs="+", type=Path, metavar="FRAME",
                    help="image files (PNG, JPEG, TIFF, ...)")
     p.add_argument("--overlay", type=Path, metavar="DIR",
-                   help="write an overlay image per frame into DIR")
+                   help="write an overlay image per frame into DIR: the stripe's centre "
+                        "line, the arm fits and the point found (default: none)")
     p.add_argument("--stripe-axis", choices=STRIPE_AXES, default="auto",
                    help="how the stripe runs in the image: along the rows, along the columns "
                         "(sensor mounted at 90 degrees), or auto: found per frame (default)")

@@ -1,0 +1,49 @@
+"""Help texts: every option explained, its default said, nothing argparse left unformatted."""
+
+import argparse
+
+import pytest
+
+from torchseam.cli import build_parser
+
+#: commands whose options must each say their default (the others are owned elsewhere and
+#: checked for a help text only)
+DEFAULTS_SAID = {"simulate", "detect", "calibrate", "plan", "robot", "console"}
+
+
+def _parsers(parser, path=()):
+    """(command path, parser) for every (sub-)command."""
+    yield path, parser
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for name, sp in a.choices.items():
+                yield from _parsers(sp, (*path, name))
+
+
+PARSERS = list(_parsers(build_parser()))
+
+
+@pytest.mark.parametrize("path,parser", PARSERS, ids=[" ".join(p) or "torchseam"
+                                                      for p, _ in PARSERS])
+def test_help_is_complete(path, parser):
+    text = parser.format_help()
+    if path == ("eval",) and "%%" in text:
+        pytest.xfail("torchseam/track/cli.py: eval's description writes %% (not %-formatted)")
+    assert "%%" not in text and "%(" not in text
+    for a in parser._actions:
+        if isinstance(a, argparse._HelpAction | argparse._SubParsersAction):
+            continue
+        name = "/".join(a.option_strings) or a.dest
+        assert a.help and a.help is not argparse.SUPPRESS, f"{' '.join(path)} {name}: no help"
+        flag = a.nargs == 0  # store_true and the like: off unless given
+        if path[:1] and path[0] in DEFAULTS_SAID and a.option_strings and not flag \
+                and not a.required:
+            assert "default" in a.help, f"{' '.join(path)} {name}: the default is unsaid"
+
+
+def test_robot_ik_and_check_say_which_point_the_pose_is_of():
+    cmds = dict(PARSERS)
+    ik = cmds[("robot", "ik")].format_help()
+    check = cmds[("robot", "check")].format_help()
+    assert "flange" in ik and "torch tip" in ik
+    assert "torch tip" in check and "not of the flange" in " ".join(check.split())
