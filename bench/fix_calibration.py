@@ -28,7 +28,7 @@ from torchseam.core.dataset import Dataset
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import format_table
 from torchseam.sim.sequence import SequenceSpec, simulate_labelled
-from torchseam.track.peers import AnchoredTracker
+from torchseam.track.live import AnchoredTracker
 
 BINS = (0, 20, 40, 60, 80, 100, 256)  # glare, grey levels
 

@@ -43,7 +43,7 @@ from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
 from torchseam.core.report import error_stats, format_table, percentiles_ms
 from torchseam.fit import model_io
 from torchseam.sim.sequence import SequenceSpec, simulate_labelled
-from torchseam.sim.variants import glare_over_corner, rotate90, to_mono
+from torchseam.sim.variants import HIDE, hide_corner, rotate90, to_mono
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import TRACKERS, fitted_eakf_stc, make_tracker, run_tracker
 from torchseam.vision.tipm import red_response
@@ -55,21 +55,7 @@ TUNED_ON = ("sim",)
 
 
 BEYOND = "beyond"  # heavy arc plus glare over the corner for tens of frames
-HIDE = ((0.3, 30), (0.65, 60))  # (start as a fraction of the sequence, frames) of each stretch
 TRACKED = int(TrackStatus.TRACKED)
-
-
-def hide_corner(frames: list[np.ndarray], labels: np.ndarray
-                ) -> tuple[list[np.ndarray], np.ndarray]:
-    """Frames with the corner hidden under glare for the stretches of ``HIDE``, and the
-    (N,) mask of hidden frames."""
-    n = len(frames)
-    hidden = np.zeros(n, bool)
-    for start, length in HIDE:
-        hidden[int(start * n):int(start * n) + length] = True
-    out = [glare_over_corner(f, uv) if h else f
-           for f, uv, h in zip(frames, labels, hidden, strict=True)]
-    return out, hidden
 
 
 def reacquire_frames(err: np.ndarray, status: np.ndarray, hidden: np.ndarray) -> int:

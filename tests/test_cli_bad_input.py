@@ -124,7 +124,7 @@ CASES = [
      r"argument --model: .*no\.st: no such model file"),
     ("train the shipped model", lambda t, s: ["train", "--data", str(s), "--model",
                                               str(model_io.DEFAULT_MODEL)],
-     r"--model .*eakf_stc\.safetensors is the model the trackers load: .*--install"),
+     r"--model .*live_tracker\.safetensors is the model the trackers load: .*--install"),
     ("train resume unnamed", lambda t, s: ["train", "--data", str(s), "--resume"],
      r"--resume: name the run to continue with --name"),
     ("train bad name", lambda t, s: ["train", "--data", str(s), "--name", "../x"],
@@ -216,7 +216,7 @@ def _track_uv(capsys, seq: Path, out: Path, *extra: str) -> np.ndarray:
 
 
 def test_model_option_loads_that_model(seq, tmp_path, capsys):
-    from torchseam.track.peers import fitted_eakf_stc
+    from torchseam.track.live import fitted_eakf_stc
 
     module = fitted_eakf_stc()
     same = model_io.save_fitted(module, tmp_path / "same.safetensors")
@@ -242,7 +242,7 @@ def test_train_writes_a_run_folder_and_install_keeps_a_backup(tmp_path, monkeypa
                                "margin": 20, "batch": 2, "chunk": 6, "epochs": 1,
                                "val_fraction": 0.0, "progress": False, "test": False,
                                "cache": str(tmp_path / "cache")}))
-    shipped = tmp_path / "models" / "eakf_stc.safetensors"
+    shipped = tmp_path / "models" / "live_tracker.safetensors"
     shipped.parent.mkdir()
     shipped.write_bytes(model_io.DEFAULT_MODEL.read_bytes())
     old = shipped.read_bytes()
@@ -258,13 +258,12 @@ def test_train_writes_a_run_folder_and_install_keeps_a_backup(tmp_path, monkeypa
     assert shipped.read_bytes() == old
     assert len(list(shipped.parent.iterdir())) == 1  # nothing replaced, no backup
 
+    # EAKF-STC alone cannot replace the live tracker's model: refused before any fitting
     rc, out, err = _run([*common, "--name", "r1", "--install"], capsys)
-    assert rc == 0, err
-    fitted = tmp_path / "runs" / "r1" / "eakf_stc.safetensors"
-    assert shipped.read_bytes() == fitted.read_bytes() != old
-    (backup,) = shipped.parent.glob("eakf_stc.safetensors.bak-*")
-    assert backup.read_bytes() == old
-    assert "installed" in out and backup.name in out
+    assert rc == 2 and out == "" and "train-live --install" in err
+    assert not (tmp_path / "runs" / "r1").exists() and shipped.read_bytes() == old
 
+    rc, out, err = _run([*common, "--name", "r1"], capsys)
+    assert rc == 0, err
     rc, out, err = _run([*common, "--name", "r1"], capsys)  # that run exists
     assert rc == 2 and out == "" and "last.pt exists" in err and "--resume" in err

@@ -321,7 +321,7 @@ def test_load_fitted_round_trip_fallback_and_errors(tmp_path, caplog, monkeypatc
     with pytest.raises(FitError, match="NaN or inf"):
         load_fitted(EAKFSTC(), tmp_path / "m3.st")
     save_file(sd, str(tmp_path / "m4.st"), metadata={"format": "something-else"})
-    with pytest.raises(FitError, match="not an EAKF-STC model"):
+    with pytest.raises(FitError, match="not a tracker model"):
         load_fitted(EAKFSTC(), tmp_path / "m4.st")
 
 
@@ -329,7 +329,7 @@ def test_shipped_model_loads_into_the_default_tracker():
     path = REPO / "models" / "eakf_stc.safetensors"
     if not path.exists():
         pytest.skip("no shipped model yet")
-    from torchseam.track.peers import STRUCTURAL_STC, fitted_eakf_stc
+    from torchseam.track.live import STRUCTURAL_STC, fitted_eakf_stc
 
     _, meta = read_model(path)
     assert meta["info"]["data"]["train"]["seeds"]  # it says what it was fitted on

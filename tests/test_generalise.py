@@ -11,7 +11,8 @@ from torchseam.cli import main
 from torchseam.core.orient import FrameView
 from torchseam.sim.sequence import SequenceSpec, simulate_labelled
 from torchseam.track.fusion import TrackStatus
-from torchseam.track.peers import AnchoredTracker, run_tracker
+from torchseam.track.live import AnchoredTracker
+from torchseam.track.peers import run_tracker
 from torchseam.vision.tipm import Tipm, find_view
 
 TRACKED, COASTING, LOST = (int(s) for s in TrackStatus)
@@ -278,7 +279,7 @@ def test_an_extrapolated_corner_is_no_evidence():
     """A V whose corner is blacked out: TIPM's arm fits still meet near the true corner (a
     good estimate), but the stripe is not seen bending there, so the tracker may not say
     'tracked'; with the corner visible it does."""
-    from torchseam.track.peers import corner_seen
+    from torchseam.track.live import corner_seen
 
     img = np.zeros((492, 656, 3), np.uint8)
     corner = (330, 260)

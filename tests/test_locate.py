@@ -12,7 +12,7 @@ from torchseam.sim.scene import Scene
 from torchseam.sim.sequence import SequenceSpec, simulate
 from torchseam.track.base import Tracker, TrackResult
 from torchseam.track.fusion import TrackStatus
-from torchseam.track.peers import AnchoredTracker, arm_directions
+from torchseam.track.live import AnchoredTracker, arm_directions
 from torchseam.vision.tipm import Tipm
 
 

@@ -272,7 +272,7 @@ def _corner(uv, rms, slopes=(-0.3, 0.3), gap_px=0.0):
 def _anchored_with_tipm(offsets, rms):
     """AnchoredTracker on a stub EAKF-STC fixed at (200, 150) and a stub TIPM returning the
     corner at ``offsets[k]`` from the true point (200, 150) on call k."""
-    from torchseam.track.peers import AnchoredTracker
+    from torchseam.track.live import AnchoredTracker
     from torchseam.vision.tipm import load_tipm_config
 
     trk = AnchoredTracker()
@@ -351,7 +351,7 @@ def test_anchored_leans_on_its_prediction_under_red_glare():
     """A glare band over the corner: TIPM's fits stay tight while the corner slides along the
     stripe, and EAKF-STC follows. Under red haze around the point the filter trusts both less
     (configs/anchor.yaml: glare_start, glare_scale) and moves onto them slowly."""
-    from torchseam.track.peers import glare_level, load_anchor_config
+    from torchseam.track.live import glare_level, load_anchor_config
 
     cfg = load_anchor_config()
     dark = np.zeros((480, 640, 3), np.uint8)
@@ -383,7 +383,7 @@ def test_anchored_leans_on_its_prediction_under_red_glare():
 
 
 def test_corner_covariance_is_weak_along_a_shallow_stripe():
-    from torchseam.track.peers import corner_cov
+    from torchseam.track.live import corner_cov
 
     C = corner_cov(_corner((100.0, 100.0), 0.2, slopes=(-0.3, 0.3)), 0.5, 0.1)
     assert C[0, 0] > 10 * C[1, 1]                 # 147 deg corner: weak along u
@@ -395,7 +395,7 @@ def test_corner_covariance_grows_when_an_arm_stops_short_of_the_corner():
     """An arm whose centre line ends 40 px before the corner (spatter across it) is
     extrapolated there: its line is uncertain at the corner, so the fix is weak across that
     arm; complete arms keep the plain covariance, and a ridge prior steadies the extrapolation."""
-    from torchseam.track.peers import corner_cov
+    from torchseam.track.live import corner_cov
 
     def cov(res, prior=None):
         return corner_cov(res, 0.5, 0.1, prior, (5.0, 120.0))
@@ -437,7 +437,7 @@ def test_tipm_arm_prior_keeps_the_corner_where_an_arm_has_a_gap():
 
 def test_anchor_config_names_a_bad_field(tmp_path):
     from torchseam.core.config import ConfigError
-    from torchseam.track.peers import load_anchor_config
+    from torchseam.track.live import load_anchor_config
 
     text = (Path(__file__).parents[1] / "configs" / "anchor.yaml").read_text()
     bad = tmp_path / "anchor.yaml"

@@ -7,10 +7,9 @@ import pytest
 import torch
 
 from torchseam.track import EAKFSTC, TrackInputError, TrackStatus
-from torchseam.track.lite import LiteEAKFSTC
+from torchseam.track.lite import LiteEAKFSTC, LiteTracker
+from torchseam.track.live import fitted_eakf_stc
 from torchseam.track.peers import (
-    LiteTracker,
-    fitted_eakf_stc,
     grey_tensor,
     make_tracker,
     run_tracker,

@@ -177,9 +177,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"fitted model file to write (default RUN/{RUN_MODEL}); the shipped "
                         "model is replaced only with --install")
     b.add_argument("--install", action="store_true",
-                   help="also make the fitted model the one the trackers load "
-                        "(models/eakf_stc.safetensors), keeping the one it replaces as "
-                        "eakf_stc.safetensors.bak-<time> (default: off)")
+                   help="refused: EAKF-STC alone cannot replace the live tracker's model "
+                        "(models/live_tracker.safetensors); `torchseam train-live --install` "
+                        "fits and installs the live tracker")
     b.add_argument("--resume", nargs="?", const=True, default=False, metavar="CKPT",
                    help="continue the run named by --name or --out from its last.pt (or from "
                         "CKPT) (default: a new run)")
@@ -436,6 +436,11 @@ def run_outputs(cfg: FitConfig, args: argparse.Namespace) -> FitConfig:
     model = (Path(cfg.model) if getattr(args, "model", None) is not None or "model" in keys
              else out / RUN_MODEL)
     shipped = model_io.DEFAULT_MODEL
+    if getattr(args, "install", False) and not getattr(args, "live", False):
+        raise TorchseamError(
+            "--install: `torchseam train` fits EAKF-STC alone, which cannot replace the live "
+            f"tracker's model ({shipped.name}); use `torchseam train-live --install`, or pass "
+            "this run's model to track/eval/replay with --model")
     if _same_file(model, shipped):
         if not getattr(args, "install", False):
             where = "--model" if getattr(args, "model", None) is not None else "model"

@@ -1,13 +1,20 @@
-"""The fitted EAKF-STC parameters on disk: ``models/eakf_stc.safetensors``.
+"""The fitted tracker on disk: ``models/live_tracker.safetensors``.
 
-The file holds only tensors, the tracker module's ``state_dict()`` (raw parameter forms plus the
-``eakf.dt`` and ``eakf.p0`` buffers), in the safetensors format (no pickled objects); its header
-metadata (strings) records the format, the tracker configuration it was fitted with and what it
-was fitted on.
+The file holds only tensors, a module's ``state_dict()`` (raw parameter forms plus buffers), in
+the safetensors format (no pickled objects); its header metadata (strings) records the format,
+the tracker configuration it was fitted with and what it was fitted on. Two formats:
+
+- ``torchseam-live-tracker/1``: the live tracker
+  (:class:`~torchseam.track.live.LiveTracker`: ``eakf_stc.*`` and ``fusion.*`` tensors), what
+  ships and what ``torchseam train`` writes;
+- ``torchseam-eakf-stc/1``: EAKF-STC alone (older fits, and component fits).
+
+An EAKF-STC module loads its part of either.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -30,8 +37,12 @@ log = logging.getLogger("torchseam.fit")
 #: repository's ``models/`` in a checkout).
 MODEL_DIR = model_dir()
 #: The model the tracker loads by default.
-DEFAULT_MODEL = MODEL_DIR / "eakf_stc.safetensors"
+DEFAULT_MODEL = MODEL_DIR / "live_tracker.safetensors"
 MODEL_FORMAT = "torchseam-eakf-stc/1"
+LIVE_FORMAT = "torchseam-live-tracker/1"
+_FORMATS = (MODEL_FORMAT, LIVE_FORMAT)
+#: the prefix of the EAKF-STC tensors in a live-tracker file
+INNER = "eakf_stc."
 #: TrackerConfig fields that change what the fitted numbers mean: a mismatch is logged.
 _STRUCTURAL = ("window", "target", "peak", "crop", "exclude", "scale_update")
 
@@ -56,9 +67,12 @@ def save_fitted(module: nn.Module, path: str | os.PathLike[str],
     tensors = {k: v.detach().to("cpu", copy=True).contiguous()
                for k, v in module.state_dict().items()}
     cfg = getattr(module, "config", None)
-    meta = {"format": MODEL_FORMAT,
+    live = hasattr(module, "fusion")
+    meta = {"format": LIVE_FORMAT if live else MODEL_FORMAT,
             "tracker_config": json.dumps(cfg.to_dict() if cfg is not None else {}),
             "info": json.dumps(dict(info or {}))}
+    if live:
+        meta["anchor_config"] = json.dumps(dataclasses.asdict(module.cfg))
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     save_file(tensors, str(tmp), metadata=meta)
     mask = os.umask(0)
@@ -84,7 +98,11 @@ def install_model(src: str | os.PathLike[str], dest: str | os.PathLike[str] | No
     import shutil
     import time
 
-    read_model(src)  # refuse to install something the trackers cannot load
+    fmt = read_model(src)[1]["format"]  # refuse to install something the trackers cannot load
+    if dest is None and fmt != LIVE_FORMAT:
+        raise FitError(f"{src}: an EAKF-STC model alone cannot replace the live tracker's "
+                       f"model ({DEFAULT_MODEL.name}); fit the live tracker with "
+                       "`torchseam train-live`, or pass this file with --model")
     dest = Path(dest) if dest is not None else DEFAULT_MODEL
     dest.parent.mkdir(parents=True, exist_ok=True)
     backup = None
@@ -121,11 +139,11 @@ def read_model(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tensor], d
         raise FitError(f"{path}: not a readable safetensors model file ({e}); fit it again "
                        "with `torchseam train` or delete it to use the paper's defaults"
                        ) from None
-    if raw_meta.get("format") != MODEL_FORMAT:
-        raise FitError(f"{path}: not an EAKF-STC model (format {raw_meta.get('format')!r}, "
-                       f"expected {MODEL_FORMAT!r})")
+    if raw_meta.get("format") not in _FORMATS:
+        raise FitError(f"{path}: not a tracker model (format {raw_meta.get('format')!r}, "
+                       f"expected one of {', '.join(_FORMATS)})")
     meta: dict[str, Any] = {"format": raw_meta["format"]}
-    for key in ("tracker_config", "info"):
+    for key in ("tracker_config", "info", "anchor_config"):
         try:
             meta[key] = json.loads(raw_meta.get(key, "{}"))
         except ValueError:
@@ -164,6 +182,12 @@ def load_fitted(module: nn.Module, path: str | os.PathLike[str] | None = None) -
             return False
     path = Path(path)
     tensors, meta = read_model(path)
+    live_file, live_module = meta["format"] == LIVE_FORMAT, hasattr(module, "fusion")
+    if live_module and not live_file:
+        raise FitError(f"{path}: an EAKF-STC model, not a live-tracker model (it has no "
+                       "fitted fusion); fit the live tracker with `torchseam train`")
+    if live_file and not live_module:  # EAKF-STC's part of the live tracker
+        tensors = {k[len(INNER):]: v for k, v in tensors.items() if k.startswith(INNER)}
     own = module.state_dict()
     missing = sorted(set(own) - set(tensors))
     extra = sorted(set(tensors) - set(own))
@@ -180,9 +204,10 @@ def load_fitted(module: nn.Module, path: str | os.PathLike[str] | None = None) -
                            f"{tuple(own[k].shape)}")
         if not bool(torch.isfinite(v).all()):
             raise FitError(f"{path}: {k} holds NaN or inf")
-    if "eakf.dt" in tensors:
-        fps_file = 1.0 / float(tensors["eakf.dt"])
-        fps_mod = 1.0 / float(own["eakf.dt"])
+    dt_key = next((k for k in tensors if k.endswith("eakf.dt")), None)
+    if dt_key is not None:
+        fps_file = 1.0 / float(tensors[dt_key])
+        fps_mod = 1.0 / float(own[dt_key])
         if abs(fps_file - fps_mod) > 1e-3 * fps_mod:
             raise FitError(f"{path}: fitted at {fps_file:g} frames/s, the tracker runs at "
                            f"{fps_mod:g} frames/s (Q and the motion model depend on it)")

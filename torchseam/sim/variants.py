@@ -106,3 +106,29 @@ def glare_over_corner(frame: np.ndarray, uv: np.ndarray, radius_px: float = 35.0
     core = d2 <= radius_px ** 2
     out[core] = CORNER_GLARE_CORE
     return np.clip(out, 0, 255).astype(np.uint8)
+
+
+#: (start as a fraction of the sequence, frames) of each stretch of :func:`hide_corner`
+HIDE = ((0.3, 30), (0.65, 60))
+
+
+def hide_corner(frames: list[np.ndarray], labels: np.ndarray,
+                stretches: tuple[tuple[float, int], ...] = HIDE
+                ) -> tuple[list[np.ndarray], np.ndarray]:
+    """Frames with the corner hidden under :func:`glare_over_corner` for ``stretches``
+    ((start as a fraction of the sequence, frames) each), and the (N,) mask of hidden frames:
+    the benchmarks' level ``beyond``.
+
+    Example:
+        >>> f = [np.zeros((60, 80, 3), np.uint8)] * 10
+        >>> out, hidden = hide_corner(f, np.full((10, 2), 30.0), ((0.2, 3),))
+        >>> hidden.nonzero()[0].tolist()
+        [2, 3, 4]
+    """
+    n = len(frames)
+    hidden = np.zeros(n, bool)
+    for start, length in stretches:
+        hidden[int(start * n):int(start * n) + length] = True
+    out = [glare_over_corner(f, uv) if h else f
+           for f, uv, h in zip(frames, labels, hidden, strict=True)]
+    return out, hidden
