@@ -473,8 +473,7 @@ class ConsoleServer:
         """Wait until the weld has handed over its next frame (at most ``timeout``). The
         publisher's work (status, JSON, sends) holds the interpreter lock for a few ms a tick;
         started right after a frame, it falls in the gap before the next one instead of
-        stalling a frame half-way (measured: 2-3 ms stalls of the loop, waiting for the lock,
-        when the tick came at any time)."""
+        stalling a frame half-way, the loop waiting for the lock (docs/console.md)."""
         ev = self._frame_done
         if ev is None or not self.session.running:
             return

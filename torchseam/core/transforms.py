@@ -30,8 +30,8 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
 
 def _matrix_to_quat_one(R: np.ndarray) -> np.ndarray:
     """One rotation (Shepperd's method, the largest of 4 w^2, 4 x^2, 4 y^2, 4 z^2 as pivot):
-    the live loop converts one pose per step, where scipy's per-call overhead (~100 us) is
-    most of the cost. Same answers as the scipy path (tests/test_config.py)."""
+    the live loop converts one pose per step, where scipy's per-call overhead would be most
+    of the cost. Same answers as the scipy path (tests/test_config.py)."""
     m = R.tolist()
     tr = m[0][0] + m[1][1] + m[2][2]
     k = max(range(4), key=lambda i: (tr, m[0][0], m[1][1], m[2][2])[i])

@@ -1,9 +1,10 @@
 """ECAL's compiled kernel (numba): the arm crossings on every circle of one frame.
 
 Finding the runs of stripe along ~8 circles of ~380 samples, their grey-weighted mean angle and
-their connection to the feature point is a few thousand comparisons: as ~40 numpy calls
-(cumulative sums over the doubled rings, sorts, searches) it cost ~0.65 ms a frame in the live
-loop, compiled ~0.03 ms. The signature is given, so the kernel is compiled (or loaded from
+their connection to the feature point is a few thousand comparisons: as some 40 numpy calls
+(cumulative sums over the doubled rings, sorts, searches) the interpreter overhead would be
+most of ECAL's time (figures: docs/benchmarks.md, "Figures behind design choices"). The
+signature is given, so the kernel is compiled (or loaded from
 numba's on-disk cache) when this module is imported, which :class:`~torchseam.geometry.ecal.Ecal`
 does when it is built, never in the middle of the live loop.
 """

@@ -932,9 +932,9 @@ def calibrate_hand_eye(images: Sequence[np.ndarray], names: Sequence[str], T_B_F
     ``T_B_O`` on the corner reprojection error of all views, which trusts the flange poses
     exactly: use it only when they are far better than the camera's view of the board. This
     lens sees 23 degrees, so a camera turned about a point near the board hardly changes its
-    image; the adjustment then slides along that direction to absorb robot error (simulated:
-    exact poses 0.001 mm / 0.0005 deg with it, 0.03 mm / 0.01 deg without; 0.02 mm / 0.005 deg
-    robot noise 0.2 mm / 0.1 deg with it, 0.03-0.07 mm / 0.005-0.015 deg without).
+    image; the adjustment then slides along that direction to absorb robot error: better with
+    exact poses, several times worse with a real robot's pose noise (simulated figures:
+    docs/benchmarks.md, "Calibration").
 
     Args:
         images: N board images; names: their names.

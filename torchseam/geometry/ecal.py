@@ -15,9 +15,9 @@ both stay clean, up to ``r_max``.
 Occluded arm (fallback): when only one arm is found at every radius and the previous frame's
 arm directions are given, the missing arm point is placed at the found arm's radius along the
 previous direction turned by minus the found arm's turn since then (the V opens and closes about
-a steady bisector along the saddle: over 20 frames of a heavy 60-degree ring the two arms' image
-angles changed with correlation -0.98; held instead, the hidden arm lagged the seam by up to
-2.6 degrees after ~25 frames), and the result is flagged ``fallback``; with no previous
+a steady bisector along the saddle, so the two arms' image angles change in opposite ways; held
+instead, the hidden arm lags the seam more and more: docs/benchmarks.md, "Figures behind design
+choices"), and the result is flagged ``fallback``; with no previous
 directions, or with no arm at all, the result is not ``ok`` and says why (the caller then makes
 no pose).
 """
@@ -192,8 +192,8 @@ class Ecal:
                 if best is not None:
                     # the arms stop being clean further out. The circle just inside, where an
                     # arm is about to vanish (hidden by the other pipe, glare), is deflected
-                    # (image angles jumping 4-5 degrees on a 75-degree joint, then copied by
-                    # the occluded-arm fallback): keep the clean circle before it
+                    # (its image angles jump, then the occluded-arm fallback copies them):
+                    # keep the clean circle before it
                     if len(radii) >= 2:
                         radii.pop()
                         arm_angles.pop()
@@ -244,9 +244,9 @@ def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref
     ``radii`` (n,), ``angles`` (n, 2): the arm angles on each clean circle. With at least
     ``min_extrapolation_circles`` circles the angle is extrapolated linearly to r = 0 (the
     chord to a curved arm leans by r / (2 rho)); with fewer, the extrapolation from a short
-    span of radii multiplies the angle noise several times (a 3-circle fit turned the torch
-    axis by up to 17 degrees on heavy-arc frames), so the mean angle is used: its lean is
-    small at the small radii of a short span.
+    span of radii multiplies the angle noise several times (on heavy-arc frames enough to turn
+    the torch axis by many degrees), so the mean angle is used: its lean is small at the small
+    radii of a short span.
     """
     out = np.empty((2, 2))
     for i in range(2):

@@ -78,9 +78,9 @@ class Triangulator(nn.Module):
 class FastTriangulator:
     """:func:`triangulate` for a few pixels at a time on the CPU, through OpenCV.
 
-    The torch version pays a per-op overhead that dominates for the three points of one frame
-    (about 1-3 ms); this one takes tens of microseconds, which the live loop's 4 ms EGM cycle
-    needs. Tests hold the two to the same numbers.
+    The torch version pays a per-op overhead that dominates for the three points of one frame,
+    too much for the live loop's 4 ms EGM cycle; this one is a few OpenCV and numpy calls.
+    Tests hold the two to the same numbers.
     """
 
     def __init__(self, cell: CellConfig) -> None:

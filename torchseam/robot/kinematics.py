@@ -592,8 +592,8 @@ class IRB1410:
 
 # --------------------------------------------------------------------------- closed form
 # Written against the array-API names numpy >= 2 and torch share (atan2, acos, concat, stack
-# with axis=...), so the same code runs batched in torch and, for one pose, in numpy, where it
-# is ~5x faster (the live gate's per-pose budget is 1 ms).
+# with axis=...), so the same code runs batched in torch and, for one pose, in numpy, where
+# it is several times faster (the live gate checks one pose per frame, within its 1 ms).
 
 def _np(x: Tensor | np.ndarray) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
@@ -610,7 +610,7 @@ def _wrap_xp(xp: ModuleType, a: Array) -> Array:
 
 
 def _stack(xp: ModuleType, arrays: list[Array], axis: int) -> Array:
-    """``xp.stack``; for numpy by assignment, ~3x faster than np.stack on tiny arrays."""
+    """``xp.stack``; for numpy by assignment (faster than np.stack on tiny arrays)."""
     if xp is torch:
         return torch.stack(arrays, dim=axis)
     first = arrays[0]

@@ -15,9 +15,9 @@ sensor's replies and moves the robot:
 
 In both modes the joints follow the planned pose by one damped Newton step per cycle on the
 model's numerical Jacobian (the planned pose moves ~1 mm a cycle at most, so one step
-converges), all axes scaled together so none exceeds its speed limit. Solving every new target
-with ``robot.ik`` instead was tried: ~2.5 ms of torch overhead per solve made the 4 ms cycle
-overrun and send datagrams back to back; the model's IK still finds the start joints of a
+converges), all axes scaled together so none exceeds its speed limit. Not ``robot.ik`` on every
+new target: its torch overhead per solve is a large part of the 4 ms cycle, which then overruns
+and sends datagrams back to back; the model's IK still finds the start joints of a
 programmed path that does not begin at the home pose. Forward kinematics runs in closed form
 (numpy) from the model's own arm geometry, checked against ``robot.fk`` at start-up.
 
@@ -365,8 +365,8 @@ class SimController:
         """The model's FK in closed form (numpy), if the model exposes its arm geometry and the
         closed form agrees with ``robot.fk`` to 1e-6 mm on random joints; else None.
 
-        Why: pytorch-kinematics spends ~0.8 ms of Python and tensor overhead on one pose, a
-        fifth of the 4 ms cycle; the same numbers in numpy take ~0.1 ms for the 7 poses of a
+        Why: pytorch-kinematics' Python and tensor overhead on one pose is a large part of
+        the 4 ms cycle; the same numbers in numpy cost a fraction of that for all 7 poses of a
         numerical Jacobian, leaving the CPU to the sensor that is being tested.
         """
         geometry = getattr(self.robot, "geometry", None)
@@ -867,7 +867,7 @@ def _fill_pose(pose: Any, T: np.ndarray) -> None:
     q = _matrix_quat(T[:3, :3])
     pose.orient.u0, pose.orient.u1, pose.orient.u2, pose.orient.u3 = (float(v) for v in q)
     R = T[:3, :3]
-    # R = Rz(z) Ry(y) Rx(x) (ABB EulerZYX); plain math: scipy objects cost ~50 us per cycle
+    # R = Rz(z) Ry(y) Rx(x) (ABB EulerZYX); plain math: scipy objects cost more per cycle
     pose.euler.y = math.degrees(math.asin(max(-1.0, min(1.0, -float(R[2, 0])))))
     pose.euler.z = math.degrees(math.atan2(float(R[1, 0]), float(R[0, 0])))
     pose.euler.x = math.degrees(math.atan2(float(R[2, 1]), float(R[2, 2])))

@@ -53,7 +53,7 @@ class BoardRenderer:
     """Renders a checkerboard seen by ``camera`` at any pose ``T_C_O``.
 
     The undistorted ray of every pixel is computed once, so each image costs a plane cut and
-    an anti-aliased look-up over the board's image box (about 20 ms).
+    an anti-aliased look-up over the board's image box.
 
     Example:
         >>> from torchseam.core.config import load_cell

@@ -2,10 +2,11 @@
 :class:`~torchseam.vision.tipm.Tipm`.
 
 They are a few hundred float operations per column or per arm fit, run up to six arm fits a
-frame at 250 Hz: as numpy calls they cost ~0.6 ms of interpreter overhead a frame, compiled
-~0.08 ms. The entry points carry their signatures, so they are compiled (or loaded from numba's
-on-disk cache) when this module is imported, which :class:`Tipm` does when it is built, never
-in the middle of the live loop; a call with other types raises instead of compiling.
+frame: as numpy calls their interpreter overhead would be most of TIPM's time per frame
+(figures: docs/benchmarks.md, "Figures behind design choices"). The entry points carry their
+signatures, so they are compiled (or loaded from numba's on-disk cache) when this module is
+imported, which :class:`Tipm` does when it is built, never in the middle of the live loop; a
+call with other types raises instead of compiling.
 ``nogil`` lets the loop's other threads run meanwhile.
 """
 

@@ -180,8 +180,8 @@ class Tipm:
         The stripe response is the ridge: the red response minus its local vertical mean, i.e.
         the stripe with the glare under it taken away. The centre line and ECAL weigh pixels
         by it: weighed by the raw red response, a glare halo's slope across the stripe pulls
-        each column's centre toward the glare (a red glare blob 25-40 px below the corner moved
-        the corner 0.1 px, on heavy-arc frames up to 0.5 px); a frame refused as saturated
+        each column's centre toward the glare, and the corner with it; a frame refused as
+        saturated
         gives the raw red response (and an empty mask). It lives in a work plane of this
         ``Tipm``: valid until its next call.
         """
@@ -194,7 +194,7 @@ class Tipm:
         if cv2.countNonZero(sat) > cfg.max_saturated_fraction * red.size:
             return red, np.zeros_like(red), "frame saturated by arc light"
         # ridge: red minus its local vertical mean, so broad red glare does not pass as stripe
-        # (a 3-column box runs 3x faster but lets more spatter through under heavy arc)
+        # (a 3-column box is cheaper but lets more spatter through under heavy arc)
         ridge = cv2.blur(red, (1, cfg.ridge_px), dst=planes[1])
         ridge = cv2.subtract(red, ridge, dst=ridge)
         thr = self._threshold(ridge)
@@ -272,17 +272,17 @@ class Tipm:
         Columns where the stripe comes within the ridge filter's reach of the top or bottom
         row of the image (or of the window the tracker cut) are left out: the border skews the
         filter's vertical mean there, the mask ends short of the stripe's cross-section, so
-        its centre leans inward, and those are the arm ends that bend a quadratic fit most (at
-        a deep V in a +-110 px window the corner moved 0.3-0.4 px in v on clean frames).
+        its centre leans inward, and those are the arm ends that bend a quadratic fit most
+        (at a deep V they move the corner on clean frames).
 
         Each column's centroid is then moved to the centroid of the response within
         ``centre_half_px`` rows of it, mask or not (``centre_passes`` times). Why: where the
         stripe runs over arc glare its red channel saturates while green rises with the glare,
         so ``R - max(G, B)`` dips at the stripe's middle and its cross-section splits into two
         ridges 4-8 px apart, each near the threshold. The mask then holds one of them in some
-        columns and the masked centroid sits on it, 1.3-2.4 px off the stripe; next to the
-        corner those columns slid the corner 2-4.6 px along the stripe with tight arm fits
-        (heavy-arc T ring seed 5: 15 frames in a row). The window takes both ridges.
+        columns and the masked centroid sits on it, off the stripe's middle; next to the
+        corner such columns slide the corner along the stripe while the arm fits stay tight
+        (docs/benchmarks.md, "Figures behind design choices"). The window takes both ridges.
         """
         mask = np.ascontiguousarray(mask, dtype=np.uint8)
         reach = self.cfg.ridge_px // 2 + 1  # the ridge filter's: its mean is skewed there
@@ -362,10 +362,10 @@ def quad_normal_adjugate(sums: tuple[float, ...], w: tuple[float, float] = (0.0,
     ``A = [[n, s1, s2], [s1, s2 + w_b, s3], [s2, s3, s4 + w_c]]`` of a quadratic fit with power
     sums ``sums`` (:func:`power_sums`) and ridge weights ``w`` on slope and curvature.
 
-    In closed form: ``np.linalg.solve`` costs ~15 us a call on a 3x3, this a handful of float
-    operations. ``A^-1 = adj / det``. TIPM's corner search runs this very function compiled
-    (:mod:`torchseam.vision._kernels`); the fix covariance of the anchored tracker calls it
-    from Python.
+    In closed form: on a 3x3, ``np.linalg.solve``'s per-call overhead is far more than the
+    handful of float operations this takes. ``A^-1 = adj / det``. TIPM's corner search runs
+    this very function compiled (:mod:`torchseam.vision._kernels`); the fix covariance of the
+    anchored tracker calls it from Python.
 
     Example:
         >>> adj, det = quad_normal_adjugate(power_sums(np.arange(3.0)))  # x = 0, 1, 2
