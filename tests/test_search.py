@@ -12,7 +12,15 @@ import pytest
 
 from torchseam.cli import main
 from torchseam.core.config import load_cell, load_noise, load_part
-from torchseam.live.search import SeamSearch, load_search_config, offset_pose, pattern
+from torchseam.live.search import (
+    SeamSearch,
+    across_seam,
+    choose_standoff,
+    load_search_config,
+    offset_pose,
+    pattern,
+    search_start,
+)
 
 
 def _in_start_frame(T_start: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, float]:
@@ -101,12 +109,16 @@ def test_start_beyond_the_bound_is_a_clear_failure_without_motion_beyond_it():
     s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
     approach = cell.process.look_ahead_mm + load_plan_config().approach_mm
     T0 = plan.nominal_tcp(seg, np.array([s0 - approach]))[0]
-    T_start = offset_pose(T0, lateral_mm=60.0, lift_mm=cfg.standoff_mm)
+    plus, minus = plan.search_arms(seg, s0 - approach)
+    lift = s["search"][0]["standoff_mm"]
+    T_start = search_start(T0, lift, 60.0, 0.0, across_seam(plus, minus))
     assert res.sent
     for _, p, _, _, _ in res.sent:
-        off = np.linalg.inv(T_start) @ np.append(p, 1.0)
-        assert np.abs(off[[0, 2]]).max() < 1e-6
-        assert abs(off[1]) <= 15.0 + 1e-6
+        # across the seam along the surface on the +y side (60 +- 15 mm: all on that side)
+        off = p - T_start[:3, 3]
+        y = float(off @ plus)
+        assert np.linalg.norm(off - y * plus) < 1e-6
+        assert abs(y) <= 15.0 + 1e-6
 
 
 @pytest.mark.parametrize("opt", ["--start-offset-mm=500", "--start-angle-deg=nan"])
@@ -117,17 +129,19 @@ def test_start_options_refuse_bad_input(opt, tmp_path, capsys):
 
 
 def test_a_start_the_gate_refuses_moves_nothing():
-    """At no stand-off a start 30 mm across the T joint's seam runs the torch into the branch:
-    the segment is incomplete with the gate's reason, and no pose is sent."""
+    """With the stand-off held at 0 (no higher one allowed) a start 30 mm across the T joint's
+    seam puts the torch's tip on the part: the segment is incomplete with the gate's reason,
+    and no pose is sent."""
     from torchseam.live.cli import demo_exit_code
     from torchseam.live.demo import run_demo
 
     cell, part, noise = load_cell(), load_part(), load_noise()
-    cfg = dataclasses.replace(load_search_config(), standoff_mm=0.0)
+    cfg = dataclasses.replace(load_search_config(), standoff_mm=0.0, max_standoff_mm=0.0)
     res = run_demo(cell, part, noise, noise.level("heavy"), 0, segments="a", length_mm=3.0,
                    start_offset_mm=-30.0, search=cfg)
     (inc,) = res.summary["segments_incomplete"]
-    assert inc["reason"].startswith("start pose refused") and "clearance" in inc["reason"]
+    assert inc["reason"].startswith("start pose refused") and "0 mm stand-off" in inc["reason"]
+    assert "tip" in inc["reason"] or "clearance" in inc["reason"]
     assert res.sent == [] and demo_exit_code(res.summary) == 1
 
 
@@ -147,3 +161,163 @@ def test_cli_reports_a_seam_not_found_and_exits_1(tmp_path, capsys, monkeypatch)
     assert "segment a NOT completed: seam not found" in out
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["search"][0]["found"] is False and s["unsafe_poses_sent"] == 0
+
+
+def test_choose_standoff_takes_the_lowest_at_which_the_whole_region_clears():
+    """Synthetic gate: poses lifted less than 15 mm are refused beyond 20 mm across: the
+    chooser returns 15 (10 leaves some of the region refused); a gate that never clears the
+    whole region gives the stand-off that clears most of it."""
+    cfg = dataclasses.replace(load_search_config(), standoff_mm=5.0, max_standoff_mm=25.0,
+                              standoff_step_mm=5.0)
+    assert cfg.standoffs() == [5.0, 10.0, 15.0, 20.0, 25.0]
+
+    def clear(T):   # T0 = identity: the lift is -z, across is y
+        return (-T[:, 2, 3] >= 15.0 - 1e-9) | (np.abs(T[:, 1, 3]) <= 20.0)
+
+    lift, ok, n = choose_standoff(np.eye(4), cfg, 10.0, 0.0, clear)
+    assert lift == 15.0 and ok == n
+    # the region is the bound around the start (10 +- 35 mm), at every turn of the pattern
+    angles = sorted({a for _, a in pattern(cfg)})
+    assert n == (2 * int(np.ceil(cfg.max_extent_mm / cfg.region_step_mm)) + 1) * len(angles)
+
+    lift, ok, n = choose_standoff(np.eye(4), cfg, 10.0, 0.0,
+                                  lambda T: (np.abs(T[:, 1, 3]) <= 20.0) & (-T[:, 2, 3] > 12))
+    assert lift == 15.0 and 0 < ok < n
+
+
+def _segment_a(name):
+    from torchseam.core.config import CONFIG_DIR
+    from torchseam.plan.path import load_plan_config
+    from torchseam.plan.preflight import preflight
+    from torchseam.robot.reach import ReachGate
+
+    cell = load_cell()
+    part = load_part(CONFIG_DIR / "parts" / f"{name}.yaml")
+    plan = preflight(cell, part).plan
+    seg = plan.segments[0]
+    scene = plan.scene(seg)
+    s0 = float(scene.s_at(np.array([seg.phi_start]))[0]) - (
+        cell.process.look_ahead_mm + load_plan_config().approach_mm)
+    gate = ReachGate(cell=cell, part=plan.part, part_pose_mm=scene.T_B_Tnom)
+    return plan, seg, s0, plan.nominal_tcp(seg, np.array([s0]))[0], gate
+
+
+def test_pipe_on_plate_search_region_clears_along_the_surfaces():
+    """The pipe on a plate (a 90-degree groove): moved along the torch's own y the search runs
+    the torch into the plate or up against the pipe (what refused 10 of 20 starts); moved
+    along the part's surfaces at the stand-off the chooser picks, every pose of the region
+    (+-35 mm around a start 30 mm off, turned +-20 degrees) passes the gate and keeps the
+    torch's tip 2 mm off the part, and one stand-off step lower does not."""
+    from torchseam.live.demo import _search_clear
+
+    plan, seg, s0, T0, gate = _segment_a("pipe_on_plate")
+    cfg = load_search_config()
+    plus, minus = plan.search_arms(seg, s0)
+    # the arms run along the plate and up the pipe: perpendicular to the seam, at 45 degrees
+    # to the torch axis on either side of it (the groove is 90 degrees)
+    assert abs(plus @ T0[:3, 0]) < 1e-6 and abs(minus @ T0[:3, 0]) < 1e-6
+    assert plus @ T0[:3, 1] == pytest.approx(np.sqrt(0.5), abs=0.02)
+    assert minus @ T0[:3, 1] == pytest.approx(-np.sqrt(0.5), abs=0.02)
+    clear = lambda T: _search_clear(gate, T)  # noqa: E731
+    across = across_seam(plus, minus)
+    for d in (-30.0, 30.0):
+        # along the torch's own y no stand-off up to the highest clears the whole region
+        lift, ok, n = choose_standoff(T0, cfg, d, 12.0, clear)
+        assert ok < n
+        # along the surfaces the lowest clear one does, and one step lower does not
+        lift, ok, n = choose_standoff(T0, cfg, d, 12.0, clear, across)
+        assert ok == n and lift < cfg.max_standoff_mm
+        assert lift > cfg.standoff_mm
+        below = dataclasses.replace(cfg, max_standoff_mm=lift - cfg.standoff_step_mm)
+        assert choose_standoff(T0, below, d, 12.0, clear, across)[1] < n
+        T = np.array([search_start(T0, lift, y, 12.0 + a, across)
+                      for y in np.arange(d - 35.0, d + 35.1, 1.0) for a in (-20.0, 0.0, 20.0)])
+        assert gate.check(T, dt_s=1e6).ok.all()
+        assert gate.tip_clearance(T).min() >= gate.config.clearance.margin_mm
+
+
+def _shifted_part(tmp_path, shift_mm):
+    import yaml
+
+    from torchseam.core.config import CONFIG_DIR
+
+    spec = yaml.safe_load((CONFIG_DIR / "parts" / "t_joint.yaml").read_text())
+    spec["placement_error"]["position_mm"] = list(shift_mm)
+    path = tmp_path / "shifted.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return load_part(path)
+
+
+def test_a_part_off_its_programmed_place_is_started_on_its_true_seam(tmp_path):
+    """The T joint clamped 5 mm off where the plan puts it: the search sees the corner,
+    triangulates it with the cell's calibration and the approach goes onto the true seam (the
+    programmed start is 4+ mm off it); the weld then starts there: no hold, no refusal, the
+    torch on the true seam from the first welded frame. With a 1 mm limit on that offset the
+    search refuses to go there (segment incomplete, nothing welded)."""
+    from torchseam.live.demo import run_demo
+
+    cell, noise = load_cell(), load_noise()
+    # clamped 4 mm across the seam and 3 mm along the torch axis off the programmed start
+    # (segment a is welded unturned: the part's error is a move in the base)
+    _, _, _, T0, _ = _segment_a("t_joint")
+    part = _shifted_part(tmp_path, [float(v) for v in 4.0 * T0[:3, 1] + 3.0 * T0[:3, 2]])
+    res = run_demo(cell, part, noise, noise.level("heavy"), 0, segments="a", length_mm=4.0,
+                   start_offset_mm=20.0, start_angle_deg=8.0)
+    s = res.summary
+    (srch,) = s["search"]
+    assert srch["found"], srch
+    assert srch["programmed_start_error_mm"] > 4.0
+    assert srch["start_error_mm"] < 0.5
+    assert srch["seam_offset_mm"] > 4.0
+    assert s["segments_incomplete"] == [] and s["holds"] == 0
+    assert s["unsafe_poses_sent"] == 0 and s["poses_refused"] == 0
+    welded = [f for f in res.frames if f.arc_on]
+    assert welded and max(f.torch_err_mm for f in welded) < 0.3
+
+    cfg = dataclasses.replace(load_search_config(), max_seam_offset_mm=1.0)
+    res = run_demo(cell, part, noise, noise.level("heavy"), 0, segments="a", length_mm=4.0,
+                   start_offset_mm=20.0, start_angle_deg=8.0, search=cfg)
+    (inc,) = res.summary["segments_incomplete"]
+    assert "from the programmed seam (limit 1 mm" in inc["reason"]
+    assert res.summary["poses_welded"] == 0 and res.summary["unsafe_poses_sent"] == 0
+
+
+class _FakeVideo:
+    def __init__(self):
+        self.frames = []
+
+    def write(self, img):
+        self.frames.append(img)
+
+
+def test_search_frames_are_in_the_report_and_the_video():
+    from torchseam.live.demo import run_demo
+
+    cell, part, noise = load_cell(), load_part(), load_noise()
+    video = _FakeVideo()
+    res = run_demo(cell, part, noise, noise.level("heavy"), 0, segments="a", length_mm=2.0,
+                   start_offset_mm=-25.0, start_angle_deg=10.0, video=video)
+    s = res.summary
+    states = [f.state for f in res.frames]
+    n_search, n_app = states.count("search"), states.count("approach")
+    assert n_search >= 1 and n_app >= 1 and s["search_frames"] == n_search + n_app
+    # they come first, arc off, and do not count in the weld's accuracy
+    assert states[:n_search + n_app] == ["search"] * n_search + ["approach"] * n_app
+    assert not any(f.arc_on for f in res.frames[:n_search + n_app])
+    assert s["search_time_s"] == s["search"][0]["time_s"]
+    assert n_search == round(s["search_time_s"] * cell.process.frame_rate_hz) + 1
+    assert len(video.frames) == len(res.frames)
+
+
+def test_demo_overlay_text_reads_on_a_white_arc_flash():
+    """The state line on a white frame: a dark outline under the white text (white alone
+    would vanish)."""
+    from types import SimpleNamespace
+
+    from torchseam.live.demo import _Banner, _overlay
+
+    white = np.full((120, 400, 3), 255, np.uint8)
+    out = _overlay(white, SimpleNamespace(t_s=1.0), None, _Banner("search", "searching"), "a")
+    text = out[8:28, 8:300]
+    assert (text.max(axis=2) < 60).sum() > 100      # the outline
+    assert (out[:5] == 255).all()                   # nothing drawn above the line

@@ -39,6 +39,7 @@ import torch
 
 from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
 from torchseam.core.errors import TorchseamError
+from torchseam.core.overlay import put_label
 from torchseam.core.transforms import apply, invert, quat_to_matrix
 from torchseam.live.loop import (
     Command,
@@ -53,8 +54,11 @@ from torchseam.live.ring import torch_axis_errors
 from torchseam.live.search import (
     SeamSearch,
     SearchConfig,
+    across_seam,
+    choose_standoff,
     load_search_config,
     offset_pose,
+    search_start,
     steps_between,
 )
 from torchseam.live.simcell import LockstepCell, SimClock
@@ -258,15 +262,23 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     the segments' starts and each segment's torch work and travel angles.
 
     Start off the seam: with ``start_offset_mm`` or ``start_angle_deg`` non-zero each segment
-    starts from its programmed start pose displaced in the torch's own frame: lifted by the
-    search stand-off (``search``, default ``configs/search.yaml``), moved ``start_offset_mm``
-    across the seam (the torch frame's y: perpendicular to the travel direction and the torch
-    axis) and turned ``start_angle_deg`` about the torch axis. A
+    starts from its programmed start pose moved ``start_offset_mm`` across the seam along the
+    part's surface on that side (:meth:`~torchseam.plan.weld.WeldPlan.search_arms`: along the
+    main body or the plate, or up the branch; + is the torch frame's y side), lifted back along
+    the torch axis by the search stand-off and turned ``start_angle_deg`` about the torch axis.
+    The stand-off is the lowest of ``search`` (default ``configs/search.yaml``) at which every
+    pose of the search region passes the reachability gate with the torch's tip off the part
+    (:func:`~torchseam.live.search.choose_standoff`). A
     :class:`~torchseam.live.search.SeamSearch` then moves the torch, arc off, in a bounded
-    zig-zag around that start until TIPM confirms the stripe's corner, and an approach (arc
-    off, steps the link accepts, every pose through the gate) brings it onto the programmed
-    start: the weld then goes on as without a start offset. Not found within the bound: the
-    segment is incomplete with the search's reason (``summary["search"]`` has each search).
+    zig-zag around that start until TIPM confirms the stripe's corner; the corner is
+    triangulated with the cell's calibration (as the live loop does) and an approach (arc off,
+    steps the link accepts, every pose through the gate) brings the torch onto the seam point
+    it found: the programmed start moved by the found point's offset across the programmed
+    path (at most ``max_seam_offset_mm``), and the loop's programmed path with it. The weld
+    then goes on as without a start offset. The search's and the approach's frames are
+    recorded (states ``search``, ``approach``; in the video too). Not found within the bound:
+    the segment is incomplete with the search's reason (``summary["search"]`` has each search;
+    ``search_time_s``, ``search_frames``).
 
     Raises:
         PlanRefused: the pre-flight refused a pose of the plan (any segment: a ring is not
@@ -324,20 +336,29 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             approach = proc.look_ahead_mm + plan.approach_mm
             # the programmed start pose, with the segment's torch angles
             T0 = weld_plan.nominal_tcp(seg, np.array([s0 - approach]))[0]
-            scfg, T_start = None, T0
+            scfg, T_start, across, lift = None, T0, None, 0.0
             if start_offset_mm or start_angle_deg:
                 scfg = search or load_search_config()
-                T_start = offset_pose(T0, lateral_mm=start_offset_mm,
-                                      angle_deg=start_angle_deg, lift_mm=scfg.standoff_mm)
+                # across the seam along the part's surfaces, at the lowest stand-off at which
+                # the whole search region clears the part (the gate, and the torch's tip)
+                across = across_seam(*weld_plan.search_arms(seg, s0 - approach))
+                lift, n_ok, n_all = choose_standoff(
+                    T0, scfg, start_offset_mm, start_angle_deg,
+                    lambda T, g=gate: _search_clear(g, T), across)
+                T_start = search_start(T0, lift, start_offset_mm, start_angle_deg, across)
                 v = gate.check(torch.tensor(T_start[None]))
-                if not bool(v.ok[0]):
+                tip = float(gate.tip_clearance(T_start)[0])
+                margin = gate.config.clearance.margin_mm
+                if not bool(v.ok[0]) or tip < margin:
+                    because = v.reasons[0] if not bool(v.ok[0]) else (
+                        f"the torch's tip {tip:.1f} mm from the part < {margin:g}")
                     why = (f"start pose refused: {start_offset_mm:g} mm / {start_angle_deg:g} "
-                           f"deg off the seam, the reachability gate refuses it "
-                           f"({v.reasons[0]}); nothing "
-                           "moved in this segment")
+                           f"deg off the seam at a {lift:g} mm stand-off, the reachability "
+                           f"gate refuses it ({because}); nothing moved in this segment")
                     res.searches.append({"segment": seg.name, "found": False, "reason": why,
                                          "time_s": 0.0, "extent_mm": 0.0, "extent_deg": 0.0,
-                                         "gate_refused": 1})
+                                         "gate_refused": 1, "standoff_mm": lift,
+                                         "region_clear": f"{n_ok}/{n_all}"})
                     res.incomplete.append({"segment": seg.name, "reason": why})
                     res.messages.append(f"[{seg.name} t={clock.t:.2f}s] segment incomplete: "
                                         f"{why}")
@@ -350,24 +371,31 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             ref = _SeamRef(scene)
             nominal = scene.nominal_tcp(s0 - approach + np.arange(
                 0.0, approach + seg_len + 10.0, 0.5))[:, :3, 3]
-            loop = LiveLoop(cell, make_tracker(tracker, model_path=model_path), link,
-                            weld_plan.plan_config(seg, plan), live, nominal=nominal)
-            start = T0[:3, 3]
             n_max = int((approach + seg_len) / (proc.weld_speed_mm_s * dt) * 1.6) + 50
             fault_at = int((approach + 0.5 * seg_len) / (proc.weld_speed_mm_s * dt))
-            travelled, prev = 0.0, start
-            first, last_msg = True, ""
-            completed, arc_was = False, False
             commands: list[Command] = []   # every pose handed to the link (the loop keeps few)
             welding: list[bool] = []       # the arc was on when it was handed over
             search_failed = ""
+            start = T0[:3, 3]
             if scfg is not None:
-                found = _search_seam(seg.name, scfg, T_start, T0, gate, simcell, renderer, tap,
-                                     clock, dt, commands, res)
+                found = _search_seam(seg.name, scfg, T_start, T0, lift, across, start_offset_mm,
+                                     gate, simcell, renderer, tap, clock, dt, commands, res,
+                                     cell, ref, writer, nominal)
                 welding += [False] * (len(commands) - len(welding))
                 if not found["found"]:
                     search_failed = found["reason"]
                     n_max = 0   # nothing more moves in this segment
+                else:
+                    # the part is where the search saw its seam: the programmed path, moved
+                    # by the offset found, is the one the loop's targets are held to
+                    shift = np.asarray(found["seam_offset_vec_mm"], float)
+                    nominal = nominal + shift
+                    start = T0[:3, 3] + shift
+            loop = LiveLoop(cell, make_tracker(tracker, model_path=model_path), link,
+                            weld_plan.plan_config(seg, plan), live, nominal=nominal)
+            travelled, prev = 0.0, start
+            first, last_msg = True, ""
+            completed, arc_was = False, False
             for k in range(n_max):
                 if control is not None and control.checkpoint():
                     stopped = True
@@ -475,20 +503,57 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     res.summary["stopped"] = stopped
     if res.searches:
         res.summary["search"] = list(res.searches)
+        # time to find the seam (s of simulated time, the longest of the segments' searches)
+        # and the frames the search and its approach took (in the video, state search/approach)
+        found = [r["time_s"] for r in res.searches if r["found"]]
+        res.summary["search_time_s"] = max(found) if found else None
+        res.summary["search_frames"] = sum(f.state in ("search", "approach") for f in res.frames)
     res.summary["plan"] = weld_plan.to_dict()
     return res
 
 
-def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarray,
-                 gate: ReachGate, simcell: LockstepCell, renderer: SensorRenderer, link,
-                 clock: SimClock, dt: float, commands: list[Command], res: DemoResult) -> dict:
+def _search_clear(gate: ReachGate, T: np.ndarray) -> np.ndarray:
+    """(N,) the poses (N, 4, 4) pass the gate (each on its own: no joint speed between them)
+    and the torch's tip clears the part by the gate's margin (the arc is off: nothing may
+    touch the part)."""
+    T = np.asarray(T, float).reshape(-1, 4, 4)
+    ok = gate.check(torch.tensor(T), dt_s=_APART_S).ok.numpy()
+    return ok & (gate.tip_clearance(T) >= gate.config.clearance.margin_mm)
+
+
+_APART_S = 1e6   # poses checked each on its own (no joint speed from one to the next)
+
+
+@dataclass
+class _Seen:
+    """What the video shows of a search frame: TIPM's corner (``status`` 0 when it saw one)."""
+
+    uv: np.ndarray
+    status: int
+
+
+def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarray, lift: float,
+                 across, offset_mm: float, gate: ReachGate, simcell: LockstepCell,
+                 renderer: SensorRenderer, link, clock: SimClock, dt: float,
+                 commands: list[Command], res: DemoResult, cell: CellConfig, ref: _SeamRef,
+                 writer: _VideoThread | None, nominal: np.ndarray) -> dict:
     """Search for the seam from ``T_start`` (the robot is there), arc off, then approach the
-    programmed start ``T0``; every pose through ``gate`` and handed to ``link`` (kept in
-    ``commands``). Appends the search's record to ``res.searches`` and returns it."""
+    seam point it found; every pose through ``gate`` (and, off the seam, the tip's clearance)
+    and handed to ``link`` (kept in ``commands``). Each frame is recorded (state ``search``,
+    then ``approach``) and goes to the video.
+
+    The corner TIPM confirmed is triangulated with the cell's calibration from the flange
+    pose of its frame (as the live loop does); its offset from the programmed path
+    (``nominal``, (N, 3) base mm), across the path, moves the programmed start ``T0``: the
+    approach goes over that point at the stand-off ``lift`` and down onto it. An offset beyond
+    ``cfg.max_seam_offset_mm`` is a failed search (another edge, or the wrong part).
+    Appends the search's record to ``res.searches`` and returns it (with
+    ``seam_offset_vec_mm``, the offset applied, when found)."""
     from torchseam.core.transforms import matrix_to_quat
+    from torchseam.geometry.triangulate import FastTriangulator
 
     def reachable(T: np.ndarray) -> bool:
-        return bool(gate.check(torch.tensor(T[None])).ok[0])
+        return bool(_search_clear(gate, T)[0])
 
     def send(T: np.ndarray) -> bool:
         q = matrix_to_quat(T[:3, :3])
@@ -496,15 +561,38 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarra
         commands.append(Command(clock.t, T[:3, 3].copy(), q, bool(v.ok), v.reason, clock.t))
         return bool(v.ok)
 
-    tipm = Tipm()
-    t0 = clock.t
-    s = SeamSearch(T_start, cfg, 1.0 / dt, reachable, t0_s=t0)
-    rec: dict = {"segment": seg, "found": False, "reason": ""}
-    while True:
+    nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
+
+    def record(state: str, uv=None, message: str = "") -> None:
+        """Render the frame where the robot is, record it (arc off) and queue it for the
+        video; returns TIPM's result when ``uv`` is None."""
         T_now = simcell.tcp_pose()
-        frame, _ = renderer.render(T_now, clock.t, arc_on=False)
-        r = tipm(frame)
+        frame, truth = renderer.render(T_now, clock.t, arc_on=False)
+        r = tipm(frame) if uv is None else None
+        seen = r.uv if r is not None and r.ok else (uv if uv is not None else nan2)
+        status = int(TrackStatus.TRACKED) if r is not None and r.ok else int(TrackStatus.LOST)
+        res.frames.append(FrameRecord(seg, clock.t, False, np.asarray(seen, float), truth.uv,
+                                      status, state, nan3, truth.seam_B,
+                                      ref.distance(clock.t, T_now[:3, 3]), ""))
+        if writer is not None:
+            writer.idle()
+            writer.put(frame, truth, _Seen(np.asarray(seen, float), status),
+                       _Banner(state, message), seg)
+        return r, T_now
+
+    tipm = Tipm()
+    tri = FastTriangulator(cell)
+    t0 = clock.t
+    lateral = None if across is None else (
+        lambda y: across(offset_mm + y) - across(offset_mm))
+    s = SeamSearch(T_start, cfg, 1.0 / dt, reachable, t0_s=t0, lateral=lateral)
+    rec: dict = {"segment": seg, "found": False, "reason": "", "standoff_mm": lift}
+    p_seen = None
+    while True:
+        r, T_now = record("search", message=f"searching: {s.y + offset_mm:+.1f} mm, "
+                                            f"{s.a:+.1f} deg, stand-off {lift:g} mm")
         if s.observe(r.ok, r.uv, clock.t, T_now):
+            p_seen = tri(np.asarray(r.uv, float)[None], simcell.flange_pose())[0]
             break
         T = s.step()
         if T is None:
@@ -515,31 +603,68 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarra
         simcell.advance(dt)
     rec.update(time_s=round(clock.t - t0, 3), extent_mm=round(s.extent[0], 3),
                extent_deg=round(s.extent[1], 3), gate_refused=s.refused)
+    shift = None
+    if s.found:
+        if p_seen is None or not np.all(np.isfinite(p_seen)):
+            s.found, s.reason = False, "seam not found: the corner's ray misses the laser plane"
+        else:
+            # the programmed path's nearest point and its direction there: the offset across
+            i = int(np.argmin(np.linalg.norm(nominal - p_seen, axis=1)))
+            j0, j1 = max(i - 1, 0), min(i + 1, len(nominal) - 1)
+            tan = nominal[j1] - nominal[j0]
+            tan = tan / np.linalg.norm(tan)
+            d = p_seen - nominal[i]
+            shift = d - (d @ tan) * tan
+            off = float(np.linalg.norm(shift))
+            rec["seam_offset_mm"] = round(off, 3)
+            if off > cfg.max_seam_offset_mm:
+                s.found = False
+                s.reason = (f"seam not found: the corner seen lies {off:.1f} mm from the "
+                            f"programmed seam (limit {cfg.max_seam_offset_mm:g} mm: another "
+                            "edge, or the part is not where the plan puts it); nothing moved "
+                            "towards it")
     if not s.found:
         rec["reason"] = s.reason
         res.messages.append(f"[{seg} t={clock.t:.2f}s] {s.reason}")
         res.searches.append(rec)
         return rec
+    assert shift is not None
     res.messages.append(f"[{seg} t={clock.t:.2f}s] seam found after {clock.t - t0:.2f} s "
-                        f"({s.y:+.1f} mm, {s.a:+.1f} deg from the start): approaching")
-    # the approach: at the stand-off over the programmed start, then down onto it
+                        f"({s.y + offset_mm:+.1f} mm, {s.a:+.1f} deg from the programmed start, "
+                        f"stand-off {lift:g} mm), {np.linalg.norm(shift):.1f} mm from the "
+                        "programmed seam: approaching it")
+    # the approach: at the stand-off over the seam found, then down onto it
     t1 = clock.t
+    T_seam = T0.copy()
+    T_seam[:3, 3] += shift
     step_mm, step_deg = cfg.speed_mm_s * dt, cfg.turn_deg_s * dt
     T_last = s.pose(s.y, s.a)
-    above = offset_pose(T0, lift_mm=cfg.standoff_mm)
-    for T in steps_between(T_last, above, step_mm, step_deg) + steps_between(
-            above, T0, step_mm, step_deg):
-        if not reachable(T) or not send(T):
+    above = offset_pose(T_seam, lift_mm=lift)
+    over = steps_between(T_last, above, step_mm, step_deg)
+    down = steps_between(above, T_seam, step_mm, step_deg)
+    for k, T in enumerate(over + down):
+        # over the part the tip keeps clear of it too; the descent brings it onto the seam
+        ok = reachable(T) if k < len(over) else bool(gate.check(torch.tensor(T[None])).ok[0])
+        if not ok or not send(T):
             rec["reason"] = "the approach from the search to the seam was refused"
             res.messages.append(f"[{seg} t={clock.t:.2f}s] {rec['reason']}")
             res.searches.append(rec)
             return rec
         simcell.advance(dt)
+        record("approach", uv=nan2, message=f"approach: onto the seam found "
+                                            f"({np.linalg.norm(shift):.1f} mm off the program)")
     for _ in range(int(2.0 / dt)):  # the robot arrives (it lags its targets by a few frames)
-        if np.linalg.norm(simcell.tcp_pose()[:3, 3] - T0[:3, 3]) < 0.05:
+        if np.linalg.norm(simcell.tcp_pose()[:3, 3] - T_seam[:3, 3]) < 0.05:
             break
         simcell.advance(dt)
-    rec.update(found=True, approach_s=round(clock.t - t1, 3))
+        record("approach", uv=nan2, message="approach: arriving")
+    # how far from the true seam the weld starts, and how far the programmed start is from it
+    at = simcell.tcp_pose()[:3, 3]
+    rec.update(start_error_mm=round(ref.distance(clock.t, at), 3),
+               programmed_start_error_mm=round(ref.distance(clock.t, T0[:3, 3]), 3))
+    ref.distance(clock.t, at)   # (its look-up window back where the torch is)
+    rec.update(found=True, approach_s=round(clock.t - t1, 3),
+               seam_offset_vec_mm=[round(float(v), 4) for v in shift])
     res.searches.append(rec)
     return rec
 
@@ -702,20 +827,31 @@ def _summary(res: DemoResult, unsafe: int) -> dict:
     }
 
 
+@dataclass
+class _Banner:
+    """The state line of a frame the live loop did not see (the search, the approach)."""
+
+    state: str
+    message: str = ""
+
+
 def _overlay(frame, truth, loc, rep, seg) -> np.ndarray:
+    """The video frame: the corner found (colour by status) and the state line, its text over
+    a dark outline (readable on a white arc flash). ``rep``: the loop's
+    :class:`~torchseam.live.loop.StepReport`, a :class:`_Banner` (search frames) or None."""
     out = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR) if frame.ndim == 2 else frame.copy()
     if loc is not None and np.all(np.isfinite(loc.uv)):
         colour = {0: (0, 255, 0), 1: (0, 200, 255), 2: (0, 0, 255)}[int(loc.status)]
         c = tuple(int(round(x)) for x in loc.uv)
         cv2.drawMarker(out, c, colour, cv2.MARKER_CROSS, 20, 2, cv2.LINE_AA)
         cv2.circle(out, c, 12, colour, 1, cv2.LINE_AA)
-    state = rep.state.value if rep else "starting"
-    text = f"segment {seg}  {state}  t={truth.t_s:6.2f}s"
-    cv2.putText(out, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1,
-                cv2.LINE_AA)
+    if isinstance(rep, _Banner):
+        state = rep.state
+    else:
+        state = rep.state.value if rep else "starting"
+    put_label(out, f"segment {seg}  {state}  t={truth.t_s:6.2f}s", (8, 22), 0.6)
     if rep is not None and rep.message:
-        cv2.putText(out, rep.message[:70], (8, 46), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                    (0, 200, 255), 1, cv2.LINE_AA)
+        put_label(out, rep.message[:70], (8, 46), 0.45, (0, 200, 255))
     return out
 
 

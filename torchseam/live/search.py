@@ -5,18 +5,25 @@
 in the robot base, (4, 4) mm) and per camera frame whether TIPM found a stripe corner and
 where; it answers with the next torch pose to command. The pattern is a zig-zag across the
 seam that widens each leg (lateral offsets 0, +s, -s, +2s, -2s, ... up to ``max_extent_mm``,
-``s = lateral_step_mm``), along the start pose's y axis (perpendicular to the travel direction
-and to the torch axis), at the start pose's stand-off; when a sweep at one torch angle ends
-without the seam, the next sweep turns the torch about its own axis by ``angle_step_deg``
-(+, -, 2+, 2-, ... up to ``max_angle_deg``). Every pose of the pattern lies within those
-bounds of the start pose (it moves between vertices in straight lines); each one is
-``speed_mm_s`` / ``turn_deg_s`` of one frame from the previous one, far inside the EGM link's
-step limits, and the caller's reachability gate (``reachable``) is asked first: an
-unreachable pose ends the leg there and the pattern goes on with the next one.
+``s = lateral_step_mm``); the move ``y`` across the seam is ``lateral(y)`` (the demo: along the
+part's surfaces, :func:`across_seam`, so that the torch keeps its height over the plate or the
+pipe it passes over; default along the start pose's y axis), at the start pose's stand-off;
+when a sweep at one torch angle ends without the seam, the next sweep turns the torch about its
+own axis by ``angle_step_deg`` (+, -, 2+, 2-, ... up to ``max_angle_deg``). Every pose of the
+pattern lies within those bounds of the start pose (it moves between vertices in straight
+lines); each one is ``speed_mm_s`` / ``turn_deg_s`` of one frame from the previous one, far
+inside the EGM link's step limits, and the caller's reachability gate (``reachable``) is asked
+first: an unreachable pose ends the leg there and the pattern goes on with the next one.
+
+The stand-off is chosen per start from the part's geometry through the gate
+(:func:`choose_standoff`): the lowest of ``standoff_mm``, ``+ standoff_step_mm``, ... up to
+``max_standoff_mm`` at which every pose of the search's region passes the caller's check (the
+demo: the reachability gate, and the torch's tip off the part by the gate's margin).
 
 The seam is found when TIPM sees a corner on ``confirm_frames`` consecutive frames, each
 within ``confirm_px`` of the previous one. The search gives up (``failed``, with ``reason``)
-when the pattern is exhausted or ``time_limit_s`` has passed.
+when the pattern is exhausted or ``time_limit_s`` has passed. (The demo then triangulates the
+corner and approaches it: :func:`torchseam.live.demo._search_seam`.)
 
 Settings: ``configs/search.yaml`` (:class:`SearchConfig`).
 """
@@ -36,7 +43,7 @@ from torchseam.core.config import config_field as _f
 class SearchConfig:
     """The seam search's settings (``configs/search.yaml``)."""
 
-    standoff_mm: float = _f(lo=0.0)                    # search height above the programmed path
+    standoff_mm: float = _f(lo=0.0)                    # lowest search stand-off tried
     lateral_step_mm: float = _f(lo=0.0, lo_open=True)  # zig-zag: widening per leg
     max_extent_mm: float = _f(lo=0.0, lo_open=True)    # lateral bound, either side of the start
     angle_step_deg: float = _f(lo=0.0, lo_open=True)   # torch turn between two sweeps
@@ -46,6 +53,25 @@ class SearchConfig:
     time_limit_s: float = _f(lo=0.0, lo_open=True)     # give up after this long
     confirm_frames: int = _f(lo=1)                     # corner seen on this many frames in a row
     confirm_px: float = _f(lo=0.0, lo_open=True)       # ... each this close to the previous one
+    # the stand-off is chosen per start: the lowest of standoff_mm, + standoff_step_mm, ... up
+    # to max_standoff_mm at which the whole search region passes the gate (choose_standoff)
+    max_standoff_mm: float = _f(lo=0.0, default=25.0)
+    standoff_step_mm: float = _f(lo=0.0, lo_open=True, default=5.0)
+    region_step_mm: float = _f(lo=0.0, lo_open=True, default=2.5)  # its lateral sampling
+    # the seam the search found may lie at most this far from the programmed one (the approach
+    # aims at the found one; farther: another edge, or the wrong part, and the search fails)
+    max_seam_offset_mm: float = _f(lo=0.0, lo_open=True, default=8.0)
+
+    def _check(self) -> None:
+        if self.max_standoff_mm < self.standoff_mm:
+            raise ValueError(f"max_standoff_mm: {self.max_standoff_mm} is below standoff_mm "
+                             f"{self.standoff_mm}")
+
+    def standoffs(self) -> list[float]:
+        """The stand-offs :func:`choose_standoff` tries, lowest first."""
+        n = int(np.floor((self.max_standoff_mm - self.standoff_mm) / self.standoff_step_mm
+                         + 1e-9))
+        return [self.standoff_mm + k * self.standoff_step_mm for k in range(n + 1)]
 
 
 def load_search_config(path=None) -> SearchConfig:
@@ -62,6 +88,54 @@ def offset_pose(T: np.ndarray, lateral_mm: float = 0.0, angle_deg: float = 0.0,
     M[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
     M[:3, 3] = [along_mm, lateral_mm, -lift_mm]
     return T @ M
+
+
+def across_seam(plus: np.ndarray | None, minus: np.ndarray | None
+                ) -> Callable[[float], np.ndarray]:
+    """The move ``u`` mm across the seam, (3,) in the base: ``u * plus`` for ``u >= 0``,
+    ``-u * minus`` below (``plus``/``minus``: the directions along the part's surfaces on the
+    torch's +y and -y side, :meth:`torchseam.plan.weld.WeldPlan.search_arms`), so that the
+    torch keeps its height over the surface it passes over."""
+    p, m = (np.asarray(v, float) for v in (plus, minus))
+    return lambda u: u * p if u >= 0 else -u * m
+
+
+def search_start(T0: np.ndarray, standoff_mm: float, offset_mm: float, angle_deg: float,
+                 across: Callable[[float], np.ndarray] | None = None) -> np.ndarray:
+    """The pose ``offset_mm`` across the seam from the programmed start ``T0`` (along
+    ``across``; default the torch's own y), lifted ``standoff_mm`` back along its axis and
+    turned ``angle_deg`` about it."""
+    if across is None:
+        return offset_pose(T0, lateral_mm=offset_mm, angle_deg=angle_deg, lift_mm=standoff_mm)
+    T = offset_pose(T0, angle_deg=angle_deg, lift_mm=standoff_mm)
+    T[:3, 3] += across(offset_mm)
+    return T
+
+
+def choose_standoff(T0: np.ndarray, cfg: SearchConfig, offset_mm: float, angle_deg: float,
+                    clear: Callable[[np.ndarray], np.ndarray],
+                    across: Callable[[float], np.ndarray] | None = None
+                    ) -> tuple[float, int, int]:
+    """The search stand-off for a start ``offset_mm`` / ``angle_deg`` off the programmed start
+    ``T0``: the lowest of ``cfg.standoffs()`` at which every pose of the search's region (the
+    lateral bound around the start every ``region_step_mm``, at each of the pattern's torch
+    turns) passes ``clear`` ((N, 4, 4) poses -> (N,) bool: the gate and the tip's clearance).
+    None passing everywhere: the one that passes most (the search's legs are cut where the
+    gate refuses). Returns (stand-off mm, poses passed, poses checked)."""
+    n = int(np.ceil(cfg.max_extent_mm / cfg.region_step_mm))
+    ys = offset_mm + np.linspace(-cfg.max_extent_mm, cfg.max_extent_mm, 2 * n + 1)
+    angles = sorted({a for _, a in pattern(cfg)})
+    best: tuple[int, float] | None = None
+    for lift in cfg.standoffs():
+        T = np.array([search_start(T0, lift, y, angle_deg + a, across)
+                      for a in angles for y in ys])
+        ok = int(np.asarray(clear(T), bool).sum())
+        if ok == len(T):
+            return lift, ok, len(T)
+        if best is None or ok > best[0]:
+            best = (ok, lift)
+    assert best is not None
+    return best[1], best[0], len(ys) * len(angles)
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
@@ -121,6 +195,9 @@ class SeamSearch:
 
     Args:
         T_start: (4, 4) torch TCP pose the search starts from and is bounded around.
+        lateral: ``lateral(y) -> (3,)``, the move ``y`` mm across the seam from the start in
+            the base (the demo: along the part's surfaces, :func:`across_seam`); default along
+            the start pose's y axis.
         cfg: settings.
         frame_rate_hz: camera frames per second (one :meth:`step` per frame).
         reachable: ``reachable(T) -> bool``, the reachability gate; default: all poses.
@@ -131,9 +208,11 @@ class SeamSearch:
     """
 
     def __init__(self, T_start: np.ndarray, cfg: SearchConfig, frame_rate_hz: float,
-                 reachable: Callable[[np.ndarray], bool] | None = None, t0_s: float = 0.0
-                 ) -> None:
+                 reachable: Callable[[np.ndarray], bool] | None = None, t0_s: float = 0.0,
+                 lateral: Callable[[float], np.ndarray] | None = None) -> None:
         self.T_start = np.asarray(T_start, float)
+        # y mm across the seam from the start -> (3,) move in the base (default its own y)
+        self.lateral = lateral or (lambda y: y * self.T_start[:3, 1])
         self.cfg = cfg
         self.dt = 1.0 / frame_rate_hz
         self.reachable = reachable or (lambda T: True)
@@ -152,7 +231,10 @@ class SeamSearch:
         self.refused = 0                   # poses the gate refused (legs cut short)
 
     def pose(self, y: float, a: float) -> np.ndarray:
-        return offset_pose(self.T_start, lateral_mm=y, angle_deg=a)
+        """The pattern's pose ``y`` mm across the seam from the start, turned ``a`` deg."""
+        T = offset_pose(self.T_start, angle_deg=a)
+        T[:3, 3] += self.lateral(y)
+        return T
 
     def observe(self, ok: bool, uv, t_s: float, T_now: np.ndarray | None = None) -> bool:
         """One frame's TIPM result; True when the seam is now confirmed."""

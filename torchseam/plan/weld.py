@@ -182,6 +182,27 @@ class WeldPlan:
         T[:, :3, :3] = T[:, :3, :3] @ self.torch_rotation(seg)
         return T
 
+    def search_arms(self, seg: SegmentPlan, s_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        """The directions across the seam along the part's two surfaces at seam arc length
+        ``s_mm`` of ``seg`` (the design part as placed and turned for it), in the base frame:
+        ``(plus, minus)``, the surface on the torch's +y side and the one on its -y side, each
+        perpendicular to the seam and pointing away from it (along the main body away from
+        the branch, up the branch away from the main body). A torch moved across the seam
+        along them keeps its height over the surface it passes over (a move along the torch's
+        own y runs into one of them where the groove is 90 degrees: the plate)."""
+        scene = self.scene(seg)
+        smp = scene.nominal_joint.seam(scene.phi_at(np.array([float(s_mm)])))
+        x, n_m, n_b = smp.tangent[0], smp.normal_main[0], smp.normal_branch[0]
+        arms = []
+        for n, other in ((n_m, n_b), (n_b, n_m)):
+            a = np.cross(x, n)
+            a = a / np.linalg.norm(a)
+            arms.append(a if a @ other > 0 else -a)   # away from the other surface
+        R = scene.T_B_Tnom[:3, :3]
+        main, branch = R @ arms[0], R @ arms[1]
+        y = self.nominal_tcp(seg, np.array([float(s_mm)]))[0, :3, 1]
+        return (main, branch) if main @ y > branch @ y else (branch, main)
+
     def to_dict(self) -> dict:
         p = self.part.placement
         return {

@@ -438,6 +438,20 @@ class ReachGate:
                      axis=1)                                                   # (P * N, 2)
         return c.reshape(len(pieces), n, 2).min(axis=0)
 
+    def tip_clearance(self, T_tcp: np.ndarray) -> np.ndarray:
+        """(N,) clearance (mm) to the part of the torch's front, the ``tip_exclusion_mm`` in
+        front of its body that the gate leaves out (when welding the tip touches the seam by
+        design), taken as a line from the TCP back: what a move with the arc off (the seam
+        search) must keep clear as well. ``inf`` without a part."""
+        T = np.asarray(T_tcp, float).reshape(-1, 4, 4)
+        if self._pipes is None:
+            return np.full(len(T), np.inf)
+        tip, z = T[:, :3, 3], T[:, :3, 2]
+        b = tip - self.config.torch.tip_exclusion_mm * z
+        zero = np.zeros(len(T))
+        return np.minimum(self._main_distance(tip, b, zero, zero),
+                          self._branch_distance(tip, b, zero, zero))
+
     def _main_distance(self, a: np.ndarray, b: np.ndarray, r0: np.ndarray, r1: np.ndarray
                        ) -> np.ndarray:
         """Clearance of torch pieces along a-b ((M, 3), radius r0 at a to r1 at b, (M,)) to
