@@ -18,7 +18,7 @@ from torchseam import config_dir, model_dir
 from torchseam.cli import main
 
 PARTS = config_dir() / "parts"
-MODEL = model_dir() / "eakf_stc.safetensors"
+MODEL = model_dir() / "live_tracker.safetensors"
 
 
 @pytest.fixture(scope="module")

@@ -37,6 +37,8 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
     ("track", "torchseam.track.cli", "track the feature point through a folder of frames"),
     ("eval", "torchseam.track.cli", "track a labelled folder and print the error table"),
     ("train", "torchseam.fit.cli", "fit the EAKF-STC parameters on labelled sequences"),
+    ("train-live", "torchseam.fit.live_cli",
+     "fit the live tracker (EAKF-STC and the fusion) end to end on full sequences"),
     ("calibrate", "torchseam.geometry.calib_cli",
      "calibrate camera, laser plane, hand-eye or TCP from a folder"),
     ("ring", "torchseam.live.ring_cli",
@@ -106,13 +108,13 @@ def out_file_arg(text: str) -> Path:
 
 
 def model_arg(text: str) -> Path:
-    """``--model``: an existing EAKF-STC model file (its content is checked when loaded)."""
+    """``--model``: an existing tracker model file (its content is checked when loaded)."""
     p = Path(text)
     if not p.exists():
         raise argparse.ArgumentTypeError(f"{text}: no such model file")
     if not p.is_file():
-        raise argparse.ArgumentTypeError(f"{text} is not a file (expected an EAKF-STC model, "
-                                         "e.g. models/eakf_stc.safetensors)")
+        raise argparse.ArgumentTypeError(f"{text} is not a file (expected a tracker model, "
+                                         "e.g. models/live_tracker.safetensors)")
     return p
 
 

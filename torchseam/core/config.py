@@ -460,6 +460,8 @@ def _parse_value(tp: Any, v: Any, meta: dict[str, Any], path: str) -> Any:
         n = meta.get("n")
         if n is not None and len(v) != n:
             raise ValueError(f"expected {n} values, got {len(v)}")
+        if item_tp is str:
+            return tuple(_check_str(x, meta) for x in v)
         out = tuple(_check_number(x, meta, item_tp is int) for x in v)
         if meta.get("unit"):
             norm = math.sqrt(sum(x * x for x in out))

@@ -157,7 +157,7 @@ def load_fitted(module: nn.Module, path: str | os.PathLike[str] | None = None) -
     Args:
         module: an :class:`~torchseam.track.fusion.EAKFSTC` (learnable or not: the state-dict
             names are the same).
-        path: model file; None: :data:`DEFAULT_MODEL` (``models/eakf_stc.safetensors``).
+        path: model file; None: :data:`DEFAULT_MODEL` (``models/live_tracker.safetensors``).
 
     Returns:
         True when loaded. False, with a logged warning, when ``path`` is None and no model file

@@ -56,8 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--length-mm", type=float, default=None,
                    help="weld only this much of each segment (quick runs)")
     p.add_argument("--model", type=model_arg, default=None, metavar="FILE",
-                   help="EAKF-STC model file for the eakf-stc and anchored trackers (default "
-                        "models/eakf_stc.safetensors)")
+                   help="tracker model file for the anchored and eakf-stc trackers, e.g. a "
+                        "run's runs/NAME/live_tracker.safetensors (default "
+                        "models/live_tracker.safetensors)")
     p.add_argument("--start-offset-mm", type=float, default=0.0, metavar="D",
                    help="start each segment D mm across the seam (the torch frame's y, at the "
                         "search stand-off of configs/search.yaml); the torch then searches for "
@@ -92,8 +93,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--out", type=out_file_arg, default=None,
                    help="CSV of frame,t_s,u,v,status,x,y,z per frame (default: none)")
     r.add_argument("--model", type=model_arg, default=None, metavar="FILE",
-                   help="EAKF-STC model file for the eakf-stc and anchored trackers (default "
-                        "models/eakf_stc.safetensors)")
+                   help="tracker model file for the anchored and eakf-stc trackers, e.g. a "
+                        "run's runs/NAME/live_tracker.safetensors (default "
+                        "models/live_tracker.safetensors)")
     r.set_defaults(func=run_replay_cmd)
 
 

@@ -62,9 +62,9 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=1,
                    help="torch and OpenCV threads (default 1: the live loop's setting)")
     p.add_argument("--model", type=model_arg, default=None, metavar="FILE",
-                   help="EAKF-STC model file for the eakf-stc and anchored trackers, e.g. a "
-                        "run's runs/NAME/eakf_stc.safetensors (default "
-                        "models/eakf_stc.safetensors)")
+                   help="tracker model file for the anchored and eakf-stc trackers, e.g. a "
+                        "run's runs/NAME/live_tracker.safetensors (default "
+                        "models/live_tracker.safetensors)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -82,7 +82,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser(
         "eval", help="track a labelled folder and print the error table",
         description="Track FRAMES_DIR and compare with its labels.csv: RMSE, max error, "
-                    "%% frames > 5 px, %% lost (> 15 px or no point), ms per frame (frame -> "
+                    "% frames > 5 px, % lost (> 15 px or no point), ms per frame (frame -> "
                     "point; the tracker's learning between frames, as the live loop runs it, "
                     "is not counted). A frame that cannot be read counts as lost.")
     _common(e)

@@ -376,6 +376,11 @@ class TorchOps:
         return a + w * (b - a)
 
 
+def _num(x: Any) -> float:
+    """A backend scalar as a float (no gradient)."""
+    return float(x.detach()) if isinstance(x, Tensor) else float(x)
+
+
 #: temperatures of the straight-through decisions (the margin's units: sigma, px, px)
 GATE_TEMP, RMS_TEMP, REANCHOR_TEMP = 0.5, 0.05, 0.5
 
@@ -445,7 +450,7 @@ class AnchorFilter:
         y = z - self.x
         S_inv = o.inv2(self.P + R)
         d2 = y @ S_inv @ y
-        hard = bool(float(d2) <= float(gate) ** 2)
+        hard = bool(_num(d2) <= _num(gate) ** 2)
         w = o.decide(hard, gate - o.sqrt(d2), GATE_TEMP)
         if isinstance(w, float) and w == 0.0:
             return False
@@ -493,18 +498,18 @@ class AnchorFilter:
             R = inflate * cov
             z = o.const(obs.z)
             taken = self._measure(z, R, p["fix_gate"])
-            clean = rms <= float(p["max_rms_px"])
+            clean = rms <= _num(p["max_rms_px"])
             if not taken:
                 # a clean corner the motion model did not expect: the image jumped; a clean
                 # fit is worth more than the random-walk prediction, so start again there
-                w = o.decide(clean, p["max_rms_px"] - rms, RMS_TEMP * float(p["max_rms_px"]))
+                w = o.decide(clean, p["max_rms_px"] - rms, RMS_TEMP * _num(p["max_rms_px"]))
                 if clean or not isinstance(w, float):
                     self.x = o.blend(self.x, z, w)
                     self.P = o.blend(self.P, R, w)
                 taken = clean
             if taken:
                 self.shape, self.age = arm_shape(obs.res), 0
-            fix = Fix(obs.z.copy(), o.value(cov), float(inflate), taken, obs.seen)
+            fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, obs.seen)
         if inner_ok:
             self._measure(inner_uv, inflate * self.R_track, p["track_gate"])
         reanchor: Any = 0.0
@@ -513,7 +518,7 @@ class AnchorFilter:
                 reanchor = 1.0
             else:
                 dist = o.sqrt(((self.x - inner_uv) ** 2).sum())
-                reanchor = o.decide(float(dist) > float(p["reanchor_px"]),
+                reanchor = o.decide(_num(dist) > _num(p["reanchor_px"]),
                                     dist - p["reanchor_px"], REANCHOR_TEMP)
         return self.x, reanchor, fix, obs
 
@@ -581,7 +586,7 @@ class FixFusion(nn.Module):
 
     def values(self) -> dict[str, float]:
         """The values in their units, as floats."""
-        return {n: float(v) for n, v in self.natural().items()}
+        return {n: float(v.detach()) for n, v in self.natural().items()}
 
 
 @dataclass

@@ -1,0 +1,288 @@
+"""Fitting the live tracker end to end: EAKF-STC and the fusion's values
+(:class:`~torchseam.track.live.LiveTracker`) by gradient descent on full-length labelled
+sequences of several appearance families.
+
+One epoch: the training sequences, B at a time, tracked from their frame-0 label exactly as the
+live loop tracks (TIPM's windowed fixes, the gates, re-anchoring, the whole-frame search while
+coasting); truncated back-propagation through time in chunks of ``chunk`` frames: after each
+chunk the Huber loss between the fused and the true points is back-propagated, the optimiser
+steps, and the state, cut from the graph, carries on with the new values. Whole sequences
+(300 frames and more), so long heavy-arc and glare stretches are in the loss. The gates and
+thresholds are hard forward and straight-through backward (:class:`~torchseam.track.live.TorchOps`).
+After each epoch the validation sequences (other seeds) are tracked without gradients; the
+values of the epoch with the lowest validation loss are kept (epoch 0, the starting point,
+competes). Nothing is changed by hand afterwards.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchseam.core.config import (
+    CONFIG_DIR,
+    CellConfig,
+    NoiseConfig,
+    PartConfig,
+    config_field,
+    load_config,
+)
+from torchseam.core.report import error_stats
+from torchseam.fit.config import PARAM_GROUPS
+from torchseam.fit.model_io import FitError, save_fitted
+from torchseam.sim.sequence import SequenceSpec, simulate_labelled
+from torchseam.sim.variants import hide_corner
+from torchseam.track.live import LiveTracker
+from torchseam.vision.tipm import red_response
+
+__all__ = ["BEYOND", "LiveFitConfig", "LiveSequence", "fit_live", "load_live_fit_config",
+           "simulate_set", "track_set"]
+
+log = logging.getLogger("torchseam.fit")
+
+#: a level name: heavy arc plus glare hiding the corner for tens of frames (randomly placed)
+BEYOND = "beyond"
+
+
+@dataclass(frozen=True)
+class LiveFitConfig:
+    """Options of ``torchseam train-live`` (``configs/train_live.yaml``)."""
+
+    families: tuple[str, ...] = config_field()
+    levels: tuple[str, ...] = config_field()
+    seeds: tuple[int, ...] = config_field()
+    val_seeds: tuple[int, ...] = config_field()
+    val_levels: tuple[str, ...] = config_field()
+    frames: int = config_field(lo=30)
+    hide_frames: tuple[int, ...] = config_field()
+    fit: tuple[str, ...] = config_field()
+    epochs: int = config_field(lo=0)
+    batch: int = config_field(lo=1)
+    chunk: int = config_field(lo=1)
+    lr: float = config_field(lo=0.0, lo_open=True)
+    huber: float = config_field(lo=0.0, lo_open=True)
+    clip: float = config_field(lo=0.0)
+    lost_px: float = config_field(lo=0.0, lo_open=True)
+    threads: int = config_field(lo=1)
+    dtype: str = config_field()
+
+
+def load_live_fit_config(path: str | Path | None = None) -> LiveFitConfig:
+    """:class:`LiveFitConfig` from ``path`` (default ``configs/train_live.yaml``)."""
+    return load_config(LiveFitConfig, path or CONFIG_DIR / "train_live.yaml")
+
+
+@dataclass
+class LiveSequence:
+    """One labelled sequence in memory: ``frames`` (T of (H, W, 3) uint8), ``labels`` (T, 2),
+    ``group`` (``family/level``), ``hidden`` (T,) frames with the corner hidden."""
+
+    frames: list[np.ndarray]
+    labels: np.ndarray
+    group: str
+    hidden: np.ndarray
+
+
+def simulate_set(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
+                 families: Sequence[str], levels: Sequence[str], seeds: Sequence[int],
+                 n_frames: int, hide_frames: Sequence[int] = (30, 60),
+                 progress: Callable[[str], None] | None = None) -> list[LiveSequence]:
+    """One sequence per (family, level, seed), simulated in memory. Level ``beyond``: heavy
+    arc plus the corner hidden under glare for each of ``hide_frames`` frames, at places drawn
+    from the seed (the benchmark's places are fixed: a fit must not learn them)."""
+    out = []
+    for fam in families:
+        for name in levels:
+            try:
+                level = noise.level("heavy" if name == BEYOND else name)
+            except ValueError as e:
+                raise FitError(f"levels: {e}") from None
+            for s in seeds:
+                spec = SequenceSpec(n_frames=n_frames, level=level, seed=s, family=fam)
+                frames, labels, _ = simulate_labelled(cell, part, noise, spec)
+                hidden = np.zeros(len(frames), bool)
+                if name == BEYOND:
+                    rng = np.random.default_rng(10_000 + s)
+                    n = len(frames)
+                    stretches = []
+                    for k, length in enumerate(hide_frames):
+                        lo, hi = 0.15 + 0.45 * k, 0.45 + 0.45 * k
+                        start = float(rng.uniform(lo, max(lo, min(hi, 1 - (length + 5) / n))))
+                        stretches.append((start, int(length)))
+                    frames, hidden = hide_corner(frames, labels, tuple(stretches))
+                out.append(LiveSequence(frames, labels, f"{fam}/{name}", hidden))
+                if progress:
+                    progress(f"simulated {fam}/{name} seed {s}")
+    return out
+
+
+def _grey(frames: Sequence[np.ndarray]) -> Tensor:
+    return torch.from_numpy(np.stack([red_response(f) for f in frames]))
+
+
+def track_set(module: LiveTracker, seqs: Sequence[LiveSequence], batch: int,
+              chunk: int = 0, huber: float = 2.0,
+              opt: torch.optim.Optimizer | None = None, clip: float = 0.0
+              ) -> tuple[float, list[np.ndarray], list[list[int]]]:
+    """Track ``seqs`` (equal lengths within a batch) from their frame-0 labels, B at a time.
+    With ``opt``: truncated BPTT, an optimiser step per ``chunk`` frames.
+
+    Returns:
+        (mean Huber per coordinate, per-sequence fused points (T, 2), statuses).
+    """
+    dtype = module.eakf_stc.eakf.dt.dtype
+    hsum, hn = 0.0, 0
+    uvs: list[np.ndarray] = []
+    stats: list[list[int]] = []
+    params = [p for p in module.parameters() if p.requires_grad]
+    for b0 in range(0, len(seqs), batch):
+        group = list(seqs[b0:b0 + batch])
+        T = min(len(s.frames) for s in group)
+        labels = torch.from_numpy(np.stack([s.labels[:T] for s in group])).to(dtype)
+        with torch.set_grad_enabled(opt is not None):
+            state = module.init_state([s.frames[0] for s in group],
+                                      _grey([s.frames[0] for s in group]), labels[:, 0])
+            out = [labels[:, 0].detach().numpy().astype(float)]
+            st: list[list[int]] = [[0] * len(group)]
+            loss = labels.new_zeros(())
+            n_in_chunk = 0
+            for t in range(1, T):
+                frames = [s.frames[t] for s in group]
+                state, x, status = module.step_state(state, frames, _grey(frames))
+                err = F.huber_loss(x, labels[:, t], reduction="sum", delta=huber)
+                loss = loss + err
+                hsum += float(err.detach())
+                hn += x.numel()
+                n_in_chunk += x.numel()
+                out.append(x.detach().to(torch.float64).numpy())
+                st.append(status)
+                if opt is not None and (t % chunk == 0 or t == T - 1):
+                    opt.zero_grad(set_to_none=True)
+                    (loss / n_in_chunk).backward()
+                    if clip > 0:
+                        torch.nn.utils.clip_grad_norm_(params, clip)
+                    opt.step()
+                    state = module.detach(state)
+                    loss, n_in_chunk = labels.new_zeros(()), 0
+        arr = np.stack(out, axis=1)
+        for j in range(len(group)):
+            uvs.append(arr[j])
+            stats.append([row[j] for row in st])
+    return hsum / max(hn, 1), uvs, stats
+
+
+def errors_by_group(seqs: Sequence[LiveSequence], uvs: Sequence[np.ndarray],
+                    lost_px: float) -> dict[str, dict[str, float]]:
+    """error_stats per group over frames 1.. of each sequence."""
+    errs: dict[str, list[np.ndarray]] = {}
+    for s, uv in zip(seqs, uvs, strict=True):
+        e = np.linalg.norm(uv[1:] - s.labels[1:len(uv)], axis=1)
+        e[~np.isfinite(e)] = np.nan
+        errs.setdefault(s.group, []).append(e)
+    return {g: error_stats(np.concatenate(v), lost_px) for g, v in errs.items()}
+
+
+def _select(module: LiveTracker, groups: Sequence[str]) -> list[str]:
+    """Free EAKF-STC's parameters of ``groups`` (:data:`PARAM_GROUPS`) and every fusion
+    value (``fusion``); freeze the rest."""
+    names: set[str] = set()
+    params = dict(module.named_parameters())
+    for g in groups:
+        if g == "fusion":
+            names |= {n for n in params if n.startswith("fusion.")}
+            continue
+        if g not in PARAM_GROUPS:
+            raise FitError(f"fit: unknown group {g!r}: use fusion or one of "
+                           f"{', '.join(PARAM_GROUPS)}")
+        for pat in PARAM_GROUPS[g]:
+            full = "eakf_stc." + pat
+            hit = ({n for n in params if n.startswith(full)} if pat.endswith(".")
+                   else {full} & set(params))
+            if not hit:
+                raise FitError(f"fit: the tracker has no parameter {pat!r} (group {g!r})")
+            names |= hit
+    for n, p in params.items():
+        p.requires_grad_(n in names)
+    return sorted(names)
+
+
+def readable(module: LiveTracker) -> dict[str, float]:
+    """The fusion's values and EAKF-STC's scalars in their units (for logs and the report)."""
+    out = {f"fusion.{k}": round(v, 6) for k, v in module.fusion.values().items()}
+    e = module.eakf_stc
+    for name, val in (("lam", e.eakf.lam), ("a", e.eakf.a), ("b", e.eakf.b), ("rho", e.stc.rho),
+                      ("reg", e.stc.reg), ("anchor", e.stc.anchor)):
+        v = val.detach().reshape(-1)
+        out[f"eakf_stc.{name}"] = [round(float(x), 6) for x in v] if v.numel() > 1 else round(
+            float(v), 6)
+    return out
+
+
+def fit_live(module: LiveTracker, train: Sequence[LiveSequence], val: Sequence[LiveSequence],
+             cfg: LiveFitConfig, out: Path, info: dict[str, Any],
+             say: Callable[[str], None] = print) -> dict[str, Any]:
+    """Fit ``module`` (built learnable) on ``train``, select on ``val``; write
+    ``out/live_tracker.safetensors`` and ``out/metrics.json``.
+
+    Returns:
+        The metrics (history per epoch, the kept epoch, validation errors by group).
+    """
+    torch.manual_seed(0)
+    freed = _select(module, cfg.fit)
+    opt = torch.optim.Adam([p for p in module.parameters() if p.requires_grad], lr=cfg.lr)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def validate() -> tuple[float, dict[str, dict[str, float]]]:
+        loss, uvs, _ = track_set(module, val, cfg.batch, huber=cfg.huber)
+        return loss, errors_by_group(val, uvs, cfg.lost_px)
+
+    t0 = time.time()
+    v_loss, v_groups = validate()
+    best = {"epoch": 0, "val_loss": v_loss,
+            "state": {k: v.detach().clone() for k, v in module.state_dict().items()}}
+    history = [{"epoch": 0, "loss": None, "val_loss": v_loss, "val": v_groups,
+                "params": readable(module), "seconds": round(time.time() - t0, 1)}]
+    say(f"epoch 0 (start): val loss {v_loss:.4f}  ({time.time() - t0:.0f} s)")
+    rng = np.random.default_rng(0)
+    for epoch in range(1, cfg.epochs + 1):
+        t1 = time.time()
+        order = [train[i] for i in rng.permutation(len(train))]
+        loss, _, _ = track_set(module, order, cfg.batch, cfg.chunk, cfg.huber, opt, cfg.clip)
+        v_loss, v_groups = validate()
+        if not math.isfinite(v_loss):
+            raise FitError(f"epoch {epoch}: the validation loss is not finite: the fit diverged "
+                           "(lower lr)")
+        history.append({"epoch": epoch, "loss": loss, "val_loss": v_loss, "val": v_groups,
+                        "params": readable(module), "seconds": round(time.time() - t1, 1)})
+        mark = ""
+        if v_loss < best["val_loss"]:
+            best = {"epoch": epoch, "val_loss": v_loss,
+                    "state": {k: v.detach().clone() for k, v in module.state_dict().items()}}
+            mark = "  (best)"
+        say(f"epoch {epoch}: train loss {loss:.4f}, val loss {v_loss:.4f}{mark}  "
+            f"({time.time() - t1:.0f} s)")
+        (out / "metrics.json").write_text(json.dumps(
+            {"history": history, "best_epoch": best["epoch"], "freed": freed}, indent=1))
+    with torch.no_grad():
+        module.load_state_dict(best["state"])
+    kept = history[best["epoch"]]
+    metrics = {"history": history, "best_epoch": best["epoch"], "freed": freed,
+               "config": dataclasses.asdict(cfg), "val": kept["val"],
+               "params": kept["params"]}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    save_fitted(module, out / "live_tracker.safetensors",
+                {**info, "best_epoch": best["epoch"], "val_loss": best["val_loss"],
+                 "params": kept["params"], "added_by_hand": []})
+    return metrics
