@@ -161,28 +161,33 @@ def seam_3d_plot(paths: dict[str, list[np.ndarray]], path: Path,
     fig = plt.figure(figsize=(4.2 * cols, 4.0 * rows))
     for s in range(max(1, n)):
         ax = fig.add_subplot(rows, cols, s + 1, projection="3d")
-        pts = []
-        for k, (name, pieces) in enumerate(paths.items()):
+        pts, handles = [], {}
+        # drawn last to first, so the first path (the tracked one, within hundredths of a mm of
+        # the true seam) lies on top, thinner than the ones under it; legend in the given order
+        items = list(enumerate(paths.items()))
+        for k, (name, pieces) in reversed(items):
             P = np.asarray(pieces[s], dtype=float).reshape(-1, 3) if s < len(pieces) else None
             if P is None or not len(P):
                 continue
+            lw = 1.0 + 1.2 * k / max(1, len(items) - 1)
             mask = None
             if approach is not None and name in approach and s < len(approach[name]):
                 mask = np.asarray(approach[name][s], dtype=bool)[:len(P)]
             if mask is not None and mask.any():
                 W = np.where(mask[:, None], np.nan, P)
                 A = np.where(mask[:, None], P, np.nan)
-                ax.plot(A[:, 0], A[:, 1], A[:, 2], lw=0.8, ls=":", color="0.5",
-                        label=f"{name}: approach (arc off)")
-                ax.plot(W[:, 0], W[:, 1], W[:, 2], lw=1.0, color=f"C{k}", label=name)
-                pts.append(P)
+                handles[(k, 1)] = ax.plot(A[:, 0], A[:, 1], A[:, 2], lw=0.8, ls=":", color="0.4",
+                                          label=f"{name}: approach (arc off)")[0]
+                P_weld = W
             else:
-                ax.plot(P[:, 0], P[:, 1], P[:, 2], lw=1.0, color=f"C{k}", label=name)
-                pts.append(P)
-        pts = [p for p in pts if len(p)]
+                P_weld = P
+            handles[(k, 0)] = ax.plot(P_weld[:, 0], P_weld[:, 1], P_weld[:, 2], lw=lw,
+                                      color=f"C{k}", label=name)[0]
+            pts.append(P)
         if pts:
             _equal_axes(ax, np.concatenate(pts))
-            ax.legend(fontsize=6, loc="upper left")
+            ax.legend(handles=[handles[key] for key in sorted(handles)], fontsize=6,
+                      loc="upper left")
         else:
             ax.text2D(0.5, 0.5, "nothing welded", ha="center", transform=ax.transAxes)
         ax.set_title(f"segment {names[s]}" if s < len(names) else "", fontsize=9)
