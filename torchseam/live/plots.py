@@ -128,7 +128,9 @@ def series_plot(series: dict[str, np.ndarray], ylabel: str, path: Path, xlabel: 
             ax.set_title("every frame, the approach (arc off) included", fontsize=8, loc="left")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="upper right")
+        # above the axes, right of the title: the data and the segment names stay clear
+        ax.legend(fontsize=7, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=4,
+                  frameon=False, borderaxespad=0.2)
     axes[-1][0].set_xlabel(xlabel)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
