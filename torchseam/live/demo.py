@@ -379,8 +379,8 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             start = T0[:3, 3]
             if scfg is not None:
                 found = _search_seam(seg.name, scfg, T_start, T0, lift, across, start_offset_mm,
-                                     gate, simcell, renderer, tap, clock, dt, commands, res,
-                                     cell, ref, writer, nominal)
+                                     start_angle_deg, gate, simcell, renderer, tap, clock,
+                                     dt, commands, res, cell, ref, writer, nominal)
                 welding += [False] * (len(commands) - len(welding))
                 if not found["found"]:
                     search_failed = found["reason"]
@@ -533,7 +533,7 @@ class _Seen:
 
 
 def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarray, lift: float,
-                 across, offset_mm: float, gate: ReachGate, simcell: LockstepCell,
+                 across, offset_mm: float, angle_deg: float, gate: ReachGate, simcell: LockstepCell,
                  renderer: SensorRenderer, link, clock: SimClock, dt: float,
                  commands: list[Command], res: DemoResult, cell: CellConfig, ref: _SeamRef,
                  writer: _VideoThread | None, nominal: np.ndarray) -> dict:
@@ -563,9 +563,10 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarra
 
     nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
 
-    def record(state: str, uv=None, message: str = "") -> None:
+    def record(state: str, uv=None, message: str = "") -> tuple:
         """Render the frame where the robot is, record it (arc off) and queue it for the
-        video; returns TIPM's result when ``uv`` is None."""
+        video; returns TIPM's result (None when ``uv`` is given), the TCP pose and the
+        simulator's truth of the frame."""
         T_now = simcell.tcp_pose()
         frame, truth = renderer.render(T_now, clock.t, arc_on=False)
         r = tipm(frame) if uv is None else None
@@ -578,7 +579,7 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarra
             writer.idle()
             writer.put(frame, truth, _Seen(np.asarray(seen, float), status),
                        _Banner(state, message), seg)
-        return r, T_now
+        return r, T_now, truth
 
     tipm = Tipm()
     tri = FastTriangulator(cell)
@@ -589,10 +590,13 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarra
     rec: dict = {"segment": seg, "found": False, "reason": "", "standoff_mm": lift}
     p_seen = None
     while True:
-        r, T_now = record("search", message=f"searching: {s.y + offset_mm:+.1f} mm, "
-                                            f"{s.a:+.1f} deg, stand-off {lift:g} mm")
+        r, T_now, truth = record("search", message=f"searching: {s.y + offset_mm:+.1f} mm, "
+                                 f"{s.a + angle_deg:+.1f} deg, stand-off {lift:g} mm")
         if s.observe(r.ok, r.uv, clock.t, T_now):
             p_seen = tri(np.asarray(r.uv, float)[None], simcell.flange_pose())[0]
+            # (the simulator's truth, for the record only: how far the corner located lies
+            # from the true seam point on the stripe)
+            rec["seen_error_mm"] = round(float(np.linalg.norm(p_seen - truth.seam_B)), 3)
             break
         T = s.step()
         if T is None:
@@ -630,8 +634,9 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarra
         return rec
     assert shift is not None
     res.messages.append(f"[{seg} t={clock.t:.2f}s] seam found after {clock.t - t0:.2f} s "
-                        f"({s.y + offset_mm:+.1f} mm, {s.a:+.1f} deg from the programmed start, "
-                        f"stand-off {lift:g} mm), {np.linalg.norm(shift):.1f} mm from the "
+                        f"({s.y + offset_mm:+.1f} mm, {s.a + angle_deg:+.1f} deg from the "
+                        f"programmed start, stand-off {lift:g} mm), "
+                        f"{np.linalg.norm(shift):.1f} mm from the "
                         "programmed seam: approaching it")
     # the approach: at the stand-off over the seam found, then down onto it
     t1 = clock.t
