@@ -27,8 +27,6 @@ PARSERS = list(_parsers(build_parser()))
                                                       for p, _ in PARSERS])
 def test_help_is_complete(path, parser):
     text = parser.format_help()
-    if path == ("eval",) and "%%" in text:
-        pytest.xfail("torchseam/track/cli.py: eval's description writes %% (not %-formatted)")
     assert "%%" not in text and "%(" not in text
     for a in parser._actions:
         if isinstance(a, argparse._HelpAction | argparse._SubParsersAction):
