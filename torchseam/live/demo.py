@@ -376,11 +376,14 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             commands: list[Command] = []   # every pose handed to the link (the loop keeps few)
             welding: list[bool] = []       # the arc was on when it was handed over
             search_failed = ""
-            start = T0[:3, 3]
+            start, start_along = T0[:3, 3], 0.0
             if scfg is not None:
-                found = _search_seam(seg.name, scfg, T_start, T0, lift, across, start_offset_mm,
-                                     start_angle_deg, gate, simcell, renderer, tap, clock,
-                                     dt, commands, res, cell, ref, writer, nominal)
+                found = _search_seam(
+                    seg.name, scfg, T_start, lift, across, start_offset_mm, start_angle_deg, gate,
+                    simcell, renderer, tap, clock, dt, commands, res, cell, ref, writer, nominal,
+                    lambda u, seg=seg, u0=s0 - approach: weld_plan.nominal_tcp(
+                        seg, np.array([u0 + u]))[0],
+                    plan.approach_mm)
                 welding += [False] * (len(commands) - len(welding))
                 if not found["found"]:
                     search_failed = found["reason"]
@@ -390,10 +393,12 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                     # by the offset found, is the one the loop's targets are held to
                     shift = np.asarray(found["seam_offset_vec_mm"], float)
                     nominal = nominal + shift
-                    start = T0[:3, 3] + shift
+                    start_along = found["start_along_mm"]
+                    start = simcell.tcp_pose()[:3, 3]
             loop = LiveLoop(cell, make_tracker(tracker, model_path=model_path), link,
                             weld_plan.plan_config(seg, plan), live, nominal=nominal)
-            travelled, prev = 0.0, start
+            # (a search starts the weld where it found the seam: that far into the approach)
+            travelled, prev = start_along, start
             first, last_msg = True, ""
             completed, arc_was = False, False
             for k in range(n_max):
@@ -532,23 +537,28 @@ class _Seen:
     status: int
 
 
-def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarray, lift: float,
-                 across, offset_mm: float, angle_deg: float, gate: ReachGate, simcell: LockstepCell,
+def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, lift: float, across,
+                 offset_mm: float, angle_deg: float, gate: ReachGate, simcell: LockstepCell,
                  renderer: SensorRenderer, link, clock: SimClock, dt: float,
                  commands: list[Command], res: DemoResult, cell: CellConfig, ref: _SeamRef,
-                 writer: _VideoThread | None, nominal: np.ndarray) -> dict:
+                 writer: _VideoThread | None, nominal: np.ndarray,
+                 programmed: Callable[[float], np.ndarray], max_along_mm: float) -> dict:
     """Search for the seam from ``T_start`` (the robot is there), arc off, then approach the
     seam point it found; every pose through ``gate`` (and, off the seam, the tip's clearance)
     and handed to ``link`` (kept in ``commands``). Each frame is recorded (state ``search``,
     then ``approach``) and goes to the video.
 
     The corner TIPM confirmed is triangulated with the cell's calibration from the flange
-    pose of its frame (as the live loop does); its offset from the programmed path
-    (``nominal``, (N, 3) base mm), across the path, moves the programmed start ``T0``: the
-    approach goes over that point at the stand-off ``lift`` and down onto it. An offset beyond
-    ``cfg.max_seam_offset_mm`` is a failed search (another edge, or the wrong part).
-    Appends the search's record to ``res.searches`` and returns it (with
-    ``seam_offset_vec_mm``, the offset applied, when found)."""
+    pose of its frame (as the live loop does) and placed against the programmed path
+    (``nominal``, (N, 3) base mm, from the programmed start on): ``u`` mm along it, offset
+    from it by ``shift``. The approach goes over that point at the stand-off ``lift`` and down
+    onto it, the torch turned as programmed there (``programmed(u)``, (4, 4)); a point seen
+    more than ``max_along_mm`` along the path is approached at ``max_along_mm``, moved by its
+    offset (the stripe must see the seam ahead of the torch before the arc strikes). An offset
+    across the path beyond ``cfg.max_seam_offset_mm`` is a failed search (another edge, or the
+    wrong part). Appends the search's record to ``res.searches`` and returns it (when found,
+    with ``seam_offset_vec_mm``, the offset, and ``start_along_mm``, where the weld starts
+    along the programmed path)."""
     from torchseam.core.transforms import matrix_to_quat
     from torchseam.geometry.triangulate import FastTriangulator
 
@@ -607,23 +617,24 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarra
         simcell.advance(dt)
     rec.update(time_s=round(clock.t - t0, 3), extent_mm=round(s.extent[0], 3),
                extent_deg=round(s.extent[1], 3), gate_refused=s.refused)
-    shift = None
+    shift, u = None, 0.0
     if s.found:
         if p_seen is None or not np.all(np.isfinite(p_seen)):
             s.found, s.reason = False, "seam not found: the corner's ray misses the laser plane"
         else:
-            # the programmed path's nearest point and its direction there: the offset across
+            # the programmed path's nearest point (index i, u mm along it from the programmed
+            # start) and the offset of the point found from it, across the path
             i = int(np.argmin(np.linalg.norm(nominal - p_seen, axis=1)))
             j0, j1 = max(i - 1, 0), min(i + 1, len(nominal) - 1)
             tan = nominal[j1] - nominal[j0]
             tan = tan / np.linalg.norm(tan)
-            d = p_seen - nominal[i]
-            shift = d - (d @ tan) * tan
-            off = float(np.linalg.norm(shift))
-            rec["seam_offset_mm"] = round(off, 3)
-            if off > cfg.max_seam_offset_mm:
+            shift = p_seen - nominal[i]
+            across_mm = float(np.linalg.norm(shift - (shift @ tan) * tan))
+            u = float(np.linalg.norm(np.diff(nominal[:i + 1], axis=0), axis=1).sum())
+            rec["seam_offset_mm"] = round(across_mm, 3)
+            if across_mm > cfg.max_seam_offset_mm:
                 s.found = False
-                s.reason = (f"seam not found: the corner seen lies {off:.1f} mm from the "
+                s.reason = (f"seam not found: the corner seen lies {across_mm:.1f} mm from the "
                             f"programmed seam (limit {cfg.max_seam_offset_mm:g} mm: another "
                             "edge, or the part is not where the plan puts it); nothing moved "
                             "towards it")
@@ -636,11 +647,16 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarra
     res.messages.append(f"[{seg} t={clock.t:.2f}s] seam found after {clock.t - t0:.2f} s "
                         f"({s.y + offset_mm:+.1f} mm, {s.a + angle_deg:+.1f} deg from the "
                         f"programmed start, stand-off {lift:g} mm), "
-                        f"{np.linalg.norm(shift):.1f} mm from the "
-                        "programmed seam: approaching it")
-    # the approach: at the stand-off over the seam found, then down onto it
+                        f"{rec['seam_offset_mm']:.1f} mm across the programmed seam, "
+                        f"{u:.1f} mm along it: approaching it")
+    # the approach: at the stand-off over the seam point found, then down onto it, the torch
+    # turned as programmed there. (A point seen farther than max_along_mm along the path is
+    # approached at max_along_mm, moved by its offset: the stripe must see the seam ahead
+    # of the torch before the arc strikes.)
     t1 = clock.t
-    T_seam = T0.copy()
+    u = min(u, max_along_mm)
+    T_prog = programmed(u)
+    T_seam = T_prog.copy()
     T_seam[:3, 3] += shift
     step_mm, step_deg = cfg.speed_mm_s * dt, cfg.turn_deg_s * dt
     T_last = s.pose(s.y, s.a)
@@ -656,19 +672,19 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, T0: np.ndarra
             res.searches.append(rec)
             return rec
         simcell.advance(dt)
-        record("approach", uv=nan2, message=f"approach: onto the seam found "
-                                            f"({np.linalg.norm(shift):.1f} mm off the program)")
+        record("approach", uv=nan2, message="approach: onto the seam found "
+                                            f"({rec['seam_offset_mm']:.1f} mm off the program)")
     for _ in range(int(2.0 / dt)):  # the robot arrives (it lags its targets by a few frames)
         if np.linalg.norm(simcell.tcp_pose()[:3, 3] - T_seam[:3, 3]) < 0.05:
             break
         simcell.advance(dt)
         record("approach", uv=nan2, message="approach: arriving")
-    # how far from the true seam the weld starts, and how far the programmed start is from it
+    # how far from the true seam the weld starts, and how far the programmed pose there is
     at = simcell.tcp_pose()[:3, 3]
     rec.update(start_error_mm=round(ref.distance(clock.t, at), 3),
-               programmed_start_error_mm=round(ref.distance(clock.t, T0[:3, 3]), 3))
+               programmed_start_error_mm=round(ref.distance(clock.t, T_prog[:3, 3]), 3))
     ref.distance(clock.t, at)   # (its look-up window back where the torch is)
-    rec.update(found=True, approach_s=round(clock.t - t1, 3),
+    rec.update(found=True, approach_s=round(clock.t - t1, 3), start_along_mm=round(u, 3),
                seam_offset_vec_mm=[round(float(v), 4) for v in shift])
     res.searches.append(rec)
     return rec
