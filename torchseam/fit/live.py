@@ -282,7 +282,32 @@ def fit_live(module: LiveTracker, train: Sequence[LiveSequence], val: Sequence[L
                "config": dataclasses.asdict(cfg), "val": kept["val"],
                "params": kept["params"]}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    plot_history(history, best["epoch"], out / "loss_curve.png")
     save_fitted(module, out / "live_tracker.safetensors",
                 {**info, "best_epoch": best["epoch"], "val_loss": best["val_loss"],
                  "params": kept["params"], "added_by_hand": []})
     return metrics
+
+
+def plot_history(history: Sequence[dict[str, Any]], best: int, path: Path) -> None:
+    """Train and validation loss per epoch, the kept epoch marked (``loss_curve.png``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4.6, 3.0), dpi=100)
+    tr = [(h["epoch"], h["loss"]) for h in history if h.get("loss") is not None]
+    if tr:
+        ax.plot(*zip(*tr, strict=True), "o-", label="train (over the epoch)")
+    vv = [(h["epoch"], h["val_loss"]) for h in history]
+    ax.plot(*zip(*vv, strict=True), "s-", label="validation")
+    ax.plot([best], [history[best]["val_loss"]], "k*", ms=12, label=f"kept (epoch {best})")
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch (0: the starting point)")
+    ax.set_ylabel("Huber loss per coordinate (px)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
