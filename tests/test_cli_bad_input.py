@@ -20,6 +20,7 @@ from torchseam.core.dataset import Dataset
 from torchseam.fit import model_io
 from torchseam.sim.record import write_sequence
 from torchseam.sim.sequence import SequenceSpec
+from torchseam.track import model_file
 
 
 def _run(argv: list[str], capsys) -> tuple[int, str, str]:
@@ -247,6 +248,7 @@ def test_train_writes_a_run_folder_and_install_keeps_a_backup(tmp_path, monkeypa
     shipped.write_bytes(model_io.DEFAULT_MODEL.read_bytes())
     old = shipped.read_bytes()
     monkeypatch.setattr(model_io, "DEFAULT_MODEL", shipped)
+    monkeypatch.setattr(model_file, "DEFAULT_MODEL", shipped)
     monkeypatch.chdir(tmp_path)
     common = ["train", "--config", str(cfg), "--data", str(syn)]
 

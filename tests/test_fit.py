@@ -265,6 +265,7 @@ def test_two_ddp_processes_match_one_process(syn_dir, tmp_path):
 
 def test_load_fitted_round_trip_fallback_and_errors(tmp_path, caplog, monkeypatch):
     import torchseam.fit.model_io as mio
+    from torchseam.track import model_file
 
     fitted = EAKFSTC()
     with torch.no_grad():
@@ -285,13 +286,13 @@ def test_load_fitted_round_trip_fallback_and_errors(tmp_path, caplog, monkeypatc
         float(torch.sigmoid(torch.tensor(-1.5))))
 
     # no model file at the default place: False, a warning, the paper's values untouched
-    monkeypatch.setattr(mio, "DEFAULT_MODEL", tmp_path / "absent.safetensors")
+    monkeypatch.setattr(model_file, "DEFAULT_MODEL", tmp_path / "absent.safetensors")
     trk = EAKFSTC()
     with caplog.at_level(logging.WARNING, logger="torchseam.fit"):
         assert load_fitted(trk) is False
     assert "paper's defaults" in caplog.text
     assert float(trk.stc.rho.detach()) == pytest.approx(0.075)
-    monkeypatch.setattr(mio, "DEFAULT_MODEL", path)
+    monkeypatch.setattr(model_file, "DEFAULT_MODEL", path)
     assert load_fitted(EAKFSTC()) is True
 
     with pytest.raises(FitError, match="no such model file"):

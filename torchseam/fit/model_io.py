@@ -22,34 +22,24 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import torch
 from torch import nn
 
-from torchseam import model_dir
-from torchseam.core.errors import TorchseamError
+from torchseam.track import model_file
+from torchseam.track.model_file import (
+    DEFAULT_MODEL,
+    INNER,
+    LIVE_FORMAT,
+    MODEL_DIR,
+    MODEL_FORMAT,
+    FitError,
+    load_fitted,
+    read_model,
+)
 
-__all__ = ["DEFAULT_MODEL", "MODEL_DIR", "MODEL_FORMAT", "FitError", "install_model",
-           "load_fitted", "read_model", "save_fitted"]
+__all__ = ["DEFAULT_MODEL", "INNER", "LIVE_FORMAT", "MODEL_DIR", "MODEL_FORMAT", "FitError",
+           "install_model", "load_fitted", "read_model", "save_fitted"]
 
 log = logging.getLogger("torchseam.fit")
-
-#: Folder of the fitted model: ``$TORCHSEAM_MODELS``, else the one shipped in the package (the
-#: repository's ``models/`` in a checkout).
-MODEL_DIR = model_dir()
-#: The model the tracker loads by default.
-DEFAULT_MODEL = MODEL_DIR / "live_tracker.safetensors"
-MODEL_FORMAT = "torchseam-eakf-stc/1"
-LIVE_FORMAT = "torchseam-live-tracker/1"
-_FORMATS = (MODEL_FORMAT, LIVE_FORMAT)
-#: the prefix of the EAKF-STC tensors in a live-tracker file
-INNER = "eakf_stc."
-#: TrackerConfig fields that change what the fitted numbers mean: a mismatch is logged.
-_STRUCTURAL = ("window", "target", "peak", "crop", "exclude", "scale_update")
-
-
-class FitError(TorchseamError):
-    """A fitted-model file is unreadable or does not fit the tracker; or training failed."""
-
 
 def save_fitted(module: nn.Module, path: str | os.PathLike[str],
                 info: Mapping[str, Any] | None = None) -> Path:
@@ -101,9 +91,9 @@ def install_model(src: str | os.PathLike[str], dest: str | os.PathLike[str] | No
     fmt = read_model(src)[1]["format"]  # refuse to install something the trackers cannot load
     if dest is None and fmt != LIVE_FORMAT:
         raise FitError(f"{src}: an EAKF-STC model alone cannot replace the live tracker's "
-                       f"model ({DEFAULT_MODEL.name}); fit the live tracker with "
+                       f"model ({model_file.DEFAULT_MODEL.name}); fit the live tracker with "
                        "`torchseam train-live`, or pass this file with --model")
-    dest = Path(dest) if dest is not None else DEFAULT_MODEL
+    dest = Path(dest) if dest is not None else model_file.DEFAULT_MODEL
     dest.parent.mkdir(parents=True, exist_ok=True)
     backup = None
     if dest.exists():
@@ -120,111 +110,3 @@ def install_model(src: str | os.PathLike[str], dest: str | os.PathLike[str] | No
     return dest, backup
 
 
-def read_model(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-    """Tensors and decoded metadata (``format``, ``tracker_config``, ``info``) of a model file.
-
-    Raises:
-        FitError: missing, unreadable or not a torchseam model file.
-    """
-    from safetensors import safe_open
-
-    path = Path(path)
-    if not path.is_file():
-        raise FitError(f"{path}: no such model file")
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            raw_meta = f.metadata() or {}
-            tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - not a dict
-    except Exception as e:  # safetensors raises its own error types (and OSError)
-        raise FitError(f"{path}: not a readable safetensors model file ({e}); fit it again "
-                       "with `torchseam train` or delete it to use the paper's defaults"
-                       ) from None
-    if raw_meta.get("format") not in _FORMATS:
-        raise FitError(f"{path}: not a tracker model (format {raw_meta.get('format')!r}, "
-                       f"expected one of {', '.join(_FORMATS)})")
-    meta: dict[str, Any] = {"format": raw_meta["format"]}
-    for key in ("tracker_config", "info", "anchor_config"):
-        try:
-            meta[key] = json.loads(raw_meta.get(key, "{}"))
-        except ValueError:
-            raise FitError(f"{path}: header field {key!r} is not valid JSON") from None
-    return tensors, meta
-
-
-def load_fitted(module: nn.Module, path: str | os.PathLike[str] | None = None) -> bool:
-    """Load fitted parameters into an EAKF-STC tracker.
-
-    Args:
-        module: an :class:`~torchseam.track.fusion.EAKFSTC` (learnable or not: the state-dict
-            names are the same).
-        path: model file; None: :data:`DEFAULT_MODEL` (``models/live_tracker.safetensors``).
-
-    Returns:
-        True when loaded. False, with a logged warning, when ``path`` is None and no model file
-        is present: the module keeps its configuration (the paper's defaults).
-
-    Raises:
-        FitError: the file is corrupt, is not an EAKF-STC model, was fitted at another frame
-            rate, or its tensors do not match the module (names, shapes, non-finite values);
-            also when an explicitly given ``path`` does not exist.
-
-    Example:
-        >>> from torchseam.track.fusion import EAKFSTC
-        >>> trk = EAKFSTC()
-        >>> load_fitted(trk)            # doctest: +SKIP
-        True
-    """
-    if path is None:
-        path = DEFAULT_MODEL
-        if not Path(path).is_file():
-            log.warning("no fitted EAKF-STC model at %s: using the paper's defaults "
-                        "(fit one with `torchseam train`)", path)
-            return False
-    path = Path(path)
-    tensors, meta = read_model(path)
-    live_file, live_module = meta["format"] == LIVE_FORMAT, hasattr(module, "fusion")
-    if live_module and not live_file:
-        raise FitError(f"{path}: an EAKF-STC model, not a live-tracker model (it has no "
-                       "fitted fusion); fit the live tracker with `torchseam train`")
-    if live_file and not live_module:  # EAKF-STC's part of the live tracker
-        tensors = {k[len(INNER):]: v for k, v in tensors.items() if k.startswith(INNER)}
-    own = module.state_dict()
-    missing = sorted(set(own) - set(tensors))
-    extra = sorted(set(tensors) - set(own))
-    if missing or extra:
-        what = (f"missing {', '.join(missing)}" if missing else "") + (
-            "; " if missing and extra else "") + (f"unexpected {', '.join(extra)}" if extra
-                                                  else "")
-        raise FitError(f"{path}: tensors do not match the EAKF-STC module ({what}): it was "
-                       "fitted for another version of the tracker; fit it again with "
-                       "`torchseam train` or delete it to use the paper's defaults")
-    for k, v in tensors.items():
-        if tuple(v.shape) != tuple(own[k].shape):
-            raise FitError(f"{path}: {k} has shape {tuple(v.shape)}, the module's is "
-                           f"{tuple(own[k].shape)}")
-        if not bool(torch.isfinite(v).all()):
-            raise FitError(f"{path}: {k} holds NaN or inf")
-    dt_key = next((k for k in tensors if k.endswith("eakf.dt")), None)
-    if dt_key is not None:
-        fps_file = 1.0 / float(tensors[dt_key])
-        fps_mod = 1.0 / float(own[dt_key])
-        if abs(fps_file - fps_mod) > 1e-3 * fps_mod:
-            raise FitError(f"{path}: fitted at {fps_file:g} frames/s, the tracker runs at "
-                           f"{fps_mod:g} frames/s (Q and the motion model depend on it)")
-    cfg = getattr(module, "config", None)
-    fitted_cfg = meta.get("tracker_config") or {}
-    if cfg is not None and fitted_cfg:
-        mine = cfg.to_dict()
-        diff = [k for k in _STRUCTURAL
-                if k in fitted_cfg and _norm(fitted_cfg[k]) != _norm(mine.get(k))]
-        if diff:
-            log.warning("%s was fitted with %s; this tracker has %s", path,
-                        ", ".join(f"{k}={fitted_cfg[k]}" for k in diff),
-                        ", ".join(f"{k}={mine.get(k)}" for k in diff))
-    with torch.no_grad():
-        module.load_state_dict({k: v.to(own[k]) for k, v in tensors.items()})
-    return True
-
-
-def _norm(v: Any) -> Any:
-    return list(v) if isinstance(v, (list, tuple)) else v

@@ -49,6 +49,7 @@ from torch import Tensor, nn
 
 from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.errors import TorchseamError
+from torchseam.track import model_file
 from torchseam.track.base import Fix, Tracker, TrackResult
 from torchseam.track.fusion import EAKFSTC, FusionState, TrackStatus
 from torchseam.track.lite import LiteTracker
@@ -843,15 +844,13 @@ def fitted_eakf_stc(model: dict | EAKFSTC | None = None,
         raise TorchseamError("give a tracker configuration or a model file, not both")
     if model:
         return EAKFSTC(model)
-    from torchseam.fit import model_io  # the fitting stage owns the model file
-
     # the STC extensions are structural (their parameters exist only when switched on): build
     # the module the file was fitted as
-    path = Path(model_path) if model_path is not None else model_io.DEFAULT_MODEL
-    fitted = ((model_io.read_model(path)[1].get("tracker_config") or {})
+    path = Path(model_path) if model_path is not None else model_file.DEFAULT_MODEL
+    fitted = ((model_file.read_model(path)[1].get("tracker_config") or {})
               if model_path is not None or path.is_file() else {})
     module = EAKFSTC({k: fitted[k] for k in STRUCTURAL_STC if k in fitted})
-    model_io.load_fitted(module, model_path)
+    model_file.load_fitted(module, model_path)
     return module
 
 
@@ -862,19 +861,17 @@ def load_live_tracker(model_path: str | Path | None = None, cfg: AnchorConfig | 
     (TrackerConfig fields) instead of a file; the fusion then keeps ``cfg``'s values (the
     starting values of a fit, ``configs/anchor.yaml``), as it does, with a warning, for a file
     of EAKF-STC alone or when no model file is present."""
-    from torchseam.fit import model_io
-
     cfg = cfg or load_anchor_config()
     live = LiveTracker(fitted_eakf_stc(model, model_path), cfg)
     if model:
         return live
-    path = Path(model_path) if model_path is not None else model_io.DEFAULT_MODEL
+    path = Path(model_path) if model_path is not None else model_file.DEFAULT_MODEL
     if not path.is_file():
         return live  # fitted_eakf_stc warned
-    if model_io.read_model(path)[1]["format"] != model_io.LIVE_FORMAT:
+    if model_file.read_model(path)[1]["format"] != model_file.LIVE_FORMAT:
         log.warning("%s holds EAKF-STC alone: the fusion runs with its starting values "
                     "(configs/anchor.yaml), not fitted ones", path)
         return live
-    model_io.load_fitted(live, path)
+    model_file.load_fitted(live, path)
     check_fitted_values(live.fusion.values(), str(path))
     return live
