@@ -8,8 +8,9 @@ stage module is imported only when its command runs (or shows its own ``--help``
 
 Every bad input ends the same way: one line on stderr naming the file, field, frame or option
 (``torchseam COMMAND: error: ...``), nothing on stdout, exit code 2. The argument types below
-(:func:`seed_arg`, :func:`out_dir_arg`, :func:`model_arg`, :func:`segments_arg`) let the
-sub-commands refuse bad options before any work starts.
+(:func:`seed_arg`, :func:`out_dir_arg`, :func:`model_arg`, :func:`segments_arg`, defined in
+:mod:`torchseam.core.cliargs` and re-exported here) let the sub-commands refuse bad options
+before any work starts.
 """
 
 from __future__ import annotations
@@ -24,7 +25,24 @@ from pathlib import Path, PurePath
 from typing import Any, NoReturn
 
 from torchseam import CONFIGS_ENV, MODELS_ENV, config_dir, model_dir
+from torchseam.core.cliargs import (
+    MAX_SEED,
+    SEGMENT_LETTERS,
+    OneLineParser,
+    config_dir_arg,
+    model_arg,
+    out_dir_arg,
+    out_file_arg,
+    seed_arg,
+    segments_arg,
+)
 from torchseam.core.errors import TorchseamError
+
+#: the argument types live in :mod:`torchseam.core.cliargs` (stage modules import them from
+#: there); re-exported here for callers of the command line's module
+__all__ = ["COMMANDS", "COMMAND_MODULES", "MAX_SEED", "SEGMENT_LETTERS", "OneLineParser",
+           "build_parser", "config_dir_arg", "main", "model_arg", "out_dir_arg", "out_file_arg",
+           "seed_arg", "segments_arg", "use_config_dir"]
 
 #: Every sub-command: name, the stage module whose ``register(subparsers)`` adds it, and its
 #: one-line help (the same text the module gives ``add_parser``), in the order ``--help`` lists
@@ -56,90 +74,6 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
 )
 #: Stage modules that add sub-commands, in the order ``--help`` lists them.
 COMMAND_MODULES = tuple(dict.fromkeys(module for _, module, _ in COMMANDS))
-
-#: largest seed the commands take (NumPy, torch and OpenCV all accept it)
-MAX_SEED = 2**31 - 1
-#: the six weld segments of the ring (``--segments``)
-SEGMENT_LETTERS = "abcdef"
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """An argument parser whose errors are one line, ``PROG: error: MESSAGE``, exit code 2
-    (argparse's own print the usage first; ``--help`` still shows it)."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-# --------------------------------------------------------------------------- argument types
-
-def seed_arg(text: str) -> int:
-    """``--seed``: a whole number 0 .. :data:`MAX_SEED`."""
-    try:
-        seed = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 0 <= seed <= MAX_SEED:
-        raise argparse.ArgumentTypeError(f"{text} is out of range: use 0 .. {MAX_SEED}")
-    return seed
-
-
-def out_dir_arg(text: str) -> Path:
-    """An output folder: an existing folder, or a path whose nearest existing parent is a
-    folder this process may write into (so a run does not fail at its end)."""
-    p = Path(text)
-    if p.exists() and not p.is_dir():
-        raise argparse.ArgumentTypeError(f"{text} is a file, not a folder")
-    anc = p if p.exists() else next((a for a in p.absolute().parents if a.exists()), None)
-    if anc is None or not anc.is_dir():
-        raise argparse.ArgumentTypeError(f"{text}: {anc} is not a folder")
-    if not os.access(anc, os.W_OK | os.X_OK):
-        raise argparse.ArgumentTypeError(f"{text}: no permission to write into {anc}")
-    return p
-
-
-def out_file_arg(text: str) -> Path:
-    """An output file: not a folder, in a folder that exists or can be made and written."""
-    p = Path(text)
-    if p.is_dir():
-        raise argparse.ArgumentTypeError(f"{text} is a folder, not a file")
-    out_dir_arg(str(p.parent))
-    return p
-
-
-def model_arg(text: str) -> Path:
-    """``--model``: an existing tracker model file (its content is checked when loaded)."""
-    p = Path(text)
-    if not p.exists():
-        raise argparse.ArgumentTypeError(f"{text}: no such model file")
-    if not p.is_file():
-        raise argparse.ArgumentTypeError(f"{text} is not a file (expected a tracker model, "
-                                         "e.g. models/live_tracker.safetensors)")
-    return p
-
-
-def segments_arg(text: str) -> str:
-    """``--segments``: letters of ``abcdef``, each at most once (e.g. ``ace``)."""
-    bad = sorted(set(text) - set(SEGMENT_LETTERS))
-    if not text or bad:
-        what = f"unknown letter {bad[0]!r}" if bad else "no letters"
-        raise argparse.ArgumentTypeError(f"{text!r}: {what}; use letters from "
-                                         f"{SEGMENT_LETTERS}, e.g. ace")
-    twice = sorted({c for c in text if text.count(c) > 1})
-    if twice:
-        raise argparse.ArgumentTypeError(f"{text!r}: segment {twice[0]!r} is given twice; "
-                                         "name each segment once")
-    return text
-
-
-def config_dir_arg(text: str) -> Path:
-    """``--config-dir``: an existing folder (made absolute: the command may change folder)."""
-    p = Path(text).expanduser()
-    if not p.is_dir():
-        raise argparse.ArgumentTypeError(f"{text}: no such folder" if not p.exists()
-                                         else f"{text} is a file, not a folder")
-    return p.resolve()
-
 
 # --------------------------------------------------------------------------- the command
 

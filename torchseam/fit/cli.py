@@ -607,7 +607,7 @@ def _tracker_fingerprint() -> dict[str, str]:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``train/fit_tracker.py`` (errors become one-line messages)."""
-    from torchseam.cli import OneLineParser
+    from torchseam.core.cliargs import OneLineParser
 
     p = OneLineParser(prog="fit_tracker", description=__doc__.splitlines()[0])
     add_arguments(p)

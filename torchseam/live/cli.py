@@ -13,7 +13,14 @@ import cv2
 import torch
 from tqdm import tqdm
 
-from torchseam.cli import MAX_SEED, model_arg, out_dir_arg, out_file_arg, seed_arg, segments_arg
+from torchseam.core.cliargs import (
+    MAX_SEED,
+    model_arg,
+    out_dir_arg,
+    out_file_arg,
+    seed_arg,
+    segments_arg,
+)
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import format_table

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchseam.cli import model_arg, out_dir_arg, seed_arg, segments_arg
+from torchseam.core.cliargs import model_arg, out_dir_arg, seed_arg, segments_arg
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import format_table

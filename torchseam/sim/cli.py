@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from torchseam.cli import MAX_SEED, out_dir_arg, seed_arg
+from torchseam.core.cliargs import MAX_SEED, out_dir_arg, seed_arg
 from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.sim.record import contact_sheet, write_sequence

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchseam.cli import model_arg, out_file_arg
+from torchseam.core.cliargs import model_arg, out_file_arg
 from torchseam.core.dataset import Dataset
 from torchseam.core.errors import FrameError, TorchseamError
 from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES, FrameView
