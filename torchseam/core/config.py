@@ -136,7 +136,7 @@ class CellConfig:
 
 
 #: The kinds of part (``kind:`` in ``configs/parts/*.yaml``): what the branch pipe is set on
-#: (see :mod:`torchseam.sim.joint`).
+#: (see :mod:`torchseam.core.part`).
 PART_KINDS = ("pipe", "offset", "plate", "sphere")
 
 
@@ -144,7 +144,7 @@ PART_KINDS = ("pipe", "offset", "plate", "sphere")
 class PartConfig:
     """The joint's geometry and its real-part deviations (``configs/parts/*.yaml``).
 
-    ``kind`` says what the branch pipe is set on (:mod:`torchseam.sim.joint`): ``pipe`` (the
+    ``kind`` says what the branch pipe is set on (:mod:`torchseam.core.part`): ``pipe`` (the
     default: a main pipe, METHOD.md section 0), ``offset`` (a main pipe with the branch axis
     ``design_offset_mm`` off its axis by design), ``plate`` (a flat plate) or ``sphere`` (a
     spherical head of ``sphere_radius_mm``; ``design_offset_mm`` there puts a hillside nozzle

@@ -169,7 +169,7 @@ def validate_poses(T: Tensor | np.ndarray, name: str = "T_target") -> None:
 
 
 def _first_bad(mask: Tensor | np.ndarray) -> int:
-    return int(np.flatnonzero(_np(mask).reshape(-1))[0])
+    return int(np.flatnonzero(to_numpy(mask).reshape(-1))[0])
 
 
 def _wrap(a: Tensor) -> Tensor:
@@ -433,8 +433,8 @@ class IRB1410:
             :class:`IKSolution` over the N poses.
         """
         T = self._poses(T_target).reshape(-1, 4, 4)
-        seed0 = _np(self._seed(q_start_deg, 1))
-        Tn = _np(T).astype(float)
+        seed0 = to_numpy(self._seed(q_start_deg, 1))
+        Tn = to_numpy(T).astype(float)
         cand, valid = arm_candidates(np, self.geometry, Tn, np.broadcast_to(seed0, (len(Tn), 6)))
         q = self._selector(cand, valid).pick_sequential(seed0[0])
         return self._verify(T, torch.as_tensor(q, dtype=self.dtype, device=self.device))
@@ -491,8 +491,8 @@ class IRB1410:
             ``(q_deg, index)``: (N, 6) chosen joints (the seed where no candidate is valid) and
             (N,) chosen candidate index (-1 where none is valid).
         """
-        sel = self._selector(_np(cand_deg), _np(valid))
-        q, idx = sel.pick(_np(seed_deg))
+        sel = self._selector(to_numpy(cand_deg), to_numpy(valid))
+        q, idx = sel.pick(to_numpy(seed_deg))
         return (torch.as_tensor(q, dtype=self.dtype, device=self.device),
                 torch.as_tensor(idx, device=self.device))
 
@@ -502,7 +502,7 @@ class IRB1410:
                          self.config.axis3_range_applies_to == "difference")
 
     def _select_sequential(self, cand: Tensor, valid: Tensor, seed0: Tensor) -> Tensor:
-        q = self._selector(_np(cand), _np(valid)).pick_sequential(_np(seed0))
+        q = self._selector(to_numpy(cand), to_numpy(valid)).pick_sequential(to_numpy(seed0))
         return torch.as_tensor(q, dtype=self.dtype, device=self.device)
 
     # ------------------------------------------------------------------ numeric IK
@@ -595,7 +595,8 @@ class IRB1410:
 # with axis=...), so the same code runs batched in torch and, for one pose, in numpy, where
 # it is several times faster (the live gate checks one pose per frame, within its 1 ms).
 
-def _np(x: Tensor | np.ndarray) -> np.ndarray:
+def to_numpy(x: Tensor | np.ndarray) -> np.ndarray:
+    """``x`` as a numpy array (a tensor detached and moved to the CPU first)."""
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 

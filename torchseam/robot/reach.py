@@ -18,7 +18,7 @@ every reason that applies, the first one as its :class:`Reason` code):
    radius, then the cylinder; the main pipe is its oval cross-section (an
    elliptic cylinder with flat ends, semi-axes from ``main_ovality``), the branch a capsule
    around its axis, from the part configuration and its nominal placement. On the other kinds
-   of part (:mod:`torchseam.sim.joint`) the main body is the plate (a box) or the sphere.
+   of part (:mod:`torchseam.core.part`) the main body is the plate (a box) or the sphere.
 
 Batched (:meth:`ReachGate.check`) for a whole seam, or one pose at a time
 (:meth:`ReachGate.step`, which keeps the last accepted joints) for the live loop; a gate is also
@@ -43,13 +43,13 @@ import numpy as np
 import torch
 
 from torchseam.core.config import CellConfig, PartConfig, load_cell
+from torchseam.core.part import make_joint, torch_frames
 from torchseam.core.transforms import pose_matrix
 from torchseam.robot.config import RobotConfig
 from torchseam.robot.kinematics import (
     IRB1410,
     RobotInputError,
     Tensor,
-    _np,
     arm_candidates,
     arm_forward,
     checked_values,
@@ -57,7 +57,7 @@ from torchseam.robot.kinematics import (
     rotation_angle,
     validate_poses,
 )
-from torchseam.sim.joint import make_joint
+from torchseam.robot.kinematics import to_numpy as _np
 
 __all__ = ["Reason", "ReachResult", "PoseVerdict", "ReachGate", "nominal_torch_poses"]
 
@@ -657,7 +657,7 @@ def nominal_torch_poses(part: PartConfig, n: int, *, part_pose_mm: np.ndarray | 
                         phi0: float = 0.0, dtype: torch.dtype = torch.float64) -> Tensor:
     """Torch TCP poses once round the part's seam, for checks, tests and benchmarks.
 
-    The frames are :func:`torchseam.sim.scene.torch_frames` (tip on the seam, z into the corner
+    The frames are :func:`torchseam.core.part.torch_frames` (tip on the seam, z into the corner
     along the bisector of the surface normals, x along the seam: METHOD.md eq. 29) at ``n``
     equal steps of branch angle from ``phi0``, placed in the base.
 
@@ -669,8 +669,6 @@ def nominal_torch_poses(part: PartConfig, n: int, *, part_pose_mm: np.ndarray | 
     Returns:
         (n, 4, 4) TCP poses in the base frame, mm.
     """
-    from torchseam.sim.scene import torch_frames
-
     phi = phi0 + np.arange(n) * (2 * np.pi / n)
     P = np.asarray(part_pose_mm, float) if part_pose_mm is not None else part.placement.matrix()
     return torch.as_tensor(P @ torch_frames(make_joint(part).seam(phi)), dtype=dtype)

@@ -1,6 +1,6 @@
 """The simulated cell over time: the true part (with deviations), the nominal part, the torch path.
 
-* The **nominal** part is the design: the kind of part (:mod:`torchseam.sim.joint`), its
+* The **nominal** part is the design: the kind of part (:mod:`torchseam.core.part`), its
   diameters, intersection angle and designed offset at the nominal placement, no unwanted
   offset, ovality or drift. A robot programmed from the design follows it.
 * The **true** part adds the branch offset, ovality (main pipe and branch), clamping error and
@@ -11,41 +11,16 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from torchseam.core.config import PartConfig
+from torchseam.core.part import make_joint, nominal_part, torch_frames
 from torchseam.core.transforms import rotation_about
-from torchseam.sim.joint import SeamSample, make_joint
+
+__all__ = ["DRIFT_DIRECTION", "Scene", "nominal_part", "torch_frames"]  # the last two: core.part
 
 # Direction of the thermal drift in {T} (fixed: the part warps one way as it heats).
 DRIFT_DIRECTION = np.array([0.6, -0.55, 0.58]) / np.linalg.norm([0.6, -0.55, 0.58])
-
-
-def torch_frames(sample: SeamSample) -> np.ndarray:
-    """Ideal torch frames along a seam, (N, 4, 4) in the joint frame.
-
-    x: travel direction (seam tangent); z: torch axis, pointing into the corner along the
-    bisector of the two surface normals; y = z x x. The same convention as METHOD.md eq. 29
-    (wx = px is the normal of the stripe plane, i.e. the travel direction).
-    """
-    x = sample.tangent
-    z = -(sample.normal_main + sample.normal_branch)
-    z = z - np.einsum("ij,ij->i", z, x)[:, None] * x
-    z /= np.linalg.norm(z, axis=1, keepdims=True)
-    y = np.cross(z, x)
-    T = np.tile(np.eye(4), (len(x), 1, 1))
-    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2], T[:, :3, 3] = x, y, z, sample.point
-    return T
-
-
-def nominal_part(part: PartConfig) -> PartConfig:
-    """The design of ``part``: same kind, pipes, angle and designed offset, no deviations."""
-    ident = dataclasses.replace(part.placement, position_mm=(0.0, 0.0, 0.0),
-                                quaternion=(1.0, 0.0, 0.0, 0.0))
-    return dataclasses.replace(part, branch_offset_mm=(0.0, 0.0), main_ovality=0.0,
-                               branch_ovality=0.0, distortion_mm=0.0, placement_error=ident)
 
 
 class Scene:

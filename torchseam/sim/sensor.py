@@ -7,7 +7,7 @@ Gaussian (or flat-top super-Gaussian) cross-section, brightness falling with inc
 speckle along it, as set by a :class:`~torchseam.core.config.StripeLook` (optionally split
 into two parallel lobes, a laser diode lasing in two modes). :meth:`LaserSensor.arc_glint` is
 the specular reflection of the arc on the main body (pipe, plate or sphere). Everything
-geometric is done in the part frame {T}, through the :class:`~torchseam.sim.joint.Joint`
+geometric is done in the part frame {T}, through the :class:`~torchseam.core.part.Joint`
 interface (every kind of part alike).
 """
 
@@ -19,8 +19,8 @@ import cv2
 import numpy as np
 
 from torchseam.core.config import CellConfig, StripeLook
+from torchseam.core.part import Joint
 from torchseam.core.transforms import apply, invert
-from torchseam.sim.joint import Joint
 
 ARM_DISTANCE_MM = 5.0  # truth points on each stripe arm lie this far (3D) from the seam point
 SPLAT_STEP_PX = 0.25   # spacing of splatted samples along the imaged stripe
@@ -73,7 +73,7 @@ class StripeView:
 
 
 class LaserSensor:
-    """Camera + line laser of ``cell``, looking at a :class:`~torchseam.sim.joint.Joint`.
+    """Camera + line laser of ``cell``, looking at a :class:`~torchseam.core.part.Joint`.
 
     Example:
         >>> from torchseam.core.config import load_cell, load_part

@@ -1,0 +1,356 @@
+"""Geometry of the part: a branch pipe set on a main body, their seam, ray casting, torch frames.
+
+The part's geometry is no simulator's: the simulated sensor and scene (:mod:`torchseam.sim`),
+the planner and the reachability gate all build it from the part's config
+(:class:`~torchseam.core.config.PartConfig`) with :func:`make_joint`, and the ideal torch frames
+along its seam with :func:`torch_frames`. :mod:`torchseam.sim.joint` re-exports this module.
+
+Every kind of part (``kind:`` in ``configs/parts/*.yaml``) is a branch pipe set on a main body:
+
+* ``pipe``: the main pipe of METHOD.md section 0, a cylinder along x (:class:`PipeJoint`);
+* ``offset``: the same with the branch axis ``design_offset_mm`` off the main axis by design
+  (:class:`PipeJoint` with a design offset);
+* ``plate``: a flat plate, its top face the plane z = 0 (:class:`PlateJoint`);
+* ``sphere``: a sphere, a nozzle on a spherical head (:class:`SphereJoint`).
+
+Joint frame {T}: z up the branch (at the intersection angle ``beta`` from x in the x-z plane);
+the origin is on the branch axis: on the main axis under the branch axis (pipe), at the foot of
+the common perpendicular of the two axes (offset: the main axis runs along x at
+``y = -design_offset_mm``), on the plate (plate), at the sphere's centre (sphere; a hillside
+nozzle's ``design_offset_mm`` puts the centre at ``y = -design_offset_mm``). The branch may be
+oval (``branch_ovality``: semi-axes ``r (1 + e)`` along ``e1`` and ``r (1 - e)`` along ``e2``),
+and offset (``branch_offset_mm``) from the design. For a branch point at angle ``phi`` the
+height along the branch axis where it meets the main body has a closed form for every kind
+(:meth:`Joint.seam`): an ellipse equation (pipe), a plane (plate), a quadratic (sphere).
+
+All kinds share one interface (:class:`Joint`): ``seam(phi)`` (points, tangents, both surface
+normals), ``normal_main`` / ``normal_branch``, ``raycast`` (first hit of the solid union, surface
+id 1 main body, 2 branch), ``arc_length_table``; the sensor, the scene, the planner and the
+reachability gate use nothing else (the gate's clearance solids also read ``main_solid``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from torchseam.core.config import PartConfig
+
+BRANCH_LENGTH_MM = 400.0  # how far the branch pipe extends above the main axis (pipe kinds)
+#: Plate and sphere kinds: how far the branch extends above the highest point of its seam.
+NOZZLE_ABOVE_SEAM_MM = 300.0
+#: The plate kind: half the side of the square plate (centred under the branch) and its
+#: thickness (below z = 0), mm.
+PLATE_HALF_MM = 300.0
+PLATE_THICKNESS_MM = 20.0
+
+
+@dataclass(frozen=True)
+class SeamSample:
+    """Seam points and local geometry at branch angles ``phi``; all arrays (N, 3) in {T}."""
+
+    phi: np.ndarray
+    point: np.ndarray
+    tangent: np.ndarray        # unit, direction of increasing phi
+    normal_main: np.ndarray    # outward unit normal of the main body (pipe, plate or sphere)
+    normal_branch: np.ndarray  # outward unit normal of the branch
+
+
+class Joint:
+    """A branch pipe (oval, offset, tilted) set on a main body, as solids in {T}.
+
+    Subclasses give the main body: :meth:`_height` (where a branch generator meets it, with
+    its derivative), :meth:`normal_main`, :meth:`_hit_main` and :meth:`main_solid`.
+
+    Attributes:
+        kind: the part kind (``configs/parts/*.yaml`` ``kind:``).
+        r: branch radius; ``k1``, ``k2`` its ovality factors along ``e1`` and ``e2``.
+        d, e1, e2: branch axis and the two directions across it (e2 = y).
+        o: a point of the branch axis (the true part's branch offset; the origin by design).
+        branch_bottom, branch_top: where the branch solid starts and ends along its axis,
+            measured from ``o`` (below the main body's surface and the branch's top end).
+    """
+
+    kind = "pipe"
+    main_name = "main pipe"   # what the main body is called in messages
+
+    def __init__(self, part: PartConfig) -> None:
+        self.kind = part.kind
+        self.r = part.branch_od_mm / 2.0
+        self.k1 = 1.0 + part.branch_ovality
+        self.k2 = 1.0 - part.branch_ovality
+        beta = np.deg2rad(part.intersection_angle_deg)
+        self.d = np.array([np.cos(beta), 0.0, np.sin(beta)])      # branch axis
+        self.e2 = np.array([0.0, 1.0, 0.0])
+        self.e1 = np.cross(self.e2, self.d)                        # (sin b, 0, -cos b)
+        self.o = np.array([part.branch_offset_mm[0], part.branch_offset_mm[1], 0.0])
+        self.s = float(part.design_offset_mm)  # the main body's centre sits at y = -s
+        # semi-axis directions scaled by the ovality (exactly e1, e2 for a round branch)
+        self._f1, self._f2 = self.k1 * self.e1, self.k2 * self.e2
+        # maps a vector across the branch to the round branch's (u / k1, v / k2) and the oval's
+        # gradient (u / k1^2, v / k2^2); both exactly the identity for a round branch
+        self._un = (1.0 / self.k1 - 1.0, 1.0 / self.k2 - 1.0)
+        self._grad = (1.0 / self.k1**2 - 1.0, 1.0 / self.k2**2 - 1.0)
+        self.branch_bottom = 0.0
+        self.branch_top = BRANCH_LENGTH_MM
+
+    # ------------------------------------------------------------------ seam
+    def branch_point(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) points of the branch surface at angles ``phi`` in the plane through ``o``
+        across the axis, and their derivatives in ``phi``."""
+        c = self.o + self.r * (np.cos(phi)[:, None] * self._f1 + np.sin(phi)[:, None] * self._f2)
+        dc = self.r * (-np.sin(phi)[:, None] * self._f1 + np.cos(phi)[:, None] * self._f2)
+        return c, dc
+
+    def seam(self, phi: np.ndarray) -> SeamSample:
+        """Seam at branch angles ``phi`` (N,) rad, with tangent and both surface normals."""
+        phi = np.asarray(phi, dtype=float).reshape(-1)
+        c, dc = self.branch_point(phi)
+        h, dh = self._height(c, dc)
+        p = c + h[:, None] * self.d
+        t = dc + dh[:, None] * self.d
+        t /= np.linalg.norm(t, axis=1, keepdims=True)
+        return SeamSample(phi, p, t, self.normal_main(p), self.normal_branch(p))
+
+    def _height(self, c: np.ndarray, dc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Height ``h`` along the branch axis where the generator through ``c`` meets the main
+        body's surface, and ``dh / dphi`` (from ``dc = dc / dphi``)."""
+        raise NotImplementedError
+
+    def normal_main(self, p: np.ndarray) -> np.ndarray:
+        """(N, 3) outward unit normals of the main body's surface at its points ``p``."""
+        raise NotImplementedError
+
+    def normal_branch(self, p: np.ndarray) -> np.ndarray:
+        """(N, 3) outward unit normals of the branch at its surface points ``p``."""
+        q = p - self.o
+        n = q - (q @ self.d)[:, None] * self.d
+        n = self._across(n, self._grad)
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def _across(self, v: np.ndarray, c: tuple[float, float]) -> np.ndarray:
+        """``v`` (N, 3, across the axis) with its e1 and e2 parts scaled by 1 + c (exact for
+        c = 0)."""
+        return (v + c[0] * (v @ self.e1)[:, None] * self.e1
+                + c[1] * (v @ self.e2)[:, None] * self.e2)
+
+    def arc_length_table(self, n: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+        """(phi, s): cumulative seam arc length (mm) over phi in [0, 2 pi], n + 1 samples."""
+        phi = np.linspace(0.0, 2.0 * np.pi, n + 1)
+        p = self.seam(phi).point
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+        return phi, s
+
+    def main_solid(self) -> dict:
+        """The main body for clearance checks: ``{"kind": "pipe" | "plate" | "sphere",
+        "origin": (3,) in {T}, ...}`` with its dimensions (see the subclasses)."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ ray casting
+    def raycast(self, origin: np.ndarray, direction: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """First hit of rays with the solid union of the main body and the branch.
+
+        Args:
+            origin: (N, 3) or (3,) ray origins in {T}, outside the solid.
+            direction: (N, 3) unit directions.
+
+        Returns:
+            ``(t, surface)``: (N,) distance along each ray (``inf`` for a miss) and (N,) int8
+            surface id (0 none, 1 main body, 2 branch).
+        """
+        direction = np.asarray(direction, dtype=float).reshape(-1, 3)
+        o = np.broadcast_to(np.asarray(origin, dtype=float), direction.shape)
+        t_main = self._hit_main(o, direction)
+        t_branch = self._hit_branch(o, direction)
+        t = np.minimum(t_main, t_branch)
+        surface = np.where(np.isinf(t), 0, np.where(t_main <= t_branch, 1, 2)).astype(np.int8)
+        return t, surface
+
+    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        q = o - self.o
+        qa, da = q @ self.d, d @ self.d
+        qp = self._across(q - qa[:, None] * self.d, self._un)
+        dp = self._across(d - da[:, None] * self.d, self._un)
+        A = np.einsum("ij,ij->i", dp, dp)
+        B = 2 * np.einsum("ij,ij->i", qp, dp)
+        C = np.einsum("ij,ij->i", qp, qp) - self.r**2
+        t = _entry_root(A, B, C)
+        h = qa + t * da  # height of the hit along the branch axis: where the branch exists
+        return np.where((h > self.branch_bottom) & (h < self.branch_top), t, np.inf)
+
+
+class PipeJoint(Joint):
+    """Main pipe (oval, along x) and branch pipe (offset, tilted) as solids in {T}: the
+    ``pipe`` kind, and the ``offset`` kind (the main axis at ``y = -design_offset_mm``).
+
+    Example:
+        >>> from torchseam.core.config import load_part
+        >>> joint = PipeJoint(load_part())
+        >>> joint.seam(np.array([0.0])).point.shape
+        (1, 3)
+    """
+
+    def __init__(self, part: PartConfig) -> None:
+        super().__init__(part)
+        R = part.main_od_mm / 2.0
+        self.a = R * (1.0 + part.main_ovality)  # semi-axis along y
+        self.b = R * (1.0 - part.main_ovality)  # semi-axis along z
+
+    def _height(self, c: np.ndarray, dc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # (y + s)^2 / a^2 + z^2 / b^2 = 1 on the generator c + h d (the upper root)
+        y = c[:, 1] + self.s
+        s = np.sqrt(np.clip(1.0 - (y / self.a) ** 2, 1e-12, None))
+        z = self.b * s
+        h = (z - c[:, 2]) / self.d[2]
+        dz = -self.b * y * dc[:, 1] / (self.a**2 * s)
+        dh = (dz - dc[:, 2]) / self.d[2]
+        return h, dh
+
+    def normal_main(self, p: np.ndarray) -> np.ndarray:
+        n = np.stack([np.zeros(len(p)), (p[:, 1] + self.s) / self.a**2, p[:, 2] / self.b**2],
+                     axis=1)
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        # ((y + s)/a)^2 + (z/b)^2 = 1, entry root only.
+        y = o[:, 1] + self.s
+        A = (d[:, 1] / self.a) ** 2 + (d[:, 2] / self.b) ** 2
+        B = 2 * (y * d[:, 1] / self.a**2 + o[:, 2] * d[:, 2] / self.b**2)
+        C = (y / self.a) ** 2 + (o[:, 2] / self.b) ** 2 - 1.0
+        return _entry_root(A, B, C)
+
+    def main_solid(self) -> dict:
+        """``{"kind": "pipe", "origin": a point of the main axis, "a", "b"}`` (semi-axes along
+        y and z)."""
+        return {"kind": "pipe", "origin": np.array([0.0, -self.s, 0.0]), "a": self.a,
+                "b": self.b}
+
+
+class PlateJoint(Joint):
+    """A branch pipe set on a flat plate (the ``plate`` kind): the plate's top face is z = 0
+    (a square of side ``2 PLATE_HALF_MM``, ``PLATE_THICKNESS_MM`` thick), the seam the
+    branch's section by that plane (the branch's circle when it stands upright)."""
+
+    main_name = "plate"
+
+    def __init__(self, part: PartConfig) -> None:
+        super().__init__(part)
+        # the branch reaches below the plate all round (the plate hides that part)
+        sb = self.d[2]
+        reach = self.r * self.k1 * abs(self.d[0]) / sb
+        self.branch_bottom = -reach - 1.0
+        self.branch_top = reach + NOZZLE_ABOVE_SEAM_MM
+
+    def _height(self, c: np.ndarray, dc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return -c[:, 2] / self.d[2], -dc[:, 2] / self.d[2]
+
+    def normal_main(self, p: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(np.array([0.0, 0.0, 1.0]), (len(p), 3)).copy()
+
+    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        # the top face only: rays come from above the plate
+        down = (o[:, 2] > 0.0) & (d[:, 2] < -1e-12)
+        t = np.where(down, -o[:, 2] / np.where(down, d[:, 2], -1.0), np.inf)
+        p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        inside = (np.abs(p[:, 0]) <= PLATE_HALF_MM) & (np.abs(p[:, 1]) <= PLATE_HALF_MM)
+        return np.where(down & inside & (t > 0), t, np.inf)
+
+    def main_solid(self) -> dict:
+        """``{"kind": "plate", "origin": the top face's centre, "half": half side,
+        "thickness"}``."""
+        return {"kind": "plate", "origin": np.zeros(3), "half": PLATE_HALF_MM,
+                "thickness": PLATE_THICKNESS_MM}
+
+
+class SphereJoint(Joint):
+    """A branch pipe set on a sphere (the ``sphere`` kind: a nozzle on a spherical head) of
+    radius ``sphere_radius_mm`` centred at ``m = (0, -design_offset_mm, 0)``. The seam is where
+    the branch generator c + h d reaches the sphere, the upper root of
+    ``|c - m + h d|^2 = R^2``: ``h = -g + sqrt(g^2 + R^2 - |c - m|^2)``, ``g = (c - m) . d``
+    (a circle of radius r at height sqrt(R^2 - r^2) for a round branch through the centre)."""
+
+    main_name = "sphere"
+
+    def __init__(self, part: PartConfig) -> None:
+        super().__init__(part)
+        self.R = float(part.sphere_radius_mm)
+        self.m = np.array([0.0, -self.s, 0.0])
+        h = self._height(*self.branch_point(np.linspace(0.0, 2 * np.pi, 72, endpoint=False)))[0]
+        self.branch_top = float(h.max()) + NOZZLE_ABOVE_SEAM_MM
+
+    def _height(self, c: np.ndarray, dc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        w = c - self.m
+        g = w @ self.d
+        root = np.sqrt(np.clip(g * g + self.R**2 - np.einsum("ij,ij->i", w, w), 1e-12, None))
+        dg = dc @ self.d
+        dq = 2.0 * np.einsum("ij,ij->i", w, dc)
+        return -g + root, -dg + (2.0 * g * dg - dq) / (2.0 * root)
+
+    def normal_main(self, p: np.ndarray) -> np.ndarray:
+        n = p - self.m
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        w = o - self.m
+        A = np.einsum("ij,ij->i", d, d)
+        B = 2 * np.einsum("ij,ij->i", w, d)
+        C = np.einsum("ij,ij->i", w, w) - self.R**2
+        return _entry_root(A, B, C)
+
+    def main_solid(self) -> dict:
+        """``{"kind": "sphere", "origin": the centre, "radius"}``."""
+        return {"kind": "sphere", "origin": self.m.copy(), "radius": self.R}
+
+
+def make_joint(part: PartConfig) -> Joint:
+    """The joint of ``part``'s kind (``pipe`` and ``offset``: :class:`PipeJoint`; ``plate``:
+    :class:`PlateJoint`; ``sphere``: :class:`SphereJoint`)."""
+    cls = {"pipe": PipeJoint, "offset": PipeJoint, "plate": PlateJoint,
+           "sphere": SphereJoint}[part.kind]
+    return cls(part)
+
+
+def _entry_root(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """Smallest positive root of A t^2 + B t + C = 0 for rays starting outside (C > 0)."""
+    disc = B * B - 4 * A * C
+    ok = (disc >= 0) & (A > 1e-12) & (C > 0)
+    sq = np.sqrt(np.where(ok, disc, 0.0))
+    t = (-B - sq) / np.where(ok, 2 * A, 1.0)
+    return np.where(ok & (t > 0), t, np.inf)
+
+
+def closed_form_orthogonal_seam(R: float, r: float, phi: np.ndarray) -> np.ndarray:
+    """METHOD.md section 0: seam(phi) of the ideal orthogonal T, (N, 3)."""
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(R**2 - r**2 * np.sin(phi) ** 2)],
+                    axis=1)
+
+
+def torch_frames(sample: SeamSample) -> np.ndarray:
+    """Ideal torch frames along a seam, (N, 4, 4) in the joint frame.
+
+    x: travel direction (seam tangent); z: torch axis, pointing into the corner along the
+    bisector of the two surface normals; y = z x x. The same convention as METHOD.md eq. 29
+    (wx = px is the normal of the stripe plane, i.e. the travel direction).
+    """
+    x = sample.tangent
+    z = -(sample.normal_main + sample.normal_branch)
+    z = z - np.einsum("ij,ij->i", z, x)[:, None] * x
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    T = np.tile(np.eye(4), (len(x), 1, 1))
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2], T[:, :3, 3] = x, y, z, sample.point
+    return T
+
+
+def nominal_part(part: PartConfig) -> PartConfig:
+    """The design of ``part``: same kind, pipes, angle and designed offset, no deviations."""
+    ident = dataclasses.replace(part.placement, position_mm=(0.0, 0.0, 0.0),
+                                quaternion=(1.0, 0.0, 0.0, 0.0))
+    return dataclasses.replace(part, branch_offset_mm=(0.0, 0.0), main_ovality=0.0,
+                               branch_ovality=0.0, distortion_mm=0.0, placement_error=ident)
