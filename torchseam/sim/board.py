@@ -31,14 +31,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from torchseam.core.calibration import BoardSpec, CalibrationConfig, RenderSettings, write_pose_csv
 from torchseam.core.config import CameraConfig, CellConfig, LaserPlane, Pose, to_dict
 from torchseam.core.transforms import invert, matrix_to_quat, rotation_about
-from torchseam.geometry.calibrate import (
-    BoardSpec,
-    CalibrationConfig,
-    RenderSettings,
-    write_pose_csv,
-)
 from torchseam.sim.noise import STRIPE_BGR
 from torchseam.sim.sensor import LaserSensor, StripeView
 
@@ -57,7 +52,7 @@ class BoardRenderer:
 
     Example:
         >>> from torchseam.core.config import load_cell
-        >>> from torchseam.geometry.calibrate import load_calibration
+        >>> from torchseam.core.calibration import load_calibration
         >>> cfg = load_calibration()
         >>> r = BoardRenderer(load_cell().camera, cfg.board, cfg.simulate.render)
         >>> T = np.eye(4); T[:3, 3] = [-12.0, -7.5, 130.0]
