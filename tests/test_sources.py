@@ -11,7 +11,8 @@ import pytest
 
 from torchseam.cli import main
 from torchseam.core.errors import DatasetError, FrameError
-from torchseam.live.loop import RecordingSink, run_replay
+from torchseam.live.loop import RecordingSink
+from torchseam.live.replay import run_replay
 from torchseam.live.sources import (
     BaseSource,
     CameraSource,

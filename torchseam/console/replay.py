@@ -23,7 +23,7 @@ from torchseam.console.server import ConsoleServer
 from torchseam.console.sim import make_console
 from torchseam.core.config import CellConfig, NoiseConfig, load_cell, load_noise
 from torchseam.live.demo import DemoControl, DemoEvent
-from torchseam.live.loop import ReplayResult, run_replay
+from torchseam.live.replay import ReplayResult, run_replay
 from torchseam.live.sources import CameraSource, FolderSource, open_source
 from torchseam.track.peers import make_tracker
 

@@ -120,7 +120,7 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     import numpy as np
 
     from torchseam.core.transforms import pose_matrix
-    from torchseam.live.loop import run_replay
+    from torchseam.live.replay import run_replay
     from torchseam.live.sources import open_source
     from torchseam.track.fusion import TrackStatus
     from torchseam.track.peers import STATUS_NAMES, make_tracker
