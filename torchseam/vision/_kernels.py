@@ -15,7 +15,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from torchseam.vision.tipm import quad_normal_adjugate
+from torchseam.vision.quadfit import quad_normal_adjugate
 
 _JIT = {"cache": True, "nogil": True}
 NO_PRIOR = np.zeros((2, 4))  # prior rows (b0, c0, w_b, w_c) = 0: the plain least squares
