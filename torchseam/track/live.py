@@ -47,6 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from torchseam.core import kalman
 from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.errors import TorchseamError
 from torchseam.track import model_file
@@ -411,12 +412,14 @@ class AnchorFilter:
         self._found: list[np.ndarray] = []     # whole-frame corners in a row (see search)
         self._reacquire: np.ndarray | None = None
         self.reacquired = 0  # times the track was moved onto persistent independent corners
+        self.innovation: kalman.Innovation | None = None  # the last measurement's
 
     def set_params(self, params: Mapping[str, Any]) -> None:
         """New fitted values (after an optimiser step)."""
         p, o = params, self.ops
         self.p = dict(params)
         self.Q = o.diag2(p["motion_u_px"] ** 2, p["motion_v_px"] ** 2)
+        self.I = o.const(np.eye(2))  # F and H: a random walk, the point measured directly
         self.R_track = o.diag2(p["track_u_px"] ** 2, p["track_v_px"] ** 2)
 
     def _restart(self, uv: Any, P: Any, shape: np.ndarray | None) -> None:
@@ -444,20 +447,16 @@ class AnchorFilter:
         return out
 
     def _measure(self, z: Any, R: Any, gate: Any) -> bool:
-        """Kalman update with ``z`` (covariance ``R``) unless its Mahalanobis distance from
-        the filtered point exceeds ``gate``: ``y = z - x``, ``S = P + R``, ``K = P S^-1``,
-        ``x <- x + K y``, ``P <- (I - K) P``."""
+        """Kalman update with ``z`` (covariance ``R``, ``H = I``) unless its Mahalanobis
+        distance from the filtered point exceeds ``gate`` (:mod:`torchseam.core.kalman`)."""
         o = self.ops
-        y = z - self.x
-        S_inv = o.inv2(self.P + R)
-        d2 = y @ S_inv @ y
-        hard = bool(_num(d2) <= _num(gate) ** 2)
-        w = o.decide(hard, gate - o.sqrt(d2), GATE_TEMP)
+        inn = kalman.innovation(self.x, self.P, z, self.I, R)
+        self.innovation = inn
+        hard = bool(_num(inn.d2) <= _num(gate) ** 2)
+        w = o.decide(hard, gate - o.sqrt(inn.d2), GATE_TEMP)
         if isinstance(w, float) and w == 0.0:
             return False
-        K = self.P @ S_inv
-        self.x = self.x + w * (K @ y)
-        self.P = self.P - w * (K @ self.P)
+        self.x, self.P = kalman.update(self.x, self.P, inn, self.I, R, w)
         return hard
 
     def step(self, frame: np.ndarray, inner_uv: Any, inner_ok: bool,
@@ -486,7 +485,7 @@ class AnchorFilter:
             self._reacquire, expected = None, None
             self.reacquired += 1
         self.age += 1
-        self.P = self.P + self.Q                                   # predict: random walk
+        self.x, self.P = kalman.predict(self.x, self.P, self.I, self.Q)  # a random walk
         if expected is not None:
             self.x = o.const(expected)
         obs = observe(self.tipm, frame, o.value(self.x), self.prior(), c)
