@@ -623,7 +623,7 @@ def test_loopback_session_250hz_10s_without_late_replies(robot_model, record_pro
 
 
 def test_pose_session_moves_the_robot_to_the_target(robot_model):
-    from torchseam.robot.sim_controller import SimController, _matrix_quat
+    from torchseam.robot.sim_controller import SimController, matrix_quat
 
     cfg = load_egm_config()
     sim = SimController(cfg, mode="pose", robot=robot_model, bind_address=("127.0.0.1", 0))
@@ -631,7 +631,7 @@ def test_pose_session_moves_the_robot_to_the_target(robot_model):
         with EgmLink(_ephemeral(cfg, "pose", sim.address[1])) as link:
             sim.sensor_address = link.address
             start = sim.tcp_pose()
-            q0 = _matrix_quat(start[:3, :3])
+            q0 = matrix_quat(start[:3, :3])
             sim.start()
             target = start[:3, 3].copy()
             for _ in range(10):  # walk 10 mm sideways in 1 mm steps

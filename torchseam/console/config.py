@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from torchseam.core.config import CONFIG_DIR, CellConfig, NoiseConfig, _f, load_config
+from torchseam.core.config import CONFIG_DIR, CellConfig, NoiseConfig, load_config
+from torchseam.core.config import config_field as _f
 from torchseam.core.errors import TorchseamError
 
 #: Address the console binds to unless ``--host`` says otherwise: this machine only.

@@ -42,7 +42,7 @@ from torchseam.fit.model_io import save_fitted
 from torchseam.fit.train import (
     DistInfo,
     EpochRecord,
-    _barrier,
+    barrier,
     evaluate_folders,
     init_distributed,
     make_module,
@@ -284,7 +284,7 @@ def _resolve(cfg: FitConfig, info: DistInfo
             if cfg.test and not cfg.test_data:
                 test = generate_sequences(cfg.cache, cfg.test_levels, te_seeds,
                                           cfg.test_frames, **kw)
-        _barrier(info)
+        barrier(info)
         if not info.main:  # the folders rank 0 made (generate reuses finished ones)
             train_dirs = generate_sequences(cfg.cache, cfg.levels, tr_seeds, cfg.frames,
                                             progress=False, families=cfg.families)
@@ -333,7 +333,7 @@ def _load(dirs: list[Path], cfg: FitConfig, info: DistInfo, roi: int | None = No
           "cache": cfg.cache}
     if info.main:
         s = load_sequences(dirs, progress=cfg.progress, **kw)
-    _barrier(info)
+    barrier(info)
     if not info.main:
         s = load_sequences(dirs, progress=False, build=False, **kw)
     return s

@@ -98,7 +98,8 @@ def _all_sum(x: float, info: DistInfo) -> float:
     return float(t[0])
 
 
-def _barrier(info: DistInfo) -> None:
+def barrier(info: DistInfo) -> None:
+    """Wait for every process of a distributed fit (nothing when the fit runs alone)."""
     if info.active:
         dist.barrier()
 
@@ -430,7 +431,7 @@ def train(cfg: FitConfig, train_set: SequenceSet, val_set: SequenceSet | None = 
     elif start == 0 and not info.main and val_set is not None:
         history.append(EpochRecord(epoch=0, loss=None, steps=0, seconds=0.0, sequences=0,
                                    frames=0))
-    _barrier(info)
+    barrier(info)
 
     for epoch in range(start, cfg.epochs):
         g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
@@ -507,7 +508,7 @@ def train(cfg: FitConfig, train_set: SequenceSet, val_set: SequenceSet | None = 
             _save_checkpoint(_checkpoint_path(out), module, opt, epoch, history, best, cfg)
         else:
             history.append(rec)
-        _barrier(info)
+        barrier(info)
     if best["model"]:
         with torch.no_grad():
             module.load_state_dict(best["model"])

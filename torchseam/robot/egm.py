@@ -113,12 +113,12 @@ Gate = Callable[[np.ndarray, np.ndarray], "tuple[bool, str]"]
 
 _U32 = 0xFFFFFFFF
 # Linux: kernel receive time stamps on a datagram socket (SO_TIMESTAMPNS, CLOCK_REALTIME).
-_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35) if sys.platform == "linux" else None
-_TIMESPEC = struct.Struct("@qq")
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35) if sys.platform == "linux" else None
+TIMESPEC = struct.Struct("@qq")
 # Linux: the socket's drop counter (receive buffer full) in each datagram's ancillary data
 _SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40) if sys.platform == "linux" else None
 _U32_STRUCT = struct.Struct("@I")
-_ANC_BYTES = socket.CMSG_SPACE(_TIMESPEC.size) + socket.CMSG_SPACE(_U32_STRUCT.size) + 64
+_ANC_BYTES = socket.CMSG_SPACE(TIMESPEC.size) + socket.CMSG_SPACE(_U32_STRUCT.size) + 64
 _QUAT_TOL = 1e-3  # |q| may differ from 1 by this much (float32 sources, rounding)
 # what a drop reason means, for the first warning of each
 _DROP_DETAIL = {
@@ -234,7 +234,7 @@ class EgmStats:
         return latency_summary(self.latency_ms)
 
     def copy(self) -> EgmStats:
-        return _copy_stats(self)
+        return copy_stats(self)
 
     def as_dict(self) -> dict[str, Any]:
         """Plain numbers (counters as dicts, latency as its summary) for printing or JSON."""
@@ -249,7 +249,7 @@ class EgmStats:
                 "latency_ms": self.latency_summary()}
 
 
-def _copy_stats(stats: Any) -> Any:
+def copy_stats(stats: Any) -> Any:
     """A copy of a stats dataclass whose counters and sample deques are independent."""
     out = dataclasses.replace(stats)
     for f in dataclasses.fields(stats):
@@ -449,9 +449,9 @@ class EgmLink:
             raise EgmError(f"cannot bind the EGM sensor to {net.host}:{net.port}: "
                            f"{e.strerror or e}{hint}") from None
         sock.setblocking(False)
-        if _SO_TIMESTAMPNS is not None:
+        if SO_TIMESTAMPNS is not None:
             try:
-                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
             except OSError:
                 pass  # fall back to user-space receive times
         if _SO_RXQ_OVFL is not None:
@@ -531,7 +531,7 @@ class EgmLink:
             except OSError as e:  # e.g. ICMP port unreachable surfacing as ECONNREFUSED
                 self._drop(f"socket_error_{e.errno}", sender=None)
                 break
-            rx_ns = _rx_time_ns(anc)
+            rx_ns = rx_time_ns(anc)
             self._kernel_drops(anc)
             if flags & socket.MSG_TRUNC:
                 self._drop("oversized", sender)
@@ -1010,10 +1010,10 @@ def _rx_overflow(ancdata: list[tuple[int, int, bytes]]) -> int | None:
     return None
 
 
-def _rx_time_ns(ancdata: list[tuple[int, int, bytes]]) -> int:
+def rx_time_ns(ancdata: list[tuple[int, int, bytes]]) -> int:
     """Kernel receive time (CLOCK_REALTIME ns) from SO_TIMESTAMPNS, else now."""
     for level, kind, data in ancdata:
-        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= 16:
-            sec, nsec = _TIMESPEC.unpack_from(data)
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= 16:
+            sec, nsec = TIMESPEC.unpack_from(data)
             return sec * 1_000_000_000 + nsec
     return time.time_ns()

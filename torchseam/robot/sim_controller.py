@@ -61,13 +61,13 @@ from scipy.spatial.transform import Rotation
 from torchseam.core.config import load_cell
 from torchseam.core.transforms import matrix_to_quat
 from torchseam.robot.egm import (
-    _SO_TIMESTAMPNS,
-    _TIMESPEC,
+    SO_TIMESTAMPNS,
+    TIMESPEC,
     EgmError,
-    _copy_stats,
-    _rx_time_ns,
+    copy_stats,
     latency_summary,
     parse_sensor,
+    rx_time_ns,
     set_realtime_priority,
 )
 from torchseam.robot.egm_config import EgmConfig, load_egm_config
@@ -203,7 +203,7 @@ class SimStats:
         default_factory=lambda: collections.deque(maxlen=10_000))
 
     def copy(self) -> SimStats:
-        return _copy_stats(self)
+        return copy_stats(self)
 
     def as_dict(self) -> dict[str, Any]:
         return {"cycles": self.cycles, "sent": self.sent, "expected": self.expected,
@@ -338,9 +338,9 @@ class SimController:
                            f"{bind_address or (net.controller_host, net.controller_port)}: "
                            f"{e.strerror or e}") from None
         self._sock.setblocking(False)
-        if _SO_TIMESTAMPNS is not None:
+        if SO_TIMESTAMPNS is not None:
             try:
-                self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                self._sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
             except OSError:
                 pass
         self._tx_stamps = False  # whether the kernel stamps each datagram as it leaves
@@ -597,7 +597,7 @@ class SimController:
                 return stamp
             for level, kind, data in anc:
                 if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPING and len(data) >= 16:
-                    sec, nsec = _TIMESPEC.unpack_from(data)  # [0]: the software stamp
+                    sec, nsec = TIMESPEC.unpack_from(data)  # [0]: the software stamp
                     stamp = sec * 1_000_000_000 + nsec
 
     def _send(self, data: bytes) -> int | None:
@@ -699,7 +699,7 @@ class SimController:
                 return answered
             except OSError:  # closed by stop(), or ICMP port unreachable (no sensor yet)
                 return answered
-            rx_ns = _rx_time_ns(anc)
+            rx_ns = rx_time_ns(anc)
             if flags & socket.MSG_TRUNC:
                 msg, why = None, "oversized"
             else:
@@ -864,7 +864,7 @@ class SimController:
 def _fill_pose(pose: Any, T: np.ndarray) -> None:
     """Position (mm), quaternion (w, x, y, z) and ABB EulerZYX angles (deg) of a 4x4 pose."""
     pose.pos.x, pose.pos.y, pose.pos.z = (float(v) for v in T[:3, 3])
-    q = _matrix_quat(T[:3, :3])
+    q = matrix_quat(T[:3, :3])
     pose.orient.u0, pose.orient.u1, pose.orient.u2, pose.orient.u3 = (float(v) for v in q)
     R = T[:3, :3]
     # R = Rz(z) Ry(y) Rx(x) (ABB EulerZYX); plain math: scipy objects cost more per cycle
@@ -880,7 +880,7 @@ def _step_towards(T: np.ndarray, target: np.ndarray, max_mm: float,
     d = target[:3, 3] - T[:3, 3]
     n = float(np.linalg.norm(d))
     out[:3, 3] = target[:3, 3] if n <= max_mm else T[:3, 3] + d * (max_mm / n)
-    q0, q1 = _matrix_quat(T[:3, :3]), _matrix_quat(target[:3, :3])
+    q0, q1 = matrix_quat(T[:3, :3]), matrix_quat(target[:3, :3])
     if np.dot(q0, q1) < 0:
         q1 = -q1
     ang = 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
@@ -937,7 +937,7 @@ def _rotvec(R: np.ndarray) -> np.ndarray:
     return v * k[..., None]
 
 
-def _matrix_quat(R: np.ndarray) -> np.ndarray:
+def matrix_quat(R: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z), w >= 0, of one rotation matrix (Shepperd's method)."""
     tr = R[0, 0] + R[1, 1] + R[2, 2]
     if tr > 0:

@@ -70,7 +70,7 @@ from torchseam.track._checks import (
 )
 from torchseam.track.config import TrackerConfig
 from torchseam.track.eakf import EAKF, EAKFMatrices, EAKFState
-from torchseam.track.stc import STC, STCState, _cached
+from torchseam.track.stc import STC, STCState, cached
 
 _D = TrackerConfig()  # the defaults
 
@@ -364,7 +364,7 @@ class EAKFSTC(nn.Module):
         cfg, m = self.config, state.mats
         hi, wi = frames.shape[-2:]
         pred = state.kf.predict_uv(m.Phi)                              # 1. prediction
-        bound = _cached(("bound", wi, hi, pred.device, pred.dtype),
+        bound = cached(("bound", wi, hi, pred.device, pred.dtype),
                         lambda: pred.new_tensor([wi - 1.0, hi - 1.0]))
         centre = torch.minimum(pred.clamp_min(0.0), bound)
         det = self.stc.detect(state.stc, frames, centre)               # 2. measurement

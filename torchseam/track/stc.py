@@ -92,7 +92,7 @@ def _offsets(n: int, ref: Tensor) -> Tensor:
 _INDEX_CACHE: dict[tuple, Tensor] = {}
 
 
-def _cached(key: tuple, make) -> Tensor:  # type: ignore[no-untyped-def]
+def cached(key: tuple, make) -> Tensor:  # type: ignore[no-untyped-def]
     """Small constant index tensors, built once per (kind, sizes, device): saves tiny ops."""
     t = _INDEX_CACHE.get(key)
     if t is None:
@@ -104,7 +104,7 @@ def _cached(key: tuple, make) -> Tensor:  # type: ignore[no-untyped-def]
 
 def _window_index(h: int, w: int, wi: int, device: torch.device) -> Tensor:
     """(h, w) flat offsets ``(i - h//2) * wi + (j - w//2)`` of a window in a frame of width wi."""
-    return _cached(("win", h, w, wi, device), lambda: (
+    return cached(("win", h, w, wi, device), lambda: (
         (torch.arange(h, device=device) - h // 2)[:, None] * wi
         + (torch.arange(w, device=device) - w // 2)[None, :]))
 
@@ -249,7 +249,7 @@ def extract_windows(frames: Tensor, centres: Tensor, size: Sequence[int], *,
     c0 = torch.floor(centres.detach())
     frac = (centres - c0).to(dtype)  # (B, 2), carries the gradient w.r.t. the centres
     # window pixel (i, j) samples centre + (j - w//2, i - h//2): blend p[i, j] .. p[i+1, j+1]
-    shift = _cached(("bshift", h, w, c0.device), lambda: torch.tensor(
+    shift = cached(("bshift", h, w, c0.device), lambda: torch.tensor(
         [(w + 1) // 2 - w // 2, (h + 1) // 2 - h // 2], device=c0.device))
     p = _gather_windows(frames, c0.long() + shift, h + 1, w + 1).to(dtype)  # (B, H+1, W+1)
     fu = frac[:, 0, None, None]
@@ -269,11 +269,11 @@ def _gather_windows(frames: Tensor, c: Tensor, h: int, w: int) -> Tensor:
     if frames.is_contiguous() and frames.device.type == "cpu" and bool(inside.all()):
         idx = (v * wi + u)[:, None, None] + _window_index(h, w, wi, frames.device)
         return frames.reshape(B, hi * wi).gather(1, idx.reshape(B, h * w)).reshape(B, h, w)
-    ar_h = _cached(("ar", h, frames.device), lambda: torch.arange(h, device=frames.device))
-    ar_w = _cached(("ar", w, frames.device), lambda: torch.arange(w, device=frames.device))
+    ar_h = cached(("ar", h, frames.device), lambda: torch.arange(h, device=frames.device))
+    ar_w = cached(("ar", w, frames.device), lambda: torch.arange(w, device=frames.device))
     rows = (v[:, None] + (ar_h - h // 2)).clamp_(0, hi - 1)
     cols = (u[:, None] + (ar_w - w // 2)).clamp_(0, wi - 1)
-    bidx = _cached(("b", B, frames.device), lambda: torch.arange(B, device=frames.device))
+    bidx = cached(("b", B, frames.device), lambda: torch.arange(B, device=frames.device))
     return frames[bidx[:, None, None], rows[:, :, None], cols[:, None, :]]
 
 
@@ -374,7 +374,7 @@ def fourier_shift(shift: Tensor, size: Sequence[int]) -> Tensor:
     """
     h, w = check_size(size, "size")
     check_tensor(shift, "shift", ("B", 2))
-    fy, fx = _cached(("freq", h, w, shift.device, shift.dtype), lambda: torch.cat([
+    fy, fx = cached(("freq", h, w, shift.device, shift.dtype), lambda: torch.cat([
         torch.fft.fftfreq(h, device=shift.device, dtype=shift.dtype),
         torch.fft.rfftfreq(w, device=shift.device, dtype=shift.dtype)]) * (-2.0 * math.pi)
                      ).split([h, w // 2 + 1])
@@ -471,14 +471,14 @@ def _peak_tables(h: int, w: int, exclude: int, device: torch.device, dtype: torc
         barea = torch.where(inside, rr * (bw - 2) + cc, n_in).reshape(h * w, -1)
         return torch.cat([area, barea, base.to(area.dtype), nb[None].expand(h * w, 4)],
                          dim=1).to(device)
-    t = _cached(("peak", h, w, exclude, device), make)
+    t = cached(("peak", h, w, exclude, device), make)
     bh, bw = (h, w) if h % 2 or w % 2 else (h // 2, w // 2)
     p = (2 * max(exclude, 1) + 1) ** 2
     p2 = t.shape[1] - p - 6
-    area = _cached(("peakarea", h, w, exclude, device), lambda: t[:, :p].contiguous())
-    barea = _cached(("peakbarea", h, w, exclude, device), lambda: t[:, p:p + p2].contiguous())
-    nb = _cached(("peaknb", h, w, exclude, device), lambda: t[0, p + p2 + 2:].contiguous())
-    base = _cached(("peakbase", h, w, exclude, device, dtype),
+    area = cached(("peakarea", h, w, exclude, device), lambda: t[:, :p].contiguous())
+    barea = cached(("peakbarea", h, w, exclude, device), lambda: t[:, p:p + p2].contiguous())
+    nb = cached(("peaknb", h, w, exclude, device), lambda: t[0, p + p2 + 2:].contiguous())
+    base = cached(("peakbase", h, w, exclude, device, dtype),
                    lambda: t[:, p + p2:p + p2 + 2].to(dtype).contiguous())
     return area, base, nb, barea, bh, bw
 
