@@ -197,7 +197,7 @@ class HandEyeSetSim:
     distance_mm: tuple[float, ...] = _m(2, lo=1.0)
     tilt_deg: tuple[float, ...] = _m(2, lo=0.0, hi=70.0)
     spin_deg: float = _m(lo=0.0, hi=180.0)
-    board_in_base: Pose
+    board_in_base: Pose = _m()
     robot_noise_mm: float = _m(lo=0.0)
     robot_noise_deg: float = _m(lo=0.0)
 
@@ -215,11 +215,11 @@ class TcpSetSim:
 @dataclass(frozen=True)
 class SimulationSettings:
     seed: int = _m(lo=0)
-    render: RenderSettings
-    camera: CameraSetSim
-    laser: LaserSetSim
-    handeye: HandEyeSetSim
-    tcp: TcpSetSim
+    render: RenderSettings = _m()
+    camera: CameraSetSim = _m()
+    laser: LaserSetSim = _m()
+    handeye: HandEyeSetSim = _m()
+    tcp: TcpSetSim = _m()
 
 
 @dataclass(frozen=True)

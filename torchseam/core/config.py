@@ -451,7 +451,7 @@ def _check_str(v: Any, meta: dict[str, Any]) -> str:
 
 def _parse_value(tp: Any, v: Any, meta: dict[str, Any], path: str) -> Any:
     origin = typing.get_origin(tp)
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         return _parse_dataclass(tp, v, path)
     if origin is tuple:
         item_tp = typing.get_args(tp)[0]

@@ -11,7 +11,8 @@ def format_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> st
     """Align ``rows`` under ``headers``; floats get 3 significant decimals."""
     def cell(x: object) -> str:
         if isinstance(x, float | np.floating):
-            return "nan" if not np.isfinite(x) else f"{x:.3f}" if abs(x) < 1000 else f"{x:.0f}"
+            v = float(x)
+            return "nan" if not np.isfinite(v) else f"{v:.3f}" if abs(v) < 1000 else f"{v:.0f}"
         return str(x)
 
     body = [[cell(x) for x in r] for r in rows]

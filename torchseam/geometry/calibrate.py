@@ -394,8 +394,10 @@ def calibrate_camera(images: Sequence[np.ndarray], names: Sequence[str], cfg: Ca
     flags = cv2.CALIB_FIX_K3 if cfg.camera.radial_terms == 2 else 0
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 200, 1e-12)
     try:
+        # None: OpenCV computes the camera matrix and distortion (its stubs want arrays)
         rms, K, dist, rvecs, tvecs, std_int, _, per_view = cv2.calibrateCameraExtended(
-            obj, img, (w, h), None, None, flags=flags, criteria=crit)
+            obj, img, (w, h), None, None, flags=flags,  # type: ignore[call-overload]
+            criteria=crit)
     except cv2.error as e:
         raise CalibrationError(f"{what}: OpenCV could not solve this set ({_cv_msg(e)}); "
                                "the views are probably too alike: tilt the board more") from None

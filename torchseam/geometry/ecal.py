@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 
@@ -180,7 +181,9 @@ class Ecal:
             return EcalResult(False, nan2, np.full(2, np.nan), reason="no feature point")
         best: EcalResult | None = None
         single: tuple[float, float, np.ndarray] | None = None
-        radii, arm_angles, rejected_total = [], [], 0
+        radii: list[float] = []
+        arm_angles: list[np.ndarray] = []
+        rejected_total = 0
         kept: list[EcalResult] = []  # the result at each clean circle
         on, val = self.polar(mask, uv, intensity)
         for r, (cands, rejected) in zip(self.circles, self.crossings(on, val, uv), strict=True):
@@ -261,7 +264,12 @@ def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref
     return out
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
+@overload
+def _wrap(a: float) -> float: ...
+@overload
+def _wrap(a: np.ndarray) -> np.ndarray: ...
+def _wrap(a: float | np.ndarray) -> float | np.ndarray:
+    """Angle(s) wrapped into [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
@@ -277,17 +285,22 @@ def _pick_pair(cands: list[_Crossing], prev: np.ndarray | None, min_separation_d
         pair = cands
     elif prev is not None:
         # the candidates nearest the previous arm directions
-        pair = [min(cands, key=lambda c, a=a: abs(_wrap(c[0] - a))) for a in prev]
+        def nearest(a: float) -> _Crossing:
+            return min(cands, key=lambda c: abs(_wrap(c[0] - a)))
+
+        pair = [nearest(a) for a in prev]
         if pair[0] is pair[1]:
             return None
     else:
         # the two most opposed crossings: arms leave the corner on opposite sides
-        best, score = None, -1.0
+        best: tuple[_Crossing, _Crossing] | None = None
+        score = -1.0
         for i in range(len(cands)):
             for j in range(i + 1, len(cands)):
                 s = abs(_wrap(cands[i][0] - cands[j][0]))
                 if s > score:
                     best, score = (cands[i], cands[j]), s
+        assert best is not None  # three or more crossings: some pair scores >= 0
         pair = list(best)
     if abs(_wrap(pair[0][0] - pair[1][0])) < np.radians(min_separation_deg):
         return None  # both on one arm (a gap or a dark streak splits it): not a pair

@@ -61,6 +61,11 @@ def triangulate(uv: Tensor, K: Tensor, dist: Tensor, plane: Tensor, T_F_C: Tenso
 class Triangulator(nn.Module):
     """:func:`triangulate` with the cell's calibration held as buffers (device/dtype follow)."""
 
+    K: Tensor
+    dist: Tensor
+    plane: Tensor
+    T_F_C: Tensor
+
     def __init__(self, cell: CellConfig, dtype: torch.dtype = torch.float64) -> None:
         super().__init__()
         K, dist = intrinsics(cell.camera, dtype)

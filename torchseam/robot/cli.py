@@ -164,7 +164,8 @@ def run_ik(args: argparse.Namespace) -> int:
     T = pose_matrix(np.asarray(pose[:3]), quat / norm)
     if args.tool == "tool0":
         T = T @ cell.tool.matrix()  # the gate takes TCP poses: tool0 pose -> TCP pose
-    seed = parse_joints(args.seed, "--seed") if args.seed is not None else None
+    seed = (np.asarray(parse_joints(args.seed, "--seed"), float) if args.seed is not None
+            else None)
     r = ReachGate(robot, cell=cell).check(T[None], q_start_deg=seed)  # no part, no speed
     if not bool(r.ok[0]):
         print(f"unreachable: {r.reasons[0]}")
@@ -247,7 +248,8 @@ def run_check(args: argparse.Namespace) -> int:
     cell = load_cell(args.cell)
     part = None if (args.part or "").lower() == "none" else load_part(args.part)
     gate = ReachGate(robot, cell=cell, part=part)
-    seed = parse_joints(args.seed, "--seed") if args.seed is not None else None
+    seed = (np.asarray(parse_joints(args.seed, "--seed"), float) if args.seed is not None
+            else None)
     dt = None if t is None else np.concatenate([[0.0], np.diff(t)])
     t0 = time.perf_counter()
     r = gate.check(T, q_start_deg=seed, dt_s=dt)

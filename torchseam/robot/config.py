@@ -117,10 +117,10 @@ class RobotConfig:
 
     axes: AxesConfig
     home_deg: tuple[float, ...] = _f(6)
-    singularity: SingularityConfig
-    torch: TorchShape
-    clearance: ClearanceConfig
-    ik: IKConfig
+    singularity: SingularityConfig = _f()
+    torch: TorchShape = _f()
+    clearance: ClearanceConfig = _f()
+    ik: IKConfig = _f()
     axis3_range_applies_to: str = _f(choices=CHOICES["axis3_range_applies_to"])
     ik_method: str = _f(choices=CHOICES["ik_method"])
 

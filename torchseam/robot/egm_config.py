@@ -86,9 +86,9 @@ class EgmConfig:
 
     network: EgmNetwork
     mode: str = _f(choices=MODES)
-    link: EgmLinkConfig
-    safety: EgmSafety
-    sim_controller: SimControllerConfig
+    link: EgmLinkConfig = _f()
+    safety: EgmSafety = _f()
+    sim_controller: SimControllerConfig = _f()
 
 
 def egm_config_from_dict(data: Any, source: str = "<dict>") -> EgmConfig:

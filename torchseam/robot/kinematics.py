@@ -761,7 +761,7 @@ class _Selector:
         self.alt = alt
         self.pen = np.where(inside, 0.0, 1e6)
         self.inval = np.where(valid, 0.0, 1e12)
-        self.any = valid.any(axis=1)
+        self.any = np.asarray(valid.any(axis=1))  # (N,) poses with a valid solution
 
     def pick(self, seed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Batched: (N, 6) seeds -> (N, 6) joints, (N,) index (-1: none valid, seed kept)."""

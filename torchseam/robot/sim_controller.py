@@ -251,7 +251,7 @@ class _Path:
     def at(self, s: float) -> np.ndarray:
         """TCP pose (4x4, mm) at arc length ``s`` (clamped to the path)."""
         s = min(max(s, 0.0), self.length)
-        i = int(min(np.searchsorted(self.s, s, side="right") - 1, len(self.s) - 2))
+        i = min(int(np.searchsorted(self.s, s, side="right")) - 1, len(self.s) - 2)
         u = (s - self.s[i]) / (self.s[i + 1] - self.s[i])
         T = np.eye(4)
         T[:3, 3] = self.pos[i] + u * (self.pos[i + 1] - self.pos[i])

@@ -227,7 +227,7 @@ def _pose_facing(R_tilt: np.ndarray, spin_rad: float, board: BoardSpec, centre_C
 
 def _random_tilt(rng: np.random.Generator, tilt_deg: tuple[float, ...]) -> np.ndarray:
     phi = rng.uniform(0.0, 2 * np.pi)
-    theta = np.radians(rng.uniform(*tilt_deg))
+    theta = np.radians(rng.uniform(tilt_deg[0], tilt_deg[1]))
     return rotation_about(np.array([np.cos(phi), np.sin(phi), 0.0]), theta)
 
 
@@ -248,11 +248,11 @@ def sample_board_poses(rng: np.random.Generator, n: int, camera: CameraConfig, b
                        spin_deg: float) -> np.ndarray:
     """(n, 4, 4) board poses T_C_O in view: random depth, tilt about a random in-plane axis,
     spin about the normal, position anywhere the whole board fits (rejection sampling)."""
-    out = []
+    out: list[np.ndarray] = []
     for _ in range(2000 * n):
         if len(out) == n:
             break
-        z = rng.uniform(*distance_mm)
+        z = rng.uniform(distance_mm[0], distance_mm[1])
         u, v = rng.uniform(0, camera.width), rng.uniform(0, camera.height)
         centre = z * np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
         T = _pose_facing(_random_tilt(rng, tilt_deg), np.radians(rng.uniform(-spin_deg, spin_deg)),
@@ -273,12 +273,12 @@ def sample_laser_poses(rng: np.random.Generator, n: int, cell: CellConfig, board
     ``shift_mm`` in the board; the laser source lies on the board's lit side."""
     cam, lp = cell.camera, cell.laser_plane
     nL, dL, src = np.asarray(lp.normal), lp.distance_mm, np.asarray(lp.source_mm)
-    out = []
+    out: list[np.ndarray] = []
     for _ in range(2000 * n):
         if len(out) == n:
             break
         u = rng.uniform(0.35, 0.65) * cam.width
-        v = rng.uniform(*stripe_rows) * cam.height
+        v = rng.uniform(stripe_rows[0], stripe_rows[1]) * cam.height
         ray = np.array([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0])
         on_plane = ray * dL / (nL @ ray)
         T = _pose_facing(_random_tilt(rng, tilt_deg), np.radians(rng.uniform(-spin_deg, spin_deg)),
@@ -462,34 +462,34 @@ def write_set(kind: str, out: str | os.PathLike[str], cell: CellConfig, cfg: Cal
         cv2.imwrite(str(out / name), img, [cv2.IMWRITE_PNG_COMPRESSION, 3])
 
     if kind == "camera":
-        s = simulate_camera_set(cell, cfg, seed, views)
-        for name, img in zip(s.names, s.images, strict=True):
+        cam = simulate_camera_set(cell, cfg, seed, views)
+        for name, img in zip(cam.names, cam.images, strict=True):
             save(name, img)
-        truth["camera"] = to_dict(s.camera)
-        truth["board_poses"] = {n: _pose_json(T) for n, T in zip(s.names, s.T_C_O, strict=True)}
+        truth["camera"] = to_dict(cam.camera)
+        truth["board_poses"] = {n: _pose_json(T) for n, T in zip(cam.names, cam.T_C_O, strict=True)}
     elif kind == "laser":
-        s = simulate_laser_set(cell, cfg, seed, views)
-        for name, img in zip(s.board_names + s.laser_names, s.board_images + s.laser_images,
+        las = simulate_laser_set(cell, cfg, seed, views)
+        for name, img in zip(las.board_names + las.laser_names, las.board_images + las.laser_images,
                              strict=True):
             save(name, img)
-        truth["laser_plane"] = to_dict(s.plane)
+        truth["laser_plane"] = to_dict(las.plane)
         truth["camera"] = to_dict(cell.camera)
-        truth["board_poses"] = {n: _pose_json(T) for n, T in zip(s.laser_names, s.T_C_O,
+        truth["board_poses"] = {n: _pose_json(T) for n, T in zip(las.laser_names, las.T_C_O,
                                                                  strict=True)}
     elif kind == "handeye":
-        s = simulate_handeye_set(cell, cfg, seed, views)
-        for name, img in zip(s.names, s.images, strict=True):
+        he = simulate_handeye_set(cell, cfg, seed, views)
+        for name, img in zip(he.names, he.images, strict=True):
             save(name, img)
-        write_pose_csv(out / "poses.csv", s.names, s.T_B_F, "image")
-        truth["hand_eye"] = to_dict(s.hand_eye)
-        truth["board_in_base"] = _pose_json(s.T_B_O)
+        write_pose_csv(out / "poses.csv", he.names, he.T_B_F, "image")
+        truth["hand_eye"] = to_dict(he.hand_eye)
+        truth["board_in_base"] = _pose_json(he.T_B_O)
         truth["camera"] = to_dict(cell.camera)
-        truth["flange_true"] = {n: _pose_json(T) for n, T in zip(s.names, s.T_B_F_true,
+        truth["flange_true"] = {n: _pose_json(T) for n, T in zip(he.names, he.T_B_F_true,
                                                                  strict=True)}
     else:
-        s = simulate_tcp_set(cell, cfg, seed, views)
-        write_pose_csv(out / "poses.csv", s.names, s.T_B_F, "pose")
-        truth["tool"] = to_dict(s.tool)
-        truth["point_mm"] = [float(x) for x in s.point_B]
+        tcp = simulate_tcp_set(cell, cfg, seed, views)
+        write_pose_csv(out / "poses.csv", tcp.names, tcp.T_B_F, "pose")
+        truth["tool"] = to_dict(tcp.tool)
+        truth["point_mm"] = [float(x) for x in tcp.point_B]
     (out / "truth.json").write_text(json.dumps(truth, indent=1))
     return truth

@@ -72,10 +72,18 @@ def run(args: argparse.Namespace) -> int:
           f"seam visible in {visible})")
     if args.preview:
         pick = np.unique(np.linspace(0, len(truths) - 1, min(12, len(truths))).astype(int))
-        imgs = [cv2.imread(str(args.out / f"{i:05d}.png")) for i in pick]
+        imgs = [_read_frame(args.out / f"{i:05d}.png") for i in pick]
         caps = [f"#{i} {'flash ' if truths[i].flags.flash else ''}"
                 f"{'burst' if truths[i].flags.burst else ''}" for i in pick]
         sheet = contact_sheet(imgs, [truths[i].uv for i in pick], caps)
         cv2.imwrite(str(args.out / "preview.png"), sheet, [cv2.IMWRITE_PNG_COMPRESSION, 9])
         print(f"preview: {args.out / 'preview.png'}")
     return 0
+
+
+def _read_frame(path: Path) -> np.ndarray:
+    """A frame this command has just written (for the preview sheet)."""
+    img = cv2.imread(str(path))
+    if img is None:
+        raise TorchseamError(f"{path}: cannot read the frame back for the preview")
+    return img

@@ -107,7 +107,8 @@ class ArcNoise:
         self._offset = np.asarray(g.offset_px, float) if any(g.offset_px) else None
         self.reflections = [self._new_reflection() for _ in range(cfg.reflections.count)]
         hz = self.look.haze
-        self._haze = self._haze_phase = None
+        self._haze: np.ndarray | None = None
+        self._haze_phase: np.ndarray | None = None
         if hz.amount > 0:   # own random streams: the main one stays the same as without fume
             self._haze = _haze_field(hz.scale_px, size, seed)
             self._haze_phase = np.random.default_rng(seed + 1).uniform(0, 2 * np.pi, 3)
@@ -115,9 +116,10 @@ class ArcNoise:
 
     def _new_reflection(self) -> np.ndarray:
         r = self.cfg.reflections
+        (r0, r1), (b0, b1) = r.radius_px, r.brightness
         return np.array([self.rng.uniform(0, self.w), self.rng.uniform(0.2 * self.h, self.h),
-                         self.rng.uniform(*r.radius_px), self.rng.uniform(*r.radius_px) * 0.4,
-                         self.rng.uniform(0, np.pi), self.rng.uniform(*r.brightness)])
+                         self.rng.uniform(r0, r1), self.rng.uniform(r0, r1) * 0.4,
+                         self.rng.uniform(0, np.pi), self.rng.uniform(b0, b1)])
 
     def next(self, arc_uv: np.ndarray, stripe_uv: np.ndarray) -> NoiseLayers:
         """Advance one frame.
@@ -142,9 +144,9 @@ class ArcNoise:
 
         # The groove mirrors the arc: a bright band from the arc up the seam towards the stripe.
         gr = cfg.groove
-        reach = rng.uniform(*gr.reach)
+        reach = rng.uniform(gr.reach[0], gr.reach[1])
         self._band(glare, arc_uv, arc_uv + reach * (stripe_uv - arc_uv), gr.width_px,
-                   rng.uniform(*gr.brightness) * L * self.flicker)
+                   rng.uniform(gr.brightness[0], gr.brightness[1]) * L * self.flicker)
 
         # Reflections: slow random walk, brightness follows the arc.
         for i, ref in enumerate(self.reflections):
@@ -179,14 +181,14 @@ class ArcNoise:
 
         if rng.random() < cfg.flash.prob * L:
             flags.flash = True
-            gain = rng.uniform(*cfg.flash.brightness)
+            gain = rng.uniform(cfg.flash.brightness[0], cfg.flash.brightness[1])
             # half of the flashes light the lower part (nearer the arc) more
             glare += gain * (self._ramp if rng.random() < 0.5 else 1.0)
 
         if rng.random() < cfg.dropout.prob * look.dropout_gain * L:
             flags.dropout = True
             for _ in range(int(rng.integers(cfg.dropout.gaps[0], cfg.dropout.gaps[1] + 1))):
-                length = rng.uniform(*cfg.dropout.length_px)
+                length = rng.uniform(cfg.dropout.length_px[0], cfg.dropout.length_px[1])
                 # a third of the gaps hide the feature point itself
                 centre = rng.normal(0, 4.0) if rng.random() < 0.33 else rng.uniform(-250, 250)
                 out.gaps.append((centre - length / 2, centre + length / 2))
@@ -264,7 +266,8 @@ class ArcNoise:
         length = float(np.hypot(*d))
         if length < 1.0 or amp <= 0:
             return
-        roi = self._roi(*(0.5 * (p0 + p1)), 0.5 * length + 3 * width)
+        mid = 0.5 * (p0 + p1)
+        roi = self._roi(mid[0], mid[1], 0.5 * length + 3 * width)
         if roi is None:
             return
         xs, ys = self._axes(roi)
@@ -301,11 +304,12 @@ class ArcNoise:
         rng, sp, look = self.rng, self.cfg.spatter, self.look.spatter
         ang, dist = self._launch()
         start = arc + dist * np.array([np.cos(ang), np.sin(ang)])
-        length = rng.uniform(*sp.length_px) * look.length_scale
+        length = rng.uniform(sp.length_px[0], sp.length_px[1]) * look.length_scale
         dirn = ang + rng.normal(0, 0.3)
         end = start + length * np.array([np.cos(dirn), np.sin(dirn)])
         p0, p1 = tuple(int(v) for v in start * 16), tuple(int(v) for v in end * 16)
-        value = float(rng.uniform(*sp.brightness))   # drawn in this order: same random stream
+        # drawn in this order: the same random stream
+        value = float(rng.uniform(sp.brightness[0], sp.brightness[1]))
         thick = int(rng.integers(look.size_px[0], look.size_px[1] + 1))
         cv2.line(img, p0, p1, value, thick, cv2.LINE_8, 4)
         r = thick + 1
@@ -322,7 +326,7 @@ class ArcNoise:
         rng, sp, look = self.rng, self.cfg.spatter, self.look.spatter
         ang, dist = self._launch()
         c = arc + dist * np.array([np.cos(ang), np.sin(ang)])
-        value = float(rng.uniform(*sp.brightness))
+        value = float(rng.uniform(sp.brightness[0], sp.brightness[1]))
         rad = float(rng.uniform(look.size_px[0], look.size_px[1]))
         p = tuple(int(v) for v in c * 16)
         cv2.circle(img, p, int(rad * 16), value, -1, cv2.LINE_AA, 4)
@@ -334,6 +338,7 @@ class ArcNoise:
         drifts on a slow Lissajous path, its density breathing with the arc."""
         hz, f = self.look.haze, self._haze
         k, ph = self._haze_k, self._haze_phase
+        assert f is not None and ph is not None  # called only with a fume field (haze on)
         self._haze_k += 1
         px, py = f.shape[1] - self.w, f.shape[0] - self.h
         # angular rates so that the window moves about drift_px per frame
@@ -390,7 +395,7 @@ def _haze_field(scale_px: float, size: tuple[int, int], seed: int) -> np.ndarray
     W, H = w + pad, h + pad
     rng = np.random.default_rng(seed + 2)
     low = rng.random((int(H / scale_px) + 3, int(W / scale_px) + 3)).astype(np.float32)
-    f = cv2.resize(low, (W, H), interpolation=cv2.INTER_CUBIC)
+    f: np.ndarray = cv2.resize(low, (W, H), interpolation=cv2.INTER_CUBIC)
     f -= f.min()
     f /= max(float(f.max()), 1e-6)
     return f * f

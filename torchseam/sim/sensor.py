@@ -13,6 +13,7 @@ interface (every kind of part alike).
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import cv2
@@ -407,12 +408,16 @@ _GRID_PHI = np.linspace(0.0, 2 * np.pi, 721)
 def _seam_grid(joint: Joint) -> tuple[np.ndarray, np.ndarray]:
     """The seam sampled every half degree, (721,) angles and (721, 3) points, computed once per
     joint (a joint does not change) and kept on it."""
-    grid = getattr(joint, "_sensor_seam_grid", None)
+    grid = _SEAM_GRIDS.get(joint)
     if grid is None:
         grid = joint.seam(_GRID_PHI).point
         grid.setflags(write=False)
-        joint._sensor_seam_grid = grid  # noqa: SLF001 - a cache on the immutable joint
+        _SEAM_GRIDS[joint] = grid
     return _GRID_PHI, grid
+
+
+#: :func:`_seam_grid`'s cache: joint -> its seam grid, kept while the joint lives
+_SEAM_GRIDS: weakref.WeakKeyDictionary[Joint, np.ndarray] = weakref.WeakKeyDictionary()
 
 
 def _refine_root(f, lo: float, hi: float, n: int = 33, rounds: int = 4) -> float:

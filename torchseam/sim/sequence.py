@@ -144,7 +144,7 @@ class SensorRenderer:
                 stripe *= 1.0 - look.haze.absorb * haze
             chans.append(haze)
         # colour mixing of stripe, arc glare, spatter (and fume) light in one pass
-        img = cv2.transform(cv2.merge(chans), self.mix)
+        img: np.ndarray = cv2.transform(cv2.merge(chans), self.mix)
         img += self.background
         if self._camera_on:
             img = self._camera(img, layers.rows)
@@ -281,6 +281,6 @@ def _motion_kernel(length_px: int) -> np.ndarray | None:
 def _background(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
     """Dim, blotchy metal seen through the band-pass filter, (H, W, 3) float32."""
     low = rng.random((h // 32 + 2, w // 32 + 2)).astype(np.float32)
-    low = cv2.resize(low, (w, h), interpolation=cv2.INTER_CUBIC)
-    grey = BACKGROUND_GREY * (0.5 + low)
+    smooth: np.ndarray = cv2.resize(low, (w, h), interpolation=cv2.INTER_CUBIC)
+    grey = BACKGROUND_GREY * (0.5 + smooth)
     return grey[..., None] * np.array([0.5, 0.6, 1.0], np.float32)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -165,8 +166,9 @@ class EAKFState:
 
     def detach(self) -> EAKFState:
         """A copy cut from the autograd graph (truncated BPTT)."""
-        return EAKFState(**{f.name: (v.detach() if isinstance(v, Tensor) else v)
-                            for f in fields(self) for v in [getattr(self, f.name)]})
+        kw: dict[str, Any] = {f.name: (v.detach() if isinstance(v, Tensor) else v)
+                              for f in fields(self) for v in [getattr(self, f.name)]}
+        return EAKFState(**kw)
 
 
 @dataclass
@@ -379,7 +381,7 @@ def _pair(x: float | Sequence[float], name: str) -> tuple[float, float]:
     v = tuple(float(e) for e in x)
     if len(v) != 2:
         raise TrackInputError(f"{name}: expected a number or a (u, v) pair, got {x!r}")
-    return v  # type: ignore[return-value]
+    return v[0], v[1]
 
 
 class EAKF(nn.Module):
@@ -407,6 +409,15 @@ class EAKF(nn.Module):
         >>> tuple(uv.shape), tuple(f.stacked()["Phi"].shape)
         ((3, 20, 2), (8, 8))
     """
+
+    # registered as parameters or buffers in __init__
+    lam_raw: Tensor
+    a_raw: Tensor
+    b_raw: Tensor
+    log_q: Tensor
+    log_r: Tensor
+    dt: Tensor
+    p0: Tensor
 
     def __init__(self, frame_rate: float = _D.frame_rate, lam: float | Sequence[float] = _D.lam,
                  a: float | Sequence[float] = _D.a, b: float | Sequence[float] = _D.b,
@@ -438,12 +449,12 @@ class EAKF(nn.Module):
         raw = {"lam_raw": torch.atanh(torch.tensor(lam2)), "a_raw": torch.atanh(torch.tensor(a2)),
                "b_raw": torch.atanh(torch.tensor(b2)), "log_q": torch.tensor(q2).log(),
                "log_r": rt.log()}
-        for name, v in raw.items():
-            v = v.to(dtype).clone()
+        for name, value in raw.items():
+            t = value.to(dtype).clone()
             if learnable:
-                self.register_parameter(name, nn.Parameter(v))
+                self.register_parameter(name, nn.Parameter(t))
             else:
-                self.register_buffer(name, v)
+                self.register_buffer(name, t)
         self.register_buffer("dt", torch.tensor(1.0 / frame_rate, dtype=dtype))
         self.register_buffer("p0", p0t.to(dtype).clone())
 

@@ -106,6 +106,21 @@ class DriftGuard(nn.Module):
         ([True, False], True)
     """
 
+    # registered as parameters or buffers in __init__
+    log_psr0: Tensor
+    log_psr_slope: Tensor
+    logit_second0: Tensor
+    log_second_slope: Tensor
+    log_gate: Tensor
+    log_gate_slope: Tensor
+    log_spread0: Tensor
+    log_spread_slope: Tensor
+    log_r_scale_max: Tensor
+    logit_r_trust: Tensor
+    log_r_slope: Tensor
+    logit_learn_trust: Tensor
+    log_learn_slope: Tensor
+
     def __init__(self, psr0: float = _D.psr0, psr_slope: float = _D.psr_slope,
                  second0: float = _D.second0, second_slope: float = _D.second_slope,
                  gate: float = _D.gate, gate_slope: float = _D.gate_slope,
@@ -498,6 +513,6 @@ class EAKFSTC(nn.Module):
             cols["status"].append(status)
             for k in ("z", "trust", "psr", "second_ratio", "d2", "std"):
                 cols[k].append(q[k])
-        out = {k: torch.stack(v, dim=1) for k, v in cols.items()}
+        out: dict[str, Any] = {k: torch.stack(v, dim=1) for k, v in cols.items()}
         self.state = state
         return TrackResult(**out)

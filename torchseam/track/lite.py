@@ -32,6 +32,7 @@ import math
 
 import numpy as np
 import scipy.fft
+from torch import Tensor
 
 from torchseam.track._checks import TrackInputError
 from torchseam.track.base import Tracker
@@ -94,7 +95,13 @@ class LiteEAKFSTC:
         from torchseam.track._kernels import peak_quality  # numba: compiled or loaded now
 
         self._peak_quality = peak_quality
-        self.x = self.P = self.Z = self.s = self.s_ref = self.x_post = None
+        # the filter's state, set by init (with H_f: None until then)
+        self.x: np.ndarray | None = None
+        self.P: np.ndarray | None = None
+        self.Z: np.ndarray | None = None
+        self.s: np.ndarray | None = None
+        self.s_ref: np.ndarray | None = None
+        self.x_post: np.ndarray | None = None
         self.coast = 0
         self.status = int(TrackStatus.TRACKED)
 
@@ -109,7 +116,7 @@ class LiteEAKFSTC:
                 f"this module has crop={stc.crop!r}, peak={stc.peak!r}, "
                 f"scale_update={stc.scale_update} (use the torch module)")
 
-        def npy(t) -> np.ndarray:  # type: ignore[no-untyped-def]
+        def npy(t: Tensor) -> np.ndarray:
             return t.detach().to("cpu").double().numpy()
 
         import torch  # the module's parameters are tensors; the twin's state is not
@@ -185,8 +192,10 @@ class LiteEAKFSTC:
         frame -> command path. Same numbers either way."""
         pending, self._pending = self._pending, []
         for win, prior_f, centre, rho_scale in pending:
-            self._apply_learn(self._spectrum(win) if prior_f is None else prior_f, centre,
-                              rho_scale)
+            if prior_f is None:
+                assert win is not None  # a step queues its window or its prior spectrum
+                prior_f = self._spectrum(win)
+            self._apply_learn(prior_f, centre, rho_scale)
 
     def _apply_learn(self, prior_f: np.ndarray, centre: np.ndarray, rho_scale: float) -> None:
         r = np.floor(centre + 0.5)
@@ -249,12 +258,16 @@ class LiteEAKFSTC:
     @property
     def uv(self) -> np.ndarray:
         """(2,) position estimate at the newest frame."""
+        if self.x is None:
+            raise TrackInputError("LiteEAKFSTC.uv: call init(frame, uv0) first")
         return self.x[:, 0].copy()
 
-    def step(self, frame: np.ndarray) -> tuple[np.ndarray, int, dict[str, float]]:
+    def step(self, frame: np.ndarray) -> tuple[np.ndarray, int, dict[str, float | np.ndarray]]:
         """One EAKF-STC step (EAKFSTC.step_state): (uv (2,), status, quality)."""
         if self.H_f is None:
             raise TrackInputError("LiteEAKFSTC.step: call init(frame, uv0) first")
+        assert (self.x is not None and self.P is not None and self.Z is not None
+                and self.s is not None and self.s_ref is not None)  # set by init, with H_f
         frame = self._frame(frame)
         self.idle()  # the last step's learning, if nobody applied it between frames
         hi, wi = frame.shape[:2]
@@ -317,6 +330,7 @@ class LiteEAKFSTC:
         """Move onto an absolute fix ``uv`` (2,) of the newest frame (EAKFSTC.reanchor)."""
         if self.H_f is None:
             raise TrackInputError("LiteEAKFSTC.reanchor: call init(frame, uv0) first")
+        assert self.x is not None and self.Z is not None  # set by init, with H_f
         frame = self._frame(frame)  # every check before the state moves
         uv = np.asarray(uv, float).reshape(-1)
         if uv.shape != (2,) or not np.all(np.isfinite(uv)):

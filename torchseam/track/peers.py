@@ -14,6 +14,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -74,7 +75,7 @@ class TorchTracker(Tracker):
     """Plain STC from :mod:`torchseam.track` (the batched torch module), one stream (B = 1);
     it never declares the track lost (the paper's STC has no such test)."""
 
-    def __init__(self, name: str, module: torch.nn.Module) -> None:
+    def __init__(self, name: str, module: STC) -> None:
         self.name = name
         self.module = module.eval()
         self._planes: list[np.ndarray] = []  # reused per frame: the modules keep no frame
@@ -100,9 +101,11 @@ class OpenCVTracker(Tracker):
 
     def __init__(self, name: str) -> None:
         self.name = name
-        makers: dict[str, Callable[[], object]] = {
-            "kcf": cv2.TrackerKCF_create, "csrt": cv2.TrackerCSRT_create,
-            "mosse": cv2.legacy.TrackerMOSSE_create}
+        # opencv-contrib's trackers: cv2's stubs do not list them
+        makers: dict[str, Callable[[], Any]] = {
+            "kcf": cv2.TrackerKCF_create,  # type: ignore[attr-defined]
+            "csrt": cv2.TrackerCSRT_create,  # type: ignore[attr-defined]
+            "mosse": cv2.legacy.TrackerMOSSE_create}  # type: ignore[attr-defined]
         self._make = makers[name]
         self.offset = np.zeros(2)
         self.last = np.full(2, np.nan)

@@ -42,8 +42,9 @@ With ``peak="argmax"`` the ramp is exactly 1 and the tracker is the reference's.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -92,7 +93,7 @@ def _offsets(n: int, ref: Tensor) -> Tensor:
 _INDEX_CACHE: dict[tuple, Tensor] = {}
 
 
-def cached(key: tuple, make) -> Tensor:  # type: ignore[no-untyped-def]
+def cached(key: tuple, make: Callable[[], Tensor]) -> Tensor:
     """Small constant index tensors, built once per (kind, sizes, device): saves tiny ops."""
     t = _INDEX_CACHE.get(key)
     if t is None:
@@ -112,8 +113,9 @@ def _window_index(h: int, w: int, wi: int, device: torch.device) -> Tensor:
 def _scalar(x: float | Tensor, ref: Tensor | None = None) -> Tensor:
     if isinstance(x, Tensor):
         return x
-    kw = {} if ref is None else {"device": ref.device, "dtype": ref.dtype}
-    return torch.tensor(float(x), **kw)
+    if ref is None:
+        return torch.tensor(float(x))
+    return torch.tensor(float(x), device=ref.device, dtype=ref.dtype)
 
 
 # --------------------------------------------------------------------------- windows and maps
@@ -448,7 +450,7 @@ def _peak_tables(h: int, w: int, exclude: int, device: torch.device, dtype: torc
       :func:`_analyse`) of the blocks near each position; ``n_in`` (an extra, dummy slot) for
       blocks outside it. Also returns the block map's (bh, bw).
     """
-    def make() -> tuple[Tensor, ...]:
+    def make() -> Tensor:
         e = max(exclude, 1)
         n = 2 * e + 1
         r = torch.arange(-e, e + 1)
@@ -631,8 +633,9 @@ class STCState:
     def detach(self) -> STCState:
         """A copy cut from the autograd graph (truncated BPTT). Cached parameter-derived
         tensors must be rebuilt afterwards: use :meth:`STC.detach_state`."""
-        return STCState(**{f.name: (v.detach() if isinstance(v, Tensor) else v)
-                           for f in fields(self) for v in [getattr(self, f.name)]})
+        kw: dict[str, Any] = {f.name: (v.detach() if isinstance(v, Tensor) else v)
+                              for f in fields(self) for v in [getattr(self, f.name)]}
+        return STCState(**kw)
 
 
 @dataclass
@@ -694,6 +697,15 @@ class STC(nn.Module):
         >>> tuple(uv.shape), tuple(q["psr"].shape)
         ((2, 5, 2), (2, 5))
     """
+
+    # the raw parameters (registered as parameters or buffers in __init__)
+    log_alpha: Tensor
+    log_beta: Tensor
+    logit_rho: Tensor
+    log_sigma: Tensor
+    log_temperature: Tensor
+    log_reg: Tensor
+    logit_anchor: Tensor
 
     def __init__(self, window: Sequence[int] = _D.window, target: Sequence[int] = _D.target, *,
                  alpha: float = _D.alpha, beta: float = _D.beta, rho: float = _D.rho,
@@ -901,7 +913,11 @@ class STC(nn.Module):
             H_f = update_context_model(state.H_f, h_f, rho)
         H_ref = state.H_ref
         if self.anchored and f <= self.anchor_frames:  # running mean of the start models
-            H_ref = H_f if f == 1 else H_ref + (H_f - H_ref) / f
+            if f == 1:
+                H_ref = H_f
+            else:
+                assert H_ref is not None  # kept since frame 1
+                H_ref = H_ref + (H_f - H_ref) / f
         sigma, window = state.sigma, state.window
         if self.scale_update:  # sigma <- sigma * s at the start of the next frame
             sigma = sigma * scale

@@ -17,7 +17,7 @@ import numpy as np
 
 from torchseam.vision.quadfit import quad_normal_adjugate
 
-_JIT = {"cache": True, "nogil": True}
+# every kernel: cache=True (compiled once per install), nogil=True (the loop's threads run on)
 NO_PRIOR = np.zeros((2, 4))  # prior rows (b0, c0, w_b, w_c) = 0: the plain least squares
 CORNER_FAILS = {
     1: "no corner: the stripe cannot be split into two arms",
@@ -27,10 +27,10 @@ CORNER_FAILS = {
     5: "no corner: the arms are parallel",
     6: "no corner: the arms meet far from the stripe",
 }
-adjugate = numba.njit(**_JIT)(quad_normal_adjugate)
+adjugate = numba.njit(cache=True, nogil=True)(quad_normal_adjugate)
 
 
-@numba.njit("b1[::1](u1[:, ::1], i8)", **_JIT)
+@numba.njit("b1[::1](u1[:, ::1], i8)", cache=True, nogil=True)
 def border_columns(mask, reach):  # pragma: no cover - compiled
     """(W,) columns where the mask comes within ``reach`` rows of the top or bottom row."""
     h, w = mask.shape
@@ -46,7 +46,7 @@ def border_columns(mask, reach):  # pragma: no cover - compiled
 MAX_RUNS = 8  # runs of masked rows kept per column (more join the last one)
 
 
-@numba.njit("f8[:, ::1](u1[:, ::1], u1[:, ::1], f8, i8, i8, i8)", **_JIT)
+@numba.njit("f8[:, ::1](u1[:, ::1], u1[:, ::1], f8, i8, i8, i8)", cache=True, nogil=True)
 def centre_line(response, mask, half, passes, reach, span):  # pragma: no cover - compiled
     """Sub-pixel centre line (N, 2) (u, v) of :meth:`Tipm.centre`.
 
@@ -129,7 +129,7 @@ def centre_line(response, mask, half, passes, reach, span):  # pragma: no cover 
     return pts
 
 
-@numba.njit(**_JIT)
+@numba.njit(cache=True, nogil=True)
 def quad_fit(x, y, keep, prior):  # pragma: no cover - compiled
     """(a, b, c) of the least-squares y = a + b x + c x^2 over the points where ``keep``, plus
     the ridge terms of ``prior`` (b0, c0, w_b, w_c): the 3x3 normal equations in closed form."""
@@ -154,7 +154,7 @@ def quad_fit(x, y, keep, prior):  # pragma: no cover - compiled
             (A02 * r0 + A12 * r1 + A22 * r2) / det)
 
 
-@numba.njit(**_JIT)
+@numba.njit(cache=True, nogil=True)
 def line_sse(k, sx, sy, sxx, sxy, syy):  # pragma: no cover - compiled
     """Squared error of the least-squares line through ``k`` points with these sums."""
     vx = sxx - sx * sx / k
@@ -162,7 +162,7 @@ def line_sse(k, sx, sy, sxx, sxy, syy):  # pragma: no cover - compiled
     return syy - sy * sy / k - (cxy * cxy / vx if vx > 1e-9 else 0.0)
 
 
-@numba.njit(**_JIT)
+@numba.njit(cache=True, nogil=True)
 def best_split(pts, min_pts):  # pragma: no cover - compiled
     """Column that best splits the points (N, 2) (u, v), sorted by u, into two straight lines
     (least squares over every split with running sums, O(N)); NaN with too few points."""
@@ -199,7 +199,7 @@ def best_split(pts, min_pts):  # pragma: no cover - compiled
     return 0.5 * (pts[best, 0] + pts[best + 1, 0])
 
 
-@numba.njit(**_JIT)
+@numba.njit(cache=True, nogil=True)
 def fit_arms(pts, u0, gap, window, min_pts, prior, arms):  # pragma: no cover - compiled
     """Quadratic fit of each arm beside column ``u0`` into ``arms`` (2, 3), centred on ``u0``;
     returns (fail code, its count, rms, x of the meeting point relative to ``u0``). ``pts`` is
@@ -254,7 +254,7 @@ def fit_arms(pts, u0, gap, window, min_pts, prior, arms):  # pragma: no cover - 
 
 
 @numba.njit("Tuple((i8, i8, f8, f8, f8, f8, f8))(f8[:, ::1], f8, f8, i8, f8[:, ::1], f8[:, ::1])",
-            **_JIT)
+            cache=True, nogil=True)
 def corner(pts, gap, window, min_pts, prior, arms):  # pragma: no cover - compiled
     """The corner search of :meth:`Tipm.corner` on centre-line points (N, 2) sorted by u:
     (fail code (0: found, see ``CORNER_FAILS``), its count, u0, x, rms, v, corner angle in

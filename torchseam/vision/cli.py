@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"--overlay {args.overlay}: cannot create the folder ({e.strerror})",
                   file=sys.stderr)
             return 2
-    found, used = 0, set()
+    found, used = 0, set[str]()
     for path in args.frames:
         try:
             img = read_frame(path)

@@ -90,7 +90,11 @@ def red_response(frame: np.ndarray, with_green: bool = False,
         np.uint8(7)
     """
     if frame.ndim == 2:
-        red = frame if out is None else np.copyto(out[0], frame) or out[0]
+        if out is None:
+            red = frame
+        else:
+            np.copyto(out[0], frame)
+            red = out[0]
         return (red, frame) if with_green else red
     if out is None:
         b, g, r = cv2.split(frame)
@@ -194,7 +198,8 @@ class Tipm:
         planes = [self._plane(c, hw) for c in "bgr"]
         red, g = red_response(frame, with_green=True, out=planes)
         # the stripe saturates R only; white arc light saturates G as well
-        sat = cv2.compare(g, 250, cv2.CMP_GE, dst=planes[2])
+        # OpenCV takes a scalar src2; its stubs allow arrays only
+        sat = cv2.compare(g, 250, cv2.CMP_GE, dst=planes[2])  # type: ignore[call-overload]
         if cv2.countNonZero(sat) > cfg.max_saturated_fraction * red.size:
             return red, np.zeros_like(red), "frame saturated by arc light"
         # ridge: red minus its local vertical mean, so broad red glare does not pass as stripe
@@ -224,7 +229,8 @@ class Tipm:
             lut = np.zeros(max(n, 256), np.uint8)
             lut[keep] = 255
             # cv2.LUT needs 8-bit labels; with <= 256 labels (nearly always) it is 5x np.take
-            box = cv2.LUT(lab.astype(np.uint8), lut[:256]) if n <= 256 else np.take(lut, lab)
+            box = (cv2.LUT(lab.astype(np.uint8), lut[:256]) if n <= 256
+                   else np.take(lut, lab))  # type: ignore[arg-type]  # CV_16U labels: integers
         mask[roi] = cv2.dilate(box, self._kernel)
         return ridge, mask, ""
 
