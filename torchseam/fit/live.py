@@ -45,7 +45,7 @@ from torchseam.fit.model_io import FitError, save_fitted
 from torchseam.sim.sequence import SequenceSpec, simulate_labelled
 from torchseam.sim.variants import hide_corner
 from torchseam.track.live import LiveTracker
-from torchseam.vision.tipm import red_response
+from torchseam.vision.tipm import Tipm, find_view, red_response
 
 __all__ = ["BEYOND", "LiveFitConfig", "LiveSequence", "fit_live", "load_live_fit_config",
            "simulate_set", "track_set"]
@@ -99,10 +99,13 @@ def simulate_set(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
                  families: Sequence[str], levels: Sequence[str], seeds: Sequence[int],
                  n_frames: int, hide_frames: Sequence[int] = (30, 60),
                  progress: Callable[[str], None] | None = None) -> list[LiveSequence]:
-    """One sequence per (family, level, seed), simulated in memory. Level ``beyond``: heavy
-    arc plus the corner hidden under glare for each of ``hide_frames`` frames, at places drawn
-    from the seed (the benchmark's places are fixed: a fit must not learn them)."""
+    """One sequence per (family, level, seed), simulated in memory and read in the view the
+    live loop finds on its first frame (:func:`~torchseam.vision.tipm.find_view`). Level
+    ``beyond``: heavy arc plus the corner hidden under glare for each of ``hide_frames``
+    frames, at places drawn from the seed (the benchmark's places are fixed: a fit must not
+    learn them)."""
     out = []
+    tipm = Tipm()
     for fam in families:
         for name in levels:
             try:
@@ -122,6 +125,12 @@ def simulate_set(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
                         start = float(rng.uniform(lo, max(lo, min(hi, 1 - (length + 5) / n))))
                         stretches.append((start, int(length)))
                     frames, hidden = hide_corner(frames, labels, tuple(stretches))
+                # the view the live loop reads this camera in (cell config `auto`): found on
+                # the first, clean frame, e.g. the red channel where the stripe is so bright
+                # that its red excess is gone (rows: the labels stay as they are)
+                view = find_view(frames[0], tipm, "rows", "auto")
+                if view is not None and view.response != "red":
+                    frames = [view.frame(f) for f in frames]
                 out.append(LiveSequence(frames, labels, f"{fam}/{name}", hidden))
                 if progress:
                     progress(f"simulated {fam}/{name} seed {s}")
