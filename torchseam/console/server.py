@@ -332,8 +332,7 @@ class ConsoleServer:
         await self._runner.setup()
         site = web.TCPSite(self._runner, host, port)
         await site.start()
-        sock = site._server.sockets[0]  # noqa: SLF001 - the only way to learn an ephemeral port
-        self.address = sock.getsockname()[:2]
+        self.address = tuple(self._runner.addresses[0][:2])  # the port, ephemeral or not
         self._publisher = asyncio.create_task(self._publish())
         return self.address
 

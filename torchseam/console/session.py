@@ -17,16 +17,25 @@ import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from torchseam.console.config import ConsoleConfig, WeldParams
-from torchseam.live.demo import DemoControl, DemoEvent, DemoResult
+from torchseam.live.demo import DemoControl, DemoEvent
 from torchseam.robot.egm import set_realtime_priority
 
-#: ``weld(params, observer, control) -> DemoResult``: what the session runs on its thread.
-WeldFn = Callable[[WeldParams, Callable[[DemoEvent], None], DemoControl], DemoResult]
+
+class WeldOutcome(Protocol):
+    """What a weld function returns (a demo's :class:`~torchseam.live.demo.DemoResult`, a
+    replay's :class:`~torchseam.console.replay.ReplayWeld`): the summary the session shows."""
+
+    @property
+    def summary(self) -> dict[str, Any]: ...
+
+
+#: ``weld(params, observer, control) -> WeldOutcome``: what the session runs on its thread.
+WeldFn = Callable[[WeldParams, Callable[[DemoEvent], None], DemoControl], WeldOutcome]
 
 
 class RunState:
@@ -181,22 +190,19 @@ class WeldSession:
         self._thread.start()
 
     def hold(self) -> None:
-        self._need_running("hold")
-        self.control.hold()
+        self._need_running("hold").hold()
         with self.lock:
             self.state = RunState.HELD
         self.log("held by the operator")
 
     def resume(self) -> None:
-        self._need_running("resume")
-        self.control.resume()
+        self._need_running("resume").resume()
         with self.lock:
             self.state = RunState.RUNNING
         self.log("resumed by the operator")
 
     def stop(self) -> None:
-        self._need_running("stop")
-        self.control.stop()
+        self._need_running("stop").stop()
         with self.lock:
             self.state = RunState.STOPPING
         self.log("stop requested by the operator")
@@ -207,9 +213,11 @@ class WeldSession:
             self._thread.join(timeout)
         return not self.running
 
-    def _need_running(self, what: str) -> None:
+    def _need_running(self, what: str) -> PacedControl:
+        """The running weld's control (raises when none runs)."""
         if not self.running or self.control is None or self.control.stopped:
             raise RuntimeError(f"{what}: no weld is running")
+        return self.control
 
     def _run(self, params: WeldParams, control: PacedControl) -> None:
         prio = self.cfg.rt_priority
@@ -231,7 +239,8 @@ class WeldSession:
             self.log(f"weld failed: {type(e).__name__}: {e}", level="error")
             traceback.print_exc()
             return
-        s = {k: (num(v) if isinstance(v, float) else v) for k, v in res.summary.items()}
+        s: dict[str, Any] = {k: (num(v) if isinstance(v, float) else v)
+                             for k, v in res.summary.items()}
         with self.lock:
             self.summary = s
             self.state = RunState.STOPPED if s.get("stopped") else RunState.FINISHED

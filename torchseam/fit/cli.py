@@ -275,7 +275,7 @@ def _resolve(cfg: FitConfig, info: DistInfo
         if overlap:
             raise TorchseamError(f"seeds {sorted(overlap)} are used for training and for "
                                  "validation or testing: choose disjoint seeds")
-        kw = {"progress": cfg.progress, "families": cfg.families}
+        kw: dict[str, Any] = {"progress": cfg.progress, "families": cfg.families}
         val_levels = cfg.val_levels or cfg.levels
         if info.main:
             train_dirs = generate_sequences(cfg.cache, cfg.levels, tr_seeds, cfg.frames, **kw)
@@ -329,7 +329,8 @@ def _resolve(cfg: FitConfig, info: DistInfo
 
 
 def _load(dirs: list[Path], cfg: FitConfig, info: DistInfo, roi: int | None = None):
-    kw = {"roi": roi or cfg.roi, "margin": cfg.margin, "max_frames": cfg.max_frames,
+    kw: dict[str, Any] = {"roi": roi or cfg.roi, "margin": cfg.margin,
+                          "max_frames": cfg.max_frames,
           "cache": cfg.cache}
     if info.main:
         s = load_sequences(dirs, progress=cfg.progress, **kw)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -179,53 +179,77 @@ def _check(cfg: FitConfig) -> None:
         raise ValueError(f"tracker: {e}") from None
 
 
+def _bad(name: str, what: str, v: Any) -> ValueError:
+    return ValueError(f"{name}: expected {what}, got {v!r}")
+
+
+def _to_int(name: str, v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        if isinstance(v, float) and v.is_integer():
+            return int(v)
+        raise _bad(name, "a whole number", v)
+    return v
+
+
+def _to_float(name: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise _bad(name, "a finite number", v)
+    return float(v)
+
+
+def _to_bool(name: str, v: Any) -> bool:
+    if not isinstance(v, bool):
+        raise _bad(name, "true or false", v)
+    return v
+
+
+def _to_str(name: str, v: Any) -> str:
+    if isinstance(v, int) and not isinstance(v, bool) and name.endswith("seeds"):
+        return str(v)
+    if isinstance(v, list) and name.endswith("seeds"):
+        return ",".join(str(x) for x in parse_seeds(v, name))
+    if not isinstance(v, str) or not v:
+        raise _bad(name, "a non-empty string", v)
+    return v
+
+
+def _to_path_or_none(name: str, v: Any) -> str | None:
+    if v is None:
+        return None
+    if not isinstance(v, str) or not v:
+        raise _bad(name, "a path or null", v)
+    return v
+
+
+def _to_names(name: str, v: Any) -> tuple[str, ...]:
+    if isinstance(v, str):
+        v = [s.strip() for s in v.split(",") if s.strip()]
+    if not isinstance(v, (list, tuple)) or not all(isinstance(s, (str, int, float)) for s in v):
+        raise _bad(name, "a list of names", v)
+    return tuple(str(s) for s in v)
+
+
+def _to_mapping(name: str, v: Any) -> dict[str, Any]:
+    if v is None:
+        return {}
+    if not isinstance(v, Mapping):
+        raise _bad(name, "a mapping", v)
+    return dict(v)
+
+
+#: field type (as :class:`FitConfig` spells it) -> its converter
+_COERCE: dict[str, Callable[[str, Any], Any]] = {
+    "int": _to_int, "float": _to_float, "bool": _to_bool, "str": _to_str,
+    "str | None": _to_path_or_none, "tuple[str, ...]": _to_names,
+    "dict[str, Any]": _to_mapping}
+
+
 def _coerce(name: str, tp: Any, v: Any) -> Any:
     """Convert a YAML / CLI value to the field's type or raise ValueError('name: ...')."""
-    def bad(what: str) -> ValueError:
-        return ValueError(f"{name}: expected {what}, got {v!r}")
-
-    if tp in ("int",):
-        if isinstance(v, bool) or not isinstance(v, int):
-            if isinstance(v, float) and v.is_integer():
-                return int(v)
-            raise bad("a whole number")
-        return v
-    if tp == "float":
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise bad("a finite number")
-        return float(v)
-    if tp == "bool":
-        if not isinstance(v, bool):
-            raise bad("true or false")
-        return v
-    if tp == "str":
-        if isinstance(v, int) and not isinstance(v, bool) and name.endswith("seeds"):
-            return str(v)
-        if isinstance(v, list) and name.endswith("seeds"):
-            return ",".join(str(x) for x in parse_seeds(v, name))
-        if not isinstance(v, str) or not v:
-            raise bad("a non-empty string")
-        return v
-    if tp == "str | None":
-        if v is None:
-            return None
-        if not isinstance(v, str) or not v:
-            raise bad("a path or null")
-        return v
-    if tp == "tuple[str, ...]":
-        if isinstance(v, str):
-            v = [s.strip() for s in v.split(",") if s.strip()]
-        if not isinstance(v, (list, tuple)) or not all(isinstance(s, (str, int, float))
-                                                       for s in v):
-            raise bad("a list of names")
-        return tuple(str(s) for s in v)
-    if tp == "dict[str, Any]":
-        if v is None:
-            return {}
-        if not isinstance(v, Mapping):
-            raise bad("a mapping")
-        return dict(v)
-    raise TypeError(f"unsupported field type {tp!r}")  # programming error
+    convert = _COERCE.get(tp) if isinstance(tp, str) else None
+    if convert is None:
+        raise TypeError(f"unsupported field type {tp!r}")  # programming error
+    return convert(name, v)
 
 
 def load_fit_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None,

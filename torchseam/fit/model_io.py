@@ -57,11 +57,13 @@ def save_fitted(module: nn.Module, path: str | os.PathLike[str],
     tensors = {k: v.detach().to("cpu", copy=True).contiguous()
                for k, v in module.state_dict().items()}
     cfg = getattr(module, "config", None)
-    live = hasattr(module, "fusion")
+    from torchseam.track.live import LiveTracker
+
+    live = isinstance(module, LiveTracker)  # the only module with a fusion head
     meta = {"format": LIVE_FORMAT if live else MODEL_FORMAT,
             "tracker_config": json.dumps(cfg.to_dict() if cfg is not None else {}),
             "info": json.dumps(dict(info or {}))}
-    if live:
+    if isinstance(module, LiveTracker):
         meta["anchor_config"] = json.dumps(dataclasses.asdict(module.cfg))
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     save_file(tensors, str(tmp), metadata=meta)

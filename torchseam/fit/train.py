@@ -209,6 +209,13 @@ def evaluate(module: EAKFSTC, seqs: SequenceSet, batch: int = 16, lost_px: float
     return {"loss": hsum / max(hn, 1), "groups": groups}
 
 
+def _labels(ds: Dataset) -> np.ndarray:
+    """The labels of a folder opened with ``require_labels`` (evaluation)."""
+    if ds.labels is None:
+        raise FitError(f"{ds.root}: no labels.csv: cannot evaluate on unlabelled frames")
+    return ds.labels
+
+
 @torch.no_grad()
 def evaluate_folders(models: Mapping[str, EAKFSTC], dirs: Sequence[str | os.PathLike[str]],
                      batch: int = 8, lost_px: float = 15.0, progress: bool = True
@@ -245,7 +252,7 @@ def evaluate_folders(models: Mapping[str, EAKFSTC], dirs: Sequence[str | os.Path
                 return torch.from_numpy(np.stack(imgs))
 
             f0 = frames_at(0)
-            uv0 = np.stack([dsets[i].labels[f] for i, f in zip(idx, firsts, strict=True)])
+            uv0 = np.stack([_labels(dsets[i])[f] for i, f in zip(idx, firsts, strict=True)])
             states = {}
             out = {}
             for name, m in models.items():
@@ -259,12 +266,12 @@ def evaluate_folders(models: Mapping[str, EAKFSTC], dirs: Sequence[str | os.Path
                     out[name].append(uv.to(torch.float64))
                 bar.update(len(idx))
             for name in models:
-                uv = torch.stack(out[name], dim=1).numpy()
+                uv_all = torch.stack(out[name], dim=1).numpy()
                 for j, (i, f, n) in enumerate(zip(idx, firsts, lengths, strict=True)):
-                    lab = dsets[i].labels[f:f + n]
+                    lab = _labels(dsets[i])[f:f + n]
                     ok = np.isfinite(lab[:, 0])
                     ok[0] = False
-                    e = np.linalg.norm(uv[j, :n][ok] - lab[ok], axis=1)
+                    e = np.linalg.norm(uv_all[j, :n][ok] - lab[ok], axis=1)
                     e[~np.isfinite(e)] = np.nan
                     errs.setdefault((sequence_group(dsets[i].meta), name), []).append(e)
     bar.close()
@@ -396,53 +403,20 @@ def train(cfg: FitConfig, train_set: SequenceSet, val_set: SequenceSet | None = 
     start = 0
     if resume:
         path = _checkpoint_path(out) if resume is True else Path(resume)
-        ck = _load_checkpoint(path)
-        old = json.loads(ck["config"])
-        if sorted(old.get("fit", [])) != sorted(cfg.fit):
-            raise FitError(f"{path}: fitted {old.get('fit')}, this run fits {list(cfg.fit)}: "
-                           "resume with the same --fit")
-        changed = [k for k in ("batch", "chunk", "lr", "huber", "seed", "tracker", "dtype")
-                   if old.get(k) != cfg.to_dict().get(k)]
-        if changed:
-            say(f"resume: {', '.join(changed)} changed since {path} (the run will differ "
-                "from an uninterrupted one)")
-        with torch.no_grad():
-            module.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        history = [EpochRecord(**h) for h in json.loads(ck["history"])]
-        best = dict(ck["best"])
-        start = int(ck["epoch"]) + 1
-        say(f"resumed from {path} after epoch {start}")
-    N = len(train_set)
-    if N < info.world:
-        raise FitError(f"{N} training sequences for {info.world} processes: each process "
-                       "needs at least one")
+        history, best, start = _resume(path, cfg, module, opt, say)
+    N = _check_shards(len(train_set), info)
     if val_set is None and start == 0:
         say("no validation sequences: the last epoch's parameters are kept")
-    if val_set is not None and start == 0 and info.main:  # the starting point's score
-        module.eval()
-        ev = evaluate(module, val_set, cfg.batch, cfg.lost_px, cfg.huber)
-        rec = EpochRecord(epoch=0, loss=None, steps=0, seconds=0.0, sequences=0, frames=0,
-                          val_loss=ev["loss"], val=ev["groups"], params=readable_params(module))
+    if val_set is not None and start == 0:  # the starting point's score
+        rec, best0 = _starting_point(module, val_set, cfg, info)
         history.append(rec)
-        best = {"epoch": 0, "val_loss": ev["loss"],
-                "model": {k: v.detach().clone() for k, v in module.state_dict().items()}}
-        say(_epoch_line(rec))
-    elif start == 0 and not info.main and val_set is not None:
-        history.append(EpochRecord(epoch=0, loss=None, steps=0, seconds=0.0, sequences=0,
-                                   frames=0))
+        if best0 is not None:
+            best = best0
+            say(_epoch_line(rec))
     barrier(info)
 
     for epoch in range(start, cfg.epochs):
-        g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
-        perm = torch.randperm(N, generator=g).tolist()
-        batches = [perm[i:i + cfg.batch] for i in range(0, N, cfg.batch)]
-        if len(batches[-1]) < info.world:  # a process would get no sequence
-            if epoch == start:
-                say(f"{len(batches[-1])} sequences left over in the last batch of each epoch "
-                    f"for {info.world} processes: dropped (choose N and --batch as multiples "
-                    f"of {info.world})")
-            batches = batches[:-1]
+        batches = _epoch_batches(cfg, N, info, epoch, say if epoch == start else None)
         n_steps = sum(math.ceil((int(train_set.lengths[b].max()) - 1) / cfg.chunk)
                       for b in batches)
         bar = tqdm(total=n_steps, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="step",
@@ -471,16 +445,9 @@ def train(cfg: FitConfig, train_set: SequenceSet, val_set: SequenceSet | None = 
                 opt.zero_grad(set_to_none=False)
                 loss.backward()
                 if steps == 0 and epoch == start:
-                    dead = [n for n, p in module.named_parameters()
-                            if p.requires_grad and p.grad is None]
-                    if dead:
-                        say(f"warning: no gradient reaches {', '.join(dead)} (they stay put)")
+                    _warn_no_gradient(module, say)
                 gl = _all_sum(float(loss.detach()), info) / info.world
-                finite = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params)
-                if finite and math.isfinite(gl):
-                    if cfg.clip > 0:
-                        torch.nn.utils.clip_grad_norm_(params, cfg.clip)
-                    opt.step()
+                if _optimizer_step(opt, params, gl, cfg.clip):
                     loss_sum += gl * n_glob
                     loss_n += n_glob
                 else:
@@ -496,28 +463,120 @@ def train(cfg: FitConfig, train_set: SequenceSet, val_set: SequenceSet | None = 
         if info.main:
             if val_set is not None and ((epoch + 1) % cfg.val_every == 0
                                         or epoch + 1 == cfg.epochs):
-                module.eval()
-                ev = evaluate(module, val_set, cfg.batch, cfg.lost_px, cfg.huber)
-                rec.val_loss, rec.val = ev["loss"], ev["groups"]
-                if ev["loss"] < best["val_loss"]:
-                    best = {"epoch": epoch + 1, "val_loss": ev["loss"],
-                            "model": {k: v.detach().clone()
-                                      for k, v in module.state_dict().items()}}
+                best = _validate(module, val_set, cfg, rec, best)
             history.append(rec)
             say(_epoch_line(rec))
             _save_checkpoint(_checkpoint_path(out), module, opt, epoch, history, best, cfg)
         else:
             history.append(rec)
         barrier(info)
-    if best["model"]:
-        with torch.no_grad():
-            module.load_state_dict(best["model"])
-        which = ("the starting point's" if best["epoch"] == 0
-                 else f"epoch {best['epoch']}'s")
-        say(f"best validation loss {best['val_loss']:.4f}: keeping {which} parameters")
+    _keep_best(module, best, say)
     if info.main:
         say("fitted: " + ", ".join(freed))
     return module, history
+
+
+def _resume(path: Path, cfg: FitConfig, module: EAKFSTC, opt: torch.optim.Optimizer,
+            say: Callable[[str], None]) -> tuple[list[EpochRecord], dict[str, Any], int]:
+    """Load the checkpoint ``path`` into ``module`` and ``opt``: (history, best, next epoch)."""
+    ck = _load_checkpoint(path)
+    old = json.loads(ck["config"])
+    if sorted(old.get("fit", [])) != sorted(cfg.fit):
+        raise FitError(f"{path}: fitted {old.get('fit')}, this run fits {list(cfg.fit)}: "
+                       "resume with the same --fit")
+    changed = [k for k in ("batch", "chunk", "lr", "huber", "seed", "tracker", "dtype")
+               if old.get(k) != cfg.to_dict().get(k)]
+    if changed:
+        say(f"resume: {', '.join(changed)} changed since {path} (the run will differ "
+            "from an uninterrupted one)")
+    with torch.no_grad():
+        module.load_state_dict(ck["model"])
+    opt.load_state_dict(ck["optimizer"])
+    history = [EpochRecord(**h) for h in json.loads(ck["history"])]
+    start = int(ck["epoch"]) + 1
+    say(f"resumed from {path} after epoch {start}")
+    return history, dict(ck["best"]), start
+
+
+def _starting_point(module: EAKFSTC, val_set: SequenceSet, cfg: FitConfig, info: DistInfo
+                    ) -> tuple[EpochRecord, dict[str, Any] | None]:
+    """Epoch 0's record: the starting parameters' validation score on rank 0 (and the best
+    so far: them), an empty record on the other ranks (and None)."""
+    if not info.main:
+        return EpochRecord(epoch=0, loss=None, steps=0, seconds=0.0, sequences=0, frames=0), None
+    module.eval()
+    ev = evaluate(module, val_set, cfg.batch, cfg.lost_px, cfg.huber)
+    rec = EpochRecord(epoch=0, loss=None, steps=0, seconds=0.0, sequences=0, frames=0,
+                      val_loss=ev["loss"], val=ev["groups"], params=readable_params(module))
+    best = {"epoch": 0, "val_loss": ev["loss"],
+            "model": {k: v.detach().clone() for k, v in module.state_dict().items()}}
+    return rec, best
+
+
+def _check_shards(n: int, info: DistInfo) -> int:
+    """``n`` training sequences, at least one per process."""
+    if n < info.world:
+        raise FitError(f"{n} training sequences for {info.world} processes: each process "
+                       "needs at least one")
+    return n
+
+
+def _keep_best(module: EAKFSTC, best: dict[str, Any], say: Callable[[str], None]) -> None:
+    """Load the best validated parameters into ``module`` (none validated: leave it)."""
+    if not best["model"]:
+        return
+    with torch.no_grad():
+        module.load_state_dict(best["model"])
+    which = "the starting point's" if best["epoch"] == 0 else f"epoch {best['epoch']}'s"
+    say(f"best validation loss {best['val_loss']:.4f}: keeping {which} parameters")
+
+
+def _warn_no_gradient(module: EAKFSTC, say: Callable[[str], None]) -> None:
+    """After the first backward pass: name the fitted parameters no gradient reached."""
+    dead = [n for n, p in module.named_parameters() if p.requires_grad and p.grad is None]
+    if dead:
+        say(f"warning: no gradient reaches {', '.join(dead)} (they stay put)")
+
+
+def _optimizer_step(opt: torch.optim.Optimizer, params: list[nn.Parameter], loss: float,
+                    clip: float) -> bool:
+    """One step (gradients clipped to norm ``clip`` when > 0) unless the loss or a gradient is
+    not finite; whether it stepped."""
+    finite = all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params)
+    if not (finite and math.isfinite(loss)):
+        return False
+    if clip > 0:
+        torch.nn.utils.clip_grad_norm_(params, clip)
+    opt.step()
+    return True
+
+
+def _validate(module: EAKFSTC, val_set: SequenceSet, cfg: FitConfig, rec: EpochRecord,
+              best: dict[str, Any]) -> dict[str, Any]:
+    """Score ``rec``'s epoch on the validation set (into ``rec``); the best so far."""
+    module.eval()
+    ev = evaluate(module, val_set, cfg.batch, cfg.lost_px, cfg.huber)
+    rec.val_loss, rec.val = ev["loss"], ev["groups"]
+    if ev["loss"] < best["val_loss"]:
+        return {"epoch": rec.epoch, "val_loss": ev["loss"],
+                "model": {k: v.detach().clone() for k, v in module.state_dict().items()}}
+    return best
+
+
+def _epoch_batches(cfg: FitConfig, n: int, info: DistInfo, epoch: int,
+                   say: Callable[[str], None] | None) -> list[list[int]]:
+    """The epoch's batches of sequence indices (shuffled by seed and epoch); a last batch
+    too small to give every process a sequence is dropped (``say`` tells, when given)."""
+    g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
+    perm = torch.randperm(n, generator=g).tolist()
+    batches = [perm[i:i + cfg.batch] for i in range(0, n, cfg.batch)]
+    if len(batches[-1]) < info.world:  # a process would get no sequence
+        if say is not None:
+            say(f"{len(batches[-1])} sequences left over in the last batch of each epoch "
+                f"for {info.world} processes: dropped (choose N and --batch as multiples "
+                f"of {info.world})")
+        batches = batches[:-1]
+    return batches
 
 
 def _epoch_line(r: EpochRecord) -> str:

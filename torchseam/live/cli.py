@@ -160,7 +160,7 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
           + ("from the recording" if res.poses_known else
              ("from --pose" if pose is not None else "not recorded: flange at the base origin "
               "(3D points in the flange frame)")))
-    rows = [["frames tracked / lost", f"{n - lost} / {lost}", ""],
+    rows: list[list[object]] = [["frames tracked / lost", f"{n - lost} / {lost}", ""],
             ["3D seam points located", located, ""],
             ["poses planned (open loop, not sent)", len(res.commands), ""]]
     err = res.pixel_errors()
@@ -218,11 +218,10 @@ def _expected_frames(cell, part, args: argparse.Namespace) -> int:
     return int(per_seg * len(args.segments))
 
 
-def run(args: argparse.Namespace) -> int:
-    from torchseam.live.demo import FAULTS, run_demo, write_report
+def _demo_faults(args: argparse.Namespace) -> tuple[str, ...]:
+    """The faults ``demo`` injects, its options checked first (one-line errors)."""
+    from torchseam.live.demo import FAULTS
 
-    torch.set_num_threads(1)
-    cv2.setNumThreads(1)
     faults = tuple(f.strip() for a in args.fault for f in a.split(",") if f.strip())
     bad = [f for f in faults if f not in FAULTS]
     if bad:
@@ -235,6 +234,15 @@ def run(args: argparse.Namespace) -> int:
             raise TorchseamError(f"{name} must be within +-{most:g}, got {v}")
     if not args.segments or set(args.segments) - set("abcdef"):
         raise TorchseamError(f"--segments {args.segments!r}: use letters from abcdef")
+    return faults
+
+
+def run(args: argparse.Namespace) -> int:
+    from torchseam.live.demo import run_demo, write_report
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    faults = _demo_faults(args)
     if args.model is not None:
         from torchseam.track.peers import make_tracker
 
@@ -258,7 +266,7 @@ def run(args: argparse.Namespace) -> int:
     video = None
     if not args.no_video:
         size = (cell.camera.width // 2, cell.camera.height // 2)  # half size keeps it small
-        video = cv2.VideoWriter(str(args.out / "weld.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
+        video = cv2.VideoWriter(str(args.out / "weld.mp4"), cv2.VideoWriter.fourcc(*"mp4v"),
                                 cell.process.frame_rate_hz, size)
         if not video.isOpened():
             raise TorchseamError(f"{args.out / 'weld.mp4'}: OpenCV cannot write MP4 here "

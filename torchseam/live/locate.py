@@ -137,6 +137,7 @@ class SeamLocator:
         0.8-1.2 degrees): they are taken when both agree with ECAL's arms within
         ``tipm_agreement_deg`` (never for ECAL's occluded-arm fallback), placed ``r_max_px``
         out so that they vote as full-length arms in the look-ahead buffer."""
+        assert arms.p_tangent is not None  # called for a found pair of arms (arms.ok)
         if lent is None or arms.fallback:
             return arms.p_tangent
         ecal = np.stack([np.cos(arms.angles), np.sin(arms.angles)], axis=1)

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 from itertools import islice
 from pathlib import Path
-from typing import Any, Protocol, TypeVar, overload
+from typing import Any, Protocol, SupportsIndex, TypeVar, overload
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -166,10 +166,10 @@ class History(deque[_T]):
         super().__init__(items, maxlen)
 
     @overload
-    def __getitem__(self, i: int) -> _T: ...
+    def __getitem__(self, i: SupportsIndex, /) -> _T: ...
     @overload
-    def __getitem__(self, i: slice) -> list[_T]: ...
-    def __getitem__(self, i: int | slice) -> _T | list[_T]:  # noqa: E301
+    def __getitem__(self, i: slice, /) -> list[_T]: ...
+    def __getitem__(self, i: SupportsIndex | slice, /) -> _T | list[_T]:  # noqa: E301
         if isinstance(i, slice):
             start, stop, step = i.indices(len(self))
             if step == 1:
@@ -405,7 +405,8 @@ class LiveLoop:
         self._tilt = (_rot(0, self.plan.work_angle_deg) @ _rot(1, self.plan.travel_angle_deg))
         # prepare()'s pose: (the buffer's answer it came from, last_q then, the pose (ip, q,
         # the seam's frame there))
-        self._prepared: tuple[tuple, np.ndarray | None,
+        self._prepared: tuple[tuple[np.ndarray, np.ndarray | None, np.ndarray] | None,
+                              np.ndarray | None,
                               tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         self._refusal_run = 0
         self._torch_prev: np.ndarray | None = None   # torch position at the previous frame
@@ -464,11 +465,12 @@ class LiveLoop:
         # a frame with the laser off, say, sat alone in such a hole, and bent the fit there by
         # 5 degrees).
         new: list[tuple[np.ndarray, np.ndarray, float, bool]] = []
-        if located and loc.status == TrackStatus.TRACKED:
+        seen = loc if located else None
+        if seen is not None and seen.status == TrackStatus.TRACKED:
             self.evidence_t = t_s
-            new, self._pending = [*self._pending, (loc.p, loc.q, t_s, loc.arms_fallback)], []
-        elif located and (t_s - self.evidence_t) * 1e3 <= self.cfg.max_blind_ms:
-            self._pending.append((loc.p, loc.q, t_s, loc.arms_fallback))
+            new, self._pending = [*self._pending, (seen.p, seen.q, t_s, seen.arms_fallback)], []
+        elif seen is not None and (t_s - self.evidence_t) * 1e3 <= self.cfg.max_blind_ms:
+            self._pending.append((seen.p, seen.q, t_s, seen.arms_fallback))
         elif self._pending and (t_s - self.evidence_t) * 1e3 > self.cfg.max_blind_ms:
             self.stats.unconfirmed += len(self._pending)
             self._pending = []
@@ -516,7 +518,8 @@ class LiveLoop:
             return self._resume(T_B_W, t_s, loc, moved)
         blind = self._blind(t_s, loc)
         if blind:
-            return self._hold("blind", blind, t_s)
+            self._hold("blind", blind, t_s)
+            return None
         if self.state == LoopState.RESUMING and (
                 self.open_loop or np.linalg.norm(torch_p - self._resume_from)
                 >= self.cfg.stall_mm):
@@ -524,7 +527,8 @@ class LiveLoop:
         if not self.open_loop:
             stall = self._stalled(torch_p, t_s)
             if stall is not None:
-                return self._hold(*stall, t_s)
+                self._hold(*stall, t_s)
+                return None
         if np.linalg.norm(torch_p - self.target) > self.cfg.lead_mm:
             # on its way to the current target: re-send it with the evidence's time, which
             # keeps the link's watchdog fed
@@ -538,7 +542,8 @@ class LiveLoop:
             return None
         pose = self._pose(self._next(self.target))
         if isinstance(pose, str):
-            return self._hold("plan", pose, t_s)
+            self._hold("plan", pose, t_s)
+            return None
         return self._send(pose, torch_p, t_s, loc)
 
     def _send(self, pose: tuple[np.ndarray, np.ndarray, np.ndarray], torch_p: np.ndarray,
@@ -779,6 +784,7 @@ class LiveLoop:
         if tangent is None:
             # too little of the seam seen to fit its direction (the start of a segment): keep
             # the torch's present travel direction rather than guess from a chord
+            assert self.last_q is not None  # set by start()
             tangent = quat_to_matrix(self.last_q)[:, 0]
         if self._nominal_tree is not None:
             off = float(self._nominal_tree.query(ip)[0])

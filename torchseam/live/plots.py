@@ -84,8 +84,9 @@ def quaternion_plot(segments: list[tuple[str, np.ndarray]], path: Path,
 
 
 def _robust_limits(values: list[np.ndarray]) -> tuple[float, float] | None:
-    y = np.concatenate([np.asarray(v, dtype=float).ravel() for v in values]) if values else []
-    y = np.asarray(y)[np.isfinite(y)]
+    y = (np.concatenate([np.asarray(v, dtype=float).ravel() for v in values]) if values
+         else np.zeros(0))
+    y = y[np.isfinite(y)]
     if not len(y):
         return None
     lo, hi = float(y.min()), float(y.max())
@@ -109,16 +110,17 @@ def series_plot(series: dict[str, np.ndarray], ylabel: str, path: Path, xlabel: 
     fig, axes = plt.subplots(2 if split else 1, 1, figsize=(8, 5.2 if split else 3),
                              sharex=True, squeeze=False,
                              gridspec_kw={"height_ratios": [3, 2]} if split else None)
-    panels = [(axes[0][0], True), (axes[1][0], False)] if split else [(axes[0][0], False)]
-    for ax, welding_only in panels:
+    # each panel with the arc-on mask it keeps to (None: every sample)
+    panels = [(axes[0][0], on), (axes[1][0], None)] if split else [(axes[0][0], None)]
+    for ax, welding in panels:
         _mark_frames(ax, n, segments, on, names=ax is axes[0][0])
         for name, y in series.items():
             y = np.asarray(y, dtype=float)
-            if welding_only:
-                y = np.where(on[:len(y)], y, np.nan)
+            if welding is not None:
+                y = np.where(welding[:len(y)], y, np.nan)
             ax.plot(y, lw=0.9, label=name)
-        if welding_only:
-            lim = _robust_limits([np.asarray(y, dtype=float)[on[:len(y)]]
+        if welding is not None:
+            lim = _robust_limits([np.asarray(y, dtype=float)[welding[:len(y)]]
                                   for y in series.values()])
             if lim is not None:
                 ax.set_ylim(*lim)

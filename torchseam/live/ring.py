@@ -241,6 +241,7 @@ def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
     seg_of, index_of = [], []
     for run in runs:
         scene = run.scene
+        assert scene is not None  # run_ring gives every run its scene
         entries = run.entries or [None] * len(run.truths)
         for t, loc, e in zip(run.truths, run.locations, entries, strict=True):
             if not t.arc_on:

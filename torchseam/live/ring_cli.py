@@ -56,36 +56,36 @@ def run(args: argparse.Namespace) -> int:
     runs = run_ring(cell, part, noise, level, args.seed, args.tracker, which,
                     progress=bar.update, model_path=args.model)
     bar.close()
-    e = ring_errors(runs)
+    errs = ring_errors(runs)
 
     def row(name: str, v: np.ndarray, unit: str) -> list:
         f = v[np.isfinite(v)]
         return [name, unit, len(v), len(v) - len(f), float(np.sqrt(np.mean(f**2))),
                 float(f.max()), float(np.median(f))]
 
-    used = e["used"]
-    rows = [row("feature point", e["pixel_px"], "px"),
-            row("3D seam point (located)", e["located_mm"], "mm"),
-            row("3D seam point (used by plan)", e["located_mm"][used], "mm"),
-            row("planned path (tracked)", e["planned_mm"], "mm"),
-            row("nominal path (design)", e["nominal_mm"], "mm"),
-            row("torch axis vs bisector", e["axis_deg"], "deg")]
+    used = errs["used"]
+    rows = [row("feature point", errs["pixel_px"], "px"),
+            row("3D seam point (located)", errs["located_mm"], "mm"),
+            row("3D seam point (used by plan)", errs["located_mm"][used], "mm"),
+            row("planned path (tracked)", errs["planned_mm"], "mm"),
+            row("nominal path (design)", errs["nominal_mm"], "mm"),
+            row("torch axis vs bisector", errs["axis_deg"], "deg")]
     print(f"\nopen-loop ring: tracker {args.tracker}, noise {level:g}, seed {args.seed}, "
           f"segments {''.join('abcdef'[i] for i in which)}")
     print(format_table(["error of", "unit", "n", "missing", "RMSE", "max", "median"], rows))
-    loc = e["located_mm"]
+    loc = errs["located_mm"]
     off = ~used & np.isfinite(loc)
     print(f"located points the plan did not use (flagged off the smooth seam, or no ECAL arms): "
           f"{int(off.sum())} of {int(np.isfinite(loc).sum())}; of the located points > 0.3 mm "
           f"off the true seam, {int((off & (loc > 0.3)).sum())} of {int((loc > 0.3).sum())} "
           "were not used")
-    ax = e["axis_deg"]
+    ax = errs["axis_deg"]
     print(f"torch axis within 1 degree of the bisector: {int((ax <= 1.0).sum())} of {len(ax)} "
           "commands")
     over = np.flatnonzero(~(ax <= 1.0))  # NaN (no torch frame) counts as over
     if len(over):
         print("  over 1 degree: " + ", ".join(
-            f"{e['command_segment'][i]}{e['command_index'][i]} "
+            f"{errs['command_segment'][i]}{errs['command_index'][i]} "
             + (f"{ax[i]:.2f}" if np.isfinite(ax[i]) else "no torch frame") for i in over[:12])
               + (f", ... ({len(over) - 12} more, see commands.csv)" if len(over) > 12 else ""))
     jumps = [float(np.abs(np.diff(r.quats, axis=0)).max()) if len(r.quats) > 1 else 0.0
@@ -104,8 +104,8 @@ def run(args: argparse.Namespace) -> int:
     (args.out / "ring.json").write_text(json.dumps(summary, indent=1))
     with open(args.out / "commands.csv", "w") as f:  # one row per planned command
         f.write("segment,command,path_error_mm,axis_error_deg\n")
-        for seg, i, d, a in zip(e["command_segment"], e["command_index"], e["planned_mm"], ax,
-                                strict=True):
+        for seg, i, d, a in zip(errs["command_segment"], errs["command_index"],
+                                errs["planned_mm"], ax, strict=True):
             f.write(f"{seg},{i},{d:.4f},{a:.3f}\n")
     write_ring_poses(runs, args.out / "poses.csv")  # for `torchseam robot check`
     print(f"wrote {args.out / 'quaternions.png'}, {args.out / 'ring.json'}, "

@@ -47,7 +47,9 @@ MAX_RUNS = 8  # runs of masked rows kept per column (more join the last one)
 
 
 @numba.njit("f8[:, ::1](u1[:, ::1], u1[:, ::1], f8, i8, i8, i8)", cache=True, nogil=True)
-def centre_line(response, mask, half, passes, reach, span):  # pragma: no cover - compiled
+# C901: one compiled loop over the columns with its steps inline (split, they would be calls
+# in the innermost loop)
+def centre_line(response, mask, half, passes, reach, span):  # noqa: C901  # pragma: no cover
     """Sub-pixel centre line (N, 2) (u, v) of :meth:`Tipm.centre`.
 
     Per column the runs of masked rows (columns within ``reach`` of the top or bottom row
