@@ -227,9 +227,10 @@ def _select(module: LiveTracker, groups: Sequence[str]) -> list[str]:
     return sorted(names)
 
 
-def readable(module: LiveTracker) -> dict[str, float]:
+def readable(module: LiveTracker) -> dict[str, Any]:
     """The fusion's values and EAKF-STC's scalars in their units (for logs and the report)."""
-    out = {f"fusion.{k}": round(v, 6) for k, v in module.fusion.values().items()}
+    out: dict[str, Any] = {f"fusion.{k}": round(v, 6)
+                           for k, v in module.fusion.values().items()}
     e = module.eakf_stc
     for name, val in (("lam", e.eakf.lam), ("a", e.eakf.a), ("b", e.eakf.b), ("rho", e.stc.rho),
                       ("reg", e.stc.reg), ("anchor", e.stc.anchor)):
@@ -259,9 +260,9 @@ def fit_live(module: LiveTracker, train: Sequence[LiveSequence], val: Sequence[L
 
     t0 = time.time()
     v_loss, v_groups = validate()
-    best = {"epoch": 0, "val_loss": v_loss,
-            "state": {k: v.detach().clone() for k, v in module.state_dict().items()}}
-    history = [{"epoch": 0, "loss": None, "val_loss": v_loss, "val": v_groups,
+    best_epoch, best_loss = 0, v_loss
+    best_state = {k: v.detach().clone() for k, v in module.state_dict().items()}
+    history: list[dict[str, Any]] = [{"epoch": 0, "loss": None, "val_loss": v_loss, "val": v_groups,
                 "params": readable(module), "seconds": round(time.time() - t0, 1)}]
     say(f"epoch 0 (start): val loss {v_loss:.4f}  ({time.time() - t0:.0f} s)")
     rng = np.random.default_rng(0)
@@ -276,24 +277,24 @@ def fit_live(module: LiveTracker, train: Sequence[LiveSequence], val: Sequence[L
         history.append({"epoch": epoch, "loss": loss, "val_loss": v_loss, "val": v_groups,
                         "params": readable(module), "seconds": round(time.time() - t1, 1)})
         mark = ""
-        if v_loss < best["val_loss"]:
-            best = {"epoch": epoch, "val_loss": v_loss,
-                    "state": {k: v.detach().clone() for k, v in module.state_dict().items()}}
+        if v_loss < best_loss:
+            best_epoch, best_loss = epoch, v_loss
+            best_state = {k: v.detach().clone() for k, v in module.state_dict().items()}
             mark = "  (best)"
         say(f"epoch {epoch}: train loss {loss:.4f}, val loss {v_loss:.4f}{mark}  "
             f"({time.time() - t1:.0f} s)")
         (out / "metrics.json").write_text(json.dumps(
-            {"history": history, "best_epoch": best["epoch"], "freed": freed}, indent=1))
+            {"history": history, "best_epoch": best_epoch, "freed": freed}, indent=1))
     with torch.no_grad():
-        module.load_state_dict(best["state"])
-    kept = history[best["epoch"]]
-    metrics = {"history": history, "best_epoch": best["epoch"], "freed": freed,
+        module.load_state_dict(best_state)
+    kept = history[best_epoch]
+    metrics = {"history": history, "best_epoch": best_epoch, "freed": freed,
                "config": dataclasses.asdict(cfg), "val": kept["val"],
                "params": kept["params"]}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    plot_history(history, best["epoch"], out / "loss_curve.png")
+    plot_history(history, best_epoch, out / "loss_curve.png")
     save_fitted(module, out / "live_tracker.safetensors",
-                {**info, "best_epoch": best["epoch"], "val_loss": best["val_loss"],
+                {**info, "best_epoch": best_epoch, "val_loss": best_loss,
                  "params": kept["params"], "added_by_hand": []})
     return metrics
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from torchseam.cli import model_arg
+from torchseam.core.cliargs import model_arg
 from torchseam.core.errors import TorchseamError
 
 HELP = "fit the live tracker (EAKF-STC and the fusion) end to end on full sequences"
@@ -36,6 +36,18 @@ def _seeds(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _int_at_least(lo: int):  # noqa: ANN202 - an argparse type
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected a whole number") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"{v}: expected at least {lo}")
+        return v
+    return parse
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     from torchseam.fit.cli import run_name_arg
 
@@ -49,10 +61,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--levels", type=_names, metavar="A,B",
                    help="noise levels (clean, light, strike, heavy, beyond; default: the "
                         "file's)")
-    p.add_argument("--seeds", type=_seeds, metavar="S", help="training seeds, e.g. 0-1")
-    p.add_argument("--val-seeds", type=_seeds, metavar="S", help="validation seeds")
-    p.add_argument("--frames", type=int, metavar="N", help="frames per sequence")
-    p.add_argument("--epochs", type=int, metavar="N", help="epochs (0: the start only)")
+    p.add_argument("--seeds", type=_seeds, metavar="S",
+                   help="training seeds, e.g. 0-1 (default: the file's, 0)")
+    p.add_argument("--val-seeds", type=_seeds, metavar="S",
+                   help="validation seeds (default: the file's, 500-501)")
+    p.add_argument("--frames", type=_int_at_least(30), metavar="N",
+                   help="frames per sequence (default: the file's, 300)")
+    p.add_argument("--epochs", type=_int_at_least(0), metavar="N",
+                   help="epochs (0: the start only; default: the file's)")
     p.add_argument("--start", type=model_arg, metavar="FILE",
                    help="model file to start from (live tracker or EAKF-STC alone; default: "
                         "models/eakf_stc.safetensors, the fusion from configs/anchor.yaml)")

@@ -509,6 +509,7 @@ class AnchorFilter:
                 taken = clean
             if taken:
                 self.shape, self.age = arm_shape(obs.res), 0
+            assert obs.z is not None  # set with obs.res
             fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, obs.seen)
         if inner_ok:
             self._measure(inner_uv, inflate * self.R_track, p["track_gate"])
@@ -629,7 +630,8 @@ class LiveTracker(nn.Module):
 
     def anchor_config(self) -> AnchorConfig:
         """The settings with the fitted values in place."""
-        return dataclasses.replace(self.cfg, **self.fusion.values())
+        values: dict[str, Any] = self.fusion.values()
+        return dataclasses.replace(self.cfg, **values)
 
     # ------------------------------------------------------------------ batched (fitting)
     def _params(self) -> dict[str, Tensor]:
@@ -701,7 +703,7 @@ class LiveTracker(nn.Module):
                                 w / stc_mod.rho)
         keep = hard.view(-1, *([1] * (learned.H_f.dim() - 1)))
         H_f = torch.where(keep, learned.H_f, s.stc.H_f)
-        H_ref = (None if learned.H_ref is None
+        H_ref = (learned.H_ref if learned.H_ref is None or s.stc.H_ref is None
                  else torch.where(keep, learned.H_ref, s.stc.H_ref))
         stc = dataclasses.replace(learned, H_f=H_f, H_ref=H_ref)
         coast = torch.where(hard, torch.zeros_like(s.coast), s.coast)
