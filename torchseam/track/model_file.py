@@ -27,8 +27,8 @@ from torch import nn
 from torchseam import model_dir
 from torchseam.core.errors import TorchseamError
 
-__all__ = ["DEFAULT_MODEL", "INNER", "LIVE_FORMAT", "MODEL_DIR", "MODEL_FORMAT", "FitError",
-           "load_fitted", "read_model"]
+__all__ = ["DEFAULT_MODEL", "EAKF_STC_MODEL", "INNER", "LIVE_FORMAT", "MODEL_DIR",
+           "MODEL_FORMAT", "FitError", "load_fitted", "read_model"]
 
 log = logging.getLogger("torchseam.fit")
 
@@ -37,6 +37,9 @@ log = logging.getLogger("torchseam.fit")
 MODEL_DIR = model_dir()
 #: The model the tracker loads by default.
 DEFAULT_MODEL = MODEL_DIR / "live_tracker.safetensors"
+#: The plain ``eakf-stc`` tracker's model: EAKF-STC fitted alone, as a tracker of its own (the
+#: live tracker's EAKF-STC was fitted as a part of the fusion, a weak pull beside TIPM's fixes).
+EAKF_STC_MODEL = MODEL_DIR / "eakf_stc.safetensors"
 MODEL_FORMAT = "torchseam-eakf-stc/1"
 LIVE_FORMAT = "torchseam-live-tracker/1"
 _FORMATS = (MODEL_FORMAT, LIVE_FORMAT)

@@ -23,6 +23,7 @@ import torch
 from torchseam.core.dataset import check_frame
 from torchseam.core.errors import TorchseamError
 from torchseam.core.orient import FrameView
+from torchseam.track import model_file
 from torchseam.track.base import Tracker
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.lite import LiteTracker
@@ -136,13 +137,16 @@ class OpenCVTracker(Tracker):
 def make_tracker(name: str, model: dict | None = None,
                  model_path: str | Path | None = None) -> FrameTracker:
     """A tracker by CLI name (see ``TRACKERS``). The EAKF-STC trackers load ``model_path``
-    (a model file), else ``models/live_tracker.safetensors`` (``eakf-stc``: its EAKF-STC
-    part), unless ``model`` (a TrackerConfig mapping) is given. A ``model_path`` for a tracker
-    without EAKF-STC is an error (it would be ignored)."""
+    (a model file; ``eakf-stc`` takes the EAKF-STC part of a live-tracker file), else
+    ``anchored`` ``models/live_tracker.safetensors`` and ``eakf-stc`` its own fit
+    ``models/eakf_stc.safetensors``, unless ``model`` (a TrackerConfig mapping) is given. A
+    ``model_path`` for a tracker without EAKF-STC is an error (it would be ignored)."""
     if model_path is not None and name not in ("eakf-stc", "anchored"):
         raise TorchseamError(f"--model {model_path}: tracker {name} loads no model (only "
                              "eakf-stc and anchored do)")
     if name == "eakf-stc":
+        if model_path is None and not model and model_file.EAKF_STC_MODEL.is_file():
+            model_path = model_file.EAKF_STC_MODEL  # its own fit, not the live tracker's part
         return LiteTracker(fitted_eakf_stc(model, model_path))
     if name == "anchored":
         return AnchoredTracker(load_live_tracker(model_path, model=model))
