@@ -29,8 +29,9 @@ import dataclasses
 import json
 import queue
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -46,6 +47,7 @@ from torchseam.live.loop import (
     LiveConfig,
     LiveLoop,
     LoopState,
+    PoseSink,
     StepReport,
     egm_config_for,
     load_live_config,
@@ -62,10 +64,11 @@ from torchseam.live.search import (
     steps_between,
 )
 from torchseam.live.simcell import LockstepCell, SimClock
-from torchseam.plan.path import load_plan_config
+from torchseam.plan.path import PlanConfig, load_plan_config
 from torchseam.plan.preflight import PlanReport, preflight
+from torchseam.plan.weld import SegmentPlan, WeldPlan
 from torchseam.robot.egm import EgmLink
-from torchseam.robot.egm_config import load_egm_config
+from torchseam.robot.egm_config import EgmConfig, load_egm_config
 from torchseam.robot.egm_messages import EgmSensor
 from torchseam.robot.reach import ReachGate
 from torchseam.sim.scene import Scene
@@ -104,7 +107,8 @@ class DemoEvent:
 
     ``frame`` is the BGR camera frame (H, W, 3) uint8 (the loop's input, do not modify);
     ``report`` is ``None`` on the start frame; ``loop`` / ``link`` are the live objects of the
-    running segment, to read state and statistics from (not to drive).
+    running segment, to read state and statistics from (not to drive): ``link`` is where the
+    loop sends its poses (the demo's :class:`~torchseam.robot.egm.EgmLink`, a replay's sink).
     """
 
     seg: str
@@ -114,7 +118,7 @@ class DemoEvent:
     report: StepReport | None
     T_B_W: np.ndarray
     loop: LiveLoop
-    link: EgmLink
+    link: PoseSink
 
 
 class DemoControl:
@@ -287,234 +291,380 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
             and travel angles only; ``search.roll_deg`` in configs/plan.yaml is [0, 0]).
     """
     plan = load_plan_config()
+    report = _passed_preflight(cell, part, plan, report, part_name, segments)
+    weld_plan = report.plan
+    live = live or load_live_config()
+    writer = _VideoThread(video) if video is not None else None
+    run = _Run(cell=cell, part=weld_plan.part,  # placed as planned
+               noise=noise, level=level, seed=seed, faults=faults, tracker=tracker,
+               model_path=model_path, live=live, plan=plan, weld_plan=weld_plan,
+               egm=_demo_egm_config(cell, live), length_mm=length_mm,
+               start_offset_mm=start_offset_mm, start_angle_deg=start_angle_deg, search=search,
+               observer=observer, control=control, progress=progress, writer=writer,
+               res=DemoResult(part=weld_plan.part, report=report))
+    try:
+        for seg in weld_plan.segments:
+            if seg.name in segments:
+                run.segment(seg)
+    finally:
+        if writer is not None:
+            writer.close()
+    return run.finish()
+
+
+def _passed_preflight(cell: CellConfig, part: PartConfig, plan: PlanConfig,
+                      report: PlanReport | None, part_name: str, segments: str) -> PlanReport:
+    """The pre-flight of ``part`` (``report``, or run here): raises :class:`PlanRefused` when
+    it refused a pose, :class:`TorchseamError` when the plan rolls the torch on a segment to
+    weld."""
     if report is None:
         report = preflight(cell, part, config=plan, part_name=part_name)
     if not report.ok:
         raise PlanRefused(report)
-    weld_plan = report.plan
-    rolled = [s.name for s in weld_plan.segments if s.name in segments and s.roll_deg]
+    rolled = [s.name for s in report.plan.segments if s.name in segments and s.roll_deg]
     if rolled:
         raise TorchseamError(
             f"the weld plan of {report.part_name} rolls the torch about its axis on segment(s) "
             f"{', '.join(rolled)}: the live loop applies work and travel angles only (keep "
             "search.roll_deg at [0, 0] in configs/plan.yaml)")
-    part = weld_plan.part  # placed as planned
-    live = live or load_live_config()
+    return report
+
+
+def _demo_egm_config(cell: CellConfig, live: LiveConfig) -> EgmConfig:
+    """The link's settings for the demo: pose mode, the loop's age limit, a step check the IPI
+    step passes, the simulated controller moving at weld speed."""
     proc = cell.process
     egm = egm_config_for(load_egm_config(), live, proc.frame_rate_hz)
     # the IPI step must pass the link's step check; the controller moves at weld speed
     safety = dataclasses.replace(egm.safety,
                                  max_step_mm=max(egm.safety.max_step_mm, 1.25 * proc.step_mm))
-    egm = dataclasses.replace(
+    return dataclasses.replace(
         egm, mode="pose", safety=safety,
         sim_controller=dataclasses.replace(egm.sim_controller,
                                            tcp_speed_mm_s=proc.weld_speed_mm_s))
-    res = DemoResult(part=part, report=report)
-    clock = SimClock()
-    dt = 1.0 / proc.frame_rate_hz
-    latency: dict[str, list[float]] = {}
-    unsafe = 0
-    stopped = False
-    writer = _VideoThread(video) if video is not None else None
-    try:
-        for seg in weld_plan.segments:
-            if seg.name not in segments:
-                continue
-            if stopped:
-                res.incomplete.append({"segment": seg.name,
-                                       "reason": "not welded: stopped by the operator"})
-                continue
-            scene = weld_plan.scene(seg)
-            res.part_poses[seg.name] = scene.T_B_Tnom
-            gate = ReachGate(cell=cell, part=part, part_pose_mm=scene.T_B_Tnom)
-            link = EgmLink(egm, gate=gate, clock=clock, bind=False)
-            tap = _WireTap(link)
-            s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
-            seg_len = (float(scene.s_at(np.array([seg.phi_end]))[0]) - s0) % scene.seam_length_mm
-            if length_mm is not None:
-                seg_len = min(seg_len, length_mm)
-            approach = proc.look_ahead_mm + plan.approach_mm
-            # the programmed start pose, with the segment's torch angles
-            T0 = weld_plan.nominal_tcp(seg, np.array([s0 - approach]))[0]
-            scfg, T_start, across, lift = None, T0, None, 0.0
-            if start_offset_mm or start_angle_deg:
-                scfg = search or load_search_config()
-                # across the seam along the part's surfaces, at the lowest stand-off at which
-                # the whole search region clears the part (the gate, and the torch's tip)
-                across = across_seam(*weld_plan.search_arms(seg, s0 - approach))
-                lift, n_ok, n_all = choose_standoff(
-                    T0, scfg, start_offset_mm, start_angle_deg,
-                    lambda T, g=gate: _search_clear(g, T), across)
-                T_start = search_start(T0, lift, start_offset_mm, start_angle_deg, across)
-                v = gate.check(torch.tensor(T_start[None]))
-                tip = float(gate.tip_clearance(T_start)[0])
-                margin = gate.config.clearance.margin_mm
-                if not bool(v.ok[0]) or tip < margin:
-                    because = v.reasons[0] if not bool(v.ok[0]) else (
-                        f"the torch's tip {tip:.1f} mm from the part < {margin:g}")
-                    why = (f"start pose refused: {start_offset_mm:g} mm / {start_angle_deg:g} "
-                           f"deg off the seam at a {lift:g} mm stand-off, the reachability "
-                           f"gate refuses it ({because}); nothing moved in this segment")
-                    res.searches.append({"segment": seg.name, "found": False, "reason": why,
-                                         "time_s": 0.0, "extent_mm": 0.0, "extent_deg": 0.0,
-                                         "gate_refused": 1, "standoff_mm": lift,
-                                         "region_clear": f"{n_ok}/{n_all}"})
-                    res.incomplete.append({"segment": seg.name, "reason": why})
-                    res.messages.append(f"[{seg.name} t={clock.t:.2f}s] segment incomplete: "
-                                        f"{why}")
-                    continue
-            simcell = LockstepCell(cell, egm, tap, clock, T_start, robot=gate.robot)  # type: ignore[arg-type]
-            if "packet-loss" in faults:
-                simcell.ctrl.set_loss(live.demo.packet_loss_fraction,
-                                      live.demo.packet_loss_burst_cycles, seed * 10 + seg.index)
-            renderer = SensorRenderer(cell, scene, noise, level, seed * 10 + seg.index)
-            ref = _SeamRef(scene)
-            nominal = scene.nominal_tcp(s0 - approach + np.arange(
-                0.0, approach + seg_len + 10.0, 0.5))[:, :3, 3]
-            n_max = int((approach + seg_len) / (proc.weld_speed_mm_s * dt) * 1.6) + 50
-            fault_at = int((approach + 0.5 * seg_len) / (proc.weld_speed_mm_s * dt))
-            commands: list[Command] = []   # every pose handed to the link (the loop keeps few)
-            welding: list[bool] = []       # the arc was on when it was handed over
-            search_failed = ""
-            start, start_along = T0[:3, 3], 0.0
-            if scfg is not None:
-                found = _search_seam(
-                    seg.name, scfg, T_start, lift, across, start_offset_mm, start_angle_deg, gate,
-                    simcell, renderer, tap, clock, dt, commands, res, cell, ref, writer, nominal,
-                    lambda u, seg=seg, u0=s0 - approach: weld_plan.nominal_tcp(
-                        seg, np.array([u0 + u]))[0],
-                    plan.approach_mm)
-                welding += [False] * (len(commands) - len(welding))
-                if not found["found"]:
-                    search_failed = found["reason"]
-                    n_max = 0   # nothing more moves in this segment
-                else:
-                    # the part is where the search saw its seam: the programmed path, moved
-                    # by the offset found, is the one the loop's targets are held to
-                    shift = np.asarray(found["seam_offset_vec_mm"], float)
-                    nominal = nominal + shift
-                    start_along = found["start_along_mm"]
-                    start = simcell.tcp_pose()[:3, 3]
-            loop = LiveLoop(cell, make_tracker(tracker, model_path=model_path), link,
-                            weld_plan.plan_config(seg, plan), live, nominal=nominal)
-            # (a search starts the weld where it found the seam: that far into the approach)
-            travelled, prev = start_along, start
-            first, last_msg = True, ""
-            completed, arc_was = False, False
-            for k in range(n_max):
-                if control is not None and control.checkpoint():
-                    stopped = True
-                    res.messages.append(f"[{seg.name} t={clock.t:.2f}s] stopped by the operator")
-                    break
-                T_B_W = simcell.tcp_pose()
-                travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
-                prev = T_B_W[:3, 3]
-                if travelled >= approach + seg_len:
-                    completed = True
-                    break
-                # the arc burns past the approach while the loop lets it (off in a hold)
-                weld_zone = travelled >= approach
-                arc_on = weld_zone and loop.arc_ok
-                if weld_zone and not arc_on:
-                    res.arc_off_s += dt
-                    res.arc_interruptions += int(arc_was)
-                arc_was = arc_on
-                active = [f for f in faults if f != "packet-loss"
-                          and fault_at <= k < fault_at + FAULT_FRAMES]
-                if "packet-loss" in faults:
-                    active.append("packet-loss")
-                frame, truth = renderer.render(T_B_W, clock.t, arc_on=arc_on,
-                                               laser_on="laser-off" not in active,
-                                               force_flash="arc-flash" in active)
-                if "controller-silence" in active:
-                    simcell.faults.silent_cycles = 10
-                T_B_F = simcell.flange_pose()
-                if writer is not None:
-                    writer.idle()  # the recorder finishes before the loop takes the frame
-                if first:
-                    loop.start(frame, T_B_W, t_s=clock.t)
-                    first = False
-                    rep = None
-                else:
-                    rep = loop.on_frame(None if "dropped-frames" in active else frame, T_B_F,
-                                        T_B_W, clock.t)
-                    if rep.command is not None:
-                        commands.append(rep.command)
-                        welding.append(arc_on)
-                    if rep.message and rep.message != last_msg:
-                        res.messages.append(f"[{seg.name} t={clock.t:.2f}s] {rep.state.value}: "
-                                            f"{rep.message}")
-                    last_msg = rep.message
-                loc = rep.location if rep else None
-                res.frames.append(_record(seg.name, truth, loc, rep, ref, clock.t, T_B_W,
-                                          ",".join(active)))
-                if observer is not None:
-                    observer(DemoEvent(seg.name, k, frame, res.frames[-1], rep, T_B_W, loop, link))
-                if writer is not None:
-                    writer.put(frame, truth, loc, rep, seg.name)
-                simcell.advance(dt)
-                if progress:
-                    progress(1)
-            if not completed:
-                why = search_failed or _incomplete_reason(loop, stopped, travelled, approach,
-                                                          seg_len, n_max)
-                res.incomplete.append({"segment": seg.name, "reason": why})
-                res.messages.append(f"[{seg.name} t={clock.t:.2f}s] segment incomplete: {why}")
-            loop.finish()
-            simcell.close()
-            for name, times in loop.stats.timings_ms.items():
-                latency.setdefault(name, []).extend(times)
-            sent = [c for c in commands if c.ok]
-            for c in sent:
-                res.sent.append((seg.name, c.p, c.q, c.seen_t_s, c.t_s))
-            # (in the approach the torch turns from the programmed orientation onto the
-            # seam's, at most max_turn_deg a step: up to ~5 degrees off, arc off)
-            weld = [c for c, arc in zip(commands, welding, strict=True) if c.ok and arc]
-            if weld:
-                res.axis_deg += list(torch_axis_errors(
-                    scene, np.array([c.p for c in weld]),
-                    quat_to_matrix(np.array([c.q for c in weld])),
-                    np.array([c.seen_t_s for c in weld]), angles=seg.angles[:2])[0])
-            # the link's count: new targets and the re-sends that keep its watchdog fed
-            link_stats = link.stats
-            for r, n in link_stats.refused.items():
-                res.refused[r] = res.refused.get(r, 0) + n
-            res.watchdog_trips += link_stats.watchdog_trips
-            st = loop.stats
-            res.holds += st.holds
-            for key, n in st.hold_reasons.items():
-                res.hold_reasons[key] = res.hold_reasons.get(key, 0) + n
-            for key, n in st.refused.items():
-                res.loop_refused[key] = res.loop_refused.get(key, 0) + n
-            if link_stats.refused:
-                res.messages.append(
-                    f"[{seg.name} t={clock.t:.2f}s] the link refused "
-                    f"{sum(link_stats.refused.values())} pose(s): " + ", ".join(
-                        f"{r} {n}" for r, n in link_stats.refused.most_common()))
-            res.quats[seg.name] = np.array([c.q for c in sent]).reshape(-1, 4)
-            res.paths.setdefault("tracked", []).append(np.array([c.p for c in sent]).reshape(-1, 3))
-            res.paths.setdefault("nominal", []).append(
-                scene.nominal_tcp(s0 + np.arange(0.0, seg_len, proc.step_mm))[:, :3, 3])
-            res.paths.setdefault("true seam", []).append(_true_curve(scene, clock.t, s0, seg_len))
-            unsafe += _unsafe(sent, gate, None)
-            wire = [Command(0.0, p, q, True, "", 0.0) for p, q in tap.poses]
-            res.wire_unsafe += _unsafe(wire, gate, egm.safety.max_step_mm)
-    finally:
-        if writer is not None:
-            writer.close()
-    res.latency = {k: (float(np.percentile(v, 50)), float(np.percentile(v, 99)))
-                   for k, v in latency.items() if v}
-    res.summary = _summary(res, unsafe + res.wire_unsafe)
-    res.summary["stopped"] = stopped
-    if res.searches:
-        res.summary["search"] = list(res.searches)
-        # time to find the seam (s of simulated time, the longest of the segments' searches)
-        # and the frames the search and its approach took (in the video, state search/approach)
-        found = [r["time_s"] for r in res.searches if r["found"]]
-        res.summary["search_time_s"] = max(found) if found else None
-        res.summary["search_frames"] = sum(f.state in ("search", "approach") for f in res.frames)
-    res.summary["plan"] = weld_plan.to_dict()
-    return res
+
+
+@dataclass
+class _Start:
+    """Where a segment starts: the programmed start pose (``search`` None) or a pose off the
+    seam (``search``: the settings of the search for it, ``across``: the move across the seam,
+    ``lift``: the stand-off)."""
+
+    T: np.ndarray
+    search: SearchConfig | None = None
+    across: Callable[[float], np.ndarray] | None = None
+    lift: float = 0.0
+
+
+@dataclass
+class _Run:
+    """One :func:`run_demo`: its settings, the simulated clock and what it has gathered."""
+
+    cell: CellConfig
+    part: PartConfig
+    noise: NoiseConfig
+    level: float
+    seed: int
+    faults: tuple[str, ...]
+    tracker: str
+    model_path: str | Path | None
+    live: LiveConfig
+    plan: PlanConfig
+    weld_plan: WeldPlan
+    egm: EgmConfig
+    length_mm: float | None
+    start_offset_mm: float
+    start_angle_deg: float
+    search: SearchConfig | None
+    observer: Callable[[DemoEvent], None] | None
+    control: DemoControl | None
+    progress: Callable[[int], object] | None
+    writer: _VideoThread | None
+    res: DemoResult
+    clock: SimClock = field(default_factory=SimClock)
+    latency: dict[str, list[float]] = field(default_factory=dict)
+    unsafe: int = 0
+    stopped: bool = False
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.cell.process.frame_rate_hz
+
+    def segment(self, seg: SegmentPlan) -> None:
+        """Weld one segment (or record why it was not) and add up its figures."""
+        res = self.res
+        if self.stopped:
+            res.incomplete.append({"segment": seg.name,
+                                   "reason": "not welded: stopped by the operator"})
+            return
+        scene = self.weld_plan.scene(seg)
+        res.part_poses[seg.name] = scene.T_B_Tnom
+        gate = ReachGate(cell=self.cell, part=self.part, part_pose_mm=scene.T_B_Tnom)
+        s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
+        seg_len = (float(scene.s_at(np.array([seg.phi_end]))[0]) - s0) % scene.seam_length_mm
+        if self.length_mm is not None:
+            seg_len = min(seg_len, self.length_mm)
+        approach = self.cell.process.look_ahead_mm + self.plan.approach_mm
+        # the programmed start pose, with the segment's torch angles
+        T0 = self.weld_plan.nominal_tcp(seg, np.array([s0 - approach]))[0]
+        start = self._start(seg, gate, T0, s0 - approach)
+        if start is None:
+            return  # the gate refused the start pose: nothing moved
+        w = _SegmentWeld(self, seg, scene, gate, s0, seg_len, approach, T0, start)
+        w.weld()
+        self._account(w)
+
+    def _start(self, seg: SegmentPlan, gate: ReachGate, T0: np.ndarray, u0: float
+               ) -> _Start | None:
+        """The segment's start: ``T0``, or off the seam (``start_offset_mm`` /
+        ``start_angle_deg``) at the lowest stand-off at which the whole search region clears
+        the part (the gate, and the torch's tip); None (recorded) when the gate refuses it."""
+        offset_mm, angle_deg = self.start_offset_mm, self.start_angle_deg
+        if not (offset_mm or angle_deg):
+            return _Start(T0)
+        res, clock = self.res, self.clock
+        scfg = self.search or load_search_config()
+        # across the seam along the part's surfaces
+        across = across_seam(*self.weld_plan.search_arms(seg, u0))
+        lift, n_ok, n_all = choose_standoff(T0, scfg, offset_mm, angle_deg,
+                                            partial(_search_clear, gate), across)
+        T_start = search_start(T0, lift, offset_mm, angle_deg, across)
+        v = gate.check(torch.tensor(T_start[None]))
+        tip = float(gate.tip_clearance(T_start)[0])
+        margin = gate.config.clearance.margin_mm
+        refused = not bool(v.ok[0]) or tip < margin
+        if not refused:
+            return _Start(T_start, scfg, across, lift)
+        because = v.reasons[0] if not bool(v.ok[0]) else (
+            f"the torch's tip {tip:.1f} mm from the part < {margin:g}")
+        why = (f"start pose refused: {offset_mm:g} mm / {angle_deg:g} "
+               f"deg off the seam at a {lift:g} mm stand-off, the reachability "
+               f"gate refuses it ({because}); nothing moved in this segment")
+        res.searches.append({"segment": seg.name, "found": False, "reason": why,
+                             "time_s": 0.0, "extent_mm": 0.0, "extent_deg": 0.0,
+                             "gate_refused": 1, "standoff_mm": lift,
+                             "region_clear": f"{n_ok}/{n_all}"})
+        res.incomplete.append({"segment": seg.name, "reason": why})
+        res.messages.append(f"[{seg.name} t={clock.t:.2f}s] segment incomplete: {why}")
+        return None
+
+    def _account(self, w: _SegmentWeld) -> None:
+        """Add a welded segment's poses, statistics and paths to the result."""
+        res, seg, loop, link = self.res, w.seg, w.loop, w.link
+        for name, times in loop.stats.timings_ms.items():
+            self.latency.setdefault(name, []).extend(times)
+        sent = [c for c in w.commands if c.ok]
+        for c in sent:
+            res.sent.append((seg.name, c.p, c.q, c.seen_t_s, c.t_s))
+        # (in the approach the torch turns from the programmed orientation onto the
+        # seam's, at most max_turn_deg a step: up to ~5 degrees off, arc off)
+        weld = [c for c, arc in zip(w.commands, w.welding, strict=True) if c.ok and arc]
+        if weld:
+            res.axis_deg += list(torch_axis_errors(
+                w.scene, np.array([c.p for c in weld]),
+                quat_to_matrix(np.array([c.q for c in weld])),
+                np.array([c.seen_t_s for c in weld]), angles=seg.angles[:2])[0])
+        # the link's count: new targets and the re-sends that keep its watchdog fed
+        link_stats = link.stats
+        _add_counts(res.refused, link_stats.refused)
+        res.watchdog_trips += link_stats.watchdog_trips
+        st = loop.stats
+        res.holds += st.holds
+        _add_counts(res.hold_reasons, st.hold_reasons)
+        _add_counts(res.loop_refused, st.refused)
+        if link_stats.refused:
+            res.messages.append(
+                f"[{seg.name} t={self.clock.t:.2f}s] the link refused "
+                f"{sum(link_stats.refused.values())} pose(s): " + ", ".join(
+                    f"{r} {n}" for r, n in link_stats.refused.most_common()))
+        res.quats[seg.name] = np.array([c.q for c in sent]).reshape(-1, 4)
+        res.paths.setdefault("tracked", []).append(np.array([c.p for c in sent]).reshape(-1, 3))
+        res.paths.setdefault("nominal", []).append(w.scene.nominal_tcp(
+            w.s0 + np.arange(0.0, w.seg_len, self.cell.process.step_mm))[:, :3, 3])
+        res.paths.setdefault("true seam", []).append(
+            _true_curve(w.scene, self.clock.t, w.s0, w.seg_len))
+        self.unsafe += _unsafe(sent, w.gate, None)
+        wire = [Command(0.0, p, q, True, "", 0.0) for p, q in w.tap.poses]
+        res.wire_unsafe += _unsafe(wire, w.gate, self.egm.safety.max_step_mm)
+
+    def finish(self) -> DemoResult:
+        """The result with its latency and summary."""
+        res = self.res
+        res.latency = {k: (float(np.percentile(v, 50)), float(np.percentile(v, 99)))
+                       for k, v in self.latency.items() if v}
+        res.summary = _summary(res, self.unsafe + res.wire_unsafe)
+        res.summary["stopped"] = self.stopped
+        if res.searches:
+            res.summary["search"] = list(res.searches)
+            # time to find the seam (s of simulated time, the longest of the segments'
+            # searches) and the frames the search and its approach took (in the video, state
+            # search/approach)
+            found = [r["time_s"] for r in res.searches if r["found"]]
+            res.summary["search_time_s"] = max(found) if found else None
+            res.summary["search_frames"] = sum(f.state in ("search", "approach")
+                                               for f in res.frames)
+        res.summary["plan"] = self.weld_plan.to_dict()
+        return res
+
+
+def _add_counts(total: dict[str, int], counts: Mapping[str, int]) -> None:
+    for key, n in counts.items():
+        total[key] = total.get(key, 0) + n
+
+
+class _SegmentWeld:
+    """One segment of a :class:`_Run`: the simulated cell from its start pose, the seam search
+    when it starts off the seam, then the live loop's frames to the segment's end."""
+
+    def __init__(self, run: _Run, seg: SegmentPlan, scene: Scene, gate: ReachGate, s0: float,
+                 seg_len: float, approach: float, T0: np.ndarray, start: _Start) -> None:
+        self.run, self.seg, self.scene, self.gate = run, seg, scene, gate
+        self.s0, self.seg_len, self.approach, self.T0, self.start = (
+            s0, seg_len, approach, T0, start)
+        cell, proc, dt = run.cell, run.cell.process, run.dt
+        self.link = EgmLink(run.egm, gate=gate, clock=run.clock, bind=False)
+        self.tap = _WireTap(self.link)
+        # (the tap is the link as the controller sees it: it forwards what it is not)
+        self.simcell = LockstepCell(cell, run.egm, self.tap, run.clock,  # type: ignore[arg-type]
+                                    start.T, robot=gate.robot)
+        if "packet-loss" in run.faults:
+            self.simcell.ctrl.set_loss(run.live.demo.packet_loss_fraction,
+                                       run.live.demo.packet_loss_burst_cycles,
+                                       run.seed * 10 + seg.index)
+        self.renderer = SensorRenderer(cell, scene, run.noise, run.level,
+                                       run.seed * 10 + seg.index)
+        self.ref = _SeamRef(scene)
+        self.nominal = scene.nominal_tcp(s0 - approach + np.arange(
+            0.0, approach + seg_len + 10.0, 0.5))[:, :3, 3]
+        self.n_max = int((approach + seg_len) / (proc.weld_speed_mm_s * dt) * 1.6) + 50
+        self.fault_at = int((approach + 0.5 * seg_len) / (proc.weld_speed_mm_s * dt))
+        self.commands: list[Command] = []  # every pose handed to the link (the loop keeps few)
+        self.welding: list[bool] = []      # the arc was on when it was handed over
+        self.search_failed = ""
+        self.start_p, self.start_along = T0[:3, 3], 0.0
+        self.first, self.last_msg = True, ""
+
+    def weld(self) -> None:
+        run, seg = self.run, self.seg
+        if self.start.search is not None:
+            self._search(self.start.search)
+        self.loop = LiveLoop(run.cell, make_tracker(run.tracker, model_path=run.model_path),
+                             self.link, run.weld_plan.plan_config(seg, run.plan), run.live,
+                             nominal=self.nominal)
+        completed, travelled = self._frames()
+        if not completed:
+            why = self.search_failed or _incomplete_reason(
+                self.loop, run.stopped, travelled, self.approach, self.seg_len, self.n_max)
+            run.res.incomplete.append({"segment": seg.name, "reason": why})
+            run.res.messages.append(f"[{seg.name} t={run.clock.t:.2f}s] segment incomplete: "
+                                    f"{why}")
+        self.loop.finish()
+        self.simcell.close()
+
+    def _search(self, scfg: SearchConfig) -> None:
+        """Search for the seam from the start pose; when found the weld starts where it was
+        found, else nothing more moves in this segment."""
+        run, start = self.run, self.start
+        found = _search_seam(
+            self.seg.name, scfg, start.T, start.lift, start.across, run.start_offset_mm,
+            run.start_angle_deg, self.gate, self.simcell, self.renderer, self.tap, run.clock,
+            run.dt, self.commands, run.res, run.cell, self.ref, run.writer, self.nominal,
+            self._programmed, run.plan.approach_mm)
+        self.welding += [False] * (len(self.commands) - len(self.welding))
+        if not found["found"]:
+            self.search_failed = found["reason"]
+            self.n_max = 0   # nothing more moves in this segment
+        else:
+            # the part is where the search saw its seam: the programmed path, moved by the
+            # offset found, is the one the loop's targets are held to
+            shift = np.asarray(found["seam_offset_vec_mm"], float)
+            self.nominal = self.nominal + shift
+            self.start_along = found["start_along_mm"]
+            self.start_p = self.simcell.tcp_pose()[:3, 3]
+
+    def _programmed(self, u: float) -> np.ndarray:
+        """The programmed torch pose ``u`` mm along the path from the programmed start."""
+        return self.run.weld_plan.nominal_tcp(
+            self.seg, np.array([self.s0 - self.approach + u]))[0]
+
+    def _frames(self) -> tuple[bool, float]:
+        """The live loop's frames to the segment's end (or a stop, or ``n_max`` frames):
+        whether the end was reached, and the mm travelled."""
+        run, res, loop = self.run, self.run.res, self.loop
+        # (a search starts the weld where it found the seam: that far into the approach)
+        travelled, prev = self.start_along, self.start_p
+        arc_was = False
+        for k in range(self.n_max):
+            if run.control is not None and run.control.checkpoint():
+                run.stopped = True
+                res.messages.append(f"[{self.seg.name} t={run.clock.t:.2f}s] stopped by the "
+                                    "operator")
+                break
+            T_B_W = self.simcell.tcp_pose()
+            travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
+            prev = T_B_W[:3, 3]
+            if travelled >= self.approach + self.seg_len:
+                return True, travelled
+            # the arc burns past the approach while the loop lets it (off in a hold)
+            weld_zone = travelled >= self.approach
+            arc_on = weld_zone and loop.arc_ok
+            if weld_zone and not arc_on:
+                res.arc_off_s += run.dt
+                res.arc_interruptions += int(arc_was)
+            arc_was = arc_on
+            self._frame(k, T_B_W, arc_on)
+        return False, travelled
+
+    def _active_faults(self, k: int) -> list[str]:
+        faults = self.run.faults
+        active = [f for f in faults if f != "packet-loss"
+                  and self.fault_at <= k < self.fault_at + FAULT_FRAMES]
+        if "packet-loss" in faults:
+            active.append("packet-loss")
+        return active
+
+    def _frame(self, k: int, T_B_W: np.ndarray, arc_on: bool) -> None:
+        """Render frame ``k`` where the robot is, hand it to the loop, record it, move on."""
+        run, res, seg, clock = self.run, self.run.res, self.seg.name, self.run.clock
+        active = self._active_faults(k)
+        frame, truth = self.renderer.render(T_B_W, clock.t, arc_on=arc_on,
+                                            laser_on="laser-off" not in active,
+                                            force_flash="arc-flash" in active)
+        if "controller-silence" in active:
+            self.simcell.faults.silent_cycles = 10
+        T_B_F = self.simcell.flange_pose()
+        if run.writer is not None:
+            run.writer.idle()  # the recorder finishes before the loop takes the frame
+        rep = self._step(frame, T_B_F, T_B_W, arc_on, active)
+        loc = rep.location if rep else None
+        res.frames.append(_record(seg, truth, loc, rep, self.ref, clock.t, T_B_W,
+                                  ",".join(active)))
+        if run.observer is not None:
+            run.observer(DemoEvent(seg, k, frame, res.frames[-1], rep, T_B_W, self.loop,
+                                   self.link))
+        if run.writer is not None:
+            run.writer.put(frame, truth, loc, rep, seg)
+        self.simcell.advance(run.dt)
+        if run.progress:
+            run.progress(1)
+
+    def _step(self, frame: np.ndarray, T_B_F: np.ndarray, T_B_W: np.ndarray, arc_on: bool,
+              active: list[str]) -> StepReport | None:
+        """The loop's step on a frame (its start on the first: no report)."""
+        loop, t = self.loop, self.run.clock.t
+        if self.first:
+            loop.start(frame, T_B_W, t_s=t)
+            self.first = False
+            return None
+        rep = loop.on_frame(None if "dropped-frames" in active else frame, T_B_F, T_B_W, t)
+        if rep.command is not None:
+            self.commands.append(rep.command)
+            self.welding.append(arc_on)
+        if rep.message and rep.message != self.last_msg:
+            self.run.res.messages.append(f"[{self.seg.name} t={t:.2f}s] {rep.state.value}: "
+                                         f"{rep.message}")
+        self.last_msg = rep.message
+        return rep
 
 
 def _search_clear(gate: ReachGate, T: np.ndarray) -> np.ndarray:
@@ -617,27 +767,7 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, lift: float, 
         simcell.advance(dt)
     rec.update(time_s=round(clock.t - t0, 3), extent_mm=round(s.extent[0], 3),
                extent_deg=round(s.extent[1], 3), gate_refused=s.refused)
-    shift, u = None, 0.0
-    if s.found:
-        if p_seen is None or not np.all(np.isfinite(p_seen)):
-            s.found, s.reason = False, "seam not found: the corner's ray misses the laser plane"
-        else:
-            # the programmed path's nearest point (index i, u mm along it from the programmed
-            # start) and the offset of the point found from it, across the path
-            i = int(np.argmin(np.linalg.norm(nominal - p_seen, axis=1)))
-            j0, j1 = max(i - 1, 0), min(i + 1, len(nominal) - 1)
-            tan = nominal[j1] - nominal[j0]
-            tan = tan / np.linalg.norm(tan)
-            shift = p_seen - nominal[i]
-            across_mm = float(np.linalg.norm(shift - (shift @ tan) * tan))
-            u = float(np.linalg.norm(np.diff(nominal[:i + 1], axis=0), axis=1).sum())
-            rec["seam_offset_mm"] = round(across_mm, 3)
-            if across_mm > cfg.max_seam_offset_mm:
-                s.found = False
-                s.reason = (f"seam not found: the corner seen lies {across_mm:.1f} mm from the "
-                            f"programmed seam (limit {cfg.max_seam_offset_mm:g} mm: another "
-                            "edge, or the part is not where the plan puts it); nothing moved "
-                            "towards it")
+    shift, u = _place_seen(s, p_seen, nominal, cfg, rec)
     if not s.found:
         rec["reason"] = s.reason
         res.messages.append(f"[{seg} t={clock.t:.2f}s] {s.reason}")
@@ -688,6 +818,38 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, lift: float, 
                seam_offset_vec_mm=[round(float(v), 4) for v in shift])
     res.searches.append(rec)
     return rec
+
+
+def _place_seen(s: SeamSearch, p_seen: np.ndarray | None, nominal: np.ndarray,
+                cfg: SearchConfig, rec: dict) -> tuple[np.ndarray | None, float]:
+    """Where the corner a search found (``p_seen``, base mm) lies against the programmed path
+    ``nominal`` ((N, 3) from the programmed start on): its offset from the path's nearest point
+    and how far along the path (mm) that point is; ``(None, 0.0)`` when the search did not find
+    it. A corner whose ray misses the laser plane, or that lies more than
+    ``cfg.max_seam_offset_mm`` across the path, fails the search (``s.found`` False, with the
+    reason); the offset across goes into ``rec["seam_offset_mm"]``."""
+    if not s.found:
+        return None, 0.0
+    if p_seen is None or not np.all(np.isfinite(p_seen)):
+        s.found, s.reason = False, "seam not found: the corner's ray misses the laser plane"
+        return None, 0.0
+    # the programmed path's nearest point (index i, u mm along it from the programmed
+    # start) and the offset of the point found from it, across the path
+    i = int(np.argmin(np.linalg.norm(nominal - p_seen, axis=1)))
+    j0, j1 = max(i - 1, 0), min(i + 1, len(nominal) - 1)
+    tan = nominal[j1] - nominal[j0]
+    tan = tan / np.linalg.norm(tan)
+    shift = p_seen - nominal[i]
+    across_mm = float(np.linalg.norm(shift - (shift @ tan) * tan))
+    u = float(np.linalg.norm(np.diff(nominal[:i + 1], axis=0), axis=1).sum())
+    rec["seam_offset_mm"] = round(across_mm, 3)
+    if across_mm > cfg.max_seam_offset_mm:
+        s.found = False
+        s.reason = (f"seam not found: the corner seen lies {across_mm:.1f} mm from the "
+                    f"programmed seam (limit {cfg.max_seam_offset_mm:g} mm: another "
+                    "edge, or the part is not where the plan puts it); nothing moved "
+                    "towards it")
+    return shift, u
 
 
 def _incomplete_reason(loop: LiveLoop, stopped: bool, travelled: float, approach: float,
@@ -773,7 +935,7 @@ class _SeamRef:
     def __init__(self, scene: Scene) -> None:
         self.scene = scene
         self.curve = scene.true_joint.seam(np.linspace(0, 2 * np.pi, 20001)).point
-        self.k = None
+        self.k: int | None = None
 
     def distance(self, t: float, p: np.ndarray) -> float:
         p_T = apply(invert(self.scene.part_pose(t)), p)
@@ -815,10 +977,10 @@ def _summary(res: DemoResult, unsafe: int) -> dict:
     pix = np.array([np.linalg.norm(f.uv - f.uv_true) for f in fr if np.all(np.isfinite(f.uv))])
     loc = np.array([np.linalg.norm(f.p - f.p_true) for f in fr if np.all(np.isfinite(f.p))])
     torch_err = np.array([f.torch_err_mm for f in fr])
-    nominal = []
+    nominal_err: list[float] = []
     for P, C in zip(res.paths.get("nominal", []), res.paths.get("true seam", []), strict=True):
-        nominal += [float(np.min(np.linalg.norm(C - p, axis=1))) for p in P]
-    nominal = np.array(nominal)
+        nominal_err += [float(np.min(np.linalg.norm(C - p, axis=1))) for p in P]
+    nominal = np.array(nominal_err)
     lat = res.latency.get("frame->command", (float("nan"), float("nan")))
     axis = np.array(res.axis_deg)
 

@@ -148,9 +148,8 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
                                    fr.label if fr.label is not None else nan2,
                                    int(TrackStatus.LOST), LoopState.STARTING.value, nan3,
                                    truth.get(fr.index, nan3) if truth else nan3, math.nan, "")
-                # DemoEvent.link is typed EgmLink in live/demo.py; any PoseSink is meant
                 observer(DemoEvent("replay", n - 1, fr.image, rec0, None, np.array(rec, float),
-                                   loop, sink))  # type: ignore[arg-type]
+                                   loop, sink))
             continue
         torch_T = np.array(rec, float)
         if loop.target is not None and loop.last_q is not None:
@@ -174,7 +173,7 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
             r = rows[-1]
             observer(DemoEvent("replay", n - 1, fr.image, FrameRecord(
                 "replay", fr.t_s, True, r[2], r[4], r[3], rep.state.value, r[5], r[6],
-                math.nan, ""), rep, torch_T, loop, sink))  # type: ignore[arg-type]  # as above
+                math.nan, ""), rep, torch_T, loop, sink))
     if not started and not stopped:
         raise TorchseamError("the source gave no frames")
     close = getattr(source, "close", None)

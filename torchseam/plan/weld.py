@@ -29,7 +29,7 @@ IK, axis ranges, singularity margin, joint speeds and torch-vs-part clearance) i
 The search screens candidates on every ``screen_stride``-th pose; the chosen plan is checked on
 every pose (:func:`torchseam.plan.preflight.preflight`).
 
-Poses are torch TCP frames (:func:`torchseam.sim.scene.torch_frames`: tip on the seam, z into
+Poses are torch TCP frames (:func:`torchseam.core.part.torch_frames`: tip on the seam, z into
 the corner along the bisector, x along the seam) at ``step_mm`` steps of arc length along the
 seam of the part as its file describes it (its branch offset and ovality; the clamping error and
 thermal drift are not known before welding), from ``look_ahead_mm + approach_mm`` before each
@@ -42,17 +42,18 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
+from typing import overload
 
 import numpy as np
 import torch
 
 from torchseam.core.config import CellConfig, PartConfig, Pose
+from torchseam.core.part import make_joint, nominal_part, torch_frames
 from torchseam.core.transforms import matrix_to_quat, rotation_about
 from torchseam.plan.path import SEGMENT_NAMES, SEGMENTS, PlanConfig, Segment, load_plan_config
 from torchseam.robot.kinematics import IRB1410, checked_values
 from torchseam.robot.reach import ReachGate, ReachResult, Reason
-from torchseam.sim.joint import make_joint
-from torchseam.sim.scene import Scene, nominal_part, torch_frames
+from torchseam.sim.scene import Scene
 
 __all__ = ["Placement", "SegmentPlan", "WeldPlan", "SegmentVerdict", "PlanEvaluator",
            "plan_weld", "torch_angles"]
@@ -396,6 +397,26 @@ def _grid(lo: float, hi: float, step: float) -> list[float]:
     return out
 
 
+def _grid_within(bounds: tuple[float, ...], step: float) -> list[float]:
+    """:func:`_grid` over a configured ``(lo, hi)`` range."""
+    lo, hi = bounds
+    return _grid(lo, hi, step)
+
+
+def _moved(placement: Placement, name: str, value: float) -> Placement:
+    """``placement`` with one parameter set: ``yaw_deg``, ``tilt_deg`` or ``shift_x`` /
+    ``shift_y`` / ``shift_z`` (one coordinate of ``shift_mm``)."""
+    if name.startswith("shift"):
+        sh = list(placement.shift_mm)
+        sh["xyz".index(name[-1])] = value
+        return dataclasses.replace(placement, shift_mm=(sh[0], sh[1], sh[2]))
+    if name == "yaw_deg":
+        return dataclasses.replace(placement, yaw_deg=value)
+    if name == "tilt_deg":
+        return dataclasses.replace(placement, tilt_deg=value)
+    raise ValueError(f"no placement parameter {name!r}")
+
+
 def _circular(a: float, b: float) -> float:
     return abs((a - b + 180.0) % 360.0 - 180.0)
 
@@ -415,6 +436,14 @@ class _Search:
                 + abs(placement.yaw_deg) / s.yaw_step_deg
                 + abs(placement.tilt_deg) / s.tilt_step_deg
                 + sum(abs(v) for v in placement.shift_mm) / s.shift_step_mm)
+
+    @overload
+    def layout(self, placement: Placement, start_deg: float, bound: None = None,
+               stride: int | None = None) -> _Layout: ...
+
+    @overload
+    def layout(self, placement: Placement, start_deg: float, bound: tuple | None,
+               stride: int | None = None) -> _Layout | None: ...
 
     def layout(self, placement: Placement, start_deg: float, bound: tuple | None = None,
                stride: int | None = None) -> _Layout | None:
@@ -448,71 +477,55 @@ class _Search:
 
     def search_layout(self) -> _Layout:
         """The best layout (placement and segment start), checked on every pose."""
-        seen: dict[tuple[Placement, float], _Layout] = {}
-
-        def best() -> _Layout:
-            return min(seen.values(), key=lambda lay: lay.key)
-
-        def consider(placement: Placement, start: float) -> bool:
-            if (placement, start) in seen:
-                return False
-            bound = best().key if seen else None
-            lay = self.layout(placement, start, bound)
-            if lay is None:
-                return False
-            seen[(placement, start)] = lay
-            return bound is None or lay.key < bound
-
-        def settle(budget: int = 6) -> _Layout:
-            """Check the best screened layouts on every pose until the best is checked (a
-            screen misses a lone refused pose: a joint-speed spike, a singular pose)."""
-            for _ in range(budget):
-                top = best()
-                if top.verified:
-                    return top
-                full = self.layout(top.placement, top.start_deg, stride=1)
-                seen[(top.placement, top.start_deg)] = full
-            done = [lay for lay in seen.values() if lay.verified]
-            return min(done, key=lambda lay: lay.key) if done else best()
-
+        lays = _Layouts(self)
         for start in self.starts():
-            consider(Placement(), start)
-        top = settle()
+            lays.consider(Placement(), start)
+        top = lays.settle()
         if self._good(top):
             return top
-        s = self.s
-        part = self.ev.part
-        tilts = _grid(*s.tilt_deg, s.tilt_step_deg)
-        upright = part.intersection_angle_deg - 90.0   # stands the branch (the turn axis) upright
-        if upright != 0.0 and s.tilt_deg[0] - 1e-9 <= upright <= s.tilt_deg[1] + 1e-9:
-            tilts.insert(1, float(upright))
-        grids = {"yaw_deg": _grid(*s.yaw_deg, s.yaw_step_deg), "tilt_deg": tilts}
-        shifts = _grid(*s.shift_mm, s.shift_step_mm)
-        for _ in range(3):  # sweeps of coordinate descent
-            improved = False
-            for name in ("tilt_deg", "yaw_deg", "shift_x", "shift_y", "shift_z"):
-                values = shifts if name.startswith("shift") else grids[name]
-                for v in values:
-                    pl, start0 = best().placement, best().start_deg
-                    if name.startswith("shift"):
-                        sh = list(pl.shift_mm)
-                        sh["xyz".index(name[-1])] = v
-                        cand = dataclasses.replace(pl, shift_mm=tuple(sh))
-                    else:
-                        cand = dataclasses.replace(pl, **{name: v})
-                    if cand == pl:
-                        continue
-                    for start in self.starts(start0, window=1):
-                        improved |= consider(cand, start)
-                if self._good(best()):
-                    break
-            if self._good(best()) or not improved:
-                break
-        placement = best().placement
+        self._descend(lays)
+        placement = lays.best().placement
         if placement != Placement():  # (the configured one had every start already)
             for start in self.starts():
-                consider(placement, start)
-        return settle()
+                lays.consider(placement, start)
+        return lays.settle()
+
+    def _placement_grids(self) -> dict[str, list[float]]:
+        """The values of each placement parameter, in the order the descent takes them."""
+        s = self.s
+        tilts = _grid_within(s.tilt_deg, s.tilt_step_deg)
+        upright = self.ev.part.intersection_angle_deg - 90.0  # stands the branch upright
+        if upright != 0.0 and s.tilt_deg[0] - 1e-9 <= upright <= s.tilt_deg[1] + 1e-9:
+            tilts.insert(1, float(upright))
+        shifts = _grid_within(s.shift_mm, s.shift_step_mm)
+        return {"tilt_deg": tilts, "yaw_deg": _grid_within(s.yaw_deg, s.yaw_step_deg),
+                "shift_x": shifts, "shift_y": shifts, "shift_z": shifts}
+
+    def _descend(self, lays: _Layouts) -> None:
+        """Coordinate descent on the placement (up to three sweeps), the start re-chosen near
+        the best one, until a layout is good or a sweep improves nothing."""
+        grids = self._placement_grids()
+        for _ in range(3):
+            improved = False
+            for name, values in grids.items():
+                improved |= self._sweep(lays, name, values)
+                if self._good(lays.best()):
+                    break
+            if self._good(lays.best()) or not improved:
+                break
+
+    def _sweep(self, lays: _Layouts, name: str, values: list[float]) -> bool:
+        """Try every value of one placement parameter on the best layout; whether one of them
+        improved it."""
+        improved = False
+        for v in values:
+            top = lays.best()
+            cand = _moved(top.placement, name, v)
+            if cand == top.placement:
+                continue
+            for start in self.starts(top.start_deg, window=1):
+                improved |= lays.consider(cand, start)
+        return improved
 
     def _good(self, lay: _Layout) -> bool:
         return lay.key[0] == 0 and lay.key[1] == 0.0
@@ -552,11 +565,45 @@ class _Search:
         best = min(near, key=score)
         if score(best)[0] > 0:
             best = min([best] + [(best[0], best[1], r)
-                                 for r in _grid(*s.roll_deg, s.roll_step_deg)[1:]], key=score)
+                                 for r in _grid_within(s.roll_deg, s.roll_step_deg)[1:]], key=score)
         if score(best)[0] > 0:
             return seg, tried  # no angles pass it: keep the configured ones (and say why)
         return dataclasses.replace(seg, work_angle_deg=best[0], travel_angle_deg=best[1],
                                    roll_deg=best[2]), tried
+
+
+class _Layouts:
+    """The layouts a search has checked, by (placement, start)."""
+
+    def __init__(self, search: _Search) -> None:
+        self.search = search
+        self.seen: dict[tuple[Placement, float], _Layout] = {}
+
+    def best(self) -> _Layout:
+        return min(self.seen.values(), key=lambda lay: lay.key)
+
+    def consider(self, placement: Placement, start: float) -> bool:
+        """Screen a layout (unless seen); whether it is the best so far."""
+        if (placement, start) in self.seen:
+            return False
+        bound = self.best().key if self.seen else None
+        lay = self.search.layout(placement, start, bound)
+        if lay is None:
+            return False
+        self.seen[(placement, start)] = lay
+        return bound is None or lay.key < bound
+
+    def settle(self, budget: int = 6) -> _Layout:
+        """Check the best screened layouts on every pose until the best is checked (a
+        screen misses a lone refused pose: a joint-speed spike, a singular pose)."""
+        for _ in range(budget):
+            top = self.best()
+            if top.verified:
+                return top
+            full = self.search.layout(top.placement, top.start_deg, stride=1)
+            self.seen[(top.placement, top.start_deg)] = full
+        done = [lay for lay in self.seen.values() if lay.verified]
+        return min(done, key=lambda lay: lay.key) if done else self.best()
 
 
 def configured_plan(part: PartConfig, config: PlanConfig | None = None) -> WeldPlan:

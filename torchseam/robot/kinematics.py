@@ -136,7 +136,7 @@ def xyzq_to_pose(xyzq: Tensor) -> Tensor:
     return T
 
 
-def rotation_angle(Ra: Tensor, Rb: Tensor) -> Tensor:
+def rotation_angle(Ra: Array, Rb: Array) -> Array:
     """(...) angle in rad between rotations (..., 3, 3), numpy or torch; accurate near 0."""
     xp = torch if isinstance(Ra, torch.Tensor) else np
     D = xp.swapaxes(Ra, -1, -2) @ Rb

@@ -207,10 +207,13 @@ class ReachGate:
         dt = self._dt(Tn, dt_s)
         v = self._judge(Tn, _np(sol.q_deg), _np(sol.reached), _np(sol.pos_err_mm),
                         _np(sol.rot_err_deg), dt, None)
-        to = dict(dtype=robot.dtype, device=robot.device)
+
+        def out(a: np.ndarray) -> Tensor:
+            return torch.as_tensor(a, dtype=robot.dtype, device=robot.device)
+
         return ReachResult(torch.tensor([c is Reason.OK for c in v.code], device=robot.device),
-                           sol.q_deg, v.code, v.reasons, torch.as_tensor(v.sigma, **to),
-                           torch.as_tensor(v.ratio, **to), torch.as_tensor(v.clearance, **to))
+                           sol.q_deg, v.code, v.reasons, out(v.sigma), out(v.ratio),
+                           out(v.clearance))
 
     # ------------------------------------------------------------------ incremental
     def reset(self, q_deg: Tensor | np.ndarray | None = None,
@@ -313,8 +316,9 @@ class ReachGate:
             # the same pose from the same joints gives the same verdict (zero joint motion),
             # so the IK and checks (about 1 ms) are not run again
             return True, ""
-        if self._ready_for(p, q):
-            v = self._pending[3]  # checked by prepare() from this very reference
+        pend = self._pending
+        if pend is not None and self._ready_for(p, q):
+            v = pend[3]  # checked by prepare() from this very reference
             self._pending = None
             if v.ok:
                 self._q_prev, self._p_prev = v.q_deg.copy(), p.copy()
@@ -330,7 +334,8 @@ class ReachGate:
             step = np.linalg.norm(T[1:, :3, 3] - T[:-1, :3, 3], axis=-1) / self.weld_speed_mm_s
             step = np.maximum(step, self.min_dt_s)
             return np.concatenate([[0.0], step])
-        dt = _np(dt_s).astype(float)
+        dt = (np.asarray(dt_s, dtype=float) if isinstance(dt_s, float | int)
+              else _np(dt_s).astype(float))
         if dt.ndim == 0:
             dt = np.full(n, float(dt))
         if dt.shape != (n,):
@@ -399,8 +404,8 @@ class ReachGate:
                 m += (f" (a {dq[i, k]:.0f} deg jump: the continuous solution leaves the axis "
                       "ranges here, the arm would have to change configuration or unwind)")
             msgs[i].append((Reason.JOINT_SPEED, m))
-        for i, m in clear_msgs:
-            msgs[i].append((Reason.CLEARANCE, m))
+        for row, m in clear_msgs:
+            msgs[row].append((Reason.CLEARANCE, m))
 
         code = tuple(m[0][0] if m else Reason.OK for m in msgs)
         reasons = tuple("; ".join(t for _, t in m) for m in msgs)
@@ -457,6 +462,7 @@ class ReachGate:
         """Clearance of torch pieces along a-b ((M, 3), radius r0 at a to r1 at b, (M,)) to
         the main pipe, plate or sphere."""
         s = self._pipes
+        assert s is not None, "the clearance is measured only with a part"
         # the main pipe in its own frame (x along its axis): the torch axis's nearest approach
         a_m, b_m = (a - s.main_origin) @ s.main_rotation, (b - s.main_origin) @ s.main_rotation
         if s.main_kind == "pipe":
@@ -474,6 +480,7 @@ class ReachGate:
                          ) -> np.ndarray:
         """Clearance of torch pieces along a-b to the branch (a capsule)."""
         s = self._pipes
+        assert s is not None, "the clearance is measured only with a part"
         A, B = s.branch_A, s.branch_B
         if np.array_equal(r0, r1):
             return _segment_distance(a, b, A[None], B[None]) - s.branch_r - r0
@@ -539,7 +546,8 @@ def _part_solids(part: PartConfig, pose: np.ndarray | None, main_length: float) 
     dims = {"pipe": lambda: (main["a"], main["b"], main_length / 2),
             "plate": lambda: (main["half"], main["half"], main["thickness"]),
             "sphere": lambda: (main["radius"], main["radius"], 0.0)}[kind]()
-    return _PartSolids(R @ main["origin"] + p, R.copy(), *(float(v) for v in dims),
+    main_a, main_b, half_length = (float(v) for v in dims)
+    return _PartSolids(R @ main["origin"] + p, R.copy(), main_a, main_b, half_length,
                        R @ (joint.o + joint.branch_bottom * joint.d) + p,
                        R @ (joint.o + joint.branch_top * joint.d) + p,
                        float(joint.r * max(joint.k1, joint.k2)), kind,
