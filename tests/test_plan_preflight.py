@@ -159,7 +159,7 @@ def test_search_moves_a_part_placed_where_no_segment_start_helps(cell, part, rob
     ev = PlanEvaluator(cell, far, robot=robot)
     np.testing.assert_allclose(report.plan.part.placement.matrix(), pl.matrix(far), atol=1e-9)
     np.testing.assert_allclose(ev.part_pose(pl, report.plan.segments[0]),
-                               report.plan.scene(report.plan.segments[0]).T_B_Tnom, atol=1e-9)
+                               report.plan.geometry(report.plan.segments[0]).T_B_Tnom, atol=1e-9)
 
 
 def test_oval_main_pipe_clearance_is_exact(robot, cell, part):

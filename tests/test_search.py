@@ -105,8 +105,8 @@ def test_start_beyond_the_bound_is_a_clear_failure_without_motion_beyond_it():
     # every pose sent lies within the bound around the start
     plan = res.report.plan
     seg = plan.segments[0]
-    scene = plan.scene(seg)
-    s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
+    geo = plan.geometry(seg)
+    s0 = float(geo.s_at(np.array([seg.phi_start]))[0])
     approach = cell.process.look_ahead_mm + load_plan_config().approach_mm
     T0 = plan.nominal_tcp(seg, np.array([s0 - approach]))[0]
     plus, minus = plan.search_arms(seg, s0 - approach)
@@ -195,10 +195,10 @@ def _segment_a(name):
     part = load_part(CONFIG_DIR / "parts" / f"{name}.yaml")
     plan = preflight(cell, part).plan
     seg = plan.segments[0]
-    scene = plan.scene(seg)
-    s0 = float(scene.s_at(np.array([seg.phi_start]))[0]) - (
+    geo = plan.geometry(seg)
+    s0 = float(geo.s_at(np.array([seg.phi_start]))[0]) - (
         cell.process.look_ahead_mm + load_plan_config().approach_mm)
-    gate = ReachGate(cell=cell, part=plan.part, part_pose_mm=scene.T_B_Tnom)
+    gate = ReachGate(cell=cell, part=plan.part, part_pose_mm=geo.T_B_Tnom)
     return plan, seg, s0, plan.nominal_tcp(seg, np.array([s0]))[0], gate
 
 

@@ -397,7 +397,7 @@ class _Run:
             res.incomplete.append({"segment": seg.name,
                                    "reason": "not welded: stopped by the operator"})
             return
-        scene = self.weld_plan.scene(seg)
+        scene = Scene(self.part, seg.rotation_deg)  # the part as planned, turned for seg
         res.part_poses[seg.name] = scene.T_B_Tnom
         gate = ReachGate(cell=self.cell, part=self.part, part_pose_mm=scene.T_B_Tnom)
         s0 = float(scene.s_at(np.array([seg.phi_start]))[0])

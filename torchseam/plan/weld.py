@@ -34,7 +34,8 @@ the corner along the bisector, x along the seam) at ``step_mm`` steps of arc len
 seam of the part as its file describes it (its branch offset and ovality; the clamping error and
 thermal drift are not known before welding), from ``look_ahead_mm + approach_mm`` before each
 segment (the approach, arc off) to its end, with the segment's work, travel and roll angles,
-the part turned by the positioner as :class:`~torchseam.sim.scene.Scene` turns it.
+the part turned by the positioner (:class:`SegmentGeometry`: the design part as placed and
+turned for a segment, the nominal part of the simulator's :class:`~torchseam.sim.scene.Scene`).
 """
 
 from __future__ import annotations
@@ -53,10 +54,9 @@ from torchseam.core.transforms import matrix_to_quat, rotation_about
 from torchseam.plan.path import SEGMENT_NAMES, SEGMENTS, PlanConfig, Segment, load_plan_config
 from torchseam.robot.kinematics import IRB1410, checked_values
 from torchseam.robot.reach import ReachGate, ReachResult, Reason
-from torchseam.sim.scene import Scene
 
-__all__ = ["Placement", "SegmentPlan", "WeldPlan", "SegmentVerdict", "PlanEvaluator",
-           "plan_weld", "torch_angles"]
+__all__ = ["Placement", "SegmentPlan", "SegmentGeometry", "WeldPlan", "SegmentVerdict",
+           "PlanEvaluator", "plan_weld", "torch_angles"]
 
 _Z = np.array([0.0, 0.0, 1.0])
 _Y = np.array([0.0, 1.0, 0.0])
@@ -136,6 +136,43 @@ class SegmentPlan(Segment):
         return (self.work_angle_deg, self.travel_angle_deg, self.roll_deg)
 
 
+class SegmentGeometry:
+    """The design part of one segment: the part's nominal geometry (:func:`nominal_part`: no
+    unwanted offset, ovality or drift) at its placement, turned by the positioner by
+    ``rotation_deg`` about the branch axis; its seam by angle and arc length, and the torch
+    frames a robot programmed from the design follows. (The simulator's
+    :class:`~torchseam.sim.scene.Scene` has the same nominal part, and the true one.)
+
+    Example:
+        >>> from torchseam.core.config import load_part
+        >>> SegmentGeometry(load_part()).nominal_tcp(np.array([0.0, 10.0])).shape
+        (2, 4, 4)
+    """
+
+    def __init__(self, part: PartConfig, rotation_deg: float = 0.0) -> None:
+        self.part = part
+        self.nominal_joint = make_joint(nominal_part(part))
+        # positioner turn about the branch axis of the nominal part
+        Rz = np.eye(4)
+        Rz[:3, :3] = rotation_about(self.nominal_joint.d, np.deg2rad(rotation_deg))
+        self.T_B_Tnom = part.placement.matrix() @ Rz
+        self._phi_tab, self._s_tab = self.nominal_joint.arc_length_table()
+        self.seam_length_mm = float(self._s_tab[-1])
+
+    def phi_at(self, s_mm: np.ndarray) -> np.ndarray:
+        """Nominal seam angle at arc length ``s_mm`` (wraps around the ring)."""
+        return np.interp(np.mod(s_mm, self.seam_length_mm), self._s_tab, self._phi_tab)
+
+    def s_at(self, phi: np.ndarray) -> np.ndarray:
+        """Nominal seam arc length at angle ``phi``."""
+        return np.interp(np.mod(phi, 2 * np.pi), self._phi_tab, self._s_tab)
+
+    def nominal_tcp(self, s_mm: np.ndarray) -> np.ndarray:
+        """Nominal torch poses in {B} at seam arc lengths ``s_mm`` (N,), (N, 4, 4)."""
+        frames = torch_frames(self.nominal_joint.seam(self.phi_at(np.asarray(s_mm, float))))
+        return self.T_B_Tnom @ frames
+
+
 @dataclass(frozen=True)
 class WeldPlan:
     """The whole plan of one part.
@@ -158,9 +195,9 @@ class WeldPlan:
     candidates: int = 0
     search_s: float = 0.0
 
-    def scene(self, seg: Segment) -> Scene:
-        """The part as placed, turned by the positioner for ``seg``."""
-        return Scene(self.part, seg.rotation_deg)
+    def geometry(self, seg: Segment) -> SegmentGeometry:
+        """The design part as placed, turned by the positioner for ``seg``."""
+        return SegmentGeometry(self.part, seg.rotation_deg)
 
     def plan_config(self, seg: SegmentPlan, base: PlanConfig | None = None) -> PlanConfig:
         """``configs/plan.yaml`` (or ``base``) with this plan's start and ``seg``'s work and
@@ -177,9 +214,9 @@ class WeldPlan:
 
     def nominal_tcp(self, seg: SegmentPlan, s_mm: np.ndarray) -> np.ndarray:
         """Programmed (design) torch poses of ``seg`` at seam arc lengths ``s_mm`` (N,) of
-        :meth:`scene`, with the segment's angles: (N, 4, 4) in the base frame, mm. The demo's
+        :meth:`geometry`, with the segment's angles: (N, 4, 4) in the base frame, mm. The demo's
         start pose and programmed path."""
-        T = self.scene(seg).nominal_tcp(np.asarray(s_mm, float))
+        T = self.geometry(seg).nominal_tcp(np.asarray(s_mm, float))
         T[:, :3, :3] = T[:, :3, :3] @ self.torch_rotation(seg)
         return T
 
@@ -191,15 +228,15 @@ class WeldPlan:
         the branch, up the branch away from the main body). A torch moved across the seam
         along them keeps its height over the surface it passes over (a move along the torch's
         own y runs into one of them where the groove is 90 degrees: the plate)."""
-        scene = self.scene(seg)
-        smp = scene.nominal_joint.seam(scene.phi_at(np.array([float(s_mm)])))
+        geo = self.geometry(seg)
+        smp = geo.nominal_joint.seam(geo.phi_at(np.array([float(s_mm)])))
         x, n_m, n_b = smp.tangent[0], smp.normal_main[0], smp.normal_branch[0]
         arms = []
         for n, other in ((n_m, n_b), (n_b, n_m)):
             a = np.cross(x, n)
             a = a / np.linalg.norm(a)
             arms.append(a if a @ other > 0 else -a)   # away from the other surface
-        R = scene.T_B_Tnom[:3, :3]
+        R = geo.T_B_Tnom[:3, :3]
         main, branch = R @ arms[0], R @ arms[1]
         y = self.nominal_tcp(seg, np.array([float(s_mm)]))[0, :3, 1]
         return (main, branch) if main @ y > branch @ y else (branch, main)
