@@ -8,7 +8,8 @@ from torchseam.cli import build_parser
 
 #: commands whose options must each say their default (the others are owned elsewhere and
 #: checked for a help text only)
-DEFAULTS_SAID = {"simulate", "detect", "calibrate", "plan", "robot", "console"}
+DEFAULTS_SAID = {"simulate", "detect", "calibrate", "plan", "robot", "console", "demo", "replay",
+                 "train-live", "train", "track", "eval", "ring"}
 
 
 def _parsers(parser, path=()):

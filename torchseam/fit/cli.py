@@ -172,7 +172,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "YYYYmmdd-HHMMSS)")
     b.add_argument("--out", metavar="DIR",
                    help=f"the run folder instead of {RUNS_DIR}/NAME: checkpoint last.pt, "
-                        "metrics.json, report.md, loss_curve.png and the model")
+                        "metrics.json, report.md, loss_curve.png and the model (default: "
+                        f"{RUNS_DIR}/NAME)")
     b.add_argument("--model", metavar="FILE",
                    help=f"fitted model file to write (default RUN/{RUN_MODEL}); the shipped "
                         "model is replaced only with --install")

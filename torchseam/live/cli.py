@@ -47,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "the segment and the reason; nothing moves) or on bad input.")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml; "
                                              "others in configs/parts/)")
-    p.add_argument("--noise", default="heavy", help="arc-noise level: name or 0..1 (heavy)")
+    p.add_argument("--noise", default="heavy", help="arc-noise level: name or 0..1 (default heavy)")
     p.add_argument("--seed", type=seed_arg, default=0,
                    help=f"random seed of the simulation, 0 .. {MAX_SEED} (default 0)")
     p.add_argument("--out", type=out_dir_arg, default=Path("demo_out"),
@@ -55,13 +55,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-video", action="store_true", help="skip the MP4")
     p.add_argument("--fault", action="append", default=[], metavar="FAULT",
                    help=f"inject a fault mid-segment ({', '.join(FAULTS)}); repeat or "
-                        "comma-separate to combine")
+                        "comma-separate to combine (default: none)")
     p.add_argument("--segments", type=segments_arg, default="abcdef",
                    help="which segments, each letter of abcdef at most once (default abcdef)")
     p.add_argument("--tracker", choices=TRACKERS, default="anchored",
                    help="feature-point tracker (default anchored: EAKF-STC fused with TIPM)")
     p.add_argument("--length-mm", type=float, default=None,
-                   help="weld only this much of each segment (quick runs)")
+                   help="weld only this much of each segment (quick runs; default: the whole "
+                        "segment)")
     p.add_argument("--model", type=model_arg, default=None, metavar="FILE",
                    help="tracker model file for the anchored and eakf-stc trackers, e.g. a "
                         "run's runs/NAME/live_tracker.safetensors (default "
@@ -92,11 +93,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--init", default=None, metavar="U,V",
                    help="start pixel (default: TIPM on the first frame, which must be arc-off)")
     r.add_argument("--pose", default=None, metavar="X,Y,Z,Q1,Q2,Q3,Q4",
-                   help="torch pose for frames without one (mm, quaternion w,x,y,z)")
+                   help="torch pose for frames without one (mm, quaternion w,x,y,z; default: "
+                        "none, such frames give pixels only)")
     r.add_argument("--fps", type=float, default=None,
                    help="frame rate for time stamps the source lacks (default: the file's, "
                         "else 25)")
-    r.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
+    r.add_argument("--max-frames", type=int, default=None,
+                   help="stop after N frames (default: all)")
     r.add_argument("--out", type=out_file_arg, default=None,
                    help="CSV of frame,t_s,u,v,status,x,y,z per frame (default: none)")
     r.add_argument("--model", type=model_arg, default=None, metavar="FILE",
