@@ -93,16 +93,19 @@ def fake_weld(frame_s: float = 0.004, n_frames: int = 100_000):
     return weld
 
 
-def fake_console(cfg, **weld_kw) -> ConsoleServer:
+def fake_console(cfg, start_bounds=None, **weld_kw) -> ConsoleServer:
     session = WeldSession(cfg, fake_weld(**weld_kw), 0.04)
 
     def validate(raw):
-        return parse_params(raw, cfg.limits, _noise(), FAULTS, TRACKERS)
+        return parse_params(raw, cfg.limits, _noise(), FAULTS, TRACKERS, start_bounds)
 
+    extra = {} if start_bounds is None else {
+        "start_offset_mm": [-start_bounds[0], start_bounds[0]],
+        "start_angle_deg": [-start_bounds[1], start_bounds[1]]}
     return ConsoleServer(cfg, session, validate, GOOD,
                          {"noise": ["clean", "heavy"], "faults": list(FAULTS),
                           "trackers": list(TRACKERS), "segments": "abcdef"}, source="fake",
-                         token=TOKEN)
+                         token=TOKEN, extra_limits=extra)
 
 
 def _noise():
@@ -209,6 +212,92 @@ def test_good_parameters_parse(cfg):
     assert p.segments == "ac" and p.length_mm == 12.0 and p.noise == 0.3
     assert p.faults == ("laser-off", "arc-flash") and p.step_mm == 1.5
     assert parse_params(GOOD, cfg.limits, _noise(), FAULTS, TRACKERS).length_mm is None
+
+
+def _search_bounds() -> tuple[float, float]:
+    """The start bounds of the simulated console: the seam search's, configs/search.yaml."""
+    from torchseam.live.search import load_search_config
+
+    search = load_search_config()
+    return search.max_extent_mm, search.max_angle_deg
+
+
+def test_start_off_the_seam_is_checked_against_the_search_bound(cfg):
+    mm, deg = _search_bounds()
+    bounds = (mm, deg)
+
+    def parse(**change):
+        return parse_params({**GOOD, **change}, cfg.limits, _noise(), FAULTS, TRACKERS, bounds)
+
+    p = parse(start_offset_mm="12.5", start_angle_deg=-deg)
+    assert (p.start_offset_mm, p.start_angle_deg) == (12.5, -deg)
+    assert p.as_dict()["start_offset_mm"] == 12.5
+    p = parse()   # absent: on the seam (an older page, a script)
+    assert (p.start_offset_mm, p.start_angle_deg) == (0.0, 0.0)
+    assert parse(start_offset_mm="", start_angle_deg=" ").start_offset_mm == 0.0
+    for change, message in [
+            ({"start_offset_mm": mm + 1}, f"start_offset_mm must be in {-mm:g}..{mm:g} mm, "
+                                          f"got {mm + 1:g}"),
+            ({"start_angle_deg": -deg - 5}, f"start_angle_deg must be in {-deg:g}..{deg:g} "
+                                            f"deg, got {-deg - 5:g}"),
+            ({"start_offset_mm": "far"}, "start_offset_mm: 'far' is not a number"),
+            ({"start_offset_mm": "nan"}, "start_offset_mm: nan is not a number"),
+            ({"start_angle_deg": True}, "start_angle_deg: True is not a number"),
+            ({"start_angle_deg": [5]}, "start_angle_deg: [5] is not a number"),
+            ({"start_offset_mm": 10**400}, "start_offset_mm: a 401-digit number is too large")]:
+        with pytest.raises(ParamError) as e:
+            parse(**change)
+        assert str(e.value) == message
+    # a replay moves no torch: only "on the seam" passes
+    ok = parse_params({**GOOD, "start_offset_mm": 0, "start_angle_deg": "0"}, cfg.limits,
+                      _noise(), FAULTS, TRACKERS)
+    assert (ok.start_offset_mm, ok.start_angle_deg) == (0.0, 0.0)
+    with pytest.raises(ParamError, match="start_angle_deg: this console replays frames"):
+        parse_params({**GOOD, "start_angle_deg": 5}, cfg.limits, _noise(), FAULTS, TRACKERS)
+
+
+def test_start_off_the_seam_through_the_api(served):
+    mm, deg = _search_bounds()
+    con, url = served(start_bounds=(mm, deg))
+    status, body = post(url + "/api/start", {**GOOD, "start_offset_mm": mm + 1})
+    assert status == 400 and body["error"] == (f"start_offset_mm must be in {-mm:g}..{mm:g} "
+                                               f"mm, got {mm + 1:g}")
+    status, body = post(url + "/api/start", {**GOOD, "start_angle_deg": {"deg": 5}})
+    assert status == 400 and body["error"].startswith("start_angle_deg: ")
+    assert con.session.state == RunState.IDLE
+    limits = con.hello()[0]["limits"]
+    assert limits["start_offset_mm"] == [-mm, mm] and limits["start_angle_deg"] == [-deg, deg]
+    assert limits["step_mm"] == list(con.cfg.limits.step_mm)
+    status, body = post(url + "/api/start", {**GOOD, "start_offset_mm": "-15",
+                                             "start_angle_deg": 10})
+    assert status == 200 and body["params"]["start_offset_mm"] == -15.0
+    assert body["params"]["start_angle_deg"] == 10.0
+    assert post(url + "/api/stop")[0] == 200
+    con.session.join(10)
+
+
+def test_simulated_console_starts_the_demo_off_the_seam(cfg, monkeypatch):
+    import torchseam.console.sim as sim
+    from torchseam.core.config import load_cell, load_part
+    from torchseam.live.demo import DemoControl
+
+    mm, deg = _search_bounds()
+    con = simulated_console(cfg)
+    assert con.defaults["start_offset_mm"] == 0.0 and con.defaults["start_angle_deg"] == 0.0
+    limits = con.hello()[0]["limits"]
+    assert limits["start_offset_mm"] == [-mm, mm] and limits["start_angle_deg"] == [-deg, deg]
+    with pytest.raises(ParamError, match="start_angle_deg must be in"):
+        con.validate({**GOOD, "start_angle_deg": deg + 0.5})
+    seen = {}
+
+    def fake_run_demo(*args, **kw):
+        seen.update(kw)
+        return DemoResult()
+
+    monkeypatch.setattr(sim, "run_demo", fake_run_demo)
+    p = con.validate({**GOOD, "start_offset_mm": "20", "start_angle_deg": "-5"})
+    sim.sim_weld(load_cell(), load_part(), _noise())(p, lambda ev: None, DemoControl())
+    assert seen["start_offset_mm"] == 20.0 and seen["start_angle_deg"] == -5.0
 
 
 def test_loopback_and_cli_registration():
@@ -497,8 +586,18 @@ def test_page_runs_and_watches_a_simulated_weld(chromium, cfg, tmp_path):
             page.wait_for_function("document.querySelector('#param-error').textContent"
                                    ".includes('step_mm must be in 0.5..5 mm')")
             assert state.get_attribute("data-state") == "idle"
-            # a short simulated weld: segment a, 40 mm (stopped before its end)
+            # the simulated cell can start off the seam, within the search's bound
+            mm, _ = _search_bounds()
+            assert page.is_visible("#p-off") and page.is_visible("#p-ang")
+            assert f"start offset {-mm:g}..{mm:g} mm" in page.inner_text("#limits")
             page.fill("#p-step", "2")
+            page.fill("#p-off", str(mm + 1))
+            page.click("#btn-start")
+            page.wait_for_function("document.querySelector('#param-error').textContent"
+                                   f".includes('start_offset_mm must be in {-mm:g}..{mm:g}')")
+            assert state.get_attribute("data-state") == "idle"
+            page.fill("#p-off", "0")
+            # a short simulated weld: segment a, 40 mm (stopped before its end)
             page.fill("#p-seg", "a")
             page.fill("#p-len", "40")
             page.click("#btn-start")

@@ -92,7 +92,10 @@ class ParamError(TorchseamError, ValueError):
 
 @dataclass(frozen=True)
 class WeldParams:
-    """One weld as the operator set it up (``length_mm`` None: whole segments)."""
+    """One weld as the operator set it up (``length_mm`` None: whole segments;
+    ``start_offset_mm`` / ``start_angle_deg``: each segment starts that far across the seam /
+    turned about the torch axis and searches for it, as ``torchseam demo --start-offset-mm
+    --start-angle-deg``; 0: on the seam)."""
 
     step_mm: float
     look_ahead_mm: float
@@ -103,6 +106,8 @@ class WeldParams:
     seed: int
     faults: tuple[str, ...]
     tracker: str
+    start_offset_mm: float = 0.0
+    start_angle_deg: float = 0.0
 
     def apply(self, cell: CellConfig) -> CellConfig:
         """``cell`` with this weld's process settings."""
@@ -210,9 +215,29 @@ def _faults(raw: dict[str, Any], faults: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(out)
 
 
+def _start_off_seam(raw: dict[str, Any], name: str, bound: float | None, unit: str) -> float:
+    """``start_offset_mm`` / ``start_angle_deg``: absent or empty is 0 (on the seam); else a
+    number within ``+-bound`` (the search's bound). ``bound`` None: this console cannot start
+    off the seam (a replay moves no torch), only 0 passes."""
+    v = raw.get(name)
+    if v is None or (isinstance(v, str) and not v.strip()):
+        return 0.0
+    if bound is None:
+        if _number(raw, name, (-math.inf, math.inf), unit):
+            raise ParamError(f"{name}: this console replays frames (open loop), it moves no "
+                             "torch to start off the seam; leave it 0")
+        return 0.0
+    return _number(raw, name, (-bound, bound), unit)
+
+
 def parse_params(raw: dict[str, Any], limits: ParamLimits, noise: NoiseConfig,
-                 faults: tuple[str, ...], trackers: tuple[str, ...]) -> WeldParams:
-    """Check the page's parameter form. Raises :class:`ParamError` naming the field."""
+                 faults: tuple[str, ...], trackers: tuple[str, ...],
+                 start_bounds: tuple[float, float] | None = None) -> WeldParams:
+    """Check the page's parameter form. Raises :class:`ParamError` naming the field.
+
+    ``start_bounds``: the largest start offset (mm) and angle (deg) off the seam, either side
+    (the simulated cell: the seam search's ``max_extent_mm`` and ``max_angle_deg`` of
+    ``configs/search.yaml``); None: the console starts on the seam only (a replay)."""
     if not isinstance(raw, dict):
         raise ParamError("parameters: expected a JSON object")
     known = {f.name for f in dataclasses.fields(WeldParams)}
@@ -238,6 +263,7 @@ def parse_params(raw: dict[str, Any], limits: ParamLimits, noise: NoiseConfig,
     tracker = _text(raw, "tracker")
     if tracker not in trackers:
         raise ParamError(f"tracker must be one of {', '.join(trackers)}, got {_short(tracker)}")
+    off_mm, off_deg = (None, None) if start_bounds is None else start_bounds
     return WeldParams(
         step_mm=_number(raw, "step_mm", limits.step_mm, "mm"),
         look_ahead_mm=_number(raw, "look_ahead_mm", limits.look_ahead_mm, "mm"),
@@ -245,4 +271,6 @@ def parse_params(raw: dict[str, Any], limits: ParamLimits, noise: NoiseConfig,
         segments="".join(c for c in SEGMENT_LETTERS if c in segs),
         length_mm=length_mm, noise=level,
         seed=int(_number(raw, "seed", limits.seed, "", integer=True)),
-        faults=fl, tracker=tracker)
+        faults=fl, tracker=tracker,
+        start_offset_mm=_start_off_seam(raw, "start_offset_mm", off_mm, "mm"),
+        start_angle_deg=_start_off_seam(raw, "start_angle_deg", off_deg, "deg"))

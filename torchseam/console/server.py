@@ -269,12 +269,15 @@ class ConsoleServer:
         token: the per-run token (default: a new ``secrets.token_urlsafe(32)``; tests pass a
             known one). ``allowed_hosts``: ``Host`` names to answer besides loopback and the
             bound address (a name the operator reaches a ``--host 0.0.0.0`` console by).
+        extra_limits: ranges of form fields beyond ``cfg.limits`` (the simulated cell's start
+            offset and angle off the seam), sent to the page with the others.
     """
 
     def __init__(self, cfg: ConsoleConfig, session: WeldSession,
                  validate: Callable[[dict[str, Any]], WeldParams], defaults: dict[str, Any],
                  choices: dict[str, Any], source: str = "simulated cell",
-                 token: str | None = None, allowed_hosts: Iterable[str] = ()) -> None:
+                 token: str | None = None, allowed_hosts: Iterable[str] = (),
+                 extra_limits: dict[str, list[float]] | None = None) -> None:
         self.cfg = cfg
         #: The per-run secret every state-changing request and the WebSocket must carry.
         self.token = token or secrets.token_urlsafe(32)
@@ -285,6 +288,7 @@ class ConsoleServer:
         self.validate = validate
         self.defaults = defaults
         self.choices = choices
+        self.extra_limits = dict(extra_limits or {})
         self.source = source
         self.clients: set[_Client] = set()
         self.jpeg: _Jpeg | None = None
@@ -568,7 +572,7 @@ class ConsoleServer:
         status["link"] = self._link
         status["clients"] = len(self.clients)
         return {"type": "hello", "source": self.source, "defaults": self.defaults,
-                "choices": self.choices, "limits": _limits(self.cfg),
+                "choices": self.choices, "limits": {**_limits(self.cfg), **self.extra_limits},
                 "history": {"frames": self.cfg.history.frames,
                             "commands": self.cfg.history.commands,
                             "messages": self.cfg.history.messages},

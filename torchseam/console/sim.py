@@ -23,12 +23,14 @@ from torchseam.core.config import (
     load_part,
 )
 from torchseam.live.demo import FAULTS, DemoControl, DemoEvent, DemoResult, run_demo
+from torchseam.live.search import load_search_config
 from torchseam.track.peers import TRACKERS
 
 #: Form defaults that are not in ``cell.yaml`` (the demo's own defaults).
 DEMO_DEFAULTS: dict[str, Any] = {"segments": SEGMENT_LETTERS, "length_mm": None,
                                  "noise": "heavy", "seed": 0, "faults": [],
-                                 "tracker": "anchored"}
+                                 "tracker": "anchored", "start_offset_mm": 0.0,
+                                 "start_angle_deg": 0.0}
 
 
 def sim_weld(cell: CellConfig, part: PartConfig, noise: NoiseConfig
@@ -38,7 +40,8 @@ def sim_weld(cell: CellConfig, part: PartConfig, noise: NoiseConfig
     def weld(p: WeldParams, observer: Callable[[DemoEvent], None],
              control: DemoControl) -> DemoResult:
         return run_demo(p.apply(cell), part, noise, p.noise, p.seed, p.faults, p.segments,
-                        p.tracker, length_mm=p.length_mm, observer=observer, control=control)
+                        p.tracker, length_mm=p.length_mm, observer=observer, control=control,
+                        start_offset_mm=p.start_offset_mm, start_angle_deg=p.start_angle_deg)
 
     return weld
 
@@ -50,26 +53,35 @@ def simulated_console(cfg: ConsoleConfig | None = None, cell: CellConfig | None 
     ``defaults`` overrides the parameter form's initial values."""
     cfg = cfg or load_console_config()
     cell, part, noise = cell or load_cell(), part or load_part(), noise or load_noise()
+    search = load_search_config()
     return make_console(cfg, cell, noise, sim_weld(cell, part, noise),
-                        1.0 / cell.process.frame_rate_hz, "simulated cell", defaults)
+                        1.0 / cell.process.frame_rate_hz, "simulated cell", defaults,
+                        start_bounds=(search.max_extent_mm, search.max_angle_deg))
 
 
 def make_console(cfg: ConsoleConfig, cell: CellConfig, noise: NoiseConfig, weld: WeldFn,
                  frame_period_s: float, source: str,
                  defaults: dict[str, Any] | None = None,
-                 open_loop: bool = False) -> ConsoleServer:
+                 open_loop: bool = False,
+                 start_bounds: tuple[float, float] | None = None) -> ConsoleServer:
     """A :class:`ConsoleServer` running ``weld`` with the demo's parameter form (initial
     values from ``cell``'s process settings, overridden by ``defaults``); ``source`` is what
-    the page shows as the frame source, ``open_loop`` says it replays frames."""
+    the page shows as the frame source, ``open_loop`` says it replays frames.
+    ``start_bounds``: the largest start offset (mm) and angle (deg) off the seam the form
+    takes (None: it starts on the seam only)."""
     proc = cell.process
     form = {"step_mm": proc.step_mm, "look_ahead_mm": proc.look_ahead_mm,
             "weld_speed_mm_s": proc.weld_speed_mm_s, **DEMO_DEFAULTS, **(defaults or {})}
     session = WeldSession(cfg, weld, frame_period_s, open_loop)
 
     def validate(raw: dict[str, Any]) -> WeldParams:
-        return parse_params(raw, cfg.limits, noise, FAULTS, TRACKERS)
+        return parse_params(raw, cfg.limits, noise, FAULTS, TRACKERS, start_bounds)
 
     validate(form)  # the defaults themselves must pass (a bad --length-mm, say)
     choices = {"noise": list(noise.levels), "faults": list(FAULTS), "trackers": list(TRACKERS),
                "segments": SEGMENT_LETTERS}
-    return ConsoleServer(cfg, session, validate, form, choices, source=source)
+    extra = {} if start_bounds is None else {
+        "start_offset_mm": [-start_bounds[0], start_bounds[0]],
+        "start_angle_deg": [-start_bounds[1], start_bounds[1]]}
+    return ConsoleServer(cfg, session, validate, form, choices, source=source,
+                         extra_limits=extra)
