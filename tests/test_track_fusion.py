@@ -325,10 +325,15 @@ def test_anchored_takes_a_far_clean_fix_at_once_and_refuses_far_loose_ones():
     out = [trk.update(frame)[0] for _ in range(7)]
     assert abs(out[4][0] - 200.0) < 0.3
     assert abs(out[5][0] - 206.0) < 0.3 and abs(out[6][0] - 206.0) < 0.3
-    # a loose corner there (spatter on an arm): refused, however often it comes
-    trk = _anchored_with_tipm([on] * 5 + [far, far, far], rms=0.5)
+    # a loose corner outside the fix gate (spatter on an arm; the gate's width is a fitted
+    # value, 8 sigma in the shipped model: 15 px here): refused, however often it comes
+    loose = np.array([15.0, 0.0])
+    trk = _anchored_with_tipm([on] * 5 + [loose] * 3, rms=0.5)
     out = [trk.update(frame)[0] for _ in range(8)]
     assert all(abs(o[0] - 200.0) < 1.5 for o in out[5:])
+    # ... where a clean one is taken at once
+    trk = _anchored_with_tipm([on] * 5 + [loose], rms=0.15)
+    assert abs([trk.update(frame)[0] for _ in range(6)][5][0] - 215.0) < 0.3
 
 
 def test_anchored_takes_the_robots_motion_as_its_prediction():
@@ -356,9 +361,12 @@ def test_anchored_leans_on_its_prediction_under_red_glare():
     cfg = AnchoredTracker().cfg  # the fitted glare weights (models/live_tracker.safetensors)
     dark = np.zeros((480, 640, 3), np.uint8)
     haze = dark.copy()
-    # a red haze where the covariances grow a hundredfold (on heavy sequences: fixes 1.9 px
-    # RMS off at 80-100 grey levels, 0.16 px below 40)
-    level = round(cfg.glare_start + np.sqrt(99.0) * cfg.glare_scale)
+    # a red haze as strong as a frame holds (250 grey levels at most): the covariances grow by
+    # the fitted glare term there, at least tenfold
+    k = min(np.sqrt(99.0), (250.0 - cfg.glare_start) / cfg.glare_scale)
+    level = round(cfg.glare_start + k * cfg.glare_scale)
+    inflate = 1.0 + ((level - cfg.glare_start) / cfg.glare_scale) ** 2
+    assert inflate >= 10.0
     haze[..., 2] = level
     assert glare_level(haze, np.array([200.0, 150.0]), 30) == level
     assert glare_level(dark, np.array([200.0, 150.0]), 30) == 0.0
@@ -376,9 +384,9 @@ def test_anchored_leans_on_its_prediction_under_red_glare():
         # the frame's fix is recorded with the glare factor on its covariance
         assert trk.fix is not None and trk.fix.taken
         np.testing.assert_allclose(trk.fix.uv, [203.0, 150.0], atol=1e-9)
-        assert trk.fix.inflate == pytest.approx(100.0 if name == "haze" else 1.0, rel=0.05)
+        assert trk.fix.inflate == pytest.approx(inflate if name == "haze" else 1.0, rel=1e-6)
     assert moved["dark"][0] > 2.8                      # dark: taken at once (3 px)
-    assert moved["haze"][0] < 0.7 * moved["dark"][0]   # haze: a part of the way per frame ...
+    assert moved["haze"][0] < 0.9 * moved["dark"][0]   # haze: a part of the way per frame ...
     assert moved["haze"][2] > moved["haze"][0]         # ... still moving toward them
 
 

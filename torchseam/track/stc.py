@@ -99,7 +99,10 @@ def cached(key: tuple, make: Callable[[], Tensor]) -> Tensor:
     if t is None:
         if len(_INDEX_CACHE) > 256:
             _INDEX_CACHE.clear()
-        t = _INDEX_CACHE[key] = make()
+        # made outside inference mode even when first asked for inside it: an inference
+        # tensor in the cache would break every later call that needs gradients (fitting)
+        with torch.inference_mode(False):
+            t = _INDEX_CACHE[key] = make()
     return t
 
 
