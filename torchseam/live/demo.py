@@ -1045,17 +1045,34 @@ def write_report(res: DemoResult, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     files = []
     fr = res.frames
+    # segment boundaries and the arc-off approach marked on every per-frame plot
+    segs, arc = [f.seg for f in fr], [f.arc_on for f in fr]
     err_uv = np.array([f.uv - f.uv_true for f in fr]).reshape(-1, 2)  # none: a search failed
     files.append(series_plot({"u error": err_uv[:, 0], "v error": err_uv[:, 1]}, "px",
-                             out / "uv_error.png"))
+                             out / "uv_error.png", segments=segs, arc_on=arc))
     err_p = np.array([f.p - f.p_true for f in fr]).reshape(-1, 3)
     files.append(series_plot({"x": err_p[:, 0], "y": err_p[:, 1], "z": err_p[:, 2]},
-                             "located 3D error (mm)", out / "xyz_error.png"))
+                             "located 3D error (mm)", out / "xyz_error.png", segments=segs,
+                             arc_on=arc))
     files.append(series_plot({"torch to true seam": np.array([f.torch_err_mm for f in fr])},
-                             "mm", out / "torch_error.png"))
+                             "mm", out / "torch_error.png", segments=segs, arc_on=arc))
+    # a command's time is its frame's: the poses sent with the arc off are the approach
+    arc_at = {(f.seg, round(f.t_s, 6)): f.arc_on for f in fr}
+    names = list(res.quats)
+    appr = {n: np.array([not arc_at.get((s, round(t, 6)), True)
+                         for s, _p, _q, _seen, t in res.sent if s == n], bool) for n in names}
     if res.quats:  # (none: no segment started, e.g. a start pose the gate refused)
-        files.append(quaternion_plot(list(res.quats.items()), out / "quaternions.png"))
-    files.append(seam_3d_plot({k: v for k, v in res.paths.items() if v}, out / "seam_3d.png"))
+        files.append(quaternion_plot(list(res.quats.items()), out / "quaternions.png",
+                                     approach=appr))
+    paths = {k: v for k, v in res.paths.items() if v}
+    tracked = paths.get("tracked", [])
+    approach = ({"tracked": [appr[n] for n in names]}
+                if len(tracked) == len(names)
+                and all(len(a) == len(p) for a, p in zip(appr.values(), tracked, strict=True))
+                else None)
+    files.append(seam_3d_plot(paths, out / "seam_3d.png",
+                              segment_names=names if len(tracked) == len(names) else None,
+                              approach=approach))
     (out / "summary.json").write_text(json.dumps(res.summary, indent=1))
     files.append(out / "summary.json")
     (out / "messages.txt").write_text("\n".join(res.messages) + "\n")
