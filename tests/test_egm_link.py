@@ -623,7 +623,8 @@ def test_loopback_session_250hz_10s_without_late_replies(robot_model, record_pro
 
 
 def test_pose_session_moves_the_robot_to_the_target(robot_model):
-    from torchseam.robot.sim_controller import SimController, matrix_quat
+    from torchseam.core.transforms import matrix_to_quat as matrix_quat
+    from torchseam.robot.sim_controller import SimController
 
     cfg = load_egm_config()
     sim = SimController(cfg, mode="pose", robot=robot_model, bind_address=("127.0.0.1", 0))

@@ -37,6 +37,7 @@ import numpy as np
 
 from torchseam.core.config import CONFIG_DIR, load_config
 from torchseam.core.config import config_field as _f
+from torchseam.core.transforms import rotvec
 
 
 @dataclass(frozen=True)
@@ -138,12 +139,6 @@ def choose_standoff(T0: np.ndarray, cfg: SearchConfig, offset_mm: float, angle_d
     return best[1], best[0], len(ys) * len(angles)
 
 
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_rotvec()
-
-
 def steps_between(Ta: np.ndarray, Tb: np.ndarray, max_mm: float, max_deg: float
                   ) -> list[np.ndarray]:
     """Poses from ``Ta`` (excluded) to ``Tb`` (included) in a straight line and a constant
@@ -151,7 +146,7 @@ def steps_between(Ta: np.ndarray, Tb: np.ndarray, max_mm: float, max_deg: float
     from scipy.spatial.transform import Rotation, Slerp
 
     dp = float(np.linalg.norm(Tb[:3, 3] - Ta[:3, 3]))
-    da = float(np.degrees(np.linalg.norm(_rotvec(Ta[:3, :3].T @ Tb[:3, :3]))))
+    da = float(np.degrees(np.linalg.norm(rotvec(Ta[:3, :3].T @ Tb[:3, :3]))))
     n = max(1, int(np.ceil(max(dp / max_mm, da / max_deg) - 1e-9)))
     slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([Ta[:3, :3], Tb[:3, :3]])))
     out = []

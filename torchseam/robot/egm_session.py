@@ -175,7 +175,8 @@ def loopback_session(config: EgmConfig | None = None, duration_s: float = 10.0, 
     after); the sensor's child process freezes its start-up objects out of it instead.
         sim_kwargs: extra arguments of :class:`~torchseam.robot.sim_controller.SimController`.
     """
-    from torchseam.robot.sim_controller import SimController, matrix_quat
+    from torchseam.core.transforms import matrix_to_quat
+    from torchseam.robot.sim_controller import SimController
 
     config = config or load_egm_config()
     mode = mode or config.mode
@@ -186,7 +187,7 @@ def loopback_session(config: EgmConfig | None = None, duration_s: float = 10.0, 
     link_cfg = dataclasses.replace(config, mode=mode, network=dataclasses.replace(
         net, port=0, controller_port=sim.address[1]))
     T = sim.tcp_pose()
-    start_pose = (T[:3, 3].copy(), matrix_quat(T[:3, :3]))
+    start_pose = (T[:3, 3].copy(), matrix_to_quat(T[:3, :3]))
     # a full pass of the cyclic garbage collector in a process that has torch loaded takes
     # ~0.3 s, long enough to stall the simulated controller mid-cycle: pause it for the session
     gc_was_enabled = gc.isenabled()

@@ -59,7 +59,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from torchseam.core.config import load_cell
-from torchseam.core.transforms import matrix_to_quat
+from torchseam.core.transforms import matrix_to_quat, quat_to_matrix, rotvec
 from torchseam.robot.egm import (
     SO_TIMESTAMPNS,
     TIMESPEC,
@@ -255,7 +255,7 @@ class _Path:
         u = (s - self.s[i]) / (self.s[i + 1] - self.s[i])
         T = np.eye(4)
         T[:3, 3] = self.pos[i] + u * (self.pos[i + 1] - self.pos[i])
-        T[:3, :3] = _quat_matrix(_slerp(self.quat[i], self.quat[i + 1], u))
+        T[:3, :3] = quat_to_matrix(_slerp(self.quat[i], self.quat[i + 1], u))
         return T
 
 
@@ -409,9 +409,9 @@ class SimController:
         R0t = T0[:3, :3].T
         J = np.empty((6, 6))
         J[:3] = ((T[1:, :3, 3] - T0[:3, 3]) / _H_DEG).T
-        J[3:] = (_rotvec(T[1:, :3, :3] @ R0t) * (_ROT_WEIGHT / _H_DEG)).T
+        J[3:] = (rotvec(T[1:, :3, :3] @ R0t) * (_ROT_WEIGHT / _H_DEG)).T
         err = np.concatenate([T_des[:3, 3] - T0[:3, 3],
-                              _rotvec(T_des[:3, :3] @ R0t) * _ROT_WEIGHT])
+                              rotvec(T_des[:3, :3] @ R0t) * _ROT_WEIGHT])
         dq = np.linalg.solve(J.T @ J + _DAMPING * np.eye(6), J.T @ err)
         return dq, T0
 
@@ -490,7 +490,7 @@ class SimController:
                     with self._lock:
                         self._stats.rejected["zero_quaternion"] += 1
                     return
-                R = _quat_matrix(q / n)
+                R = quat_to_matrix(q / n)
             T = np.eye(4)
             T[:3, :3] = R
             T[:3, 3] = [c.pos.x, c.pos.y, c.pos.z]
@@ -864,7 +864,7 @@ class SimController:
 def _fill_pose(pose: Any, T: np.ndarray) -> None:
     """Position (mm), quaternion (w, x, y, z) and ABB EulerZYX angles (deg) of a 4x4 pose."""
     pose.pos.x, pose.pos.y, pose.pos.z = (float(v) for v in T[:3, 3])
-    q = matrix_quat(T[:3, :3])
+    q = matrix_to_quat(T[:3, :3])
     pose.orient.u0, pose.orient.u1, pose.orient.u2, pose.orient.u3 = (float(v) for v in q)
     R = T[:3, :3]
     # R = Rz(z) Ry(y) Rx(x) (ABB EulerZYX); plain math: scipy objects cost more per cycle
@@ -880,12 +880,12 @@ def _step_towards(T: np.ndarray, target: np.ndarray, max_mm: float,
     d = target[:3, 3] - T[:3, 3]
     n = float(np.linalg.norm(d))
     out[:3, 3] = target[:3, 3] if n <= max_mm else T[:3, 3] + d * (max_mm / n)
-    q0, q1 = matrix_quat(T[:3, :3]), matrix_quat(target[:3, :3])
+    q0, q1 = matrix_to_quat(T[:3, :3]), matrix_to_quat(target[:3, :3])
     if np.dot(q0, q1) < 0:
         q1 = -q1
     ang = 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
     u = 1.0 if ang <= max_rad else max_rad / ang
-    out[:3, :3] = _quat_matrix(_slerp(q0, q1, u))
+    out[:3, :3] = quat_to_matrix(_slerp(q0, q1, u))
     return out
 
 
@@ -923,50 +923,7 @@ def _closed_form_fk(q_deg: np.ndarray, g: Any) -> np.ndarray:
     return T
 
 
-# Small rotation helpers in plain numpy: this runs every 4 ms, where scipy's Rotation objects
-# cost more than the arithmetic.
-
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors (..., 3) of rotations (..., 3, 3) with angles well below pi."""
-    c = np.clip((np.einsum("...ii", R) - 1.0) / 2.0, -1.0, 1.0)
-    ang = np.arccos(c)
-    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
-                  R[..., 1, 0] - R[..., 0, 1]], axis=-1)
-    sin = np.sin(ang)
-    k = np.where(sin > 1e-12, ang / (2.0 * np.where(sin > 1e-12, sin, 1.0)), 0.5)
-    return v * k[..., None]
-
-
-def matrix_quat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z), w >= 0, of one rotation matrix (Shepperd's method)."""
-    tr = R[0, 0] + R[1, 1] + R[2, 2]
-    if tr > 0:
-        w = math.sqrt(1.0 + tr) * 2
-        q = np.array([0.25 * w, (R[2, 1] - R[1, 2]) / w, (R[0, 2] - R[2, 0]) / w,
-                      (R[1, 0] - R[0, 1]) / w])
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        w = math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2
-        q = np.array([(R[2, 1] - R[1, 2]) / w, 0.25 * w, (R[0, 1] + R[1, 0]) / w,
-                      (R[0, 2] + R[2, 0]) / w])
-    elif R[1, 1] > R[2, 2]:
-        w = math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2
-        q = np.array([(R[0, 2] - R[2, 0]) / w, (R[0, 1] + R[1, 0]) / w, 0.25 * w,
-                      (R[1, 2] + R[2, 1]) / w])
-    else:
-        w = math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2
-        q = np.array([(R[1, 0] - R[0, 1]) / w, (R[0, 2] + R[2, 0]) / w,
-                      (R[1, 2] + R[2, 1]) / w, 0.25 * w])
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
-
-
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
+# (rotation helpers: torchseam.core.transforms)
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
     """Spherical interpolation between unit quaternions in one hemisphere."""
