@@ -14,6 +14,7 @@ import pytest
 
 from torchseam.live.demo import FAULTS, run_demo
 from torchseam.live.loop import load_live_config
+from torchseam.robot.egm import Verdict
 
 LEVEL = 0.3  # arc noise of the matrix runs (the default demo's heavy noise runs in test_cli)
 # each fault on segments a and b, the lengths spread over 20..70 mm so that every length meets
@@ -204,8 +205,8 @@ class _Sink:
     def set_target(self, position_mm, quaternion, measured_at=None):
         self.calls.append((np.asarray(position_mm, float).copy(), measured_at))
         if self.refuse:
-            return SimpleNamespace(ok=False, reason=self.refuse, detail="told to")
-        return SimpleNamespace(ok=True, reason="", detail="")
+            return Verdict(False, self.refuse, "told to")
+        return Verdict(True)
 
     def clear_measurement(self):
         self.cleared += 1

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from torchseam.live.demo import FAULT_FRAMES, run_demo
+from torchseam.robot.egm import Verdict
 
 LENGTH_MM = 24.0  # weld only the start of segment a (the fault lands in its middle)
 
@@ -308,7 +309,7 @@ def test_a_refused_re_send_is_reported_with_its_reason(cell):
         def set_target(self, position_mm, quaternion, measured_at=None):
             self.calls.append(measured_at)
             ok = measured_at is not None and measured_at >= 0.95
-            return SimpleNamespace(ok=ok, reason="" if ok else "stale")
+            return Verdict(ok, "" if ok else "stale")
 
     sink = Sink()
     loop = LiveLoop(cell, tracker=SimpleNamespace(name="fake"), sink=sink)
@@ -331,3 +332,18 @@ def test_a_refused_re_send_is_reported_with_its_reason(cell):
     rep = loop.on_frame(np.zeros((4, 4, 3), np.uint8), np.eye(4), torch_at, 1.04)
     assert sink.calls[-1] == 1.04  # located and tracked: fresh evidence, accepted
     assert rep.state == LoopState.TRACKING and rep.message == ""
+
+
+@pytest.mark.parametrize("answer", [None, True, 1, "ok", "SimpleNamespace"])
+def test_a_sink_answer_that_is_no_verdict_is_a_refusal(answer):
+    """On the safety path nothing is accepted by default: a pose sink whose set_target
+    returns anything but a Verdict (None, True, an object with an ``ok``) has refused."""
+    from types import SimpleNamespace
+
+    from torchseam.live.loop import checked_verdict
+
+    if answer == "SimpleNamespace":
+        answer = SimpleNamespace(ok=True, reason="", detail="")
+    v = checked_verdict(answer)
+    assert isinstance(v, Verdict) and not v.ok and v.reason == "no_verdict"
+    assert checked_verdict(Verdict(True)).ok

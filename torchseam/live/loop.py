@@ -295,7 +295,17 @@ class PoseSink(Protocol):
     """What the loop sends poses to (the EGM link in pose mode)."""
 
     def set_target(self, position_mm: Any, quaternion: Any, measured_at: float | None = None
-                   ) -> Any: ...
+                   ) -> Verdict: ...
+
+
+def checked_verdict(verdict: object) -> Verdict:
+    """A sink's answer as a :class:`Verdict`; anything else (None, a bool, an object that
+    merely has an ``ok``) is a refusal: on the safety path nothing counts as accepted by
+    default."""
+    if isinstance(verdict, Verdict):
+        return verdict
+    return Verdict(False, "no_verdict",
+                   f"the pose sink answered {type(verdict).__name__}, not a Verdict: refused")
 
 
 @dataclass
@@ -532,9 +542,9 @@ class LiveLoop:
         if np.linalg.norm(torch_p - self.target) > self.cfg.lead_mm:
             # on its way to the current target: re-send it with the evidence's time, which
             # keeps the link's watchdog fed
-            verdict = self.sink.set_target(self.target, self.last_q,
-                                           measured_at=self.evidence_t)
-            if bool(getattr(verdict, "ok", True)):
+            verdict = checked_verdict(self.sink.set_target(self.target, self.last_q,
+                                                           measured_at=self.evidence_t))
+            if verdict.ok:
                 self._refusal_run = 0
                 self._set_state(loc)
             else:
@@ -551,9 +561,9 @@ class LiveLoop:
         """Hand a new target to the sink; on acceptance it becomes the target."""
         ip, q, want = pose
         seen = self._seen_time(ip)
-        verdict = self.sink.set_target(ip, q, measured_at=self.evidence_t)
-        ok_v = bool(getattr(verdict, "ok", True))
-        reason = getattr(verdict, "detail", "") or getattr(verdict, "reason", "")
+        verdict = checked_verdict(self.sink.set_target(ip, q, measured_at=self.evidence_t))
+        ok_v = verdict.ok
+        reason = verdict.detail or verdict.reason
         cmd = Command(t_s, ip, q, ok_v, reason, seen)
         self.commands.append(cmd)
         if ok_v:
@@ -633,13 +643,13 @@ class LiveLoop:
         return ("stalled", f"the torch moved {max(progress_mm, 0.0):.2f} mm towards its target "
                            f"in {waited_ms:.0f} ms: holding, arc off")
 
-    def _refused(self, verdict: Any, t_s: float) -> None:
+    def _refused(self, verdict: Verdict, t_s: float) -> None:
         """A pose the sink refused: counted; ``max_refusals`` in a row hold the loop."""
-        key = getattr(verdict, "reason", "") or "refused"
+        key = verdict.reason or "refused"
         self.stats.refused[key] += 1
         self._refusal_run += 1
         if self._refusal_run >= self.cfg.max_refusals:
-            detail = getattr(verdict, "detail", "")
+            detail = verdict.detail
             self._hold("refused", f"link refused the pose {self._refusal_run} times in a row "
                                   f"({key}{': ' + detail if detail else ''}): holding, arc off",
                        t_s)
