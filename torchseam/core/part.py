@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from torchseam.core.config import PartConfig
+from torchseam.core.transforms import rotation_about
 
 BRANCH_LENGTH_MM = 400.0  # how far the branch pipe extends above the main axis (pipe kinds)
 #: Plate and sphere kinds: how far the branch extends above the highest point of its seam.
@@ -354,3 +355,40 @@ def nominal_part(part: PartConfig) -> PartConfig:
                                 quaternion=(1.0, 0.0, 0.0, 0.0))
     return dataclasses.replace(part, branch_offset_mm=(0.0, 0.0), main_ovality=0.0,
                                branch_ovality=0.0, distortion_mm=0.0, placement_error=ident)
+
+
+class SegmentGeometry:
+    """The design part of one segment: the part's nominal geometry (:func:`nominal_part`: no
+    unwanted offset, ovality or drift) at its placement, turned by the positioner by
+    ``rotation_deg`` about the branch axis; its seam by angle and arc length, and the torch
+    frames a robot programmed from the design follows. The planner works on it; the
+    simulator's :class:`~torchseam.sim.scene.Scene` adds the true part to it.
+
+    Example:
+        >>> from torchseam.core.config import load_part
+        >>> SegmentGeometry(load_part()).nominal_tcp(np.array([0.0, 10.0])).shape
+        (2, 4, 4)
+    """
+
+    def __init__(self, part: PartConfig, rotation_deg: float = 0.0) -> None:
+        self.part = part
+        self.nominal_joint = make_joint(nominal_part(part))
+        # positioner turn about the branch axis of the nominal part
+        Rz = np.eye(4)
+        Rz[:3, :3] = rotation_about(self.nominal_joint.d, np.deg2rad(rotation_deg))
+        self.T_B_Tnom = part.placement.matrix() @ Rz
+        self._phi_tab, self._s_tab = self.nominal_joint.arc_length_table()
+        self.seam_length_mm = float(self._s_tab[-1])
+
+    def phi_at(self, s_mm: np.ndarray) -> np.ndarray:
+        """Nominal seam angle at arc length ``s_mm`` (wraps around the ring)."""
+        return np.interp(np.mod(s_mm, self.seam_length_mm), self._s_tab, self._phi_tab)
+
+    def s_at(self, phi: np.ndarray) -> np.ndarray:
+        """Nominal seam arc length at angle ``phi``."""
+        return np.interp(np.mod(phi, 2 * np.pi), self._phi_tab, self._s_tab)
+
+    def nominal_tcp(self, s_mm: np.ndarray) -> np.ndarray:
+        """Nominal torch poses in {B} at seam arc lengths ``s_mm`` (N,), (N, 4, 4)."""
+        frames = torch_frames(self.nominal_joint.seam(self.phi_at(np.asarray(s_mm, float))))
+        return self.T_B_Tnom @ frames

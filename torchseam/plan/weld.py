@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from torchseam.core.config import CellConfig, PartConfig, Pose
-from torchseam.core.part import make_joint, nominal_part, torch_frames
+from torchseam.core.part import SegmentGeometry, make_joint, nominal_part, torch_frames
 from torchseam.core.transforms import matrix_to_quat, rotation_about
 from torchseam.plan.path import SEGMENT_NAMES, SEGMENTS, PlanConfig, Segment, load_plan_config
 from torchseam.robot.kinematics import IRB1410, checked_values
@@ -134,43 +134,6 @@ class SegmentPlan(Segment):
     @property
     def angles(self) -> tuple[float, float, float]:
         return (self.work_angle_deg, self.travel_angle_deg, self.roll_deg)
-
-
-class SegmentGeometry:
-    """The design part of one segment: the part's nominal geometry (:func:`nominal_part`: no
-    unwanted offset, ovality or drift) at its placement, turned by the positioner by
-    ``rotation_deg`` about the branch axis; its seam by angle and arc length, and the torch
-    frames a robot programmed from the design follows. (The simulator's
-    :class:`~torchseam.sim.scene.Scene` has the same nominal part, and the true one.)
-
-    Example:
-        >>> from torchseam.core.config import load_part
-        >>> SegmentGeometry(load_part()).nominal_tcp(np.array([0.0, 10.0])).shape
-        (2, 4, 4)
-    """
-
-    def __init__(self, part: PartConfig, rotation_deg: float = 0.0) -> None:
-        self.part = part
-        self.nominal_joint = make_joint(nominal_part(part))
-        # positioner turn about the branch axis of the nominal part
-        Rz = np.eye(4)
-        Rz[:3, :3] = rotation_about(self.nominal_joint.d, np.deg2rad(rotation_deg))
-        self.T_B_Tnom = part.placement.matrix() @ Rz
-        self._phi_tab, self._s_tab = self.nominal_joint.arc_length_table()
-        self.seam_length_mm = float(self._s_tab[-1])
-
-    def phi_at(self, s_mm: np.ndarray) -> np.ndarray:
-        """Nominal seam angle at arc length ``s_mm`` (wraps around the ring)."""
-        return np.interp(np.mod(s_mm, self.seam_length_mm), self._s_tab, self._phi_tab)
-
-    def s_at(self, phi: np.ndarray) -> np.ndarray:
-        """Nominal seam arc length at angle ``phi``."""
-        return np.interp(np.mod(phi, 2 * np.pi), self._phi_tab, self._s_tab)
-
-    def nominal_tcp(self, s_mm: np.ndarray) -> np.ndarray:
-        """Nominal torch poses in {B} at seam arc lengths ``s_mm`` (N,), (N, 4, 4)."""
-        frames = torch_frames(self.nominal_joint.seam(self.phi_at(np.asarray(s_mm, float))))
-        return self.T_B_Tnom @ frames
 
 
 @dataclass(frozen=True)

@@ -14,8 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from torchseam.core.config import PartConfig
-from torchseam.core.part import make_joint, nominal_part, torch_frames
-from torchseam.core.transforms import rotation_about
+from torchseam.core.part import SegmentGeometry, make_joint, nominal_part, torch_frames
 
 __all__ = ["DRIFT_DIRECTION", "Scene", "nominal_part", "torch_frames"]  # the last two: core.part
 
@@ -23,7 +22,7 @@ __all__ = ["DRIFT_DIRECTION", "Scene", "nominal_part", "torch_frames"]  # the la
 DRIFT_DIRECTION = np.array([0.6, -0.55, 0.58]) / np.linalg.norm([0.6, -0.55, 0.58])
 
 
-class Scene:
+class Scene(SegmentGeometry):
     """True and nominal part in the robot base frame {B}.
 
     Example:
@@ -34,16 +33,9 @@ class Scene:
     """
 
     def __init__(self, part: PartConfig, rotation_deg: float = 0.0) -> None:
-        self.part = part
+        super().__init__(part, rotation_deg)  # the nominal part, as the planner has it
         self.true_joint = make_joint(part)
-        self.nominal_joint = make_joint(nominal_part(part))
-        # positioner turn about the branch axis of the nominal part
-        Rz = np.eye(4)
-        Rz[:3, :3] = rotation_about(self.nominal_joint.d, np.deg2rad(rotation_deg))
-        self.T_B_Tnom = part.placement.matrix() @ Rz
         self._T_B_Ttrue0 = self.T_B_Tnom @ part.placement_error.matrix()
-        self._phi_tab, self._s_tab = self.nominal_joint.arc_length_table()
-        self.seam_length_mm = float(self._s_tab[-1])
 
     def part_pose(self, t_s: float) -> np.ndarray:
         """True pose of the part {T} in {B} at weld time ``t_s``, (4, 4)."""
@@ -52,19 +44,6 @@ class Scene:
         grow = 0.5 * (1.0 - np.cos(2 * np.pi * t_s / p.distortion_period_s))
         drift[:3, 3] = p.distortion_mm * grow * DRIFT_DIRECTION
         return self._T_B_Ttrue0 @ drift
-
-    def phi_at(self, s_mm: np.ndarray) -> np.ndarray:
-        """Nominal seam angle at arc length ``s_mm`` (wraps around the ring)."""
-        return np.interp(np.mod(s_mm, self.seam_length_mm), self._s_tab, self._phi_tab)
-
-    def s_at(self, phi: np.ndarray) -> np.ndarray:
-        """Nominal seam arc length at angle ``phi``."""
-        return np.interp(np.mod(phi, 2 * np.pi), self._phi_tab, self._s_tab)
-
-    def nominal_tcp(self, s_mm: np.ndarray) -> np.ndarray:
-        """Nominal torch poses in {B} at seam arc lengths ``s_mm`` (N,), (N, 4, 4)."""
-        frames = torch_frames(self.nominal_joint.seam(self.phi_at(np.asarray(s_mm, float))))
-        return self.T_B_Tnom @ frames
 
     def true_seam_base(self, phi: np.ndarray, t_s: float) -> np.ndarray:
         """True seam points (N, 3) in {B} at angles ``phi`` and time ``t_s``."""
