@@ -154,3 +154,45 @@ def test_train_live_command_fits_and_writes_a_run(tmp_path, monkeypatch, capsys)
     assert "epoch 1" in out and model_io.DEFAULT_MODEL.read_bytes() == before
     _, meta = model_io.read_model(run / "live_tracker.safetensors")
     assert meta["info"]["data"]["train"]["families"] == ["sim"]
+
+
+def test_train_live_fits_on_labelled_recordings(tmp_path, monkeypatch, capsys):
+    """`train-live --data DIR --val-data DIR`: your own labelled recordings instead of the
+    simulator (frames + labels.csv, here written by the simulator, some frames unlabelled:
+    they count in no loss); --data without --val-data is one clear line."""
+    import csv
+
+    from torchseam.cli import main
+    from torchseam.sim.record import write_sequence
+    from torchseam.sim.sequence import SequenceSpec
+
+    c, p, n = load_cell(), load_part(), load_noise()
+    for name, seed in (("rec1", 3), ("rec2", 4)):
+        write_sequence(tmp_path / name, c, p, n, SequenceSpec(n_frames=35, level=1.0, seed=seed),
+                       progress=False)
+    lab = tmp_path / "rec1" / "labels.csv"
+    rows = list(csv.DictReader(lab.open()))
+    with lab.open("w", newline="") as fh:  # every third frame after the first unlabelled
+        w = csv.DictWriter(fh, fieldnames=["frame", "u", "v"])
+        w.writeheader()
+        w.writerows(r for r in rows if int(r["frame"]) == 0 or int(r["frame"]) % 3)
+    cfg = dataclasses.asdict(load_live_fit_config())
+    cfg.update(epochs=1, chunk=10, batch=1)
+    (tmp_path / "c.yaml").write_text(
+        "\n".join(f"{k}: {list(v) if isinstance(v, tuple) else v}" for k, v in cfg.items()))
+    monkeypatch.chdir(tmp_path)
+    rc = main(["train-live", "--config", "c.yaml", "--data", str(tmp_path / "rec1"),
+               "--name", "r"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--data and --val-data go together" in err and err.count("\n") == 1
+    rc = main(["train-live", "--config", "c.yaml", "--data", str(tmp_path / "rec1"),
+               "--val-data", str(tmp_path / "rec2"), "--name", "r"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    _, meta = model_io.read_model(tmp_path / "runs" / "r" / "live_tracker.safetensors")
+    assert meta["info"]["data"]["train"]["recordings"] == [str(tmp_path / "rec1")]
+    import json
+
+    m = json.loads((tmp_path / "runs" / "r" / "metrics.json").read_text())
+    val = m["history"][0]["val"]["rec2"]
+    assert np.isfinite(m["history"][1]["loss"]) and val["rmse"] < 1.5 and val["pct_lost"] == 0

@@ -48,7 +48,7 @@ from torchseam.track.live import LiveTracker
 from torchseam.vision.tipm import Tipm, find_view, red_response
 
 __all__ = ["BEYOND", "LiveFitConfig", "LiveSequence", "fit_live", "load_live_fit_config",
-           "simulate_set", "track_set"]
+           "load_set", "simulate_set", "track_set"]
 
 log = logging.getLogger("torchseam.fit")
 
@@ -137,6 +137,35 @@ def simulate_set(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
     return out
 
 
+def load_set(roots: Sequence[str | Path], progress: Callable[[str], None] | None = None
+             ) -> list[LiveSequence]:
+    """Labelled recordings (a dataset folder, or a folder of them: frames ``00000.png`` ... and
+    ``labels.csv``) as sequences in the view the live loop finds on their first frame; each is
+    tracked from its first labelled frame, frames without a label count in no loss."""
+    from torchseam.core.dataset import Dataset, check_frame
+    from torchseam.fit.data import find_sequences
+
+    tipm = Tipm()
+    out = []
+    for root in roots:
+        for d in find_sequences(root):
+            ds = Dataset.open(d, require_labels=True)
+            assert ds.labels is not None  # require_labels
+            first = int(np.argmax(ds.labelled))
+            frames = [check_frame(ds.read(i), name=f"{d} frame {i}")
+                      for i in range(first, len(ds))]
+            view = find_view(frames[0], tipm, "rows", "auto")
+            if view is None:
+                raise FitError(f"{d}: no stripe corner on frame {first}, the first labelled "
+                               "one (the fit starts each recording there)")
+            frames = [view.frame(f) for f in frames]
+            out.append(LiveSequence(frames, ds.labels[first:], d.name,
+                                    np.zeros(len(frames), bool)))
+            if progress:
+                progress(f"read {d} ({len(frames)} frames)")
+    return out
+
+
 def _grey(frames: Sequence[np.ndarray]) -> Tensor:
     return torch.from_numpy(np.stack([red_response(f) for f in frames]))
 
@@ -170,14 +199,17 @@ def track_set(module: LiveTracker, seqs: Sequence[LiveSequence], batch: int,
             for t in range(1, T):
                 frames = [s.frames[t] for s in group]
                 state, x, status = module.step_state(state, frames, _grey(frames))
-                err = F.huber_loss(x, labels[:, t], reduction="sum", delta=huber)
+                lab = labels[:, t]
+                seen = torch.isfinite(lab)  # an unlabelled frame counts in no loss
+                err = F.huber_loss(torch.where(seen, x, lab.nan_to_num()), lab.nan_to_num(),
+                                   reduction="sum", delta=huber)
                 loss = loss + err
                 hsum += float(err.detach())
-                hn += x.numel()
-                n_in_chunk += x.numel()
+                hn += int(seen.sum())
+                n_in_chunk += int(seen.sum())
                 out.append(x.detach().to(torch.float64).numpy())
                 st.append(status)
-                if opt is not None and (t % chunk == 0 or t == T - 1):
+                if opt is not None and n_in_chunk and (t % chunk == 0 or t == T - 1):
                     opt.zero_grad(set_to_none=True)
                     (loss / n_in_chunk).backward()
                     if clip > 0:
@@ -197,9 +229,10 @@ def errors_by_group(seqs: Sequence[LiveSequence], uvs: Sequence[np.ndarray],
     """error_stats per group over frames 1.. of each sequence."""
     errs: dict[str, list[np.ndarray]] = {}
     for s, uv in zip(seqs, uvs, strict=True):
-        e = np.linalg.norm(uv[1:] - s.labels[1:len(uv)], axis=1)
-        e[~np.isfinite(e)] = np.nan
-        errs.setdefault(s.group, []).append(e)
+        lab = s.labels[1:len(uv)]
+        e = np.linalg.norm(uv[1:] - lab, axis=1)
+        e[~np.isfinite(e)] = np.nan  # a diverged point counts as lost ...
+        errs.setdefault(s.group, []).append(e[np.isfinite(lab).all(axis=1)])  # ... unlabelled: none
     return {g: error_stats(np.concatenate(v), lost_px) for g, v in errs.items()}
 
 

@@ -69,6 +69,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="frames per sequence (default: the file's, 300)")
     p.add_argument("--epochs", type=_int_at_least(0), metavar="N",
                    help="epochs (0: the start only; default: the file's)")
+    p.add_argument("--data", action="append", metavar="DIR",
+                   help="your labelled recordings to fit on instead of simulated sequences: "
+                        "a dataset folder (frames 00000.png ... and labels.csv) or a folder "
+                        "of them; repeatable (default: none, simulate)")
+    p.add_argument("--val-data", action="append", metavar="DIR",
+                   help="labelled recordings to select the epoch on (needed with --data; "
+                        "other recordings than --data's)")
     p.add_argument("--start", type=model_arg, metavar="FILE",
                    help="model file to start from (live tracker or EAKF-STC alone; default: "
                         "models/eakf_stc.safetensors, the fusion from configs/anchor.yaml)")
@@ -85,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
     from torchseam.fit import model_io
     from torchseam.fit.cli import RUNS_DIR
-    from torchseam.fit.live import fit_live, load_live_fit_config, simulate_set
+    from torchseam.fit.live import fit_live, load_live_fit_config, load_set, simulate_set
     from torchseam.fit.train import make_module
     from torchseam.track.live import LiveTracker, fitted_eakf_stc, load_anchor_config
 
@@ -111,19 +118,30 @@ def run(args: argparse.Namespace) -> int:
     live = LiveTracker(eakf, load_anchor_config(), learnable=True).to(dtype)
     if model_io.read_model(start)[1]["format"] == model_io.LIVE_FORMAT:
         model_io.load_fitted(live, start)
+    if bool(args.data) != bool(args.val_data):
+        raise TorchseamError("--data and --val-data go together: a fit on your recordings "
+                             "selects its epoch on other recordings of yours")
     cell, part = load_cell(), load_part()
     say = print
-    say(f"simulating {len(cfg.families) * len(cfg.levels) * len(cfg.seeds)} training and "
-        f"{len(cfg.families) * len(cfg.val_levels) * len(cfg.val_seeds)} validation sequences "
-        f"of {cfg.frames} frames ...", flush=True)
-    train = simulate_set(cell, part, noise, cfg.families, cfg.levels, cfg.seeds, cfg.frames,
-                         cfg.hide_frames)
-    val = simulate_set(cell, part, noise, cfg.families, cfg.val_levels, cfg.val_seeds,
-                       cfg.frames, cfg.hide_frames)
-    info = {"data": {"train": {"families": list(cfg.families), "levels": list(cfg.levels),
-                               "seeds": list(cfg.seeds), "frames": cfg.frames},
-                     "val": {"families": list(cfg.families), "levels": list(cfg.val_levels),
-                             "seeds": list(cfg.val_seeds)}},
+    if args.data:
+        say("reading the recordings ...", flush=True)
+        train, val = load_set(args.data), load_set(args.val_data)
+    else:
+        say(f"simulating {len(cfg.families) * len(cfg.levels) * len(cfg.seeds)} training "
+            f"and {len(cfg.families) * len(cfg.val_levels) * len(cfg.val_seeds)} validation "
+            f"sequences of {cfg.frames} frames ...", flush=True)
+        train = simulate_set(cell, part, noise, cfg.families, cfg.levels, cfg.seeds,
+                             cfg.frames, cfg.hide_frames)
+        val = simulate_set(cell, part, noise, cfg.families, cfg.val_levels, cfg.val_seeds,
+                           cfg.frames, cfg.hide_frames)
+    data: dict[str, object] = (
+        {"train": {"recordings": [str(d) for d in args.data], "families": ["recorded"]},
+         "val": {"recordings": [str(d) for d in args.val_data]}} if args.data else
+        {"train": {"families": list(cfg.families), "levels": list(cfg.levels),
+                   "seeds": list(cfg.seeds), "frames": cfg.frames},
+         "val": {"families": list(cfg.families), "levels": list(cfg.val_levels),
+                 "seeds": list(cfg.val_seeds)}})
+    info = {"data": data,
             "start": str(start), "command": "torchseam train-live " + " ".join(
                 f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()
                 if k in over)}
