@@ -75,7 +75,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "of them; repeatable (default: none, simulate)")
     p.add_argument("--val-data", action="append", metavar="DIR",
                    help="labelled recordings to select the epoch on (needed with --data; "
-                        "other recordings than --data's)")
+                        "other recordings than --data's; default: none)")
     p.add_argument("--start", type=model_arg, metavar="FILE",
                    help="model file to start from (live tracker or EAKF-STC alone; default: "
                         "models/eakf_stc.safetensors, the fusion from configs/anchor.yaml)")
