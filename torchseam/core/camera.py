@@ -9,14 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchseam.core.checks import check_shape
 from torchseam.core.config import CameraConfig, LaserPlane
-
-
-def _check_last(x: Tensor, n: int, name: str) -> None:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
-    if x.ndim < 1 or x.shape[-1] != n:
-        raise ValueError(f"{name}: expected shape (..., {n}), got {tuple(x.shape)}")
 
 
 def intrinsics(cam: CameraConfig, dtype: torch.dtype = torch.float64,
@@ -36,8 +30,8 @@ def distort(xy: Tensor, dist: Tensor) -> Tensor:
     Returns:
         (..., 2) distorted normalised coordinates.
     """
-    _check_last(xy, 2, "xy")
-    _check_last(dist, 5, "dist")
+    check_shape(xy, "... 2", "xy")
+    check_shape(dist, "... 5", "dist")
     k1, k2, p1, p2, k3 = dist.unbind(-1)
     x, y = xy.unbind(-1)
     r2 = x * x + y * y
@@ -63,7 +57,7 @@ def project_points(X: Tensor, K: Tensor, dist: Tensor) -> Tensor:
         >>> project_points(torch.tensor([[0., 0., 130.]]), K, torch.zeros(5))
         tensor([[331.5000, 243.2000]])
     """
-    _check_last(X, 3, "X")
+    check_shape(X, "... 3", "X")
     xy = distort(X[..., :2] / X[..., 2:3], dist)
     return torch.stack([K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2],
                         K[1, 1] * xy[..., 1] + K[1, 2]], dim=-1)
@@ -81,7 +75,7 @@ def undistort_points(uv: Tensor, K: Tensor, dist: Tensor, iters: int = 8) -> Ten
     Returns:
         (..., 2) normalised coordinates (x/z, y/z).
     """
-    _check_last(uv, 2, "uv")
+    check_shape(uv, "... 2", "uv")
     yd = (uv[..., 1] - K[1, 2]) / K[1, 1]
     xd = (uv[..., 0] - K[0, 2] - K[0, 1] * yd) / K[0, 0]
     k1, k2, p1, p2, k3 = dist.unbind(-1)
@@ -111,7 +105,7 @@ def pixels_to_plane(uv: Tensor, K: Tensor, dist: Tensor, plane: Tensor) -> Tenso
     Returns:
         (..., 3) points in the camera frame (mm); NaN where the ray is parallel to the plane.
     """
-    _check_last(plane, 4, "plane")
+    check_shape(plane, "... 4", "plane")
     xy = undistort_points(uv, K, dist)
     ray = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)
     denom = ray @ plane[:3]

@@ -580,12 +580,12 @@ def report_markdown(doc: dict[str, Any]) -> str:
 
 
 #: the files that define the EAKF-STC module (and so what its parameters mean)
-_TRACKER_FILES = ("_checks.py", "config.py", "stc.py", "eakf.py", "fusion.py")
+_TRACKER_FILES = ("config.py", "stc.py", "eakf.py", "fusion.py")
 
 
 def _tracker_fingerprint() -> dict[str, str]:
     """Which tracker code the parameters were fitted for: the git commit (when in a checkout)
-    and a hash of the module's source files ``torchseam/track/{_checks,config,stc,eakf,
+    and a hash of the module's source files ``torchseam/track/{config,stc,eakf,
     fusion}.py`` (a changed tracker needs a new fit)."""
     import hashlib
     import subprocess

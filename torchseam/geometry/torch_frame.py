@@ -16,15 +16,11 @@ import torch
 from pytorch_kinematics.transforms import matrix_to_quaternion
 from torch import Tensor
 
+from torchseam.core.checks import check_shape
+
 # |u1 x u2| / (|u1| |u2|) below this: the three points are (nearly) collinear
 MIN_SIN = 0.02
 MIN_ARM_MM = 0.2  # an arm point this close to the weld point is coincident with it
-
-
-def _check3(x: Tensor, name: str) -> None:
-    if not isinstance(x, Tensor) or x.ndim < 1 or x.shape[-1] != 3:
-        raise ValueError(f"{name}: expected a tensor of shape (..., 3), got "
-                         f"{tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__}")
 
 
 def torch_frame(p: Tensor, q1: Tensor, q2: Tensor, travel: Tensor | None = None,
@@ -54,11 +50,11 @@ def torch_frame(p: Tensor, q1: Tensor, q2: Tensor, travel: Tensor | None = None,
         (True, [-0.0, 0.7071, 0.7071])
     """
     for x, n in ((p, "p"), (q1, "q1"), (q2, "q2")):
-        _check3(x, n)
+        check_shape(x, "... 3", n)
     u1, u2 = q1 - p, q2 - p
     if tangent is not None:
         # Omega taken perpendicular to the seam: the arms' components across the seam
-        _check3(tangent, "tangent")
+        check_shape(tangent, "... 3", "tangent")
         t = tangent / tangent.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         u1 = u1 - (u1 * t).sum(-1, keepdim=True) * t
         u2 = u2 - (u2 * t).sum(-1, keepdim=True) * t
@@ -71,7 +67,7 @@ def torch_frame(p: Tensor, q1: Tensor, q2: Tensor, travel: Tensor | None = None,
              & torch.isfinite(cross).all(-1))
     px = cross / cross.norm(dim=-1, keepdim=True).clamp_min(1e-12)             # eq. 27
     if travel is not None:
-        _check3(travel, "travel")
+        check_shape(travel, "... 3", "travel")
         flip = (px * travel).sum(-1, keepdim=True) < 0
         px = torch.where(flip, -px, px)
     pz = u1 / n1.clamp_min(1e-12) + u2 / n2.clamp_min(1e-12)                    # eq. 28

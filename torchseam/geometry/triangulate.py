@@ -12,18 +12,11 @@ import torch
 from torch import Tensor, nn
 
 from torchseam.core.camera import intrinsics, laser_plane_tensor, pixels_to_plane
+from torchseam.core.checks import check_shape
 from torchseam.core.config import CellConfig
 
 # iterate OpenCV's undistortion to convergence (its default stops after 5 iterations)
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)
-
-
-def _check(x: Tensor, shape_tail: tuple[int, ...], name: str) -> None:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
-    if tuple(x.shape[x.ndim - len(shape_tail):]) != shape_tail or x.ndim < len(shape_tail):
-        raise ValueError(f"{name}: expected shape (..., {', '.join(map(str, shape_tail))}), "
-                         f"got {tuple(x.shape)}")
 
 
 def transform_points(T: Tensor, X: Tensor) -> Tensor:
@@ -51,9 +44,9 @@ def triangulate(uv: Tensor, K: Tensor, dist: Tensor, plane: Tensor, T_F_C: Tenso
         >>> tri(torch.tensor([[331.5, 243.2]]), torch.eye(4, dtype=torch.float64)).shape
         torch.Size([1, 3])
     """
-    _check(uv, (2,), "uv")
-    _check(T_F_C, (4, 4), "T_F_C")
-    _check(T_B_F, (4, 4), "T_B_F")
+    check_shape(uv, "... 2", "uv")
+    check_shape(T_F_C, "... 4 4", "T_F_C")
+    check_shape(T_B_F, "... 4 4", "T_B_F")
     X_C = pixels_to_plane(uv, K, dist, plane)
     return transform_points(T_B_F @ T_F_C, X_C)
 

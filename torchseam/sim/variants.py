@@ -13,6 +13,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from torchseam.core.checks import check_shape
+
 #: Mono sensor response behind the 650 nm band-pass, as weights of the colour frame's
 #: (B, G, R): essentially the red channel's light, plus the little that the Bayer filter's
 #: green and blue passed of the same band.
@@ -36,8 +38,7 @@ def to_mono(frame_bgr: np.ndarray, bits: int = 8, noise_lsb: float = 0.3,
     """
     if bits not in (8, 16):
         raise ValueError(f"bits must be 8 or 16, got {bits}")
-    if frame_bgr.ndim != 3 or frame_bgr.shape[2] != 3:
-        raise ValueError(f"expected an (H, W, 3) BGR frame, got shape {frame_bgr.shape}")
+    check_shape(frame_bgr, "H W 3", "frame_bgr", kind="array")
     w = np.asarray(MONO_BGR_WEIGHTS, np.float32)[None, :]
     y = cv2.transform(frame_bgr.astype(np.float32), w)
     if y.ndim == 3:

@@ -4,7 +4,7 @@ METHOD.md sections 2-4. Images are (B, H, W) grey, pixel coordinates (u, v) = (c
 :class:`LiteEAKFSTC` runs a fitted EAKF-STC module's equations in numpy for one live stream.
 """
 
-from torchseam.track._checks import TrackInputError
+from torchseam.core.checks import InputError as TrackInputError  # the tracker's name for it
 from torchseam.track.config import TrackerConfig
 from torchseam.track.eakf import EAKF, EAKFState, eakf_filter
 from torchseam.track.fusion import EAKFSTC, DriftGuard, TrackResult, TrackStatus

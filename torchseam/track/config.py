@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from torchseam.track._checks import TrackInputError
+from torchseam.core.checks import InputError
 
 MATLAB_EPS = 2.220446049250313e-16  # eps of the reference implementation's division
 
@@ -78,7 +78,7 @@ class TrackerConfig:
     def from_dict(cls, data: Mapping[str, Any] | None = None, **overrides: Any
                   ) -> TrackerConfig:
         """Build from a mapping (plus keyword overrides); unknown keys raise
-        :class:`TrackInputError` naming them.
+        :class:`InputError` naming them.
 
         Example:
             >>> TrackerConfig.from_dict({"rho": 0.05, "window": [48, 48]}).window
@@ -89,8 +89,8 @@ class TrackerConfig:
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - names)
         if unknown:
-            raise TrackInputError(f"tracker config: unknown field {unknown[0]!r} "
-                                  f"(expected one of {', '.join(sorted(names))})")
+            raise InputError(f"tracker config: unknown field {unknown[0]!r} "
+                             f"(expected one of {', '.join(sorted(names))})")
         d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
         return cls(**d)
 

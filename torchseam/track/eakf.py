@@ -42,7 +42,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchseam.track._checks import TrackInputError, as_float, check_device, check_tensor
+from torchseam.core.checks import InputError, as_float, check_device, check_shape
 from torchseam.track.config import TrackerConfig
 
 __all__ = ["EAKF", "EAKFInnovation", "EAKFMatrices", "EAKFState", "eakf_filter",
@@ -97,8 +97,8 @@ def eakf_matrices(dt: float | Tensor, lam: Tensor, a: Tensor, b: Tensor, q: Tens
         [[10000.0, 400.0, 0.0, 8.0], [0.0, 400.0, 0.0, 8.0]]
     """
     for name, v in (("lam", lam), ("a", a), ("b", b), ("q", q)):
-        check_tensor(v, name, (2,))
-    check_tensor(r, "r", (2, 2))
+        check_shape(v, (2,), name)
+    check_shape(r, (2, 2), "r")
     t = dt if isinstance(dt, Tensor) else torch.tensor(float(dt), dtype=lam.dtype)
     t = t.to(device=lam.device, dtype=lam.dtype)
     z, o = torch.zeros_like(t), torch.ones_like(t)
@@ -234,7 +234,7 @@ def eakf_init(z0: Tensor, p0: Tensor) -> EAKFState:
         >>> eakf_init(torch.tensor([[10.0, 20.0]]), torch.ones(4)).uv
         tensor([[10., 20.]])
     """
-    check_tensor(z0, "z0", ("B", 2))
+    check_shape(z0, ("B", 2), "z0")
     B = z0.shape[0]
     z = torch.zeros_like(z0)
     x = torch.stack([z0, z, z0, z], dim=-1)  # (B, 2, 4)
@@ -260,12 +260,12 @@ def eakf_innovation(state: EAKFState, m: EAKFMatrices, z: Tensor,
         :class:`EAKFInnovation`.
     """
     B = state.x.shape[0]
-    check_tensor(z, "z", (B, 2))
+    check_shape(z, (B, 2), "z")
     z = as_float(z, state.x)
     if dz is None:
         dzv = z - state.Z[..., 0]
     else:
-        check_tensor(dz, "dz", (B, 2))
+        check_shape(dz, (B, 2), "dz")
         dzv = as_float(dz, state.x)
     Z_new = torch.stack([z, dzv], dim=-1)  # Z(k+1), (B, 2, 2)
     Zs = Z_new - m.psi * state.Z  # eq. 21: Z*(k) = Z(k+1) - Psi Z(k)
@@ -307,8 +307,8 @@ def eakf_update(state: EAKFState, m: EAKFMatrices, inn: EAKFInnovation,
         sc = torch.ones_like(inn.Z_new[..., 0])
     else:
         if r_scale.shape not in ((B,), (B, 2)):
-            raise TrackInputError(f"r_scale: expected shape ({B},) or ({B}, 2), "
-                                  f"got {tuple(r_scale.shape)}")
+            raise InputError(f"r_scale: expected shape ({B},) or ({B}, 2), "
+                             f"got {tuple(r_scale.shape)}")
         r_scale = as_float(r_scale, state.x)
         sc = (r_scale[:, None] if r_scale.ndim == 1 else r_scale).expand(B, 2)
     if inn.dz_given:
@@ -326,7 +326,7 @@ def eakf_update(state: EAKFState, m: EAKFMatrices, inn: EAKFInnovation,
     Z_keep, s_keep = inn.Z_new, s_new
     if keep is not None:
         if keep.shape != (B,):
-            raise TrackInputError(f"keep: expected shape ({B},), got {tuple(keep.shape)}")
+            raise InputError(f"keep: expected shape ({B},), got {tuple(keep.shape)}")
         drop = (1.0 - as_float(keep, state.x))[:, None, None]
         Z_keep = inn.Z_new - drop * inn.nu  # Z - nu is the predicted Z(k+1)
         s_keep = s_new - drop * (s_new - 1.0)
@@ -357,13 +357,13 @@ def eakf_filter(z: Tensor, dt: float | Tensor, lam: Tensor, a: Tensor, b: Tensor
         >>> tuple(uv.shape)
         (1, 10, 2)
     """
-    check_tensor(z, "z", ("B", "T", 2))
+    check_shape(z, ("B", "T", 2), "z")
     B, T = z.shape[:2]
     if r_scale is not None and r_scale.shape not in ((B, T), (B, T, 2)):
-        raise TrackInputError(f"r_scale: expected shape ({B}, {T}) or ({B}, {T}, 2), "
-                              f"got {tuple(r_scale.shape)}")
+        raise InputError(f"r_scale: expected shape ({B}, {T}) or ({B}, {T}, 2), "
+                         f"got {tuple(r_scale.shape)}")
     if dz is not None:
-        check_tensor(dz, "dz", (B, T, 2))
+        check_shape(dz, (B, T, 2), "dz")
     m = eakf_matrices(dt, lam, a, b, q, r)
     state = eakf_init(as_float(z[:, 0], lam), p0)
     uvs, vs = [state.uv], [state.uv_var]
@@ -380,7 +380,7 @@ def _pair(x: float | Sequence[float], name: str) -> tuple[float, float]:
         return float(x), float(x)
     v = tuple(float(e) for e in x)
     if len(v) != 2:
-        raise TrackInputError(f"{name}: expected a number or a (u, v) pair, got {x!r}")
+        raise InputError(f"{name}: expected a number or a (u, v) pair, got {x!r}")
     return v[0], v[1]
 
 
@@ -426,25 +426,25 @@ class EAKF(nn.Module):
                  p0: Sequence[float] = _D.p0, learnable: bool = _D.learnable) -> None:
         super().__init__()
         if not frame_rate > 0:
-            raise TrackInputError(f"frame_rate: expected > 0, got {frame_rate}")
+            raise InputError(f"frame_rate: expected > 0, got {frame_rate}")
         lam2, a2, b2 = _pair(lam, "lam"), _pair(a, "a"), _pair(b, "b")
         for name, v in (("lam", lam2), ("a", a2), ("b", b2)):
             if not all(-1.0 < e < 1.0 for e in v):
-                raise TrackInputError(f"{name}: expected values in (-1, 1), got {v}")
+                raise InputError(f"{name}: expected values in (-1, 1), got {v}")
         q2 = _pair(q, "q")
         rt = torch.tensor(r, dtype=torch.float64)
         if rt.shape == (2,):
             rt = rt.expand(2, 2)
         if rt.shape != (2, 2) or not bool((rt > 0).all()):
-            raise TrackInputError(f"r: expected positive (pos, disp) or [[u_pos, u_disp], "
-                                  f"[v_pos, v_disp]], got {r!r}")
+            raise InputError(f"r: expected positive (pos, disp) or [[u_pos, u_disp], "
+                             f"[v_pos, v_disp]], got {r!r}")
         p0t = torch.tensor(p0, dtype=torch.float64)
         if p0t.shape == (4,):
             p0t = p0t.expand(2, 4)
         if p0t.shape != (2, 4) or not bool((p0t > 0).all()):
-            raise TrackInputError(f"p0: expected 4 positive variances, got {p0!r}")
+            raise InputError(f"p0: expected 4 positive variances, got {p0!r}")
         if not all(v > 0 for v in q2):
-            raise TrackInputError(f"q: expected > 0, got {q!r}")
+            raise InputError(f"q: expected > 0, got {q!r}")
         dtype = torch.get_default_dtype()
         raw = {"lam_raw": torch.atanh(torch.tensor(lam2)), "a_raw": torch.atanh(torch.tensor(a2)),
                "b_raw": torch.atanh(torch.tensor(b2)), "log_q": torch.tensor(q2).log(),
@@ -503,7 +503,7 @@ class EAKF(nn.Module):
 
     def init_state(self, z0: Tensor) -> EAKFState:
         """State at frame 0 from the first position (B, 2) (:func:`eakf_init`)."""
-        check_tensor(z0, "z0", ("B", 2))
+        check_shape(z0, ("B", 2), "z0")
         check_device(z0, "z0", self.dt)
         return eakf_init(as_float(z0, self.dt), self.p0)
 

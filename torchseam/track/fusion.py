@@ -61,12 +61,12 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchseam.track._checks import (
-    TrackInputError,
+from torchseam.core.checks import (
+    InputError,
     as_float,
     check_batch,
     check_device,
-    check_tensor,
+    check_shape,
 )
 from torchseam.track.config import TrackerConfig
 from torchseam.track.eakf import EAKF, EAKFMatrices, EAKFState
@@ -135,13 +135,13 @@ class DriftGuard(nn.Module):
                         ("spread_slope", spread_slope), ("r_slope", r_slope),
                         ("learn_slope", learn_slope)):
             if not v > 0:
-                raise TrackInputError(f"{name}: expected > 0, got {v}")
+                raise InputError(f"{name}: expected > 0, got {v}")
         for name, v in (("second0", second0), ("r_trust", r_trust),
                         ("learn_trust", learn_trust)):
             if not 0.0 < v < 1.0:
-                raise TrackInputError(f"{name}: expected in (0, 1), got {v}")
+                raise InputError(f"{name}: expected in (0, 1), got {v}")
         if not r_scale_max >= 1.0:
-            raise TrackInputError(f"r_scale_max: expected >= 1, got {r_scale_max}")
+            raise InputError(f"r_scale_max: expected >= 1, got {r_scale_max}")
         raw = {"log_psr0": math.log(psr0), "log_psr_slope": math.log(psr_slope),
                "logit_second0": _logit(second0), "log_second_slope": math.log(second_slope),
                "log_gate": math.log(gate), "log_gate_slope": math.log(gate_slope),
@@ -324,7 +324,7 @@ class EAKFSTC(nn.Module):
                                 cfg.learn_slope,
                                 learnable=cfg.learnable)
         if cfg.max_coast < 0 or not cfg.lost_std > 0:
-            raise TrackInputError("max_coast must be >= 0 and lost_std > 0")
+            raise InputError("max_coast must be >= 0 and lost_std > 0")
         self.timer = StepTimer(cfg.timing_window)
         self.state: FusionState | None = None
 
@@ -340,18 +340,18 @@ class EAKFSTC(nn.Module):
         Returns:
             :class:`FusionState` at frame 0 (status TRACKED).
         """
-        check_tensor(frames0, "frames0", ("B", "Himg", "Wimg"))
+        check_shape(frames0, ("B", "Himg", "Wimg"), "frames0")
         B, hi, wi = frames0.shape
-        check_tensor(uv0, "uv0", (B, 2))
+        check_shape(uv0, (B, 2), "uv0")
         check_device(uv0, "uv0", self.eakf.dt)
         uvd = uv0.detach()
         bad = ~torch.isfinite(uvd).all(dim=1) | (uvd[:, 0] < -0.5) | (uvd[:, 0] > wi - 0.5) \
             | (uvd[:, 1] < -0.5) | (uvd[:, 1] > hi - 0.5)
         if bool(bad.any()):
             i = int(bad.nonzero()[0, 0])
-            raise TrackInputError(f"uv0: sequence {i} starts at (u, v) = "
-                                  f"({float(uvd[i, 0]):.1f}, {float(uvd[i, 1]):.1f}), outside "
-                                  f"the {wi} x {hi} frame")
+            raise InputError(f"uv0: sequence {i} starts at (u, v) = "
+                             f"({float(uvd[i, 0]):.1f}, {float(uvd[i, 1]):.1f}), outside "
+                             f"the {wi} x {hi} frame")
         uv0 = as_float(uv0, self.eakf.dt)
         stc = self.stc.init_state(frames0, uv0)
         kf = self.eakf.init_state(uv0)
@@ -374,7 +374,7 @@ class EAKFSTC(nn.Module):
             px, the larger axis)).
         """
         B = state.coast.shape[0]
-        check_tensor(frames, "frames", ("B", "Himg", "Wimg"))
+        check_shape(frames, ("B", "Himg", "Wimg"), "frames")
         check_batch(frames, "frames", B)
         cfg, m = self.config, state.mats
         hi, wi = frames.shape[-2:]
@@ -418,7 +418,7 @@ class EAKFSTC(nn.Module):
     def step(self, frames: Tensor) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
         """Track the next frames (B, Himg, Wimg): returns (uv (B, 2), status (B,), quality)."""
         if self.state is None:
-            raise TrackInputError("EAKFSTC.step: call init(frames0, uv0) first")
+            raise InputError("EAKFSTC.step: call init(frames0, uv0) first")
         dev = self.eakf.dt.device
         self.timer.start(dev)
         self.state, uv, status, q = self.step_state(self.state, frames)
@@ -448,15 +448,15 @@ class EAKFSTC(nn.Module):
             [[66.0, 47.0]]
         """
         if self.state is None:
-            raise TrackInputError("EAKFSTC.reanchor: call init(frames0, uv0) first")
+            raise InputError("EAKFSTC.reanchor: call init(frames0, uv0) first")
         s = self.state
         B = s.coast.shape[0]
-        check_tensor(frames, "frames", ("B", "Himg", "Wimg"))
+        check_shape(frames, ("B", "Himg", "Wimg"), "frames")
         check_batch(frames, "frames", B)
-        check_tensor(uv, "uv", (B, 2))
+        check_shape(uv, (B, 2), "uv")
         uv = as_float(uv, s.kf.x)
         if not bool(torch.isfinite(uv).all()):
-            raise TrackInputError("reanchor: uv must be finite")
+            raise InputError("reanchor: uv must be finite")
         d = uv - s.kf.uv
         shift = torch.zeros_like(s.kf.x)
         shift[..., 0], shift[..., 2] = d, d   # u(k) and u(k-1): the velocity is kept
@@ -495,9 +495,9 @@ class EAKFSTC(nn.Module):
             STC measurement z (B, T, 2) and per-frame trust, psr, second_ratio, d2, std (B, T)
             (frame 0: z = uv0, trust 1, d2 0, psr/second_ratio NaN-free placeholders 0).
         """
-        check_tensor(frames, "frames", ("B", "T", "Himg", "Wimg"))
+        check_shape(frames, ("B", "T", "Himg", "Wimg"), "frames")
         if detach_every is not None and detach_every < 1:
-            raise TrackInputError(f"detach_every: expected >= 1 or None, got {detach_every}")
+            raise InputError(f"detach_every: expected >= 1 or None, got {detach_every}")
         B, T = frames.shape[:2]
         state = self.init_state(frames[:, 0], uv0)
         uv = state.kf.uv

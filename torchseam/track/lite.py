@@ -34,7 +34,7 @@ import numpy as np
 import scipy.fft
 from torch import Tensor
 
-from torchseam.track._checks import TrackInputError
+from torchseam.core.checks import InputError
 from torchseam.track.base import Tracker
 from torchseam.track.fusion import EAKFSTC, TrackStatus
 from torchseam.track.stc import confidence_map, weight_window
@@ -111,7 +111,7 @@ class LiteEAKFSTC:
         cfg = module.config
         stc = module.stc
         if stc.crop != "nearest" or stc.peak != "subpixel" or stc.scale_update:
-            raise TrackInputError(
+            raise InputError(
                 f"LiteEAKFSTC runs crop='nearest', peak='subpixel' without the scale update; "
                 f"this module has crop={stc.crop!r}, peak={stc.peak!r}, "
                 f"scale_update={stc.scale_update} (use the torch module)")
@@ -141,7 +141,7 @@ class LiteEAKFSTC:
     def _frame(frame: np.ndarray) -> np.ndarray:
         if not isinstance(frame, np.ndarray) or not (
                 frame.ndim == 2 or (frame.ndim == 3 and frame.shape[2] == 3)):
-            raise TrackInputError(
+            raise InputError(
                 f"frame: expected an (H, W) grey or (H, W, 3) BGR array, got "
                 f"{type(frame).__name__} {getattr(frame, 'shape', '')}")
         return frame
@@ -238,8 +238,8 @@ class LiteEAKFSTC:
         uv0 = np.asarray(uv0, float).reshape(-1)
         if uv0.shape != (2,) or not np.all(np.isfinite(uv0)) or not (
                 -0.5 <= uv0[0] <= wi - 0.5 and -0.5 <= uv0[1] <= hi - 0.5):
-            raise TrackInputError(f"uv0: the start (u, v) = {uv0.tolist()} is not a point "
-                                  f"inside the {wi} x {hi} frame")
+            raise InputError(f"uv0: the start (u, v) = {uv0.tolist()} is not a point "
+                             f"inside the {wi} x {hi} frame")
         self.x = np.stack([uv0, np.zeros(2), uv0, np.zeros(2)], axis=-1)  # eakf_init
         self.P = np.zeros((2, 4, 4))
         self.P[:, range(4), range(4)] = self.p0
@@ -259,13 +259,13 @@ class LiteEAKFSTC:
     def uv(self) -> np.ndarray:
         """(2,) position estimate at the newest frame."""
         if self.x is None:
-            raise TrackInputError("LiteEAKFSTC.uv: call init(frame, uv0) first")
+            raise InputError("LiteEAKFSTC.uv: call init(frame, uv0) first")
         return self.x[:, 0].copy()
 
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, int, dict[str, float | np.ndarray]]:
         """One EAKF-STC step (EAKFSTC.step_state): (uv (2,), status, quality)."""
         if self.H_f is None:
-            raise TrackInputError("LiteEAKFSTC.step: call init(frame, uv0) first")
+            raise InputError("LiteEAKFSTC.step: call init(frame, uv0) first")
         assert (self.x is not None and self.P is not None and self.Z is not None
                 and self.s is not None and self.s_ref is not None)  # set by init, with H_f
         frame = self._frame(frame)
@@ -329,12 +329,12 @@ class LiteEAKFSTC:
     def reanchor(self, frame: np.ndarray, uv: np.ndarray, rate: float = 1.0) -> None:
         """Move onto an absolute fix ``uv`` (2,) of the newest frame (EAKFSTC.reanchor)."""
         if self.H_f is None:
-            raise TrackInputError("LiteEAKFSTC.reanchor: call init(frame, uv0) first")
+            raise InputError("LiteEAKFSTC.reanchor: call init(frame, uv0) first")
         assert self.x is not None and self.Z is not None  # set by init, with H_f
         frame = self._frame(frame)  # every check before the state moves
         uv = np.asarray(uv, float).reshape(-1)
         if uv.shape != (2,) or not np.all(np.isfinite(uv)):
-            raise TrackInputError(f"reanchor: uv must be 2 finite numbers, got {uv.tolist()}")
+            raise InputError(f"reanchor: uv must be 2 finite numbers, got {uv.tolist()}")
         d = uv - self.x[:, 0]
         for a in (self.x, self.x_post):
             if a is not None:

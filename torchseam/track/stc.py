@@ -49,14 +49,14 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchseam.track._checks import (
-    TrackInputError,
+from torchseam.core.checks import (
+    InputError,
     as_float,
     check_batch,
     check_choice,
     check_device,
+    check_shape,
     check_size,
-    check_tensor,
 )
 from torchseam.track.config import MATLAB_EPS, TrackerConfig
 
@@ -196,7 +196,7 @@ def weight_window(size: Sequence[int], sigma: float | Tensor, *, hamming: bool =
     h, w = check_size(size, "size")
     if isinstance(sigma, Tensor):
         if sigma.ndim > 1:
-            raise TrackInputError(
+            raise InputError(
                 f"sigma: expected a scalar or shape (B,), got {tuple(sigma.shape)}")
         device, dtype = device or sigma.device, dtype or sigma.dtype
     dtype = dtype or torch.get_default_dtype()
@@ -240,8 +240,8 @@ def extract_windows(frames: Tensor, centres: Tensor, size: Sequence[int], *,
                 [33., 34., 35.],
                 [43., 44., 45.]])
     """
-    check_tensor(frames, "frames", ("B", "Himg", "Wimg"))
-    check_tensor(centres, "centres", (frames.shape[0], 2))
+    check_shape(frames, ("B", "Himg", "Wimg"), "frames")
+    check_shape(centres, (frames.shape[0], 2), "centres")
     check_device(centres, "centres", frames)
     check_choice(mode, "mode", CROP_MODES)
     h, w = check_size(size, "size")
@@ -296,11 +296,11 @@ def context_prior(windows: Tensor, weight: Tensor) -> Tensor:
         >>> context_prior(torch.ones(2, 8, 8), weight_window((8, 8), 4.0)).abs().max().item()
         0.0
     """
-    check_tensor(windows, "windows", ("B", "H", "W"))
+    check_shape(windows, ("B", "H", "W"), "windows")
     if weight.shape[-2:] != windows.shape[-2:] or weight.ndim not in (2, 3):
-        raise TrackInputError(f"weight: expected shape {tuple(windows.shape[-2:])} or "
-                              f"(B, {windows.shape[-2]}, {windows.shape[-1]}), "
-                              f"got {tuple(weight.shape)}")
+        raise InputError(f"weight: expected shape {tuple(windows.shape[-2:])} or "
+                         f"(B, {windows.shape[-2]}, {windows.shape[-1]}), "
+                         f"got {tuple(weight.shape)}")
     return (windows - windows.mean(dim=(-2, -1), keepdim=True)) * weight
 
 
@@ -350,7 +350,7 @@ def learn_spatial_context_reg(conf_f: Tensor, prior_f: Tensor, reg: Tensor | flo
         >>> torch.allclose(learn_spatial_context_reg(c_f, p_f, 0.0), c_f / p_f, atol=1e-4)
         True
     """
-    check_tensor(prior_f, "prior_f", ("B", "H", "W2"))
+    check_shape(prior_f, ("B", "H", "W2"), "prior_f")
     power = prior_f.real.square() + prior_f.imag.square()
     floor = power.mean(dim=(-2, -1), keepdim=True) * reg
     return conf_f * prior_f.conj() / (power + floor + eps)
@@ -378,7 +378,7 @@ def fourier_shift(shift: Tensor, size: Sequence[int]) -> Tensor:
         True
     """
     h, w = check_size(size, "size")
-    check_tensor(shift, "shift", ("B", 2))
+    check_shape(shift, ("B", 2), "shift")
     fy, fx = cached(("freq", h, w, shift.device, shift.dtype), lambda: torch.cat([
         torch.fft.fftfreq(h, device=shift.device, dtype=shift.dtype),
         torch.fft.rfftfreq(w, device=shift.device, dtype=shift.dtype)]) * (-2.0 * math.pi)
@@ -565,7 +565,7 @@ def locate_peak(response: Tensor, mode: str = "subpixel",
         >>> locate_peak(c, "argmax")
         tensor([[-3.,  2.]])
     """
-    check_tensor(response, "response", ("B", "H", "W"))
+    check_shape(response, ("B", "H", "W"), "response")
     check_choice(mode, "mode", PEAK_MODES)
     return _analyse(response, mode, temperature, 1, quality=False)[0]
 
@@ -600,7 +600,7 @@ def peak_quality(response: Tensor, exclude: int = 5) -> dict[str, Tensor]:
         >>> bool(q["psr"] > 10), q["n_peaks"].tolist()
         (True, [1])
     """
-    check_tensor(response, "response", ("B", "H", "W"))
+    check_shape(response, ("B", "H", "W"), "response")
     return _analyse(response, "argmax", 1.0, exclude, quality=True)[1]
 
 
@@ -723,7 +723,7 @@ class STC(nn.Module):
         self.window_size = check_size(window, "window")
         self.target_size = tuple(int(t) for t in target)
         if len(self.target_size) != 2 or min(self.target_size) < 1:
-            raise TrackInputError(f"target: expected (h, w), two positive integers, got {target!r}")
+            raise InputError(f"target: expected (h, w), two positive integers, got {target!r}")
         self.peak = check_choice(peak, "peak", PEAK_MODES)
         self.crop = check_choice(crop, "crop", CROP_MODES)
         if sigma is None:
@@ -731,19 +731,19 @@ class STC(nn.Module):
         for name, val in (("alpha", alpha), ("beta", beta), ("sigma", sigma),
                           ("temperature", temperature)):
             if not val > 0:
-                raise TrackInputError(f"{name}: expected > 0, got {val}")
+                raise InputError(f"{name}: expected > 0, got {val}")
         if not eps >= 0:
-            raise TrackInputError(f"eps: expected >= 0, got {eps}")
+            raise InputError(f"eps: expected >= 0, got {eps}")
         if not 0.0 < rho < 1.0:
-            raise TrackInputError(f"rho: expected in (0, 1), got {rho}")
+            raise InputError(f"rho: expected in (0, 1), got {rho}")
         if not reg >= 0:
-            raise TrackInputError(f"reg: expected >= 0, got {reg}")
+            raise InputError(f"reg: expected >= 0, got {reg}")
         if not 0.0 <= anchor < 1.0:
-            raise TrackInputError(f"anchor: expected in [0, 1), got {anchor}")
+            raise InputError(f"anchor: expected in [0, 1), got {anchor}")
         if anchor_frames < 1:
-            raise TrackInputError(f"anchor_frames: expected >= 1, got {anchor_frames}")
+            raise InputError(f"anchor_frames: expected >= 1, got {anchor_frames}")
         if not 0.0 <= scale_lambda <= 1.0 or scale_frames < 1:
-            raise TrackInputError("scale_lambda must lie in [0, 1] and scale_frames be >= 1")
+            raise InputError("scale_lambda must lie in [0, 1] and scale_frames be >= 1")
         self.eps = float(eps)
         self.scale_update = bool(scale_update)
         self.scale_lambda = float(scale_lambda)
@@ -808,7 +808,7 @@ class STC(nn.Module):
 
     # ------------------------------------------------------------------ functional core
     def _check_frames(self, frames: Tensor, name: str, batch: int | None = None) -> Tensor:
-        check_tensor(frames, name, ("B", "Himg", "Wimg"))
+        check_shape(frames, ("B", "Himg", "Wimg"), name)
         check_device(frames, name, self.log_alpha)
         if batch is not None:
             check_batch(frames, name, batch)
@@ -835,7 +835,7 @@ class STC(nn.Module):
         """
         self._check_frames(frames0, "frames0")
         B = frames0.shape[0]
-        check_tensor(uv0, "uv0", (B, 2))
+        check_shape(uv0, (B, 2), "uv0")
         check_device(uv0, "uv0", self.log_alpha)
         ref = self.log_alpha
         uv0 = as_float(uv0, ref)
@@ -862,7 +862,7 @@ class STC(nn.Module):
         B = state.pos.shape[0]
         self._check_frames(frames, "frames", B)
         centre = state.pos if centre is None else centre
-        check_tensor(centre, "centre", (B, 2))
+        check_shape(centre, (B, 2), "centre")
         prior_f, _ = self._prior_f(frames, centre, state.window)
         H_f = state.H_f
         if self.anchored and state.H_ref is not None:
@@ -890,7 +890,7 @@ class STC(nn.Module):
         """
         B = state.pos.shape[0]
         self._check_frames(frames, "frames", B)
-        check_tensor(centre, "centre", (B, 2))
+        check_shape(centre, (B, 2), "centre")
         prior_f, _ = self._prior_f(frames, centre, state.window)
         f = state.frame + 1  # the reference's 1-based frame index
         scale, maxconf = state.scale, state.maxconf
@@ -960,7 +960,7 @@ class STC(nn.Module):
     def step(self, frames: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """Track one frame (plain STC); returns (uv (B, 2), quality dict of (B,))."""
         if self.state is None:
-            raise TrackInputError("STC.step: call init(frames0, uv0) first")
+            raise InputError("STC.step: call init(frames0, uv0) first")
         self.state, uv, q = self.track(self.state, frames)
         return uv, q
 
@@ -977,7 +977,7 @@ class STC(nn.Module):
             uv (B, T, 2) with ``uv[:, 0] = uv0``; quality dict of (B, T) tensors (frame 0: the
             quality of the model's response to its own training frame).
         """
-        check_tensor(frames, "frames", ("B", "T", "Himg", "Wimg"))
+        check_shape(frames, ("B", "T", "Himg", "Wimg"), "frames")
         B, T = frames.shape[:2]
         state = self.init_state(frames[:, 0], uv0)
         prior0, _ = self._prior_f(frames[:, 0], state.pos, state.window)
