@@ -31,6 +31,7 @@ from typing import overload
 import numpy as np
 
 from torchseam.core.config import CONFIG_DIR, load_config
+from torchseam.core.kernels import load_kernels
 
 ARC_STEP_PX = 1.5     # sampling step along the largest circle (all circles share the angles)
 RADIAL_STEP_PX = 2.0  # ring spacing of the polar resampling
@@ -111,7 +112,7 @@ class Ecal:
             self.ring_radii[:, None] - np.arange(cfg.r_min_px, cfg.r_max_px + 1e-9,
                                                  cfg.r_step_px)[None]), axis=0))]
         self._circle_rows = np.searchsorted(self.ring_radii, self.circles).astype(np.int64)
-        self._k = _kernels()  # compiled (or loaded) now, not on the first frame
+        self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
 
     def polar(self, mask: np.ndarray, uv: np.ndarray, intensity: np.ndarray | None
               ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -230,14 +231,6 @@ class Ecal:
 
 
 _NO_VAL = np.zeros((0, 0))  # no grey levels: the kernel weighs every sample alike
-
-
-def _kernels():  # noqa: ANN202 - the module
-    """The compiled kernel (:mod:`torchseam.geometry._kernels`), imported on first use: numba
-    and the kernel's loading cost ~1 s, which commands without ECAL need not pay."""
-    from torchseam.geometry import _kernels as k
-
-    return k
 
 
 def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref: float,

@@ -35,6 +35,7 @@ import scipy.fft
 from torch import Tensor
 
 from torchseam.core.checks import InputError
+from torchseam.core.kernels import load_kernels
 from torchseam.track.base import Tracker
 from torchseam.track.fusion import EAKFSTC, TrackStatus
 from torchseam.track.stc import confidence_map, weight_window
@@ -92,9 +93,8 @@ class LiteEAKFSTC:
         # learning steps not applied yet (see idle): (window or None, its prior spectrum or
         # None, centre, rho scale), in order
         self._pending: list[tuple[np.ndarray | None, np.ndarray | None, np.ndarray, float]] = []
-        from torchseam.track._kernels import peak_quality  # numba: compiled or loaded now
-
-        self._peak_quality = peak_quality
+        # numba: compiled (or loaded) now, not on the first frame
+        self._peak_quality = load_kernels(__package__).peak_quality
         # the filter's state, set by init (with H_f: None until then)
         self.x: np.ndarray | None = None
         self.P: np.ndarray | None = None

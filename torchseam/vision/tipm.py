@@ -29,7 +29,6 @@ previous frame's (a MAP fit); without it the fit is the plain least squares.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +37,7 @@ import numpy as np
 
 from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.dataset import check_frame
+from torchseam.core.kernels import load_kernels
 from torchseam.core.orient import FrameView
 from torchseam.core.overlay import put_label
 
@@ -136,15 +136,6 @@ class TipmResult:
     mask: np.ndarray | None = None
 
 
-@functools.cache
-def _kernels():  # noqa: ANN202 - the module
-    """The compiled kernels (:mod:`torchseam.vision._kernels`), imported on first use: numba
-    and the kernels' loading cost ~1 s, which commands without TIPM need not pay."""
-    from torchseam.vision import _kernels as k
-
-    return k
-
-
 def _fail(reason: str, mask: np.ndarray | None = None, centre: np.ndarray | None = None
           ) -> TipmResult:
     return TipmResult(False, np.full(2, np.nan), reason, centre=centre, mask=mask)
@@ -168,7 +159,7 @@ class Tipm:
         k = 2 * self.cfg.dilate_px + 1
         self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
         self._ws: dict[tuple, np.ndarray] = {}  # reused frame-sized planes (see _plane)
-        self._k = _kernels()  # compiled (or loaded) now, not on the first frame
+        self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
 
     def _plane(self, name: str, shape: tuple[int, int]) -> np.ndarray:
         """A reused uint8 work plane: fresh frame-sized arrays cost page faults on every frame,
@@ -370,7 +361,7 @@ def _quadfit(x: np.ndarray, y: np.ndarray, prior: np.ndarray | None = None
     x = np.ascontiguousarray(x, dtype=np.float64)
     y = np.ascontiguousarray(y, dtype=np.float64)
     p = np.zeros(4) if prior is None else np.ascontiguousarray(prior, dtype=np.float64)
-    k = np.array(_kernels().quad_fit(x, y, np.ones(x.size, np.bool_), p))
+    k = np.array(load_kernels(__package__).quad_fit(x, y, np.ones(x.size, np.bool_), p))
     return k, y - (k[0] + k[1] * x + k[2] * x * x)
 
 
