@@ -18,14 +18,17 @@ Four procedures, each from a set of views, each returning a typed result with it
 :mod:`.sets` holds what they share: reading a set's image files, finding the board and its pose
 in an image, and the checks that a set is usable. Each procedure's module also reads its own
 folder layout (``load_*_set``); the robot pose file of the hand-eye and TCP sets is read by
-:func:`torchseam.core.calibration.read_pose_csv`, beside the settings.
+:func:`torchseam.core.calibration.read_pose_csv`, beside the settings (the simulator writes it).
+:mod:`.cellfile` writes a result into a cell config, keeping the file's comments; the
+``torchseam calibrate`` command (:mod:`torchseam.geometry.calib_cli`) is the one that calls it.
 
 A package, not ``calib_*.py`` modules beside :mod:`torchseam.geometry.calib_cli`: the name
 ``torchseam.geometry.calibrate`` stays the one import for callers (the names are re-exported
 here), no name clashes (the package replaces the single module of the same name), and the
 procedures' files sit together apart from geometry's run-time modules (triangulation, the torch
 frame). The import graph inside is a tree: ``camera``, ``laser``, ``handeye`` and ``tcp`` import
-only ``sets``, never each other, and none imports from this ``__init__``.
+only ``sets``, never each other, ``cellfile`` none of them, and none imports from this
+``__init__``.
 
 Settings live in ``configs/calibration.yaml`` (:class:`CalibrationConfig`). Every error names
 what to fix: the image that failed, the view that is short, the set that is degenerate.
@@ -58,6 +61,7 @@ from torchseam.core.calibration import (
     write_pose_csv,
 )
 from torchseam.geometry.calibrate.camera import CameraCalibration, calibrate_camera, load_camera_set
+from torchseam.geometry.calibrate.cellfile import splice_section, update_cell
 from torchseam.geometry.calibrate.handeye import (
     HAND_EYE_METHODS,
     HandEyeCalibration,
@@ -93,5 +97,5 @@ __all__ = ["HAND_EYE_METHODS", "IMAGE_SUFFIXES", "POSE_COLUMNS", "BoardSpec", "C
            "calibrate_camera", "calibrate_hand_eye", "calibrate_laser_plane", "calibrate_tcp",
            "detect_board", "extract_stripe", "fit_plane", "hand_eye_linear", "list_images",
            "load_calibration", "load_camera_set", "load_handeye_set", "load_laser_set",
-           "load_tcp_set", "read_image", "read_pose_csv", "stripe_on_board", "to_grey",
-           "write_pose_csv"]
+           "load_tcp_set", "read_image", "read_pose_csv", "splice_section", "stripe_on_board",
+           "to_grey", "update_cell", "write_pose_csv"]
