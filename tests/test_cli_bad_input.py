@@ -96,7 +96,7 @@ CASES = [
      r"part\.yaml: main_od_mm: expected a number, got '1e300' \(YAML reads this as text"),
     ("camera width", lambda t, s: ["simulate", str(t / "o"), "--frames", "1", "--cell",
                                    str(_cell_file(t))],
-     r"cell\.yaml: camera\.width: expected a number <= 16384"),
+     r"cell\.yaml: camera\.width: expected a whole number <= 16384"),
     ("simulate start nan", lambda t, s: ["simulate", str(t / "o"), "--start-mm", "nan"],
      r"--start-mm must be an arc length"),
     ("simulate seed -1", lambda t, s: ["simulate", str(t / "o"), "--seed", "-1"],

@@ -14,7 +14,9 @@ import ipaddress
 import math
 import os
 import re
+import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -38,20 +40,26 @@ class ConfigError(TorchseamError, ValueError):
 
 
 def _spec(n: int | None = None, lo: float | None = None, hi: float | None = None,
-          lo_open: bool = False, unit: bool = False, choices: tuple[str, ...] | None = None,
-          ip: bool = False) -> dict[str, Any]:
-    """Field constraints: fixed length ``n``, bounds ``lo``/``hi``, unit-norm vector; for
-    ``str`` fields the allowed ``choices`` or an IP address (``ip``)."""
-    return {"n": n, "lo": lo, "hi": hi, "lo_open": lo_open, "unit": unit, "choices": choices,
-            "ip": ip}
+          lo_open: bool = False, hi_open: bool = False, unit: bool = False,
+          choices: tuple[str, ...] | None = None, ip: bool = False,
+          convert: Callable[[Any], Any] | None = None) -> dict[str, Any]:
+    """Field constraints: fixed length ``n``, bounds ``lo``/``hi`` (open with ``lo_open`` /
+    ``hi_open``), unit-norm vector; for ``str`` fields the allowed ``choices`` or an IP address
+    (``ip``). ``convert`` turns the raw value into the form the field's type reads (e.g.
+    comma-separated text into a list) before the checks; it raises ValueError('problem')."""
+    return {"n": n, "lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open, "unit": unit,
+            "choices": choices, "ip": ip, "convert": convert}
 
 
-def config_field(n: int | None = None, default: Any = dataclasses.MISSING, **kw: Any) -> Any:
+def config_field(n: int | None = None, default: Any = dataclasses.MISSING,
+                 default_factory: Callable[[], Any] | Any = dataclasses.MISSING,
+                 **kw: Any) -> Any:
     """A dataclass field with the constraints :func:`load_config` checks (see ``_spec``):
     ``config_field(3, unit=True)``, ``config_field(lo=0.0, lo_open=True)``,
     ``config_field(choices=("pose", "pathcorr"))``, ``config_field(ip=True)``. A field with a
-    ``default`` may be left out of the file (for settings added after files were written)."""
-    return field(default=default, metadata=_spec(n, **kw))
+    ``default`` (or ``default_factory``) may be left out of the file (for settings added after
+    files were written, and options files that give only what they change)."""
+    return field(default=default, default_factory=default_factory, metadata=_spec(n, **kw))
 
 
 _f = config_field  # the short name used inside this module
@@ -422,11 +430,13 @@ def _check_number(v: Any, meta: dict[str, Any], want_int: bool) -> float | int:
         if want_int and not v.is_integer():
             raise ValueError(f"expected a whole number, got {v!r}")
     lo, hi = meta.get("lo"), meta.get("hi")
+    kind = "whole number" if want_int else "number"
     if lo is not None and (v <= lo if meta.get("lo_open") else v < lo):
         op = ">" if meta.get("lo_open") else ">="
-        raise ValueError(f"expected a number {op} {lo}, got {_shown(v)}")
-    if hi is not None and v > hi:
-        raise ValueError(f"expected a number <= {hi}, got {_shown(v)}")
+        raise ValueError(f"expected a {kind} {op} {lo}, got {_shown(v)}")
+    if hi is not None and (v >= hi if meta.get("hi_open") else v > hi):
+        op = "<" if meta.get("hi_open") else "<="
+        raise ValueError(f"expected a {kind} {op} {hi}, got {_shown(v)}")
     if abs(v) > MAX_CONFIG_NUMBER:
         raise ValueError(f"expected a number of magnitude <= {MAX_CONFIG_NUMBER:g}, "
                          f"got {_shown(v)}")
@@ -449,30 +459,69 @@ def _check_str(v: Any, meta: dict[str, Any]) -> str:
     return v
 
 
+def _parse_union(arms: tuple[Any, ...], v: Any, meta: dict[str, Any], path: str) -> Any:
+    """``A | B`` (e.g. ``float | None``, ``float | tuple[float, float]``): None where allowed,
+    else the first arm that reads ``v``, a tuple arm first for a list; the error is that arm's."""
+    if v is None and type(None) in arms:
+        return None
+    seq = isinstance(v, (list, tuple))
+    tried = sorted((a for a in arms if a is not type(None)),
+                   key=lambda a: (typing.get_origin(a) is tuple) != seq)
+    first: ValueError | None = None
+    for arm in tried:
+        try:
+            return _parse_value(arm, v, meta, path)
+        except ValueError as e:
+            first = first or e
+    assert first is not None
+    raise first
+
+
+def _parse_tuple(args: tuple[Any, ...], v: Any, meta: dict[str, Any]) -> tuple[Any, ...]:
+    """``tuple[X, ...]`` (length ``meta["n"]`` when given) or ``tuple[X, Y]`` (that length) of
+    strings or of numbers."""
+    if not isinstance(v, (list, tuple)):
+        raise ValueError(f"expected a list, got {v!r}")
+    n = meta.get("n") if Ellipsis in args else len(args)
+    if n is not None and len(v) != n:
+        raise ValueError(f"expected {n} values, got {len(v)}")
+    item_tps = [args[0]] * len(v) if Ellipsis in args else list(args)
+    if args[0] is str:
+        return tuple(_check_str(x, meta) for x in v)
+    out = tuple(_check_number(x, meta, tp is int) for x, tp in zip(v, item_tps, strict=True))
+    if meta.get("unit"):
+        norm = math.sqrt(sum(x * x for x in out))
+        if abs(norm - 1.0) > 1e-4:
+            raise ValueError(f"expected a unit vector, norm is {norm:.6f}")
+        out = tuple(x / norm for x in out)
+    return out
+
+
+def _parse_mapping(value_tp: Any, v: Any) -> dict[str, Any]:
+    """``dict[str, Any]``: any mapping (its user checks it); ``dict[str, float]``: a non-empty
+    mapping of numbers in [0, 1] (the noise levels)."""
+    if value_tp is Any:
+        if not isinstance(v, dict):
+            raise ValueError(f"expected a mapping, got {v!r}")
+        return dict(v)
+    if not isinstance(v, dict) or not v:
+        raise ValueError(f"expected a non-empty mapping, got {v!r}")
+    return {str(k): _check_number(x, {"lo": 0.0, "hi": 1.0}, False) for k, x in v.items()}
+
+
 def _parse_value(tp: Any, v: Any, meta: dict[str, Any], path: str) -> Any:
+    convert = meta.get("convert")
+    if convert is not None:
+        v = convert(v)
     origin = typing.get_origin(tp)
     if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         return _parse_dataclass(tp, v, path)
+    if origin in (typing.Union, types.UnionType):
+        return _parse_union(typing.get_args(tp), v, {**meta, "convert": None}, path)
     if origin is tuple:
-        item_tp = typing.get_args(tp)[0]
-        if not isinstance(v, (list, tuple)):
-            raise ValueError(f"expected a list, got {v!r}")
-        n = meta.get("n")
-        if n is not None and len(v) != n:
-            raise ValueError(f"expected {n} values, got {len(v)}")
-        if item_tp is str:
-            return tuple(_check_str(x, meta) for x in v)
-        out = tuple(_check_number(x, meta, item_tp is int) for x in v)
-        if meta.get("unit"):
-            norm = math.sqrt(sum(x * x for x in out))
-            if abs(norm - 1.0) > 1e-4:
-                raise ValueError(f"expected a unit vector, norm is {norm:.6f}")
-            out = tuple(x / norm for x in out)
-        return out
+        return _parse_tuple(typing.get_args(tp), v, meta)
     if origin is dict:
-        if not isinstance(v, dict) or not v:
-            raise ValueError(f"expected a non-empty mapping, got {v!r}")
-        return {str(k): _check_number(x, {"lo": 0.0, "hi": 1.0}, False) for k, x in v.items()}
+        return _parse_mapping(typing.get_args(tp)[1], v)
     if tp in (int, float):
         return _check_number(v, meta, tp is int)
     if tp is bool:
@@ -499,6 +548,9 @@ def _parse_dataclass(cls: type[T], data: Any, path: str) -> T:
         if name not in data:
             if f.default is not dataclasses.MISSING:
                 kwargs[name] = f.default
+                continue
+            if f.default_factory is not dataclasses.MISSING:
+                kwargs[name] = f.default_factory()
                 continue
             raise ConfigError(f"{where}: missing")
         try:

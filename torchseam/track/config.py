@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from torchseam.core.checks import InputError
+from torchseam.core.config import from_dict
 
 MATLAB_EPS = 2.220446049250313e-16  # eps of the reference implementation's division
 
@@ -22,8 +22,8 @@ PairOrFloat = float | tuple[float, float]
 class TrackerConfig:
     """Every default of EAKF-STC in one place (units: px, s, frames).
 
-    Load from a mapping with :meth:`from_dict` (unknown keys raise, lists become tuples);
-    :meth:`to_dict` gives a plain dict back.
+    Load from a mapping with :meth:`from_dict` (unknown keys and wrong types raise, lists become
+    tuples); :meth:`to_dict` gives a plain dict back.
     """
 
     # --- STC (METHOD.md section 2)
@@ -77,22 +77,15 @@ class TrackerConfig:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | None = None, **overrides: Any
                   ) -> TrackerConfig:
-        """Build from a mapping (plus keyword overrides); unknown keys raise
-        :class:`InputError` naming them.
+        """Build from a mapping (plus keyword overrides), read by core's config reader: lists
+        become tuples, an unknown field or a value of the wrong type raises
+        :class:`~torchseam.core.config.ConfigError` naming it (the trackers check the ranges).
 
         Example:
             >>> TrackerConfig.from_dict({"rho": 0.05, "window": [48, 48]}).window
             (48, 48)
         """
-        d = dict(data or {})
-        d.update(overrides)
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise InputError(f"tracker config: unknown field {unknown[0]!r} "
-                             f"(expected one of {', '.join(sorted(names))})")
-        d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-        return cls(**d)
+        return from_dict(cls, {**(data or {}), **overrides}, "tracker config")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
