@@ -6,15 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchseam.core.checks import (
-    InputError,
-    as_float,
-    check_batch,
-    check_choice,
-    check_device,
-    check_shape,
-    check_size,
-)
+from torchseam.core import checks
+from torchseam.core.checks import InputError, check_shape
 from torchseam.core.errors import TorchseamError
 from torchseam.track import TrackInputError
 
@@ -70,23 +63,23 @@ def test_type_and_numpy_arrays() -> None:
 
 
 def test_batch_size_dtype_choice_device() -> None:
-    check_batch(torch.zeros(2, 3), "frames", 2)
+    checks.check_batch(torch.zeros(2, 3), "frames", 2)
     with pytest.raises(InputError, match=r"frames: expected batch size 2 \(the tracker's B\), "
                                          r"got 3"):
-        check_batch(torch.zeros(3, 3), "frames", 2)
+        checks.check_batch(torch.zeros(3, 3), "frames", 2)
     like = torch.zeros(1, dtype=torch.float64)
     frames = torch.ones(2, 2, dtype=torch.uint8)
-    assert as_float(frames, like).dtype == torch.float64
-    assert as_float(like, like) is like
-    assert check_size([8, 9], "window") == (8, 9)
+    assert checks.as_float(frames, like).dtype == torch.float64
+    assert checks.as_float(like, like) is like
+    assert checks.check_size([8, 9], "window") == (8, 9)
     with pytest.raises(InputError, match=r"window: expected \(H, W\) with H, W >= 3"):
-        check_size((2, 9), "window")
+        checks.check_size((2, 9), "window")
     with pytest.raises(InputError, match=r"window: expected \(H, W\), two positive integers"):
-        check_size("ab", "window")  # type: ignore[arg-type]
-    assert check_choice("soft", "peak", ("soft", "argmax")) == "soft"
+        checks.check_size("ab", "window")  # type: ignore[arg-type]
+    assert checks.check_choice("soft", "peak", ("soft", "argmax")) == "soft"
     with pytest.raises(InputError, match="peak: expected one of soft, argmax, got 'x'"):
-        check_choice("x", "peak", ("soft", "argmax"))
-    check_device(torch.zeros(1), "uv", torch.zeros(1))
+        checks.check_choice("x", "peak", ("soft", "argmax"))
+    checks.check_device(torch.zeros(1), "uv", torch.zeros(1))
 
 
 def test_leading_ellipsis_only() -> None:
