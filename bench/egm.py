@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from torchseam.robot.egm import latency_summary
-from torchseam.robot.egm_config import load_egm_config
+from torchseam.robot.egm.config import load_egm_config
 from torchseam.robot.egm_session import loopback_session
 
 

@@ -39,7 +39,7 @@ from torchseam.core.config import ConfigError
 from torchseam.live.demo import FAULTS, DemoEvent, DemoResult, FrameRecord
 from torchseam.live.loop import Command, LoopState, LoopStats, StepReport
 from torchseam.robot.egm import EgmLink
-from torchseam.robot.egm_config import load_egm_config
+from torchseam.robot.egm.config import load_egm_config
 from torchseam.track.peers import TRACKERS
 
 ROOT = Path(__file__).resolve().parents[1]

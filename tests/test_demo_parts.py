@@ -166,7 +166,7 @@ def test_shortened_step_where_the_seam_turns_fast(cell):
     from torchseam.core.transforms import matrix_to_quat, rotation_about
     from torchseam.live.loop import TURN_SHARE, LiveLoop, RecordingSink, load_live_config
     from torchseam.robot.egm import EgmLink
-    from torchseam.robot.egm_config import load_egm_config
+    from torchseam.robot.egm.config import load_egm_config
     from torchseam.track.peers import make_tracker
 
     live = load_live_config()

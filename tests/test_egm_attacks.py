@@ -27,9 +27,9 @@ from hypothesis import strategies as st
 
 from torchseam.core.config import CONFIG_DIR
 from torchseam.robot.egm import EgmLink, parse_sensor
-from torchseam.robot.egm_config import load_egm_config
-from torchseam.robot.egm_messages import EgmHeader, EgmRobot
-from torchseam.robot.egm_policy import (
+from torchseam.robot.egm.config import load_egm_config
+from torchseam.robot.egm.messages import EgmHeader, EgmRobot
+from torchseam.robot.egm.policy import (
     ACCEPT,
     DROP,
     NEW_SESSION,
@@ -261,7 +261,7 @@ def test_tracker_a_late_low_forgery_does_not_reset_the_time_evidence():
 
 def test_tracker_and_config_refuse_settings_that_would_trust_one_datagram():
     from torchseam.core.config import ConfigError
-    from torchseam.robot.egm_config import egm_config_from_dict
+    from torchseam.robot.egm.config import egm_config_from_dict
 
     with pytest.raises(ValueError):
         _tracker(confirm=1)

@@ -21,8 +21,8 @@ from hypothesis import strategies as st
 
 from torchseam.core.config import CONFIG_DIR, ConfigError
 from torchseam.robot.egm import EgmError, EgmLink, latency_summary, parse_robot, parse_sensor
-from torchseam.robot.egm_config import egm_config_from_dict, load_egm_config
-from torchseam.robot.egm_messages import EgmHeader, EgmRobot, EgmSensor
+from torchseam.robot.egm.config import egm_config_from_dict, load_egm_config
+from torchseam.robot.egm.messages import EgmHeader, EgmRobot, EgmSensor
 from torchseam.robot.egm_session import Feed, loopback_session, run_feed
 
 CTRL = ("127.0.0.1", 6511)  # the shipped config's controller address

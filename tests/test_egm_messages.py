@@ -11,12 +11,12 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory, te
 from google.protobuf.descriptor import FieldDescriptor
 from google.protobuf.message import DecodeError, EncodeError
 
-from torchseam.robot import egm_messages as m
+from torchseam.robot.egm import messages as m
 from torchseam.robot.egm import parse_robot, parse_sensor
 
 PROTO = Path(m.__file__).with_name("egm.proto")
 
-# shared/ROBOT.md's field table, transcribed independently of egm_messages.SCHEMA:
+# shared/ROBOT.md's field table, transcribed independently of egm.messages.SCHEMA:
 # message -> [(field, number, type, label)]; label o(ptional) / r(equired) / * (repeated).
 ROBOT_MD = {
     "EgmHeader": [("seqno", 1, "uint32", "o"), ("tm", 2, "uint32", "o"),
@@ -175,6 +175,18 @@ def test_classes_live_in_a_private_pool():
         descriptor_pool.Default().FindMessageTypeByName("abb.egm.EgmRobot")
 
 
+def test_the_wheel_ships_the_proto():
+    """egm.proto lies next to the messages module and pyproject's package-data names it, so the
+    wheel carries it (.ci/run compares the installed copy)."""
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    root = Path(__file__).resolve().parents[1]
+    globs = tomllib.loads((root / "pyproject.toml").read_text())[
+        "tool"]["setuptools"]["package-data"]["torchseam"]
+    pkg = root / "torchseam"
+    assert PROTO.is_file() and PROTO.parent == Path(m.__file__).parent
+    assert any(PROTO.resolve() in {p.resolve() for p in pkg.glob(g)} for g in globs)
+
+
 # --------------------------------------------------------------------------- against protoc
 
 @pytest.fixture(scope="module")
@@ -197,8 +209,8 @@ def test_committed_proto_and_runtime_descriptors_agree(protoc_descriptor):
         b = text_format.MessageToString(ours).splitlines()
         import difflib
 
-        diff = "\n".join(difflib.unified_diff(a, b, "protoc egm.proto", "egm_messages", n=2))
-        pytest.fail(f"egm.proto and egm_messages.SCHEMA differ:\n{diff}")
+        diff = "\n".join(difflib.unified_diff(a, b, "protoc egm.proto", "egm.messages", n=2))
+        pytest.fail(f"egm.proto and egm.messages.SCHEMA differ:\n{diff}")
 
 
 @pytest.mark.parametrize("name", m.MESSAGE_NAMES)

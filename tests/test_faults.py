@@ -154,7 +154,7 @@ def test_packet_loss_comes_in_bursts_and_the_weld_rides_through(cell, part, nois
     # in lockstep a lost datagram never reaches the sensor, and counts as the fault "loss"
     import dataclasses as dc
 
-    from torchseam.robot.egm_config import load_egm_config
+    from torchseam.robot.egm.config import load_egm_config
 
     ctrl = SimController(dc.replace(load_egm_config(), mode="pose"), mode="pose",
                          tool=cell.tool.matrix(), bind_address=("127.0.0.1", 0))
@@ -175,7 +175,7 @@ def test_the_link_age_limit_follows_the_loop_budget(cell):
     from torchseam.core.config import ConfigError
     from torchseam.live.loop import LiveLoop, egm_config_for, link_max_age_ms
     from torchseam.robot.egm import EgmLink
-    from torchseam.robot.egm_config import load_egm_config
+    from torchseam.robot.egm.config import load_egm_config
 
     live = load_live_config()
     hz = cell.process.frame_rate_hz

@@ -125,7 +125,7 @@ def test_sim_controller_lockstep_cycle(cell):
 
     from torchseam.live.simcell import SimClock
     from torchseam.robot.egm import EgmLink
-    from torchseam.robot.egm_config import load_egm_config
+    from torchseam.robot.egm.config import load_egm_config
     from torchseam.robot.sim_controller import SimController
 
     egm = dataclasses.replace(load_egm_config(), mode="pose")

@@ -497,7 +497,7 @@ def test_egm_link_prepare_hands_the_pose_to_the_gate(robot, cell, part, ring, mo
     import dataclasses
 
     from torchseam.robot.egm import EgmLink
-    from torchseam.robot.egm_config import load_egm_config
+    from torchseam.robot.egm.config import load_egm_config
 
     cfg = load_egm_config()
     g = ReachGate(robot, cell=cell, part=part)
@@ -534,7 +534,7 @@ def test_egm_link_prepare_survives_a_failing_gate(robot, cell, part, ring):
     import dataclasses
 
     from torchseam.robot.egm import EgmLink
-    from torchseam.robot.egm_config import load_egm_config
+    from torchseam.robot.egm.config import load_egm_config
 
     class Broken:
         def prepare(self, p, q):

@@ -67,9 +67,8 @@ from torchseam.live.simcell import LockstepCell, SimClock
 from torchseam.plan.path import PlanConfig, load_plan_config
 from torchseam.plan.preflight import PlanReport, preflight
 from torchseam.plan.weld import SegmentPlan, WeldPlan
-from torchseam.robot.egm import EgmLink
-from torchseam.robot.egm_config import EgmConfig, load_egm_config
-from torchseam.robot.egm_messages import EgmSensor
+from torchseam.robot.egm import EgmConfig, EgmLink, load_egm_config
+from torchseam.robot.egm.messages import EgmSensor
 from torchseam.robot.reach import ReachGate
 from torchseam.sim.scene import Scene
 from torchseam.sim.sequence import SensorRenderer

@@ -105,7 +105,7 @@ def link_max_age_ms(live: LiveConfig, frame_rate_hz: float) -> float:
 
 
 def egm_config_for(egm: Any, live: LiveConfig, frame_rate_hz: float) -> Any:
-    """``egm`` (an :class:`~torchseam.robot.egm_config.EgmConfig`) with the age limit the live
+    """``egm`` (an :class:`~torchseam.robot.egm.config.EgmConfig`) with the age limit the live
     loop's budget implies (:func:`link_max_age_ms`): build the link a loop drives from this."""
     return dataclasses.replace(egm, safety=dataclasses.replace(
         egm.safety, max_age_ms=link_max_age_ms(live, frame_rate_hz)))

@@ -17,8 +17,7 @@ import torch
 
 from torchseam.core.config import CellConfig
 from torchseam.core.transforms import invert
-from torchseam.robot.egm import EgmLink
-from torchseam.robot.egm_config import EgmConfig
+from torchseam.robot.egm import EgmConfig, EgmLink
 from torchseam.robot.sim_controller import SimController
 
 

@@ -21,8 +21,7 @@ import time
 from typing import Any
 
 from torchseam.core.config import ConfigError
-from torchseam.robot.egm import latency_summary
-from torchseam.robot.egm_config import MODES, load_egm_config
+from torchseam.robot.egm import MODES, latency_summary, load_egm_config
 
 
 def register(robot_subparsers: Any) -> None:

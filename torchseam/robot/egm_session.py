@@ -24,13 +24,13 @@ from typing import Any
 import numpy as np
 
 from torchseam.robot.egm import (
+    EgmConfig,
     EgmError,
     EgmLink,
     EgmStats,
     latency_summary,
     set_realtime_priority,
 )
-from torchseam.robot.egm_config import EgmConfig, load_egm_config
 
 _CHILD_TIMEOUT_S = 60.0  # spawning a Python child on a loaded 2-core machine takes seconds
 
@@ -156,7 +156,7 @@ class SessionResult:
         return "\n".join(lines)
 
 
-def loopback_session(config: EgmConfig | None = None, duration_s: float = 10.0, *,
+def loopback_session(config: EgmConfig, duration_s: float = 10.0, *,
                      mode: str | None = None, feed: Feed | None = None,
                      sensor_process: bool = True,
                      sim_kwargs: dict[str, Any] | None = None) -> SessionResult:
@@ -164,21 +164,21 @@ def loopback_session(config: EgmConfig | None = None, duration_s: float = 10.0, 
     for ``duration_s``, the link fed by :func:`run_feed`.
 
     Args:
-        config: EGM configuration (default ``configs/egm.yaml``); its ports are not used.
+        config: EGM configuration (the caller reads it, e.g. with
+            :func:`~torchseam.robot.egm.config.load_egm_config`); its ports are not used.
         duration_s: session length, s (cycles = duration x ``sim_controller.rate_hz``).
         mode: ``pose`` or ``pathcorr`` (default the config's).
         feed: the synthetic tracker.
         sensor_process: run the link and its feed in a child process (default) or in threads
             of this one.
+        sim_kwargs: extra arguments of :class:`~torchseam.robot.sim_controller.SimController`.
 
     The cyclic garbage collector of this process is paused while the session runs (restored
     after); the sensor's child process freezes its start-up objects out of it instead.
-        sim_kwargs: extra arguments of :class:`~torchseam.robot.sim_controller.SimController`.
     """
     from torchseam.core.transforms import matrix_to_quat
     from torchseam.robot.sim_controller import SimController
 
-    config = config or load_egm_config()
     mode = mode or config.mode
     feed = feed or Feed()
     net = config.network

@@ -70,8 +70,8 @@ from torchseam.robot.egm import (
     rx_time_ns,
     set_realtime_priority,
 )
-from torchseam.robot.egm_config import EgmConfig, load_egm_config
-from torchseam.robot.egm_messages import (
+from torchseam.robot.egm.config import EgmConfig, load_egm_config
+from torchseam.robot.egm.messages import (
     EgmHeader,
     EgmMCIState,
     EgmMotorState,

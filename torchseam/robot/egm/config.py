@@ -39,7 +39,7 @@ class EgmLinkConfig:
     max_datagram_bytes: int = _f(lo=64, hi=65507)
     late_reply_ms: float = _f(lo=0.0, lo_open=True)
     reorder_window: int = _f(lo=1)
-    # the sequence policy of issue 25 (torchseam/robot/egm_policy.py, SequenceTracker)
+    # the sequence policy of issue 25 (torchseam/robot/egm/policy.py, SequenceTracker)
     max_gap: int = _f(lo=1)                 # seqnos ahead of the newest taken without time evidence
     min_period_ms: float = _f(lo=0.0, lo_open=True)  # the controller's shortest cycle
     session_confirm: int = _f(lo=2)         # consistent datagrams a restart / far jump needs

@@ -1,4 +1,6 @@
-"""Protobuf message classes of ABB EGM (package ``abb.egm``, proto2), built without protoc.
+"""Protobuf message classes of ABB EGM (package ``abb.egm``, proto2), built without protoc, and
+the parsers that turn one datagram into a validated message (:func:`parse_robot`,
+:func:`parse_sensor`: size, type, required fields, finite values) without ever raising.
 
 The schema lives in one table below, written from the field table in ``shared/ROBOT.md``; the
 readable ``egm.proto`` next to this file says the same thing, and a test compiles that file with
@@ -14,7 +16,7 @@ module (e.g. ABB's own generated ``egm_pb2``) imported into the same process.
 
 Usage::
 
-    from torchseam.robot.egm_messages import EgmRobot, EgmHeader
+    from torchseam.robot.egm.messages import EgmRobot, EgmHeader
     msg = EgmRobot()
     msg.header.mtype = EgmHeader.MSGTYPE_DATA
     data = msg.SerializeToString()
@@ -22,6 +24,7 @@ Usage::
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
@@ -183,5 +186,103 @@ EgmRobot: Any = CLASSES["EgmRobot"]
 EgmSensor: Any = CLASSES["EgmSensor"]
 EgmSensorPathCorr: Any = CLASSES["EgmSensorPathCorr"]
 
+
+# --------------------------------------------------------------------------- parsing datagrams
+
+def _finite(values: Any) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+def _pose_values(pose: Any) -> list[float]:
+    out: list[float] = []
+    if pose.HasField("pos"):
+        out += (pose.pos.x, pose.pos.y, pose.pos.z)
+    if pose.HasField("orient"):
+        o = pose.orient
+        out += (o.u0, o.u1, o.u2, o.u3)
+    if pose.HasField("euler"):
+        out += (pose.euler.x, pose.euler.y, pose.euler.z)
+    return out
+
+
+def _check_size(data: bytes, max_bytes: int) -> str:
+    if not data:
+        return "empty"
+    if len(data) > max_bytes:
+        return "oversized"
+    return ""
+
+
+def parse_robot(data: bytes, max_bytes: int = 1024) -> tuple[Any | None, str]:
+    """Parse and validate one datagram as ``EgmRobot``.
+
+    Returns:
+        ``(message, "")`` or ``(None, reason)`` with reason one of ``empty``, ``oversized``,
+        ``unparseable``, ``wrong_type`` (no header or ``mtype`` is not ``MSGTYPE_DATA``; the
+        protocol is not self-describing, so an ``EgmSensor`` would otherwise parse as an
+        ``EgmRobot``), ``missing_required`` (a required field is absent: the protobuf runtime
+        does not check nested ones while parsing), ``non_finite`` (a NaN or inf in a joint or
+        pose value). Never raises.
+    """
+    reason = _check_size(data, max_bytes)
+    if reason:
+        return None, reason
+    msg = EgmRobot()
+    try:
+        msg.ParseFromString(data)
+    except Exception:  # DecodeError, missing required fields, anything the runtime raises
+        return None, "unparseable"
+    if not msg.HasField("header") or msg.header.mtype != EgmHeader.MSGTYPE_DATA:
+        return None, "wrong_type"
+    if not msg.IsInitialized():  # the runtime's parser does not check nested required fields
+        return None, "missing_required"
+    values: list[float] = []
+    for part in (msg.feedBack, msg.planned):
+        values += part.joints.joints
+        values += part.externalJoints.joints
+        values += _pose_values(part.cartesian)
+    if not _finite(values):
+        return None, "non_finite"
+    return msg, ""
+
+
+def parse_sensor(data: bytes, mode: str, max_bytes: int = 1024) -> tuple[Any | None, str]:
+    """Parse and validate one sensor reply (``EgmSensor`` for ``pose``, ``EgmSensorPathCorr``
+    for ``pathcorr``), as the controller side does.
+
+    Returns ``(message, "")`` or ``(None, reason)``: ``empty``, ``oversized``, ``unparseable``,
+    ``wrong_type`` (``mtype`` not ``MSGTYPE_CORRECTION`` / ``MSGTYPE_PATH_CORRECTION``),
+    ``missing_required``, ``incomplete`` (no pose / no correction), ``non_finite``. Never raises.
+    """
+    reason = _check_size(data, max_bytes)
+    if reason:
+        return None, reason
+    pose_mode = mode == "pose"
+    msg = EgmSensor() if pose_mode else EgmSensorPathCorr()
+    try:
+        msg.ParseFromString(data)
+    except Exception:
+        return None, "unparseable"
+    want = EgmHeader.MSGTYPE_CORRECTION if pose_mode else EgmHeader.MSGTYPE_PATH_CORRECTION
+    if not msg.HasField("header") or msg.header.mtype != want:
+        return None, "wrong_type"
+    if not msg.IsInitialized():
+        return None, "missing_required"
+    if pose_mode:
+        c = msg.planned.cartesian
+        if not (msg.HasField("planned") and msg.planned.HasField("cartesian")
+                and c.HasField("pos") and (c.HasField("orient") or c.HasField("euler"))):
+            return None, "incomplete"
+        values = _pose_values(c)
+    else:
+        if not msg.HasField("pathCorr"):
+            return None, "incomplete"
+        p = msg.pathCorr.pos
+        values = [p.x, p.y, p.z]
+    if not _finite(values):
+        return None, "non_finite"
+    return msg, ""
+
+
 __all__ = ["CLASSES", "MESSAGE_NAMES", "PACKAGE", "PROTO_FILE", "SCHEMA",
-           "file_descriptor_proto", *MESSAGE_NAMES]
+           "file_descriptor_proto", "parse_robot", "parse_sensor", *MESSAGE_NAMES]

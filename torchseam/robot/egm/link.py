@@ -13,7 +13,7 @@ link answers every valid one, to its sender, with the latest accepted command:
 The tracker feeds measurements with :meth:`EgmLink.set_target` / :meth:`EgmLink.set_correction`
 from its own thread; the link thread answers the controller with the newest one that passes
 every check. What is never sent (each refusal is logged with its reason and counted in
-:class:`EgmStats`):
+:class:`~torchseam.robot.egm.stats.EgmStats`):
 
 - a NaN / inf, a quaternion that is not unit length, a correction larger than
   ``safety.max_correction_mm``;
@@ -29,7 +29,7 @@ A refused measurement is logged and counted once (not once per 4 ms cycle it sta
 Instead of a refused command the link sends a *hold*; the watchdog sends holds as well when no
 new measurement arrived for ``safety.watchdog_ms`` (and before the first one). A hold commands
 the last accepted command again, never anything taken from the datagram it answers
-(:func:`~torchseam.robot.egm_policy.hold_pose`):
+(:func:`~torchseam.robot.egm.policy.hold_pose`):
 
 - pose mode: the last sent pose (the robot finishes the last vetted step and stops there);
   before anything was sent in a session, the fed-back pose of the datagram that started the
@@ -43,7 +43,7 @@ Every reply, hold included, is within ``max_step_mm`` / ``max_step_deg`` of the 
 of the session (checked once more as the reply is built).
 
 Which datagrams belong to the controller's session is decided by
-:class:`~torchseam.robot.egm_policy.SequenceTracker` from ``header.seqno``, the controller's
+:class:`~torchseam.robot.egm.policy.SequenceTracker` from ``header.seqno``, the controller's
 clock ``feedBack.time`` and the link's own clock: duplicates, reordered datagrams (behind the
 newest), replays of this session (far behind, with a clock this session has already shown) are
 dropped; a jump ahead is taken at once only as far as the link's clock explains it
@@ -65,6 +65,10 @@ Every datagram the link reads lands in exactly one counter: ``received`` or one 
 reason. Datagrams the kernel dropped because the socket's receive buffer was full (Linux
 ``SO_RXQ_OVFL``) are counted in ``EgmStats.kernel_dropped``.
 
+The link holds the state (the stored measurement, the last reply, the session's flags) and the
+transport (the socket, the serving thread, the counters); each decision above is a function of
+:mod:`torchseam.robot.egm.policy` that it calls with plain values.
+
 Binding: ``network.host`` (loopback by default); a non-loopback address is logged as a warning.
 ``link.rt_priority`` asks for SCHED_FIFO for the serving thread. Keep the link out of a process
 whose other threads hold the GIL for milliseconds (torch inference): a reply waits for it.
@@ -73,11 +77,9 @@ whose other threads hold the GIL for milliseconds (torch inference): a reply wai
 from __future__ import annotations
 
 import collections
-import dataclasses
 import errno
 import ipaddress
 import logging
-import math
 import os
 import select
 import socket
@@ -86,32 +88,45 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from torchseam.core.errors import TorchseamError
-from torchseam.robot.egm_config import EgmConfig, load_egm_config
-from torchseam.robot.egm_messages import EgmHeader, EgmRobot, EgmSensor, EgmSensorPathCorr
-from torchseam.robot.egm_policy import (
+from torchseam.robot.egm.config import EgmConfig
+from torchseam.robot.egm.messages import EgmHeader, EgmSensor, EgmSensorPathCorr, parse_robot
+from torchseam.robot.egm.policy import (
     DROP,
+    HOLD_NEW_SESSION,
+    HOLD_REFUSED,
+    HOLD_SILENCE,
+    HOLD_WATCHDOG,
     NEW_SESSION,
+    U32,
+    Gate,
+    Pose,
     SequenceTracker,
+    Verdict,
+    check_age,
+    check_correction_step,
+    check_gate,
+    check_measurement,
+    check_pose_step,
+    controller_port,
+    controller_silent,
+    correction_command,
     feedback_clock_us,
     feedback_pose,
+    hold_cause,
     hold_pose,
-    quat_angle_deg,
-    reply_step,
+    pose_command,
 )
+from torchseam.robot.egm.stats import EgmStats, LateReply
 
-log = logging.getLogger("torchseam.robot.egm")
+log = logging.getLogger("torchseam.robot.egm")  # the package's name: one logger for the link
 
-#: ``gate(position_mm (3,), quaternion_wxyz (4,)) -> (ok, reason)``: may the TCP go there?
-Gate = Callable[[np.ndarray, np.ndarray], "tuple[bool, str]"]
-
-_U32 = 0xFFFFFFFF
 # Linux: kernel receive time stamps on a datagram socket (SO_TIMESTAMPNS, CLOCK_REALTIME).
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35) if sys.platform == "linux" else None
 TIMESPEC = struct.Struct("@qq")
@@ -119,7 +134,6 @@ TIMESPEC = struct.Struct("@qq")
 _SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40) if sys.platform == "linux" else None
 _U32_STRUCT = struct.Struct("@I")
 _ANC_BYTES = socket.CMSG_SPACE(TIMESPEC.size) + socket.CMSG_SPACE(_U32_STRUCT.size) + 64
-_QUAT_TOL = 1e-3  # |q| may differ from 1 by this much (float32 sources, rounding)
 # what a drop reason means, for the first warning of each
 _DROP_DETAIL = {
     "no_feedback_time": "EgmRobot without feedBack.time: RobotWare before 6.07 (which mixes "
@@ -144,229 +158,6 @@ class EgmError(TorchseamError):
     """The EGM link cannot run: e.g. its UDP port is taken."""
 
 
-@dataclass(frozen=True)
-class Verdict:
-    """Outcome of a safety check: ``reason`` is a stable key, ``detail`` says it in words."""
-
-    ok: bool
-    reason: str = ""
-    detail: str = ""
-
-
-ACCEPTED = Verdict(True)
-
-
-# --------------------------------------------------------------------------- statistics
-
-class LateReply(NamedTuple):
-    """One late reply of the link, by where its time went (wall-clock ns / ms).
-
-    A reply answers the newest of the ``EgmRobot`` queued when the serving thread woke (the
-    older ones are superseded); it is late when it left more than ``link.late_reply_ms`` after
-    the oldest of them arrived. ``wait_ms`` (that one in the kernel before the thread woke) and
-    the part of ``work_ms`` not in ``cpu_ms`` are time the thread did not run: the scheduler,
-    another process or the hypervisor had its CPU. ``cpu_ms`` is the link's own work (parse,
-    answer, ``sendto``: the thread's CPU clock, which stops while it is off the CPU).
-    """
-
-    first_rx_ns: int  # kernel receive time of the oldest EgmRobot answered (CLOCK_REALTIME)
-    rx_ns: int        # ... of the newest, the one the reply answers
-    wait_ms: float    # first_rx_ns -> serving thread awake
-    work_ms: float    # awake -> after ``sendto``
-    cpu_ms: float     # CPU time the serving thread used in ``work_ms``
-
-
-@dataclass
-class EgmStats:
-    """Counters of one link (all cumulative since start).
-
-    Attributes:
-        received: valid ``EgmRobot`` datagrams accepted (every datagram read is counted in
-            ``received`` or in one ``dropped`` reason, never both).
-        sent: replies sent.
-        commands: replies that carried an accepted measurement (the rest are holds).
-        holds: reply cycles answered with a hold, by cause (``no_measurement``, ``watchdog``,
-            ``refused``, ``controller_silence``, ``new_session``).
-        refused: refused measurements, by reason (each counted once per measurement and reason).
-        dropped: dropped datagrams, by reason.
-        late_replies: replies that left more than ``link.late_reply_ms`` after their
-            ``EgmRobot`` arrived.
-        superseded: valid ``EgmRobot`` left unanswered because a newer one was already queued.
-        robot_missing: ``EgmRobot`` sequence numbers never seen (gaps in ``header.seqno``
-            that the session accepted at once; a confirmed far jump is not counted).
-        sessions: controller sessions started (the first datagram, then confirmed restarts).
-        jumps: far jumps ahead in ``header.seqno`` believed after confirmation.
-        kernel_dropped: datagrams the kernel dropped on the link's socket because its receive
-            buffer was full (Linux ``SO_RXQ_OVFL``; cumulative, as the last datagram read
-            reported it; 0 where the kernel does not report it).
-        watchdog_trips: times the watchdog started holding (measurements stopped).
-        controller_silences: times the controller stopped sending for longer than
-            ``safety.watchdog_ms``; the first reply after one is a hold.
-        send_errors: replies the socket refused.
-        latency_ms: reply latency samples, ms (kernel receive time to after ``sendto``).
-        late_log: the most recent late replies (superseded ``EgmRobot`` included), each split
-            into where its time went (:class:`LateReply`): tells a machine that took the CPU
-            away from the link from a link that was too slow.
-    """
-
-    received: int = 0
-    sent: int = 0
-    commands: int = 0
-    holds: collections.Counter[str] = field(default_factory=collections.Counter)
-    refused: collections.Counter[str] = field(default_factory=collections.Counter)
-    dropped: collections.Counter[str] = field(default_factory=collections.Counter)
-    late_replies: int = 0
-    superseded: int = 0
-    robot_missing: int = 0
-    sessions: int = 0
-    jumps: int = 0
-    kernel_dropped: int = 0
-    watchdog_trips: int = 0
-    controller_silences: int = 0
-    send_errors: int = 0
-    latency_ms: collections.deque[float] = field(
-        default_factory=lambda: collections.deque(maxlen=100_000))
-    late_log: collections.deque[LateReply] = field(
-        default_factory=lambda: collections.deque(maxlen=10_000))
-
-    def latency_summary(self) -> dict[str, float]:
-        """Reply latency ``p50``, ``p99``, ``max`` and ``mean`` in ms (NaN without samples)."""
-        return latency_summary(self.latency_ms)
-
-    def copy(self) -> EgmStats:
-        return copy_stats(self)
-
-    def as_dict(self) -> dict[str, Any]:
-        """Plain numbers (counters as dicts, latency as its summary) for printing or JSON."""
-        return {"received": self.received, "sent": self.sent, "commands": self.commands,
-                "holds": dict(self.holds), "refused": dict(self.refused),
-                "dropped": dict(self.dropped), "late_replies": self.late_replies,
-                "superseded": self.superseded, "robot_missing": self.robot_missing,
-                "sessions": self.sessions, "jumps": self.jumps,
-                "kernel_dropped": self.kernel_dropped,
-                "watchdog_trips": self.watchdog_trips,
-                "controller_silences": self.controller_silences, "send_errors": self.send_errors,
-                "latency_ms": self.latency_summary()}
-
-
-def copy_stats(stats: Any) -> Any:
-    """A copy of a stats dataclass whose counters and sample deques are independent."""
-    out = dataclasses.replace(stats)
-    for f in dataclasses.fields(stats):
-        v = getattr(stats, f.name)
-        if isinstance(v, collections.Counter):
-            setattr(out, f.name, collections.Counter(v))
-        elif isinstance(v, collections.deque):
-            setattr(out, f.name, collections.deque(v, maxlen=v.maxlen))
-    return out
-
-
-def latency_summary(samples: Any) -> dict[str, float]:
-    """``p50``, ``p99``, ``max``, ``mean`` of latency samples in ms (NaN when empty)."""
-    a = np.fromiter(samples, dtype=float)
-    if a.size == 0:
-        return {"n": 0, "p50": math.nan, "p99": math.nan, "max": math.nan, "mean": math.nan}
-    return {"n": int(a.size), "p50": float(np.percentile(a, 50)),
-            "p99": float(np.percentile(a, 99)), "max": float(a.max()), "mean": float(a.mean())}
-
-
-# --------------------------------------------------------------------------- wire helpers
-
-def _finite(values: Any) -> bool:
-    return all(math.isfinite(v) for v in values)
-
-
-def _pose_values(pose: Any) -> list[float]:
-    out: list[float] = []
-    if pose.HasField("pos"):
-        out += (pose.pos.x, pose.pos.y, pose.pos.z)
-    if pose.HasField("orient"):
-        o = pose.orient
-        out += (o.u0, o.u1, o.u2, o.u3)
-    if pose.HasField("euler"):
-        out += (pose.euler.x, pose.euler.y, pose.euler.z)
-    return out
-
-
-def _check_size(data: bytes, max_bytes: int) -> str:
-    if not data:
-        return "empty"
-    if len(data) > max_bytes:
-        return "oversized"
-    return ""
-
-
-def parse_robot(data: bytes, max_bytes: int = 1024) -> tuple[Any | None, str]:
-    """Parse and validate one datagram as ``EgmRobot``.
-
-    Returns:
-        ``(message, "")`` or ``(None, reason)`` with reason one of ``empty``, ``oversized``,
-        ``unparseable``, ``wrong_type`` (no header or ``mtype`` is not ``MSGTYPE_DATA``; the
-        protocol is not self-describing, so an ``EgmSensor`` would otherwise parse as an
-        ``EgmRobot``), ``missing_required`` (a required field is absent: the protobuf runtime
-        does not check nested ones while parsing), ``non_finite`` (a NaN or inf in a joint or
-        pose value). Never raises.
-    """
-    reason = _check_size(data, max_bytes)
-    if reason:
-        return None, reason
-    msg = EgmRobot()
-    try:
-        msg.ParseFromString(data)
-    except Exception:  # DecodeError, missing required fields, anything the runtime raises
-        return None, "unparseable"
-    if not msg.HasField("header") or msg.header.mtype != EgmHeader.MSGTYPE_DATA:
-        return None, "wrong_type"
-    if not msg.IsInitialized():  # the runtime's parser does not check nested required fields
-        return None, "missing_required"
-    values: list[float] = []
-    for part in (msg.feedBack, msg.planned):
-        values += part.joints.joints
-        values += part.externalJoints.joints
-        values += _pose_values(part.cartesian)
-    if not _finite(values):
-        return None, "non_finite"
-    return msg, ""
-
-
-def parse_sensor(data: bytes, mode: str, max_bytes: int = 1024) -> tuple[Any | None, str]:
-    """Parse and validate one sensor reply (``EgmSensor`` for ``pose``, ``EgmSensorPathCorr``
-    for ``pathcorr``), as the controller side does.
-
-    Returns ``(message, "")`` or ``(None, reason)``: ``empty``, ``oversized``, ``unparseable``,
-    ``wrong_type`` (``mtype`` not ``MSGTYPE_CORRECTION`` / ``MSGTYPE_PATH_CORRECTION``),
-    ``missing_required``, ``incomplete`` (no pose / no correction), ``non_finite``. Never raises.
-    """
-    reason = _check_size(data, max_bytes)
-    if reason:
-        return None, reason
-    pose_mode = mode == "pose"
-    msg = EgmSensor() if pose_mode else EgmSensorPathCorr()
-    try:
-        msg.ParseFromString(data)
-    except Exception:
-        return None, "unparseable"
-    want = EgmHeader.MSGTYPE_CORRECTION if pose_mode else EgmHeader.MSGTYPE_PATH_CORRECTION
-    if not msg.HasField("header") or msg.header.mtype != want:
-        return None, "wrong_type"
-    if not msg.IsInitialized():
-        return None, "missing_required"
-    if pose_mode:
-        c = msg.planned.cartesian
-        if not (msg.HasField("planned") and msg.planned.HasField("cartesian")
-                and c.HasField("pos") and (c.HasField("orient") or c.HasField("euler"))):
-            return None, "incomplete"
-        values = _pose_values(c)
-    else:
-        if not msg.HasField("pathCorr"):
-            return None, "incomplete"
-        p = msg.pathCorr.pos
-        values = [p.x, p.y, p.z]
-    if not _finite(values):
-        return None, "non_finite"
-    return msg, ""
-
-
 # --------------------------------------------------------------------------- the link
 
 @dataclass(frozen=True)
@@ -382,7 +173,8 @@ class EgmLink:
     """The sensor end of an EGM session.
 
     Args:
-        config: the EGM configuration (default ``configs/egm.yaml``).
+        config: the EGM configuration; the caller reads it (e.g.
+            :func:`~torchseam.robot.egm.config.load_egm_config`), the link reads no file.
         gate: reachability check for poses, ``gate(position_mm, quaternion) -> (ok, reason)``;
             called from the thread that calls ``set_target`` / ``set_correction``, never from
             the 4 ms reply path. In pathcorr mode it needs the corrected torch pose passed to
@@ -394,9 +186,9 @@ class EgmLink:
     (port 0 in the config binds an ephemeral port).
     """
 
-    def __init__(self, config: EgmConfig | None = None, *, gate: Gate | None = None,
+    def __init__(self, config: EgmConfig, *, gate: Gate | None = None,
                  clock: Callable[[], float] = time.monotonic, bind: bool = True) -> None:
-        self.config = config or load_egm_config()
+        self.config = config
         self.mode = self.config.mode
         self.gate = gate
         self._clock = clock
@@ -427,7 +219,7 @@ class EgmLink:
         self._sent_quat: np.ndarray | None = None
         # pose mode: the fed-back pose of the datagram that started the session (its checks
         # passed); the first reply of the session holds there when there is nothing to send
-        self._session_pose: tuple[np.ndarray, np.ndarray] | None = None
+        self._session_pose: Pose | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._sock: socket.socket | None = None
@@ -584,11 +376,10 @@ class EgmLink:
         t = now if measured_at is None else float(measured_at)
         p = np.asarray(position_mm, dtype=float).reshape(-1)
         q = np.asarray(quaternion, dtype=float).reshape(-1)
-        verdict = self._static_checks(p, q, t, now)
+        verdict = check_measurement(p, q, t, now, self._safety, self.mode)
         if verdict.ok:
-            assert q is not None
             q = q / np.linalg.norm(q)
-            verdict = self._gate(p, q)
+            verdict = check_gate(self.gate, p, q)
         return self._store(verdict, p, q if verdict.ok else None, t, now)
 
     def prepare(self, position_mm: ArrayLike, quaternion: ArrayLike) -> None:
@@ -602,8 +393,7 @@ class EgmLink:
             return
         p = np.asarray(position_mm, dtype=float).reshape(-1)
         q = np.asarray(quaternion, dtype=float).reshape(-1)
-        if not (p.shape == (3,) and q.shape == (4,) and np.isfinite(q).all()
-                and abs(float(np.linalg.norm(q)) - 1.0) <= _QUAT_TOL):
+        if not check_measurement(p, q, 0.0, 0.0, self._safety, self.mode).ok:
             return  # set_target refuses it before the gate
         try:
             ready(p.copy(), q / np.linalg.norm(q))  # what set_target hands the gate
@@ -624,7 +414,7 @@ class EgmLink:
         now = self._clock()
         t = now if measured_at is None else float(measured_at)
         c = np.asarray(offset_mm, dtype=float).reshape(-1)
-        verdict = self._static_checks(c, None, t, now)
+        verdict = check_measurement(c, None, t, now, self._safety, self.mode)
         if verdict.ok and self.gate is not None:
             if pose is None:
                 verdict = Verdict(False, "no_gate_pose",
@@ -632,55 +422,14 @@ class EgmLink:
             else:
                 gp = np.asarray(pose[0], dtype=float).reshape(-1)
                 gq = np.asarray(pose[1], dtype=float).reshape(-1)
-                verdict = self._static_checks(gp, gq, t, now)
+                verdict = check_measurement(gp, gq, t, now, self._safety, self.mode)
                 if verdict.ok:
-                    verdict = self._gate(gp, gq / np.linalg.norm(gq))
+                    verdict = check_gate(self.gate, gp, gq / np.linalg.norm(gq))
         return self._store(verdict, c, None, t, now)
 
     def clear_measurement(self) -> None:
         """Forget the current measurement: the link holds the robot from the next cycle."""
         self._meas = None
-
-    def _static_checks(self, v: np.ndarray, q: np.ndarray | None, t: float,
-                       now: float) -> Verdict:
-        s = self._safety
-        if v.shape != (3,) or (q is not None and q.shape != (4,)):
-            return Verdict(False, "bad_shape", f"expected 3 position and 4 quaternion values, "
-                           f"got {v.shape} and {None if q is None else q.shape}")
-        if not (np.isfinite(v).all() and (q is None or np.isfinite(q).all())
-                and math.isfinite(t)):
-            return Verdict(False, "non_finite", f"NaN or inf in {v}, {q}, t={t}")
-        if q is not None and abs(float(np.linalg.norm(q)) - 1.0) > _QUAT_TOL:
-            return Verdict(False, "bad_quaternion",
-                           f"quaternion norm {np.linalg.norm(q):.6f} is not 1")
-        if self.mode == "pathcorr" and q is None:
-            norm = float(np.linalg.norm(v))
-            if norm > s.max_correction_mm:
-                return Verdict(False, "correction_too_large",
-                               f"correction {norm:.3f} mm > max_correction_mm "
-                               f"{s.max_correction_mm}")
-        return self._age_check(t, now)
-
-    def _age_check(self, t: float, now: float) -> Verdict:
-        age_ms = (now - t) * 1e3
-        if age_ms > self._safety.max_age_ms:
-            return Verdict(False, "stale", f"measurement is {age_ms:.1f} ms old > max_age_ms "
-                           f"{self._safety.max_age_ms}")
-        if age_ms < -1.0:  # a clock mix-up, not a measurement from the future
-            return Verdict(False, "future_timestamp",
-                           f"measurement time lies {-age_ms:.1f} ms in the future")
-        return ACCEPTED
-
-    def _gate(self, p: np.ndarray, q: np.ndarray) -> Verdict:
-        if self.gate is None:
-            return ACCEPTED
-        try:
-            ok, why = self.gate(p.copy(), q.copy())
-        except Exception as e:  # a failing gate refuses; it never opens
-            return Verdict(False, "gate_error", f"reachability gate raised {e!r}")
-        if not ok:
-            return Verdict(False, "gate", f"unreachable: {why}")
-        return ACCEPTED
 
     def _store(self, verdict: Verdict, v: np.ndarray, q: np.ndarray | None, t: float,
                now: float) -> Verdict:
@@ -747,16 +496,8 @@ class EgmLink:
     def _accept(self, data: bytes, sender: tuple[Any, ...], at: float | None = None) -> Any | None:
         """Validate one datagram; the ``EgmRobot`` to answer, or None (dropped and counted).
         ``at``: its arrival on the link's clock (default: now)."""
-        net = self.config.network
-        try:
-            host, port = str(sender[0]), int(sender[1])
-            foreign = ipaddress.ip_address(host) != ipaddress.ip_address(net.controller_host)
-        except (ValueError, TypeError, IndexError):
-            foreign = True
-            port = -1
-        if not foreign and self._peer_port is not None and port != self._peer_port:
-            foreign = True
-        if foreign:
+        port = controller_port(sender, self.config.network.controller_host, self._peer_port)
+        if port is None:
             self._drop("foreign_sender", sender)
             return None
         robot, reason = parse_robot(data, self._max_bytes)
@@ -794,7 +535,7 @@ class EgmLink:
                 self._stats.robot_missing += decision.missing
         if self._peer_port is None:
             self._peer_port = port
-            log.info("EGM session locked onto controller %s:%d", host, port)
+            log.info("EGM session locked onto controller %s:%d", sender[0], port)
         self._check_silence(now)
         if self._controller_silent:
             log.info("EGM controller is back after %.0f ms: holding for one cycle",
@@ -806,8 +547,7 @@ class EgmLink:
             self._stats.received += 1
         return robot
 
-    def _start_session(self, why: str, fb_pose: tuple[np.ndarray, np.ndarray] | None,
-                       seq: int) -> None:
+    def _start_session(self, why: str, fb_pose: Pose | None, seq: int) -> None:
         """A controller session starts: the last command is no reference any more; the
         fed-back pose of this datagram (which passed every check of a session start) is."""
         with self._lock:
@@ -824,41 +564,31 @@ class EgmLink:
     def _check_silence(self, now: float) -> None:
         """Flag (once) a controller that stopped sending for longer than the watchdog."""
         last = self._last_rx_time
-        if last is None or self._controller_silent:
+        if self._controller_silent or not controller_silent(last, now, self._safety.watchdog_ms):
             return
-        gap_ms = (now - last) * 1e3
-        if gap_ms > self._safety.watchdog_ms:
-            self._controller_silent = True
-            with self._lock:
-                self._stats.controller_silences += 1
-            log.warning("EGM controller silent for %.0f ms (> watchdog_ms %.0f)", gap_ms,
-                        self._safety.watchdog_ms)
+        self._controller_silent = True
+        with self._lock:
+            self._stats.controller_silences += 1
+        log.warning("EGM controller silent for %.0f ms (> watchdog_ms %.0f)",
+                    (now - (last or now)) * 1e3, self._safety.watchdog_ms)
 
     # ------------------------------------------------------------------ replies
 
     def _answer(self, robot: Any) -> bytes:
         now = self._clock()
         meas = self._meas
-        s = self._safety
-        if self._new_session:  # a restarted controller: hold on the session's start pose
+        hold = hold_cause(new_session=self._new_session, resync=self._resync,
+                          arrived_at=None if meas is None else meas.arrived_at, now=now,
+                          watchdog_ms=self._safety.watchdog_ms)
+        if hold in (HOLD_NEW_SESSION, HOLD_SILENCE):  # each holds for one reply
             self._new_session = self._resync = False
-            hold, verdict = "new_session", ACCEPTED
-        elif self._resync:  # after a controller silence: hold the last accepted command once
-            self._resync = False
-            hold, verdict = "controller_silence", ACCEPTED
-        elif meas is None:
-            hold, verdict = "no_measurement", ACCEPTED
-        elif (now - meas.arrived_at) * 1e3 > s.watchdog_ms:
-            hold, verdict = "watchdog", ACCEPTED
-        else:
-            hold = ""
-            verdict = self._age_check(meas.measured_at, now)
-            if verdict.ok:
-                verdict = self._step_check(meas, robot)
+        if not hold:
+            assert meas is not None
+            verdict = self._command_verdict(meas, robot, now)
             if not verdict.ok:
                 self._refuse(meas.ident, verdict)
-                hold = "refused"
-        self._watchdog_state(hold == "watchdog", now, meas)
+                hold = HOLD_REFUSED
+        self._watchdog_state(hold == HOLD_WATCHDOG, now, meas)
         if self.mode == "pose":
             msg = self._pose_reply(meas, hold)
         else:
@@ -881,61 +611,41 @@ class EgmLink:
             log.info("EGM watchdog: measurements are back, guiding again")
         self._watchdog_holding = holding
 
-    def _reference_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """Pose mode: what the next step is measured from and what a hold commands."""
-        ref = None if self._sent_vec is None else (self._sent_vec, self._sent_quat)
-        return hold_pose(ref, self._session_pose)  # type: ignore[arg-type]
+    def _last_sent_pose(self) -> Pose | None:
+        """Pose mode: the last reply of the session (None before the first)."""
+        if self._sent_vec is None or self._sent_quat is None:
+            return None
+        return self._sent_vec, self._sent_quat
 
-    def _step_check(self, meas: _Measurement, robot: Any) -> Verdict:
+    def _command_verdict(self, meas: _Measurement, robot: Any, now: float) -> Verdict:
+        """May the stored measurement be commanded in the reply to ``robot`` at ``now``?"""
         s = self._safety
-        if self.mode == "pose":
-            ref_p, ref_q = self._reference_pose()
-            step = float(np.linalg.norm(meas.vec - ref_p))
-            if step > s.max_step_mm:
-                return Verdict(False, "step_too_large",
-                               f"target moves {step:.3f} mm > max_step_mm {s.max_step_mm}")
-            assert meas.quat is not None
-            turn = quat_angle_deg(meas.quat, ref_q)
-            if turn > s.max_step_deg:
-                return Verdict(False, "rotation_step_too_large",
-                               f"target turns {turn:.3f} deg > max_step_deg {s.max_step_deg}")
-            fb = robot.feedBack.cartesian  # may only refuse: it comes from the wire
-            lead = float(np.linalg.norm(meas.vec - np.array([fb.pos.x, fb.pos.y, fb.pos.z])))
-            if lead > s.max_lead_mm:
-                return Verdict(False, "too_far_from_robot",
-                               f"target is {lead:.3f} mm from the robot > max_lead_mm "
-                               f"{s.max_lead_mm}")
-            return ACCEPTED
-        ref = self._sent_vec if self._sent_vec is not None else np.zeros(3)
-        step = float(np.linalg.norm(meas.vec - ref))
-        if step > s.max_step_mm:
-            return Verdict(False, "step_too_large",
-                           f"correction changes by {step:.3f} mm > max_step_mm {s.max_step_mm}")
-        return ACCEPTED
-
-    def _within_step(self, vec: np.ndarray, quat: np.ndarray | None) -> bool:
-        """Is a reply within max_step_mm / max_step_deg of the previous one (the last check
-        before the wire; a command passed the same check against the same reference)?"""
-        if self._sent_vec is None:
-            return True
-        mm, deg = reply_step(self._sent_vec, vec, self._sent_quat, quat)
-        s = self._safety
-        return mm <= s.max_step_mm * (1 + 1e-9) and deg <= s.max_step_deg * (1 + 1e-9)
+        verdict = check_age(meas.measured_at, now, s.max_age_ms)
+        if not verdict.ok:
+            return verdict
+        if self.mode != "pose":
+            return check_correction_step(meas.vec, self._sent_vec, s)
+        assert meas.quat is not None
+        fb = robot.feedBack.cartesian.pos
+        reference = hold_pose(self._last_sent_pose(), self._session_pose)
+        return check_pose_step((meas.vec, meas.quat), reference,
+                               np.array([fb.x, fb.y, fb.z]), s)
 
     def _header(self, msg: Any, mtype: int) -> None:
-        self._seqno = (self._seqno + 1) & _U32
+        self._seqno = (self._seqno + 1) & U32
         msg.header.seqno = self._seqno
-        msg.header.tm = int((self._clock() - self._t0) * 1e3) & _U32
+        msg.header.tm = int((self._clock() - self._t0) * 1e3) & U32
         msg.header.mtype = mtype
 
     def _pose_reply(self, meas: _Measurement | None, hold: str) -> Any:
+        target = None
         if not hold:
             assert meas is not None and meas.quat is not None
-            p, q = meas.vec, meas.quat
-            if not self._within_step(p, q):  # unreachable: _step_check used this reference
-                p, q = self._reference_pose()
-        else:  # the last accepted pose; at a session start, its start pose
-            p, q = self._reference_pose()
+            target = (meas.vec, meas.quat)
+        # a hold, or a target that fails the last step check (unreachable: the command was
+        # checked against this reference), commands the last accepted pose (at a session
+        # start its start pose)
+        p, q = pose_command(target, self._last_sent_pose(), self._session_pose, self._safety)
         msg = EgmSensor()
         self._header(msg, EgmHeader.MSGTYPE_CORRECTION)
         c = msg.planned.cartesian
@@ -946,20 +656,17 @@ class EgmLink:
         return msg
 
     def _pathcorr_reply(self, meas: _Measurement | None, hold: str, now: float) -> Any:
-        held = self._sent_vec if self._sent_vec is not None else np.zeros(3)
         if hold:
-            offset, age = held, 0
+            offset, age = correction_command(None, now, now, self._sent_vec, self._safety)
         else:
             assert meas is not None
-            offset = meas.vec
-            age = max(0, int(round((now - meas.measured_at) * 1e3)))
-            if not self._within_step(offset, None):  # unreachable: _step_check did it
-                offset, age = held, 0
+            offset, age = correction_command(meas.vec, meas.measured_at, now, self._sent_vec,
+                                             self._safety)
         msg = EgmSensorPathCorr()
         self._header(msg, EgmHeader.MSGTYPE_PATH_CORRECTION)
         pc = msg.pathCorr
         pc.pos.x, pc.pos.y, pc.pos.z = (float(x) for x in offset)
-        pc.age = min(age, _U32)
+        pc.age = age
         self._sent_vec = offset.copy()
         return msg
 
