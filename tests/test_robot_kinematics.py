@@ -343,6 +343,41 @@ def test_jacobian_matches_closed_form_and_finite_differences(robot):
         np.testing.assert_allclose(J[:, 3:, k].numpy(), ang.numpy(), atol=1e-6)
 
 
+def test_numpy_closed_form_is_the_chain_and_the_tool_jacobian_is_the_tcps(robot):
+    """The numpy path of the closed form (what the simulated controller runs every cycle) is
+    the chain's FK and Jacobian; with a tool its pose and Jacobian are the TCP's (central
+    differences of the chain's FK times the tool)."""
+    from torchseam.core.transforms import rotation_about
+    from torchseam.robot.kinematics import arm_forward
+
+    q = random_joints(robot, 8, seed=11)
+    qn = q.numpy()
+    T, J = arm_forward(np, robot.geometry, qn)
+    np.testing.assert_allclose(T, robot.fk(q).numpy(), atol=1e-6)
+    np.testing.assert_allclose(J, robot.jacobian(q).numpy(), atol=1e-8)
+    T0, J0 = arm_forward(np, robot.geometry, qn, np.eye(4))
+    np.testing.assert_allclose(T0, T, atol=1e-12)
+    np.testing.assert_allclose(J0, J, atol=1e-12)
+    tool = np.eye(4)
+    tool[:3, :3] = rotation_about(np.array([0.0, 1.0, 0.0]), 0.6)
+    tool[:3, 3] = [12.0, -30.0, 310.0]
+    Tt, Jt = arm_forward(np, robot.geometry, qn, tool)
+    np.testing.assert_allclose(Tt, robot.fk(q).numpy() @ tool, atol=1e-6)
+    Tt_torch, Jt_torch = arm_forward(torch, robot.geometry, q, torch.as_tensor(tool))
+    np.testing.assert_allclose(Jt_torch.numpy(), Jt, atol=1e-9)
+    h = 1e-6  # rad
+    for k in range(6):
+        dq = np.zeros(6)
+        dq[k] = math.degrees(h)
+        Tp, Tm = (robot.fk(torch.as_tensor(qn + s * dq)).numpy() @ tool for s in (1, -1))
+        lin = (Tp[:, :3, 3] - Tm[:, :3, 3]) / (2 * h)
+        dR = Tp[:, :3, :3] @ Tm[:, :3, :3].transpose(0, 2, 1)
+        ang = np.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0],
+                        dR[:, 1, 0] - dR[:, 0, 1]], axis=-1) / 2 / (2 * h)
+        np.testing.assert_allclose(Jt[:, :3, k], lin, atol=1e-4)
+        np.testing.assert_allclose(Jt[:, 3:, k], ang, atol=1e-6)
+
+
 def test_axis3_check_modes(robot):
     q = torch.tensor([[0, -60.0, 20.0, 0, 45, 0], [0, 50.0, 60.0, 0, 45, 0]], dtype=F64)
     assert robot.in_range(q).tolist() == [True, True]

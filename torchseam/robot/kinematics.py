@@ -681,11 +681,14 @@ def arm_candidates(xp: ModuleType, g: _ArmGeometry, T: Array, seed_deg: Array
     return xp.rad2deg(_wrap_xp(xp, q)).reshape(N, 8, 6), valid.reshape(N, 8)
 
 
-def arm_forward(xp: ModuleType, g: _ArmGeometry, q_deg: Array) -> tuple[Array, Array]:
+def arm_forward(xp: ModuleType, g: _ArmGeometry, q_deg: Array, tool: Array | None = None
+                ) -> tuple[Array, Array]:
     """Closed-form tool0 pose (N, 4, 4) mm and flange Jacobian (N, 6, 6) of controller joints.
 
     Jacobian rows: mm/rad (linear), rad/rad (angular); columns: controller axes 1..6. Built from
     axis directions and points only (few, vectorised ops: it is the live gate's inner loop).
+    With ``tool`` (4, 4) mm in the flange frame: the TCP's pose and Jacobian instead (the same
+    angular rows; the linear ones of the TCP point, axis 6 included), in the same few ops.
     """
     q = xp.deg2rad(q_deg)
     c, s = xp.cos(q), xp.sin(q)
@@ -710,15 +713,18 @@ def arm_forward(xp: ModuleType, g: _ArmGeometry, q_deg: Array) -> tuple[Array, A
     y6 = c6[:, None] * y4 + s6[:, None] * z5
     z6 = c6[:, None] * z5 - s6[:, None] * y4
     pe = pw + g.d6 * x5                         # flange
-    # columns: axis 2 translates the forearm (parallelogram); axis 6 runs through the flange
-    axes = _stack(xp, [z1, y1, y1, x3, y4], 1)                              # (N, 5, 3)
-    arms = _stack(xp, [pe, p3 - p2, pe - p3, pe - pw, pe - pw], 1)
-    lin = xp.concat([_cross(axes, arms), xp.zeros_like(pe[:, None])], 1)    # (N, 6, 3)
+    R6 = _stack(xp, [x5, y6, z6], -1) @ _const(xp, g.R0, q)
+    pt = pe                                     # the point the linear rows are of
+    if tool is not None:
+        tool = _const(xp, tool, q)
+        pt, R6 = pe + R6 @ tool[:3, 3], R6 @ tool[:3, :3]
+    # columns: axis 2 translates the forearm (parallelogram); axis 6 moves only a TCP off it
+    axes = _stack(xp, [z1, y1, y1, x3, y4, x5], 1)                          # (N, 6, 3)
+    lin = _cross(axes, _stack(xp, [pt, p3 - p2, pt - p3, pt - pw, pt - pw, pt - pe], 1))
     ang = _stack(xp, [z1, xp.zeros_like(z1), y1, x3, y4, x5], 1)
     J = xp.swapaxes(xp.concat([lin, ang], 2), 1, 2)
-    R6 = _stack(xp, [x5, y6, z6], -1) @ _const(xp, g.R0, q)
     bottom = xp.broadcast_to(_const(xp, [[0.0, 0.0, 0.0, 1.0]], q), (q.shape[0], 1, 4))
-    T = xp.concat([xp.concat([R6, pe[:, :, None]], -1), bottom], 1)
+    T = xp.concat([xp.concat([R6, pt[:, :, None]], -1), bottom], 1)
     return T, J
 
 

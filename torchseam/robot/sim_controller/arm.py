@@ -1,0 +1,197 @@
+"""The simulated IRC5's arm: joints that follow a planned TCP pose, within the speed limits.
+
+``pose`` mode moves the planned pose towards the latest target at the configured TCP speeds;
+``pathcorr`` runs a programmed path (:class:`ProgrammedPath`) at the path speed and adds the
+received correction, rate-limited, in the nominal TCP frame (the "sensor tool" frame of
+``EGMActMove``). In both the joints follow the planned pose by one damped Newton step per cycle
+on the analytic TCP Jacobian (:func:`~torchseam.robot.kinematics.arm_forward` with the tool;
+the planned pose moves about 1 mm a cycle at most, so one step converges), all axes scaled
+together so that none exceeds its speed limit.
+
+Forward kinematics and the Jacobian are the kinematics module's closed form on its numpy path:
+one source of truth with :meth:`~torchseam.robot.kinematics.IRB1410.fk`, and no torch overhead
+in the 4 ms cycle. The model's (torch) IK runs only when a programmed path does not begin at the
+home pose, once, to find its start joints.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+
+from torchseam.core.transforms import matrix_to_quat, quat_to_matrix, rotvec, slerp
+from torchseam.robot.egm import EgmError, SimControllerConfig
+from torchseam.robot.kinematics import arm_forward
+
+_ROT_WEIGHT = 200.0    # mm per rad: makes orientation and position errors comparable
+_DAMPING = 1e-3        # damped least squares, keeps the step bounded near singularities
+_PER_DEG = math.pi / 180.0  # the Jacobian per controller degree (joint steps are in degrees)
+
+
+def straight_path(start: np.ndarray, direction: np.ndarray, length_mm: float,
+                  step_mm: float = 5.0) -> np.ndarray:
+    """TCP poses (N, 4, 4) along a straight line from ``start`` (4x4, mm), same orientation."""
+    n = max(2, int(math.ceil(length_mm / step_mm)) + 1)
+    s = np.linspace(0.0, length_mm, n)
+    path = np.repeat(start[None], n, axis=0)
+    path[:, :3, 3] = start[:3, 3] + s[:, None] * np.asarray(direction, float)[None]
+    return path
+
+
+class ProgrammedPath:
+    """Arc-length parametrised TCP path: positions piecewise linear, orientations slerped."""
+
+    def __init__(self, poses: np.ndarray) -> None:
+        poses = np.asarray(poses, dtype=float)
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) < 2:
+            raise EgmError(f"a programmed path needs >= 2 poses of shape (4, 4), got "
+                           f"{poses.shape}")
+        seg = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+        if not np.all(seg > 0):
+            raise EgmError("a programmed path must not repeat a position")
+        self.s = np.concatenate([[0.0], np.cumsum(seg)])
+        self.length = float(self.s[-1])
+        self.pos = poses[:, :3, 3].copy()
+        quats = matrix_to_quat(poses[:, :3, :3])
+        for i in range(1, len(quats)):  # one hemisphere, so slerp takes the short way
+            if np.dot(quats[i], quats[i - 1]) < 0:
+                quats[i] = -quats[i]
+        self.quat = quats
+
+    def at(self, s: float) -> np.ndarray:
+        """TCP pose (4x4, mm) at arc length ``s`` (clamped to the path)."""
+        s = min(max(s, 0.0), self.length)
+        i = min(int(np.searchsorted(self.s, s, side="right")) - 1, len(self.s) - 2)
+        u = (s - self.s[i]) / (self.s[i + 1] - self.s[i])
+        T = np.eye(4)
+        T[:3, 3] = self.pos[i] + u * (self.pos[i + 1] - self.pos[i])
+        T[:3, :3] = quat_to_matrix(slerp(self.quat[i], self.quat[i + 1], u))
+        return T
+
+
+def step_towards(T: np.ndarray, target: np.ndarray, max_mm: float,
+                 max_rad: float) -> np.ndarray:
+    """Pose moved from ``T`` towards ``target`` by at most ``max_mm`` and ``max_rad``."""
+    out = np.eye(4)
+    d = target[:3, 3] - T[:3, 3]
+    n = float(np.linalg.norm(d))
+    out[:3, 3] = target[:3, 3] if n <= max_mm else T[:3, 3] + d * (max_mm / n)
+    q0, q1 = matrix_to_quat(T[:3, :3]), matrix_to_quat(target[:3, :3])
+    ang = 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
+    u = 1.0 if ang <= max_rad else max_rad / ang
+    out[:3, :3] = quat_to_matrix(slerp(q0, q1, u))
+    return out
+
+
+class ArmModel:
+    """The simulated robot: joints, the planned TCP pose and what moves it (see the module
+    docstring). Not thread-safe: one thread steps it; others may read :meth:`tcp_pose`.
+
+    Args:
+        robot: the kinematic model, an :class:`~torchseam.robot.kinematics.IRB1410` (its
+            closed-form ``geometry`` and, for a path that starts away from home, its ``ik``).
+        tool: TCP pose in the flange frame, 4x4 mm.
+        sim: the simulated controller's settings (home joints, speeds, default path).
+        mode: ``pose`` or ``pathcorr``.
+        path: programmed TCP path for pathcorr, (N, 4, 4) mm in the base frame (default a
+            straight line from the home pose along ``sim.path_direction``).
+
+    Raises:
+        EgmError: a bad path, or one whose first pose is out of reach.
+    """
+
+    def __init__(self, robot: Any, tool: np.ndarray, sim: SimControllerConfig, mode: str,
+                 path: np.ndarray | None = None) -> None:
+        self.robot = robot
+        self.tool = np.asarray(tool, float)
+        self.sim = sim
+        self.mode = mode
+        self._geometry = robot.geometry
+        self._speed = np.asarray(sim.joint_speed_deg_s, float)
+        self.q = np.asarray(sim.home_joints_deg, float).copy()
+        start = self.tcp_pose()
+        if path is None:
+            path = straight_path(start, np.asarray(sim.path_direction),
+                                 max(sim.path_length_mm, 1.0))
+        self.path = ProgrammedPath(path)
+        if mode == "pathcorr" and not np.allclose(self.path.at(0.0), start, atol=1e-3):
+            q0 = self._ik(self.path.at(0.0), self.q)  # start where the program starts
+            if q0 is None:
+                raise EgmError("the programmed path's first pose is out of the robot's reach")
+            self.q = q0
+        self.s = 0.0                      # arc length run so far, mm
+        self.corr_cmd = np.zeros(3)       # last received correction, mm (path frame)
+        self.corr = np.zeros(3)           # correction applied (rate-limited), mm
+        self.target: np.ndarray | None = None   # pose mode: latest received TCP target
+        self.planned = self.tcp_pose()
+
+    @property
+    def running(self) -> bool:
+        """Whether the program runs: always in pose mode, until the path's end in pathcorr."""
+        return self.mode == "pose" or self.s < self.path.length
+
+    def tcp_pose(self) -> np.ndarray:
+        """TCP pose (4x4, mm) of the current joints."""
+        return arm_forward(np, self._geometry, self.q[None], self.tool)[0][0]
+
+    def rest_at(self, q_deg: np.ndarray) -> None:
+        """Joints ``q_deg`` (6,) deg, at rest: the planned pose is the pose there and no target
+        is pending."""
+        q = np.asarray(q_deg, dtype=float).reshape(-1)
+        if q.shape != (6,) or not np.isfinite(q).all():
+            raise EgmError(f"rest_at needs 6 finite joint angles, got {q_deg!r}")
+        self.q = q.copy()
+        self.planned = self.tcp_pose()
+        self.target = None
+
+    def update(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Advance by ``dt`` s; returns (feedback joints, feedback TCP, planned TCP) at the start
+        of the step, and the distance between the planned and the fed-back TCP, mm."""
+        q_now = self.q.copy()
+        if self.mode == "pathcorr":
+            self.s = min(self.s + self.sim.path_speed_mm_s * dt, self.path.length)
+            dc = self.corr_cmd - self.corr
+            max_dc = self.sim.correction_speed_mm_s * dt
+            n = float(np.linalg.norm(dc))
+            self.corr = self.corr + (dc if n <= max_dc else dc * (max_dc / n))
+            T_des = self.path.at(self.s)
+            T_des[:3, 3] += T_des[:3, :3] @ self.corr
+        elif self.target is not None:
+            T_des = step_towards(self.planned, self.target, self.sim.tcp_speed_mm_s * dt,
+                                 math.radians(self.sim.tcp_rot_speed_deg_s) * dt)
+        else:
+            T_des = self.planned
+        dq, T_now = self._newton_step(T_des)
+        self.q = self.q + self._limit(dq, dt)
+        self.planned = T_des
+        lag = float(np.linalg.norm(T_des[:3, 3] - T_now[:3, 3]))
+        return q_now, T_now, T_des, lag
+
+    def _newton_step(self, T_des: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One damped Newton step towards ``T_des``: (joint step deg, TCP pose now)."""
+        T, J = arm_forward(np, self._geometry, self.q[None], self.tool)
+        T0, J = T[0], J[0] * _PER_DEG
+        J[3:] *= _ROT_WEIGHT
+        R0t = T0[:3, :3].T
+        err = np.concatenate([T_des[:3, 3] - T0[:3, 3],
+                              rotvec(T_des[:3, :3] @ R0t) * _ROT_WEIGHT])
+        dq = np.linalg.solve(J.T @ J + _DAMPING * np.eye(6), J.T @ err)
+        return dq, T0
+
+    def _limit(self, dq: np.ndarray, dt: float) -> np.ndarray:
+        """Scale a joint step so that no axis exceeds its speed limit (path shape kept)."""
+        over = float(np.max(np.abs(dq) / (self._speed * dt)))
+        return dq / over if over > 1.0 else dq
+
+    def _ik(self, T_tcp: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
+        """Controller joints for a TCP pose, or None when unreachable."""
+        T_flange = T_tcp @ np.linalg.inv(self.tool)
+        with torch.no_grad():
+            q, ok = self.robot.ik(torch.as_tensor(T_flange[None], dtype=torch.float64),
+                                  torch.as_tensor(seed[None], dtype=torch.float64))
+        if not bool(ok[0]):
+            return None
+        return q[0].numpy().astype(float)
