@@ -332,3 +332,35 @@ def test_compiled_centre_line_matches_its_numpy_statement(cell, part, noise):
     empty = np.zeros((50, 80), np.uint8)
     assert tipm.centre(empty, empty).shape == (0, 2)
     assert Tipm(centre_line="thinning").centre(empty, empty).shape == (0, 2)
+
+
+def _faint_v(seed: int, amp: float, noise: float = 14.0, corner=(330.0, 250.0)) -> np.ndarray:
+    """A mono 656 x 492 frame: a V stripe (arms 18 deg off the rows, Gaussian cross-section
+    of sigma 2.5 px, ``amp`` grey levels high) on a level background with white read noise of
+    ``noise`` grey levels, the corner at ``corner``."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:492, 0:656].astype(float)
+    line = corner[1] + np.abs(u - corner[0]) * np.tan(np.radians(18.0))
+    img = 70.0 + amp * np.exp(-0.5 * ((v - line) / 2.5) ** 2) + rng.normal(0.0, noise, v.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_a_stripe_in_pixel_noise_is_found_by_the_second_look():
+    # the stripe 65 grey levels over white noise of 14: the per-pixel threshold breaks it into
+    # blobs; averaged along the stripe (smooth_px) it stands clear and the corner is right
+    tipm = Tipm()
+    once = Tipm(dataclasses.replace(tipm.cfg, smooth_px=1))
+    assert tipm.cfg.smooth_px > 1
+    for seed in range(3):
+        frame = _faint_v(seed, 65.0)
+        assert not once(frame).ok
+        res = tipm(frame)
+        assert res.ok, res.reason
+        assert np.linalg.norm(res.uv - (330.0, 250.0)) < 0.5
+        # the centre line is taken on the ridge itself: the averaged ridge only masks
+        ridge = tipm.stripe_mask(frame)[0].copy()
+        found, response, mask = tipm.find(check_frame(frame))
+        assert found.ok and mask.any() and np.array_equal(response, ridge)
+    # noise alone gives no point on the second look either
+    for seed in range(5):
+        assert not tipm(_faint_v(seed, 0.0)).ok

@@ -281,21 +281,15 @@ def _anchored_with_tipm(offsets, rms):
     calls = iter(offsets)
 
     class StubTipm:
-        """TIPM's stages as the tracker calls them on its window."""
+        """TIPM as the tracker calls it on its window."""
 
         cfg = load_tipm_config()
 
-        def stripe_mask(self, roi):
-            z = np.zeros(roi.shape[:2], np.uint8)
-            return z, z, ""
-
-        def centre(self, red, mask):
-            return None
-
-        def corner(self, pts, mask=None, prior=None):
+        def find(self, roi, prior=None):
             trk.priors.append(prior)
+            z = np.zeros(roi.shape[:2], np.uint8)
             # the ROI starts window_px up-left of the filtered point
-            return _corner(np.array([200.0, 150.0]) + next(calls) - trk.roi_origin(), rms)
+            return _corner(np.array([200.0, 150.0]) + next(calls) - trk.roi_origin(), rms), z, z
 
     trk.priors = []
     trk.roi_origin = lambda: np.floor(trk.x) - trk.cfg.window_px

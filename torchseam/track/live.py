@@ -273,13 +273,10 @@ def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | No
                                      x0:int(cu) + cfg.window_px + 1])
     if roi.shape[0] < 16 or roi.shape[1] < 16:
         return obs
-    # TIPM's stages by hand (the frame is checked already) to keep the stripe response and
-    # mask of the window: ECAL reads them next (TrackResult.stripe)
-    red, mask, why = tipm.stripe_mask(roi)
+    # the frame is checked already; the stripe response and mask of the window are kept for
+    # ECAL (TrackResult.stripe)
+    res, red, mask = tipm.find(roi, prior)
     obs.stripe = (red, mask, (x0, y0))
-    if why:
-        return obs
-    res = tipm.corner(tipm.centre(red, mask), mask, prior)
     if res.ok:
         t = tipm.cfg
         obs.res, obs.z = res, res.uv + (x0, y0)

@@ -66,6 +66,7 @@ class TipmConfig:
     min_corner_deg: float = config_field(lo=0.0, hi=180.0)
     max_saturated_fraction: float = config_field(lo=0.0, hi=1.0)
     white_core_fraction: float = config_field(lo=0.0, hi=1.0)
+    smooth_px: int = config_field(lo=1)
 
 
 def red_response(frame: np.ndarray, with_green: bool = False,
@@ -136,6 +137,10 @@ class TipmResult:
     mask: np.ndarray | None = None
 
 
+#: the failure reason of a frame blinded by arc light
+SATURATED = "frame saturated by arc light"
+
+
 def _fail(reason: str, mask: np.ndarray | None = None, centre: np.ndarray | None = None
           ) -> TipmResult:
     return TipmResult(False, np.full(2, np.nan), reason, centre=centre, mask=mask)
@@ -192,16 +197,24 @@ class Tipm:
         # OpenCV takes a scalar src2; its stubs allow arrays only
         sat = cv2.compare(g, 250, cv2.CMP_GE, dst=planes[2])  # type: ignore[call-overload]
         if cv2.countNonZero(sat) > cfg.max_saturated_fraction * red.size:
-            return red, np.zeros_like(red), "frame saturated by arc light"
+            return red, np.zeros_like(red), SATURATED
         # ridge: red minus its local vertical mean, so broad red glare does not pass as stripe
         # (a 3-column box is cheaper but lets more spatter through under heavy arc)
         ridge = cv2.blur(red, (1, cfg.ridge_px), dst=planes[1])
         ridge = cv2.subtract(red, ridge, dst=ridge)
+        mask, why = self._mask(ridge, planes[2])
+        return ridge, mask, why
+
+    def _mask(self, ridge: np.ndarray, work: np.ndarray) -> tuple[np.ndarray, str]:
+        """The stripe mask (H, W) uint8 of a ridge (H, W) uint8: thresholded (the frame's own
+        level, :meth:`_threshold`), blobs under ``min_area`` dropped, dilated; and the failure
+        reason. ``work``: a reused plane of the ridge's size for the binary image."""
+        cfg = self.cfg
         thr = self._threshold(ridge)
-        _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY, dst=planes[2])
+        _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY, dst=work)
         bx, by, bw, bh = cv2.boundingRect(binary)
         if bw == 0:
-            return ridge, np.zeros_like(red), "no stripe found (no red pixels above threshold)"
+            return np.zeros_like(ridge), "no stripe found (no red pixels above threshold)"
         # label and dilate only the box that holds anything (the stripe is a thin band), with a
         # margin for the dilation
         d = cfg.dilate_px
@@ -213,7 +226,7 @@ class Tipm:
         keep = np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= cfg.min_area)[0] + 1
         mask = np.zeros_like(binary)
         if len(keep) == 0:
-            return ridge, mask, "no stripe found (only small blobs)"
+            return mask, "no stripe found (only small blobs)"
         if len(keep) == n - 1:
             box = binary[roi]  # every blob is large enough: nothing to filter
         else:
@@ -223,7 +236,7 @@ class Tipm:
             box = (cv2.LUT(lab.astype(np.uint8), lut[:256]) if n <= 256
                    else np.take(lut, lab))  # type: ignore[arg-type]  # CV_16U labels: integers
         mask[roi] = cv2.dilate(box, self._kernel)
-        return ridge, mask, ""
+        return mask, ""
 
     def _threshold(self, ridge: np.ndarray) -> float:
         """The stripe threshold of one frame's ridge (H, W) uint8, from the frame's own
@@ -300,12 +313,37 @@ class Tipm:
     def __call__(self, frame: np.ndarray, prior: np.ndarray | None = None) -> TipmResult:
         """Find the feature point in one frame: BGR (H, W, 3) or mono (H, W), 8 or 16 bit, any
         size (``prior``: see :meth:`corner`)."""
-        frame = check_frame(frame)
+        return self.find(check_frame(frame), prior)[0]
+
+    def find(self, frame: np.ndarray, prior: np.ndarray | None = None
+             ) -> tuple[TipmResult, np.ndarray, np.ndarray]:
+        """The feature point of a checked frame (or window) with the stripe response and mask
+        it was found on: ``(result, response (H, W) uint8, mask (H, W) uint8)``, the two
+        planes valid until this ``Tipm``'s next call.
+
+        A frame where no corner is found is looked at a second time, with the mask thresholded
+        on the ridge averaged over ``smooth_px`` columns along the stripe; the centre line is
+        still taken on the ridge itself. Why: in fume, or on a dim stripe in read noise, the
+        stripe's ridge stands barely above the pixel noise, the per-pixel threshold breaks it
+        into blobs and short arms, and no corner is found in frames where the eye sees the V
+        clearly; averaging along the stripe lowers the noise by about the square root of
+        ``smooth_px`` and leaves the stripe's level and its position across the stripe as they
+        are. Only a failed frame gets the second look: where the stripe is strong, the
+        threshold follows the stripe's own level, and the averaged mask only shortens the
+        stripe next to gaps and lets dots of spatter through (docs/benchmarks.md). A frame
+        saturated by arc light is not looked at again.
+        """
         red, mask, why = self.stripe_mask(frame)
-        if why:
-            return _fail(why, mask)
-        pts = self.centre(red, mask)
-        return self.corner(pts, mask, prior)
+        res = _fail(why, mask) if why else self.corner(self.centre(red, mask), mask, prior)
+        k = self.cfg.smooth_px
+        if res.ok or k <= 1 or why == SATURATED:
+            return res, red, mask
+        smooth = cv2.blur(red, (k, 1), dst=self._plane("smooth", red.shape))
+        mask2, why2 = self._mask(smooth, self._plane("binary", red.shape))
+        if why2:
+            return res, red, mask
+        res2 = self.corner(self.centre(red, mask2), mask2, prior)
+        return (res2, red, mask2) if res2.ok else (res, red, mask)
 
     def corner(self, pts: np.ndarray, mask: np.ndarray | None = None,
                prior: np.ndarray | None = None) -> TipmResult:
