@@ -49,7 +49,10 @@ from torchseam.console.sim import simulated_console
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.report import format_table
 from torchseam.live.demo import run_demo
+from torchseam.live.parts import load_live_parts
 from torchseam.robot.egm import set_realtime_priority
+
+PARTS = load_live_parts()  # the shipped settings and parts of the live stack
 
 
 def _read_stream(url: str, n: int, stop, counts) -> None:
@@ -198,7 +201,7 @@ def run_off(cell, part, noise, level, args, browser: Browser | None = None) -> d
     try:
         res = run_demo(cell, part, noise, level, args.seed, segments=args.segments,
                        length_mm=args.length_mm, control=_paced(cell, args.pace),
-                       observer=lambda ev: _keep_latency(ev, lat))
+                       observer=lambda ev: _keep_latency(ev, lat), parts=PARTS)
     finally:
         if rt:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
@@ -225,7 +228,7 @@ def _paced(cell, pace: float) -> PacedControl:
 def run_on(cell, part, noise, args, browser: Browser | None) -> dict:
     cfg = dataclasses.replace(load_console_config(), pace=args.pace,
                               rt_priority=args.rt_priority)
-    con = simulated_console(cfg, cell, part, noise)
+    con = simulated_console(cfg, cell, part, noise, PARTS)
     host, port = con.start_in_thread("127.0.0.1", 0)
     url = f"http://{host}:{port}"
     reader = Reader(url, args.clients, con.token) if args.clients else None
@@ -315,7 +318,8 @@ def main() -> None:
             + f"; {os.cpu_count()} CPUs, Python "
             f"{platform.python_version()}, load {os.getloadavg()[0]:.1f}")
     browser = Browser() if args.browser else None
-    run_demo(cell, part, noise, level, args.seed, segments=args.segments, length_mm=1.0)  # warm-up
+    run_demo(cell, part, noise, level, args.seed, segments=args.segments, length_mm=1.0,
+             parts=PARTS)  # warm-up
     rows = []
     try:
         for k in range(args.repeats):

@@ -23,9 +23,11 @@ import time
 
 import numpy as np
 
+from torchseam.core.config import load_cell
 from torchseam.robot.egm import latency_summary
 from torchseam.robot.egm.config import load_egm_config
 from torchseam.robot.egm_session import loopback_session
+from torchseam.robot.kinematics import load_irb1410
 
 
 def _steal_ticks() -> int | None:
@@ -45,6 +47,7 @@ def main() -> None:
                     help="comma-separated SCHED_FIFO priorities to run with (0 = normal)")
     args = ap.parse_args()
     cfg0 = load_egm_config()
+    robot, tool = load_irb1410(), load_cell().tool.matrix()
     hz = cfg0.sim_controller.rate_hz
     print(f"EGM loopback bench: {hz:g} Hz, {args.duration:g} s per run, {os.cpu_count()} CPUs, "
           f"Python {platform.python_version()}, {platform.platform()}")
@@ -60,7 +63,7 @@ def main() -> None:
             load = os.getloadavg()[0]
             s0 = _steal_ticks()
             t0 = time.perf_counter()
-            r = loopback_session(cfg, args.duration, mode=mode)
+            r = loopback_session(cfg, args.duration, robot=robot, tool=tool, mode=mode)
             wall = time.perf_counter() - t0
             s1 = _steal_ticks()
             steal = "n/a" if s0 is None or s1 is None else f"{(s1 - s0) * 10 / wall:.0f}"

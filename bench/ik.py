@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from torchseam.core.config import load_cell, load_part
-from torchseam.robot.kinematics import IRB1410, IKSolution
+from torchseam.robot.kinematics import IKSolution, load_irb1410
 from torchseam.robot.reach import ReachGate, nominal_torch_poses
 
 
@@ -57,7 +57,7 @@ def main() -> None:
     torch.set_num_threads(1)
     torch.manual_seed(0)
 
-    robot = IRB1410()
+    robot = load_irb1410()
     cell, part = load_cell(), load_part()
     n, rep = args.n, args.repeats
 

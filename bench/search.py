@@ -34,6 +34,7 @@ from torchseam.core.config import CONFIG_DIR, load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import format_table
 from torchseam.live.demo import run_demo
+from torchseam.live.parts import load_live_parts
 from torchseam.plan.preflight import preflight
 
 PARTS = ("t_joint", "y_joint_75", "y_joint_60", "pipe_on_plate", "pipe_on_sphere",
@@ -50,11 +51,11 @@ def main() -> None:
     ap.add_argument("--length-mm", type=float, default=2.0)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    cell, noise = load_cell(), load_noise()
+    cell, noise, parts = load_cell(), load_noise(), load_live_parts()
     rows = []
     for name in args.parts.split(","):
         part = load_part(CONFIG_DIR / "parts" / f"{name}.yaml")
-        report = preflight(cell, part, part_name=name)
+        report = preflight(cell, part, config=parts.plan, robot=parts.robot, part_name=name)
         rng = np.random.default_rng(args.seed)
         found, t_find, t_app, ext_mm, ext_deg = 0, [], [], [], []
         lifts, start_err, prog_err = set(), [], []
@@ -66,7 +67,7 @@ def main() -> None:
             try:
                 res = run_demo(cell, part, noise, noise.level("heavy"), args.seed + i,
                                segments="a", length_mm=args.length_mm, report=report,
-                               start_offset_mm=d, start_angle_deg=a)
+                               start_offset_mm=d, start_angle_deg=a, parts=parts)
             except TorchseamError as e:
                 start_refused += 1
                 print(f"{name} run {i}: D {d:+6.1f} mm, A {a:+5.1f} deg: {e}", flush=True)

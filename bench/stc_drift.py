@@ -27,6 +27,7 @@ from torchseam.sim.sequence import SequenceSpec, simulate_labelled
 from torchseam.track.lite import LiteTracker
 from torchseam.track.live import fitted_eakf_stc
 from torchseam.track.peers import run_tracker
+from torchseam.vision.tipm import load_tipm
 
 
 def tracker(sigma: str) -> LiteTracker:
@@ -52,7 +53,7 @@ def main() -> None:
     for s in sigmas:
         if s != "fitted" and not (s.replace(".", "", 1).isdigit() and float(s) > 0):
             ap.error(f"--sigmas: {s!r} is neither 'fitted' nor a width > 0 in px")
-    cell, part, noise = load_cell(), load_part(), load_noise()
+    cell, part, noise, tipm = load_cell(), load_part(), load_noise(), load_tipm()
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     blocks = range(0, args.frames, args.block)
@@ -67,7 +68,7 @@ def main() -> None:
             if not arc.any():
                 arc[1:] = True
             for s in sigmas:
-                uv = run_tracker(tracker(s), frames, None)[0]
+                uv = run_tracker(tracker(s), frames, None, tipm)[0]
                 err = uv - labels
                 st = error_stats(np.linalg.norm(err[arc], axis=1))
                 pooled[s].append(np.linalg.norm(err[arc], axis=1))

@@ -20,7 +20,7 @@ import torch
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.report import error_stats, format_table, percentiles_ms
 from torchseam.sim.sequence import SequenceSpec, simulate
-from torchseam.vision.tipm import Tipm
+from torchseam.vision.tipm import load_tipm
 
 
 def main() -> None:
@@ -37,7 +37,7 @@ def main() -> None:
     for name in args.levels.split(","):
         level = noise.level(name)
         for method in ("subpixel", "thinning"):
-            tipm = Tipm(centre_line=method)
+            tipm = load_tipm(centre_line=method)
             err, secs = [], []
             for seed in range(args.sequences):
                 spec = SequenceSpec(n_frames=args.frames, level=level, seed=100 + seed)

@@ -46,7 +46,7 @@ from torchseam.sim.sequence import SequenceSpec, simulate_labelled
 from torchseam.sim.variants import HIDE, hide_corner, rotate90, to_mono
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import TRACKERS, fitted_eakf_stc, make_tracker, run_tracker
-from torchseam.vision.tipm import red_response
+from torchseam.vision.tipm import load_tipm, red_response
 
 ORDER = ["tipm", "stc", "kcf", "csrt", "mosse", "eakf-stc", "anchored"]
 VARIANTS = ("colour", "mono", "mono16", "columns")
@@ -125,7 +125,7 @@ def main() -> None:
     for t in trackers:
         if t not in TRACKERS:
             ap.error(f"--trackers: unknown tracker {t!r} (use {', '.join(TRACKERS)})")
-    cell, part, noise = load_cell(), load_part(), load_noise()
+    cell, part, noise, tipm = load_cell(), load_part(), load_noise(), load_tipm()
     families = list(FAMILY_NAMES) if args.families == "all" else args.families.split(",")
     for f in families:
         if f not in FAMILY_NAMES:
@@ -170,7 +170,7 @@ def main() -> None:
                         # live loop's default cell config has it
                         path = args.model if t in ("eakf-stc", "anchored") else None
                         uv, st, sec, idle_sec, _ = run_tracker(
-                            make_tracker(t, model_path=path), frames, None, axis="auto",
+                            make_tracker(t, tipm, model_path=path), frames, None, tipm, axis="auto",
                             response="auto")
                         e = np.linalg.norm(uv - labels, axis=1)
                         keep = arc if arc.any() else np.arange(len(e)) > 0

@@ -34,3 +34,18 @@ def clean_seq(cell, part, noise):
     from torchseam.sim.sequence import SequenceSpec, simulate
 
     return list(simulate(cell, part, noise, SequenceSpec(n_frames=12, level=0.0, seed=3)))
+
+
+@pytest.fixture(scope="session")
+def parts():
+    """The shipped settings and parts of the live stack (plan, live, search, egm, the arm,
+    TIPM, ECAL): what the command line hands ``run_demo``, ``run_ring`` and ``run_replay``."""
+    from torchseam.live.parts import load_live_parts
+
+    return load_live_parts()
+
+
+@pytest.fixture(scope="session")
+def tipm(parts):
+    """TIPM with the shipped ``configs/tipm.yaml``."""
+    return parts.tipm

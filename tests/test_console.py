@@ -35,12 +35,16 @@ from torchseam.console.config import (
 from torchseam.console.server import TOKEN_HEADER, ConsoleServer, is_loopback, render_frame
 from torchseam.console.session import LatestFrame, RunState, WeldSession
 from torchseam.console.sim import simulated_console
-from torchseam.core.config import ConfigError
+from torchseam.core.config import ConfigError, load_cell, load_noise, load_part
 from torchseam.live.demo import FAULTS, DemoEvent, DemoResult, FrameRecord
 from torchseam.live.loop import Command, LoopState, LoopStats, StepReport
+from torchseam.live.parts import load_live_parts
 from torchseam.robot.egm import EgmLink
 from torchseam.robot.egm.config import load_egm_config
 from torchseam.track.peers import TRACKERS
+
+# what the command line reads for the console: the cell, the part, the noise, the live parts
+CELL, PART, NOISE, PARTS = load_cell(), load_part(), load_noise(), load_live_parts()
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = Path("/usr/bin/chromium")
@@ -278,11 +282,10 @@ def test_start_off_the_seam_through_the_api(served):
 
 def test_simulated_console_starts_the_demo_off_the_seam(cfg, monkeypatch):
     import torchseam.console.sim as sim
-    from torchseam.core.config import load_cell, load_part
     from torchseam.live.demo import DemoControl
 
     mm, deg = _search_bounds()
-    con = simulated_console(cfg)
+    con = simulated_console(cfg, CELL, PART, NOISE, PARTS)
     assert con.defaults["start_offset_mm"] == 0.0 and con.defaults["start_angle_deg"] == 0.0
     limits = con.hello()[0]["limits"]
     assert limits["start_offset_mm"] == [-mm, mm] and limits["start_angle_deg"] == [-deg, deg]
@@ -296,7 +299,7 @@ def test_simulated_console_starts_the_demo_off_the_seam(cfg, monkeypatch):
 
     monkeypatch.setattr(sim, "run_demo", fake_run_demo)
     p = con.validate({**GOOD, "start_offset_mm": "20", "start_angle_deg": "-5"})
-    sim.sim_weld(load_cell(), load_part(), _noise())(p, lambda ev: None, DemoControl())
+    sim.sim_weld(CELL, PART, _noise(), PARTS)(p, lambda ev: None, DemoControl())
     assert seen["start_offset_mm"] == 20.0 and seen["start_angle_deg"] == -5.0
 
 
@@ -548,7 +551,7 @@ def test_page_runs_and_watches_a_simulated_weld(chromium, cfg, tmp_path):
         from playwright.sync_api import sync_playwright
     except ImportError:
         pytest.fail("the console test needs Playwright: pip install -e '.[dev]'")
-    con = simulated_console(cfg)
+    con = simulated_console(cfg, CELL, PART, NOISE, PARTS)
     host, port = con.start_in_thread("127.0.0.1", 0)
     url = f"http://{host}:{port}/"
     assert con.url() == f"{url}?token={con.token}" and len(con.token) >= 40
@@ -676,7 +679,7 @@ def test_replay_of_a_recording_runs_through_the_session(cfg, recorded):
     from torchseam.console.replay import replay_console
     from torchseam.console.server import NO_CONTROLLER
 
-    con = replay_console(recorded, cfg)
+    con = replay_console(recorded, cfg, CELL, NOISE, PARTS)
     assert str(recorded) in con.source and "open loop" in con.source
     params = con.validate(GOOD)
     con.session.start(params)
@@ -710,7 +713,7 @@ def test_replay_hold_and_stop(cfg, recorded):
     from torchseam.console.replay import replay_console
 
     paced = dataclasses.replace(cfg, pace=1.0)   # 25 frames/s: 0.8 s for the recording
-    con = replay_console(recorded, paced)
+    con = replay_console(recorded, paced, CELL, NOISE, PARTS)
     con.session.start(con.validate(GOOD))
     wait_for(lambda: con.session.latest is not None and con.session.latest.seq >= 2,
              what="the first frames")
@@ -754,7 +757,7 @@ def test_a_camera_source_runs_and_its_end_is_reported(cfg, recorded, tmp_path):
     for i in range(REPLAY_FRAMES):
         w.write(cv2.imread(str(recorded / f"{i:05d}.png")))
     w.release()
-    con = replay_console(f"camera:{video}", cfg)
+    con = replay_console(f"camera:{video}", cfg, CELL, NOISE, PARTS)
     assert con.source.startswith("live camera") and "open loop" in con.source
     con.session.start(con.validate(GOOD))
     assert con.session.join(60)

@@ -20,7 +20,7 @@ import time
 
 import aiohttp
 import pytest
-from test_console import GOOD, TOKEN, _noise, fake_console, post, wait_for
+from test_console import CELL, GOOD, NOISE, PART, PARTS, TOKEN, _noise, fake_console, post, wait_for
 
 from torchseam.console.config import load_console_config, parse_params
 from torchseam.console.server import MAX_BODY, TOKEN_HEADER, split_host
@@ -29,6 +29,7 @@ from torchseam.console.sim import simulated_console
 from torchseam.live.demo import FAULTS
 from torchseam.track.peers import TRACKERS
 
+SHIPPED = (CELL, PART, NOISE, PARTS)  # the cell, part, noise and live parts of the console
 EVIL = "evil.example"
 REAL = "the address connected to"
 
@@ -217,7 +218,7 @@ def test_state_changes_and_the_stream_need_the_token(served):
 
 
 def test_each_console_makes_its_own_token(cfg):
-    a, b = simulated_console(cfg), simulated_console(cfg)
+    a, b = simulated_console(cfg, *SHIPPED), simulated_console(cfg, *SHIPPED)
     assert a.token != b.token and len(a.token) >= 40
     assert fake_console(cfg).token == TOKEN   # tests pass a known one
 
@@ -340,7 +341,7 @@ def test_a_weld_beside_the_attacks_finishes_safely(cfg):
     # paced (twice real time: about 4 s, long enough for many rounds of attacks), at normal
     # priority: the attacks need the CPU too
     paced = dataclasses.replace(cfg, pace=2.0, rt_priority=0)
-    con = simulated_console(paced, defaults={"segments": "a", "length_mm": 20})
+    con = simulated_console(paced, *SHIPPED, defaults={"segments": "a", "length_mm": 20})
     con.token = TOKEN
     host, port = con.start_in_thread("127.0.0.1", 0)
     url = f"http://{host}:{port}"

@@ -32,9 +32,9 @@ def offset_flank(tmp_path_factory):
     models: list = []
     make = demo.make_tracker
 
-    def spy(name, model=None, model_path=None):
+    def spy(name, tipm, model=None, model_path=None):
         models.append(model_path)
-        return make(name, model, model_path)
+        return make(name, tipm, model, model_path)
 
     mp = pytest.MonkeyPatch()
     mp.setattr(demo, "make_tracker", spy)
@@ -132,30 +132,33 @@ def test_a_part_the_robot_cannot_weld_is_refused_before_any_motion(tmp_path, cap
     assert not (out / "summary.json").exists() and not (out / "poses.csv").exists()
     # run_demo itself refuses it too (the console calls it directly)
     from torchseam.core.config import load_cell, load_noise, load_part
+    from torchseam.live.parts import load_live_parts
 
     with pytest.raises(demo.PlanRefused) as e:
         demo.run_demo(load_cell(), load_part(PARTS / "y_joint_60.yaml"), load_noise(), 0.0, 0,
                       segments="a", length_mm=10.0,
-                      observer=lambda ev: pytest.fail("a frame was welded"))
+                      observer=lambda ev: pytest.fail("a frame was welded"),
+                      parts=load_live_parts())
     assert "REFUSED" in str(e.value) and e.value.report.refused == ["d", "e"]
 
 
-def test_the_t_joint_keeps_the_configured_plan():
+def test_the_t_joint_keeps_the_configured_plan(parts):
     """The T joint passes the configured plan: no search, the segments of configs/plan.yaml
     (its demo is the one it was before the plan)."""
     from torchseam.core.config import load_cell, load_part
     from torchseam.plan.path import six_segments
     from torchseam.plan.preflight import preflight
 
-    r = preflight(load_cell(), load_part())
+    r = preflight(load_cell(), load_part(), config=parts.plan, robot=parts.robot)
     assert r.ok and r.configured is None and not r.plan.searched
     assert r.plan.placement.configured
-    for planned, old in zip(r.plan.segments, six_segments(), strict=True):
+    old_segments = six_segments(np.radians(parts.plan.segment_start_deg))
+    for planned, old in zip(r.plan.segments, old_segments, strict=True):
         assert (planned.name, planned.rotation_deg) == (old.name, old.rotation_deg)
         assert math.isclose(planned.phi_start, old.phi_start) and planned.angles == (0, 0, 0)
 
 
-def test_shortened_step_where_the_seam_turns_fast(cell):
+def test_shortened_step_where_the_seam_turns_fast(cell, parts):
     """LiveLoop._shortened: a seam frame turning more than max_turn_deg over the step gives a
     shorter step (min_step_mm at least) over which it turns TURN_SHARE * max_turn_deg; a
     slower turn leaves the step as it is. A link that refuses the turns the loop plans is a
@@ -170,7 +173,9 @@ def test_shortened_step_where_the_seam_turns_fast(cell):
     from torchseam.track.peers import make_tracker
 
     live = load_live_config()
-    loop = LiveLoop(cell, make_tracker("tipm"), RecordingSink(), live=live)
+    tipm, ecal = parts.tipm, parts.ecal
+    loop = LiveLoop(cell, make_tracker("tipm", tipm), RecordingSink(), parts.plan, live, tipm,
+                    ecal)
     z = np.array([0.0, 0.0, 1.0])
     loop.target = np.zeros(3)
     loop.want_q = matrix_to_quat(np.eye(3))
@@ -192,7 +197,8 @@ def test_shortened_step_where_the_seam_turns_fast(cell):
     egm = dataclasses.replace(egm, mode="pose",
                               safety=dataclasses.replace(egm.safety, max_step_deg=2.0))
     with pytest.raises(ConfigError, match="max_step_deg"):
-        LiveLoop(cell, make_tracker("tipm"), EgmLink(egm, bind=False), live=live)
+        LiveLoop(cell, make_tracker("tipm", tipm), EgmLink(egm, bind=False), parts.plan, live,
+                 tipm, ecal)
 
 
 def test_console_log_counts_holds_by_reason():
@@ -248,7 +254,7 @@ def test_console_log_counts_holds_by_reason():
     assert session.status()["loop"]["hold_reasons"] == {"blind": 1}
 
 
-def test_without_shorter_steps_the_torch_lags_on_the_flank(cell, noise):
+def test_without_shorter_steps_the_torch_lags_on_the_flank(cell, noise, parts):
     """The same weld with min_step_mm at the full step (2 mm, the loop before): the torch axis
     lags the seam's turn on the steep flank by more than a degree."""
     import dataclasses
@@ -259,7 +265,8 @@ def test_without_shorter_steps_the_torch_lags_on_the_flank(cell, noise):
 
     live = dataclasses.replace(load_live_config(), min_step_mm=cell.process.step_mm)
     res = run_demo(cell, load_part(PARTS / "offset_branch.yaml"), noise, noise.level("heavy"),
-                   0, segments="f", length_mm=40.0, live=live)
+                   0, segments="f", length_mm=40.0,
+                   parts=dataclasses.replace(parts, live=live))
     s = res.summary
     assert s["segments_incomplete"] == [] and s["axis_max_deg"] > 1.5
     assert s["axis_within_1deg"] < s["poses_welded"]

@@ -666,11 +666,14 @@ def test_simulated_controller_in_lockstep_with_forgeries_between_its_cycles():
     """The simulated IRC5 (pose mode, lockstep) walks to a target 6 mm away while every cycle
     brings a forgery or a replay from its own address: it arrives, and no reply is anything
     the link did not accept."""
+    from torchseam.core.config import load_cell
     from torchseam.core.transforms import matrix_to_quat
+    from torchseam.robot.kinematics import load_irb1410
     from torchseam.robot.sim_controller import SimController
 
     egm = dataclasses.replace(_CFG, mode="pose")
-    ctrl = SimController(egm, mode="pose", bind_address=("127.0.0.1", 0))
+    ctrl = SimController(egm, robot=load_irb1410(), tool=load_cell().tool.matrix(), mode="pose",
+                         bind_address=("127.0.0.1", 0))
     try:
         clock = Clock()
         link = EgmLink(egm, clock=clock, bind=False)

@@ -19,7 +19,7 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from torchseam.core.config import CONFIG_DIR, ConfigError
+from torchseam.core.config import CONFIG_DIR, ConfigError, load_cell
 from torchseam.robot.egm import EgmError, EgmLink, latency_summary, parse_robot, parse_sensor
 from torchseam.robot.egm.config import egm_config_from_dict, load_egm_config
 from torchseam.robot.egm.messages import EgmHeader, EgmRobot, EgmSensor
@@ -476,9 +476,12 @@ def test_fuzz_robot_values(values, seq):
 
 @pytest.fixture(scope="module")
 def robot_model():
-    from torchseam.robot.kinematics import IRB1410
+    from torchseam.robot.kinematics import load_irb1410
 
-    return IRB1410()
+    return load_irb1410()
+
+
+CELL_TOOL = load_cell().tool.matrix()  # the simulated controller's tool: the cell's torch
 
 
 def _ephemeral(cfg, mode, controller_port):
@@ -585,7 +588,7 @@ def test_loopback_session_250hz_10s_without_late_replies(robot_model, record_pro
         sim_controller=dataclasses.replace(cfg.sim_controller, rt_priority=10))
     waited, probe_stalls = StallMonitor.wait_for_quiet()
     with StallMonitor() as machine:
-        result = loopback_session(cfg, 10.0, mode="pathcorr", sim_kwargs={"robot": robot_model})
+        result = loopback_session(cfg, 10.0, robot=robot_model, tool=CELL_TOOL, mode="pathcorr")
     sim, link = result.sim, result.link
     print(f"\n  waited {waited:.1f} s for a quiet second ({probe_stalls} stalls in the last)")
     stalled = [t for t in sim.late_cycles_ns if machine.explains(t)]
@@ -627,7 +630,8 @@ def test_pose_session_moves_the_robot_to_the_target(robot_model):
     from torchseam.robot.sim_controller import SimController
 
     cfg = load_egm_config()
-    sim = SimController(cfg, mode="pose", robot=robot_model, bind_address=("127.0.0.1", 0))
+    sim = SimController(cfg, mode="pose", robot=robot_model, tool=CELL_TOOL,
+                        bind_address=("127.0.0.1", 0))
     try:
         with EgmLink(_ephemeral(cfg, "pose", sim.address[1])) as link:
             sim.sensor_address = link.address
@@ -656,7 +660,8 @@ def test_fault_injection_on_the_wire(robot_model, caplog):
     from torchseam.robot.sim_controller import Fault, SimController
 
     cfg = load_egm_config()
-    sim = SimController(cfg, mode="pathcorr", robot=robot_model, bind_address=("127.0.0.1", 0))
+    sim = SimController(cfg, mode="pathcorr", robot=robot_model, tool=CELL_TOOL,
+                        bind_address=("127.0.0.1", 0))
     stop_feed = threading.Event()
     link = EgmLink(_ephemeral(cfg, "pathcorr", sim.address[1]))
     sim.sensor_address = link.address
@@ -767,7 +772,8 @@ def test_a_controller_held_on_its_way_out_is_not_a_late_reply(robot_model):
     from torchseam.robot.sim_controller import SimController
 
     cfg = load_egm_config()
-    sim = SimController(cfg, mode="pathcorr", robot=robot_model, bind_address=("127.0.0.1", 0))
+    sim = SimController(cfg, mode="pathcorr", robot=robot_model, tool=CELL_TOOL,
+                        bind_address=("127.0.0.1", 0))
     held = sim._sock = _HeldSend(sim._sock, at=150, hold_s=0.008)
     stop_feed = threading.Event()
     link = EgmLink(_ephemeral(cfg, "pathcorr", sim.address[1]))

@@ -14,7 +14,10 @@ import pytest
 
 from torchseam.live.demo import FAULTS, run_demo
 from torchseam.live.loop import load_live_config
+from torchseam.live.parts import load_live_parts
 from torchseam.robot.egm import Verdict
+
+PARTS = load_live_parts()  # the shipped settings and parts, as the command line reads them
 
 LEVEL = 0.3  # arc noise of the matrix runs (the default demo's heavy noise runs in test_cli)
 # each fault on segments a and b, the lengths spread over 20..70 mm so that every length meets
@@ -35,8 +38,9 @@ def _weld(cell, part, noise, faults, seg, length, live=None):
             state=loop.state.value, arc_ok=loop.arc_ok, message=loop.message,
             max_age_ms=ev.link.config.safety.max_age_ms))
 
+    parts = PARTS if live is None else dataclasses.replace(PARTS, live=live)
     res = run_demo(cell, part, noise, LEVEL, seed=2, faults=faults, segments=seg,
-                   length_mm=length, observer=observe, live=live)
+                   length_mm=length, observer=observe, parts=parts)
     res.rows = rows
     return res
 
@@ -143,7 +147,7 @@ def test_packet_loss_comes_in_bursts_and_the_weld_rides_through(cell, part, nois
     missing = []
 
     res = run_demo(cell, part, noise, LEVEL, seed=2, faults=("packet-loss",), segments="a",
-                   length_mm=20.0, live=live,
+                   length_mm=20.0, parts=dataclasses.replace(PARTS, live=live),
                    observer=lambda ev: missing.append((ev.link.stats.robot_missing,
                                                        ev.link.stats.received)))
     s = res.summary
@@ -155,9 +159,11 @@ def test_packet_loss_comes_in_bursts_and_the_weld_rides_through(cell, part, nois
     import dataclasses as dc
 
     from torchseam.robot.egm.config import load_egm_config
+    from torchseam.robot.kinematics import load_irb1410
 
     ctrl = SimController(dc.replace(load_egm_config(), mode="pose"), mode="pose",
-                         tool=cell.tool.matrix(), bind_address=("127.0.0.1", 0))
+                         robot=load_irb1410(), tool=cell.tool.matrix(),
+                         bind_address=("127.0.0.1", 0))
     try:
         ctrl.set_loss(0.5, 2.0, seed=1)
         calls = []
@@ -185,10 +191,12 @@ def test_the_link_age_limit_follows_the_loop_budget(cell):
     short = dataclasses.replace(egm, safety=dataclasses.replace(egm.safety,
                                                                 max_age_ms=need - 1.0))
     with pytest.raises(ConfigError, match="max_age_ms.*max_blind_ms"):
-        LiveLoop(cell, SimpleNamespace(name="fake"), EgmLink(short, bind=False), live=live)
+        LiveLoop(cell, SimpleNamespace(name="fake"), EgmLink(short, bind=False), PARTS.plan,
+                 live, PARTS.tipm, PARTS.ecal)
     link = EgmLink(egm_config_for(egm, live, hz), bind=False)
     assert link.config.safety.max_age_ms == need
-    LiveLoop(cell, SimpleNamespace(name="fake"), link, live=live)
+    LiveLoop(cell, SimpleNamespace(name="fake"), link, PARTS.plan, live, PARTS.tipm,
+             PARTS.ecal)
 
 
 # --------------------------------------------------------------------------- loop, unit level
@@ -220,7 +228,8 @@ def _loop(cell, sink):
     from torchseam.live.loop import LiveLoop, LoopState
     from torchseam.track.fusion import TrackStatus
 
-    loop = LiveLoop(cell, tracker=SimpleNamespace(name="fake"), sink=sink)
+    loop = LiveLoop(cell, SimpleNamespace(name="fake"), sink, PARTS.plan, PARTS.live,
+                    PARTS.tipm, PARTS.ecal)
     arms = np.array([[0.0, -1.0, 1.0], [0.0, 1.0, 1.0]])
     for s in np.arange(0.0, 40.0, 0.32):
         p = np.array([s, 0.0, 0.0])

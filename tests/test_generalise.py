@@ -11,9 +11,16 @@ from torchseam.cli import main
 from torchseam.core.orient import FrameView
 from torchseam.sim.sequence import SequenceSpec, simulate_labelled
 from torchseam.track.fusion import TrackStatus
-from torchseam.track.live import AnchoredTracker
+from torchseam.track.live import AnchoredTracker, load_live_tracker
 from torchseam.track.peers import run_tracker
-from torchseam.vision.tipm import Tipm, find_view
+from torchseam.vision.tipm import find_view, load_tipm
+
+TIPM = load_tipm()  # the shipped configs/tipm.yaml
+
+
+def _anchored() -> AnchoredTracker:
+    """The live tracker with the shipped model, as ``make_tracker("anchored", TIPM)`` makes it."""
+    return AnchoredTracker(load_live_tracker(), TIPM)
 
 TRACKED, COASTING, LOST = (int(s) for s in TrackStatus)
 
@@ -38,9 +45,9 @@ def test_injected_wrong_state_is_reacquired(heavy):
     """A track started 150 px off the corner (outside its search window) with no corner
     there: it must not report tracked there, and the whole-frame search brings it back."""
     frames, labels, _ = heavy
-    trk = AnchoredTracker()
+    trk = _anchored()
     wrong = labels[0] + (150.0, 60.0)
-    uv, status, *_ = run_tracker(trk, frames[:20], wrong)
+    uv, status, *_ = run_tracker(trk, frames[:20], wrong, TIPM)
     err = np.linalg.norm(uv - labels[:20], axis=1)
     assert trk.reacquired >= 1
     back = int(np.argmax(err < 2.0))
@@ -54,7 +61,7 @@ def test_injected_wrong_state_mid_track_is_reacquired(heavy):
     """The filter state moved 150 px off mid-sequence (as a gate that locked onto a wrong
     point would leave it): back on the corner within a few frames, never 'tracked' off it."""
     frames, labels, _ = heavy
-    trk = AnchoredTracker()
+    trk = _anchored()
     trk.init(frames[0], labels[0])
     for k in range(1, 15):
         trk.update(frames[k])
@@ -78,8 +85,8 @@ def test_frozen_point_without_a_corner_leaves_tracked(cell, part, noise):
     off = tuple(range(10, 20))
     frames, labels, _ = simulate_labelled(cell, part, noise, SequenceSpec(
         n_frames=26, level=0.3, seed=3, laser_off=off))
-    trk = AnchoredTracker()
-    uv, status, *_ = run_tracker(trk, frames, None)
+    trk = _anchored()
+    uv, status, *_ = run_tracker(trk, frames, None, TIPM)
     assert np.mean(status[1:10] == TRACKED) >= 0.8
     assert np.all(status[10:20] != TRACKED), status
     # back within two frames of the stripe's return (a stripe dropout over the corner, part
@@ -90,7 +97,7 @@ def test_frozen_point_without_a_corner_leaves_tracked(cell, part, noise):
     # a straight stripe (no corner) frozen under the point: coasting, then lost
     img = np.zeros((492, 656, 3), np.uint8)
     cv2.line(img, (20, 240), (630, 250), (40, 50, 230), 3, cv2.LINE_AA)
-    trk = AnchoredTracker()
+    trk = _anchored()
     uv0 = np.array([325.0, 245.0])
     trk.init(img, uv0)
     sts = []
@@ -118,7 +125,7 @@ def test_mono_16bit_and_turned_frames_track_like_colour(heavy, variant):
     else:
         frames = [np.ascontiguousarray(f[::-1]) for f in frames]
         labels = np.stack([labels[:, 0], h - 1 - labels[:, 1]], axis=1)
-    uv, status, *_ = run_tracker(AnchoredTracker(), frames, None, axis=axis)
+    uv, status, *_ = run_tracker(_anchored(), frames, None, TIPM, axis=axis)
     err = _errors(uv, labels, arc)
     tracked = status[arc] == TRACKED
     assert np.sqrt(np.mean(err ** 2)) < 1.0 and err.max() < 3.0, err
@@ -137,8 +144,8 @@ def test_stripe_axis_maps_points_and_is_found(heavy):
     np.testing.assert_allclose(ax.to_canonical(np.array([10.0, 20.0])), [u, v])
     # a quarter turn left of a clean frame: the stripe runs along the columns
     left = np.ascontiguousarray(np.rot90(frames[0]))
-    assert find_view(frames[0]) == FrameView("rows", 492, "red")
-    assert find_view(left) == FrameView("columns", 656, "red")
+    assert find_view(frames[0], TIPM) == FrameView("rows", 492, "red")
+    assert find_view(left, TIPM) == FrameView("columns", 656, "red")
 
 
 def _photo(seed: int, w: int = 640, h: int = 480) -> tuple[np.ndarray, np.ndarray]:
@@ -201,7 +208,7 @@ def test_faint_thin_stripe_in_a_photograph(tmp_path, capsys):
 
 def test_mono_frame_detects_like_colour(heavy):
     frames, labels, _ = heavy
-    tipm = Tipm()
+    tipm = TIPM
     for f, uv in zip(frames[:3], labels[:3], strict=True):
         a, b = tipm(f), tipm(_mono(f))
         assert a.ok and b.ok
@@ -266,7 +273,7 @@ def test_glare_over_the_corner_coasts_honestly_and_reacquires(heavy):
     hidden[15:30] = True
     frames = [glare_over_corner(f, uv) if h else f
               for f, uv, h in zip(frames, labels, hidden, strict=True)]
-    uv, status, *_ = run_tracker(AnchoredTracker(), frames, None)
+    uv, status, *_ = run_tracker(_anchored(), frames, None, TIPM)
     err = np.linalg.norm(uv - labels, axis=1)
     assert not np.any(status[hidden] == TRACKED), status[hidden]
     moved = np.linalg.norm(labels[hidden] - labels[14], axis=1)  # the corner since hiding
@@ -287,12 +294,12 @@ def test_an_extrapolated_corner_is_no_evidence():
                   (40, 50, 230), 3, cv2.LINE_AA)
     hidden = img.copy()
     cv2.circle(hidden, corner, 25, (0, 0, 0), -1)
-    tipm = Tipm()
+    tipm = TIPM
     full, cut = tipm(img), tipm(hidden)
     assert full.ok and cut.ok and np.linalg.norm(cut.uv - corner) < 3.0
     assert corner_seen(full, 10.0, 5) and not corner_seen(cut, 10.0, 5)
     for frame, want in ((img, TRACKED), (hidden, COASTING)):
-        trk = AnchoredTracker()
+        trk = _anchored()
         trk.init(frame, np.array(corner, float))
         res = trk.track(frame)
         assert res.fix is not None and res.fix.taken
@@ -307,10 +314,12 @@ def test_mono_recording_runs_through_the_console(mono_dirs):
     from torchseam.console.config import load_console_config
     from torchseam.console.replay import replay_console
     from torchseam.console.server import render_frame
+    from torchseam.core.config import load_cell, load_noise
+    from torchseam.live.parts import load_live_parts
 
     _, dirs = mono_dirs
     cfg = dataclasses.replace(load_console_config(), pace=0.0)
-    con = replay_console(dirs["mono8"], cfg)
+    con = replay_console(dirs["mono8"], cfg, load_cell(), load_noise(), load_live_parts())
     params = con.validate({"step_mm": 2, "look_ahead_mm": 20, "weld_speed_mm_s": 8,
                            "segments": "a", "length_mm": "", "noise": "heavy", "seed": 0,
                            "faults": [], "tracker": "anchored"})

@@ -8,12 +8,11 @@ import pytest
 import torch
 
 from torchseam.core.transforms import apply, invert
-from torchseam.geometry.ecal import Ecal
+from torchseam.geometry.ecal import load_ecal
 from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
 from torchseam.geometry.triangulate import FastTriangulator, Triangulator
 from torchseam.sim.scene import Scene, torch_frames
 from torchseam.sim.sequence import SequenceSpec, simulate
-from torchseam.vision.tipm import Tipm
 
 
 def _flange(cell, truth):
@@ -50,9 +49,9 @@ def _true_frame(scene, truth):
 
 
 @pytest.mark.parametrize("angle", [60.0, 90.0])
-def test_ecal_torch_axis_within_a_degree_of_the_joint_bisector(cell, part, noise, angle):
+def test_ecal_torch_axis_within_a_degree_of_the_joint_bisector(cell, part, noise, angle, tipm):
     p = dataclasses.replace(part, intersection_angle_deg=angle)
-    scene, tipm, ecal, tri = Scene(p), Tipm(), Ecal(), Triangulator(cell)
+    scene, ecal, tri = Scene(p), load_ecal(), Triangulator(cell)
     errs = []
     for seed in range(5):
         for img, t in simulate(cell, p, noise, SequenceSpec(n_frames=1, seed=seed)):
@@ -82,7 +81,7 @@ def _v_mask(spatter: bool = False, occlude: bool = False, left_end=(20, 90)):
 
 
 def test_ecal_rejects_spatter_crossings():
-    ecal = Ecal()
+    ecal = load_ecal()
     clean = ecal(*_v_mask())
     noisy = ecal(*_v_mask(spatter=True))
     assert clean.ok and noisy.ok and noisy.rejected > 0
@@ -92,7 +91,7 @@ def test_ecal_rejects_spatter_crossings():
 
 
 def test_ecal_occluded_arm_falls_back_to_previous_direction():
-    ecal = Ecal()
+    ecal = load_ecal()
     prev = ecal(*_v_mask()).angles
     mask, uv = _v_mask(occlude=True)
     res = ecal(mask, uv, prev_angles=prev)
@@ -108,7 +107,7 @@ def test_ecal_occluded_arm_mirrors_the_seen_arms_turn():
     """Along the saddle the V opens and closes about a steady bisector (image angles of the two
     arms over 20 frames of a heavy 60-degree ring: correlation -0.98, d1 = -0.94 d0), so the
     hidden arm is turned by minus the seen arm's turn since the previous frame, not held."""
-    ecal = Ecal()
+    ecal = load_ecal()
     prev = ecal(*_v_mask()).angles
     mask, uv = _v_mask(occlude=True, left_end=(24, 112))  # the left arm turned down ~8 degrees
     res = ecal(mask, uv, prev_angles=prev)
@@ -150,7 +149,7 @@ def test_ecal_two_crossings_of_one_arm_are_not_a_pair():
     mask, uv = _v_mask(occlude=True)
     cv2.line(mask, (150, 150), (20, 90), 255, 15)
     cv2.line(mask, (132, 142), (20, 90), 0, 1)  # from 20 px out: the corner stays joined
-    ecal = Ecal()
+    ecal = load_ecal()
     res = ecal(mask, uv)
     assert not res.ok and np.all(np.isnan(res.p))
     prev = ecal(*_v_mask()).angles
@@ -229,7 +228,7 @@ def test_ecal_does_not_take_the_arm_angle_where_the_arm_vanishes():
     """The right arm runs straight out to 40 px, bends 12 degrees over its last stretch and ends
     at 49 px (hidden by the other pipe): the circle at 45 px crosses the bent stretch, the one
     at 55 px finds one arm only. ECAL keeps the clean circle before the vanishing one."""
-    ecal = Ecal()
+    ecal = load_ecal()
     c = np.array([150.0, 150.0])
     right = np.array([np.cos(np.radians(-25.0)), np.sin(np.radians(-25.0))])
     bent = np.array([np.cos(np.radians(-37.0)), np.sin(np.radians(-37.0))])
@@ -291,14 +290,14 @@ def _crossings_reference(ecal, on, val, uv):
              int(np.sum(~good & (rs == c)))) for c in range(len(rows))]
 
 
-def test_ecal_compiled_crossings_match_their_numpy_statement(cell, part, noise):
+def test_ecal_compiled_crossings_match_their_numpy_statement(cell, part, noise, tipm):
     """The compiled crossings kernel against the numpy statement, on the stripe windows the
     live loop hands ECAL (TIPM's ridge and mask around the true point) of clean and heavy-arc
     frames, spatter and glare included, and one window at the frame's border. With grey
     levels, as the live loop runs ECAL: without them an even-length run's mean angle lies
     exactly between two samples, and which of the two rays the connection test walks is left
     to rounding in either version (the ECAL tests above cover that path by behaviour)."""
-    ecal, tipm = Ecal(), Tipm()
+    ecal = load_ecal()
     frames = list(simulate(cell, part, noise, SequenceSpec(n_frames=60, level=1.0, seed=3)))
     frames += list(simulate(cell, part, noise, SequenceSpec(n_frames=4, level=0.0, seed=3)))
     windows = []

@@ -4,14 +4,17 @@ import numpy as np
 import pytest
 
 from torchseam.live.demo import FAULT_FRAMES, run_demo
+from torchseam.live.parts import load_live_parts
 from torchseam.robot.egm import Verdict
+
+PARTS = load_live_parts()  # the shipped settings and parts, as the command line reads them
 
 LENGTH_MM = 24.0  # weld only the start of segment a (the fault lands in its middle)
 
 
 def _run(cell, part, noise, faults=(), level=0.3, observer=None):
     return run_demo(cell, part, noise, level, seed=1, faults=faults, segments="a",
-                    length_mm=LENGTH_MM, observer=observer)
+                    length_mm=LENGTH_MM, observer=observer, parts=PARTS)
 
 
 @pytest.fixture(scope="module")
@@ -126,10 +129,11 @@ def test_sim_controller_lockstep_cycle(cell):
     from torchseam.live.simcell import SimClock
     from torchseam.robot.egm import EgmLink
     from torchseam.robot.egm.config import load_egm_config
+    from torchseam.robot.kinematics import load_irb1410
     from torchseam.robot.sim_controller import SimController
 
     egm = dataclasses.replace(load_egm_config(), mode="pose")
-    ctrl = SimController(egm, mode="pose", tool=cell.tool.matrix(),
+    ctrl = SimController(egm, mode="pose", robot=load_irb1410(), tool=cell.tool.matrix(),
                          bind_address=("127.0.0.1", 0))
     try:
         clock = SimClock()
@@ -160,7 +164,6 @@ def test_sim_controller_lockstep_cycle(cell):
 def test_locator_takes_the_trackers_stripe_window_when_it_covers_ecals(cell, part, noise):
     from torchseam.live.locate import SeamLocator
     from torchseam.sim.sequence import SequenceSpec, simulate
-    from torchseam.vision.tipm import Tipm
 
     frame, truth = next(iter(simulate(cell, part, noise, SequenceSpec(n_frames=1, level=0.0,
                                                                       seed=3))))
@@ -168,10 +171,10 @@ def test_locator_takes_the_trackers_stripe_window_when_it_covers_ecals(cell, par
     class Tracker:
         name = "lender"
 
-    loc = SeamLocator(cell, Tracker())
+    loc = SeamLocator(cell, Tracker(), PARTS.tipm, PARTS.ecal)
     uv = np.asarray(truth.uv, float)
     own = loc._stripe(frame, uv, None)                # nothing lent: made here
-    red, mask, (x0, y0) = Tipm().mask_around(frame, uv + (7, -5), loc._roi + 20)
+    red, mask, (x0, y0) = PARTS.tipm.mask_around(frame, uv + (7, -5), loc._roi + 20)
     # a wider window around a nearby point, lent by the tracker (TrackResult.stripe)
     r2, m2, (u0, v0) = loc._stripe(frame, uv, (red, mask, (x0, y0)))
     assert (u0, v0) == own[2] and m2.shape == own[1].shape
@@ -312,7 +315,8 @@ def test_a_refused_re_send_is_reported_with_its_reason(cell):
             return Verdict(ok, "" if ok else "stale")
 
     sink = Sink()
-    loop = LiveLoop(cell, tracker=SimpleNamespace(name="fake"), sink=sink)
+    loop = LiveLoop(cell, SimpleNamespace(name="fake"), sink, PARTS.plan, PARTS.live, PARTS.tipm,
+                    PARTS.ecal)
     loop.state, loop.target = LoopState.TRACKING, np.array([10.0, 0.0, 0.0])
     loop.last_q, loop.evidence_t = np.array([1.0, 0.0, 0.0, 0.0]), 0.9
     located = [False, True]  # the first frame has no arms, the second is located again

@@ -21,21 +21,22 @@ from torchseam.track.live import (
     load_anchor_config,
     load_live_tracker,
 )
-from torchseam.vision.tipm import red_response
+from torchseam.vision.tipm import load_tipm, red_response
 
 F64 = torch.float64
+TIPM = load_tipm()  # the shipped configs/tipm.yaml: the fixes' TIPM
 
 
 @pytest.fixture(scope="module")
 def seqs():
     """Two short labelled sequences: heavy arc (sim family) and the corner hidden (wide)."""
     c, p, n = load_cell(), load_part(), load_noise()
-    return (simulate_set(c, p, n, ["sim"], ["heavy"], [1003], 60)
-            + simulate_set(c, p, n, ["wide"], ["beyond"], [7], 60, (12, 20)))
+    return (simulate_set(c, p, n, ["sim"], ["heavy"], [1003], 60, tipm=TIPM)
+            + simulate_set(c, p, n, ["wide"], ["beyond"], [7], 60, (12, 20), tipm=TIPM))
 
 
 def _numpy_track(live, seq):
-    trk = AnchoredTracker(live)
+    trk = AnchoredTracker(live, TIPM)
     trk.init(seq.frames[0], seq.labels[0])
     out = [np.r_[seq.labels[0], 0]]
     for fr in seq.frames[1:]:
@@ -52,8 +53,8 @@ def test_torch_module_is_the_numpy_live_tracker(seqs):
     live = load_live_tracker().to(F64)
     ref = [_numpy_track(live, s)[0] for s in seqs]
     with torch.no_grad():
-        _, uvs, stats = track_set(live, seqs, batch=1)
-        _, uvs2, _ = track_set(live, seqs, batch=2)
+        _, uvs, stats = track_set(live, seqs, batch=1, tipm=TIPM)
+        _, uvs2, _ = track_set(live, seqs, batch=2, tipm=TIPM)
     for r, uv, uv2, st, s in zip(ref, uvs, uvs2, stats, seqs, strict=True):
         np.testing.assert_allclose(uv, r[:, :2], atol=1e-6, err_msg=s.group)
         assert list(r[:, 2].astype(int)) == st, s.group
@@ -76,7 +77,8 @@ def test_every_fitted_value_gets_a_gradient(seqs):
     for seq in seqs:  # heavy arc (glare around the point) and the corner hidden (restarts)
         labels = torch.from_numpy(seq.labels).to(F64)
         state = live.init_state(seq.frames[:1],
-                                torch.from_numpy(red_response(seq.frames[0]))[None], labels[:1])
+                                torch.from_numpy(red_response(seq.frames[0]))[None], labels[:1],
+                                TIPM)
         for t in range(1, 40):
             f = seq.frames[t]
             state, x, _ = live.step_state(state, [f], torch.from_numpy(red_response(f))[None])
@@ -101,7 +103,7 @@ def test_model_file_round_trip_and_refusals(tmp_path):
         live.fusion.log_motion_u_px.fill_(np.log(0.7))
     path = model_io.save_fitted(live, tmp_path / "live.safetensors", {"note": "test"})
     assert model_io.read_model(path)[1]["format"] == model_io.LIVE_FORMAT
-    trk = AnchoredTracker(load_live_tracker(path))
+    trk = AnchoredTracker(load_live_tracker(path), TIPM)
     assert trk.cfg.fix_gate == pytest.approx(5.5) and trk.cfg.motion_u_px == pytest.approx(0.7)
     assert load_anchor_config().fix_gate != pytest.approx(5.5)
     inner = EAKFSTC(live.eakf_stc.config)

@@ -12,8 +12,7 @@ from torchseam.sim.scene import Scene
 from torchseam.sim.sequence import SequenceSpec, simulate
 from torchseam.track.base import Tracker, TrackResult
 from torchseam.track.fusion import TrackStatus
-from torchseam.track.live import AnchoredTracker, arm_directions
-from torchseam.vision.tipm import Tipm
+from torchseam.track.live import AnchoredTracker, arm_directions, load_live_tracker
 
 
 def _v_frame(left_deg: float, right_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -27,9 +26,9 @@ def _v_frame(left_deg: float, right_deg: float) -> tuple[np.ndarray, np.ndarray]
     return img, c
 
 
-def test_arm_directions_are_the_drawn_arms():
+def test_arm_directions_are_the_drawn_arms(tipm):
     img, c = _v_frame(200.0, -15.0)  # left arm up-left at 20 deg, right arm up-right at 15
-    res = Tipm()(img)
+    res = tipm(img)
     assert res.ok and np.linalg.norm(res.uv - c) < 1.0
     d = arm_directions(res)
     ang = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
@@ -53,21 +52,22 @@ class _Lender(Tracker):
         return TrackResult(self.uv.copy(), int(TrackStatus.TRACKED), arm_dirs=self.arm_dirs)
 
 
-def test_lent_arm_directions_are_used_only_when_ecal_agrees(cell):
+def test_lent_arm_directions_are_used_only_when_ecal_agrees(cell, parts):
     img, c = _v_frame(200.0, -15.0)
     T_B_F = np.eye(4)
-    own = SeamLocator(cell, _Lender(c, None)).step(img, T_B_F)
+    own = SeamLocator(cell, _Lender(c, None), parts.tipm, parts.ecal).step(img, T_B_F)
     assert own.arms_ok
     truth = np.array([[np.cos(np.radians(a)), np.sin(np.radians(a))] for a in (200.0, -15.0)])
     # directions 3 degrees off the drawn arms: within tipm_agreement_deg of ECAL, so used
     turn = np.radians(3.0)
     rot = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
     lent = truth @ rot.T
-    used = SeamLocator(cell, _Lender(c, lent)).step(img, T_B_F)
+    used = SeamLocator(cell, _Lender(c, lent), parts.tipm, parts.ecal).step(img, T_B_F)
     # 30 degrees off: a fit on something else; ECAL's arms stay
     far = np.radians(30.0)
     rot30 = np.array([[np.cos(far), -np.sin(far)], [np.sin(far), np.cos(far)]])
-    ignored = SeamLocator(cell, _Lender(c, truth @ rot30.T)).step(img, T_B_F)
+    ignored = SeamLocator(cell, _Lender(c, truth @ rot30.T), parts.tipm,
+                          parts.ecal).step(img, T_B_F)
     np.testing.assert_allclose(ignored.q, own.q)
 
     def direction(loc, i):
@@ -125,13 +125,16 @@ class _NoLending(AnchoredTracker):
 
 
 @pytest.mark.parametrize("angle", [60.0, 90.0])
-def test_clean_tipm_arms_beat_ecal_against_the_true_surfaces(cell, part, noise, angle):
+def test_clean_tipm_arms_beat_ecal_against_the_true_surfaces(cell, part, noise, angle, parts):
     p = dataclasses.replace(part, intersection_angle_deg=angle)
     scene = Scene(p)
     seq = list(simulate(cell, p, noise, SequenceSpec(n_frames=80, level=1.0, seed=7,
                                                      arc_on_frame=5)))
-    with_tipm, lent = _arm_errors_deg(SeamLocator(cell, AnchoredTracker()), cell, scene, seq)
-    ecal_only, _ = _arm_errors_deg(SeamLocator(cell, _NoLending()), cell, scene, seq)
+    tipm, ecal = parts.tipm, parts.ecal
+    anchored = AnchoredTracker(load_live_tracker(), tipm)
+    with_tipm, lent = _arm_errors_deg(SeamLocator(cell, anchored, tipm, ecal), cell, scene, seq)
+    no_lending = _NoLending(load_live_tracker(), tipm)
+    ecal_only, _ = _arm_errors_deg(SeamLocator(cell, no_lending, tipm, ecal), cell, scene, seq)
     assert lent > len(seq) // 2 and len(with_tipm) > 2 * 50
     rms = (float(np.sqrt(np.mean(with_tipm ** 2))), float(np.sqrt(np.mean(ecal_only ** 2))))
     assert rms[0] < 0.8 * rms[1], rms

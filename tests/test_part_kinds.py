@@ -18,7 +18,6 @@ from torchseam.sim.joint import Joint, PipeJoint, PlateJoint, SphereJoint, make_
 from torchseam.sim.scene import Scene, nominal_part, torch_frames
 from torchseam.sim.sensor import LaserSensor, camera_pose
 from torchseam.sim.sequence import SequenceSpec, simulate
-from torchseam.vision.tipm import Tipm
 
 PARTS = CONFIG_DIR / "parts"
 KINDS = {"plate": "pipe_on_plate", "sphere": "pipe_on_sphere", "offset": "offset_branch"}
@@ -216,8 +215,7 @@ def test_label_lies_on_the_rendered_stripe(kind, clean_frames):
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
-def test_tipm_finds_the_corner_on_clean_frames(kind, clean_frames):
-    tipm = Tipm()
+def test_tipm_finds_the_corner_on_clean_frames(kind, clean_frames, tipm):
     for img, truth, _ in clean_frames[kind][1]:
         res = tipm(img)
         assert res.ok, res.reason
@@ -226,10 +224,10 @@ def test_tipm_finds_the_corner_on_clean_frames(kind, clean_frames):
 
 # --------------------------------------------------------------------------- robot side
 
-def test_clearance_solids_of_plate_and_sphere():
+def test_clearance_solids_of_plate_and_sphere(cell, parts):
     for kind, name in (("plate", "plate"), ("sphere", "sphere")):
         part = _part(kind)
-        gate = ReachGate(part=part)
+        gate = ReachGate(parts.robot, cell=cell, part=part)
         T = nominal_torch_poses(part, 12).numpy()
         c = gate._clearance(T)  # noqa: SLF001 - the solids, without the IK
         assert (c > 2.0).all()
@@ -241,9 +239,10 @@ def test_clearance_solids_of_plate_and_sphere():
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
-def test_preflight_plans_every_kind(kind, cell):
+def test_preflight_plans_every_kind(kind, cell, parts):
     from torchseam.plan.preflight import preflight
 
-    report = preflight(cell, _part(kind), part_name=KINDS[kind])
+    report = preflight(cell, _part(kind), config=parts.plan, robot=parts.robot,
+                       part_name=KINDS[kind])
     assert report.ok, report.text()
     assert min(v.clearance_mm for v in report.verdicts) > 2.0

@@ -5,11 +5,15 @@ import copy
 import numpy as np
 import pytest
 
-from torchseam.plan.path import LookAheadBuffer, ipi_step, six_segments
+from torchseam.plan.path import LookAheadBuffer, ipi_step, load_plan_config, six_segments
+
+PLAN = load_plan_config()
+OUTLIER_MM = PLAN.outlier_mm  # the shipped setting, as the live loop hands it on
 
 
 def test_six_segments_cover_the_ring():
-    assert six_segments()[0].phi_start == pytest.approx(np.radians(90.0))  # configs/plan.yaml
+    start = six_segments(np.radians(PLAN.segment_start_deg))[0].phi_start
+    assert start == pytest.approx(np.radians(90.0))  # configs/plan.yaml
     segs = six_segments(0.3)
     assert [s.name for s in segs] == list("abcdef")
     assert segs[0].phi_start == pytest.approx(0.3)
@@ -28,7 +32,7 @@ def test_ipi_step_eq30():
 def test_buffer_walks_a_curved_path_in_equal_steps():
     phi = np.linspace(0, np.pi / 2, 400)
     pts = np.stack([76 * np.cos(phi), 76 * np.sin(phi), np.zeros_like(phi)], axis=1)
-    buf = LookAheadBuffer(maxlen=1000)
+    buf = LookAheadBuffer(maxlen=1000, outlier_mm=OUTLIER_MM)
     for k, p in enumerate(pts):
         buf.push(p, np.full((2, 3), np.nan), k / 25)
     cp, steps = pts[0], []
@@ -57,7 +61,7 @@ def test_buffer_tangent_is_the_seams_at_the_commanded_point():
         return np.stack([r * np.cos(phi), r * np.sin(phi), r * phi**2 / 8], axis=1)
 
     pts = helix(np.arange(0, 1.5, spacing / r))
-    buf = LookAheadBuffer(maxlen=1000, smooth_mm=5.0)
+    buf = LookAheadBuffer(maxlen=1000, smooth_mm=5.0, outlier_mm=OUTLIER_MM)
     for k, p in enumerate(pts):
         buf.push(p, np.full((2, 3), np.nan), k / 25)
     dense = helix(np.linspace(0, 1.5, 30001))
@@ -74,7 +78,7 @@ def test_buffer_tangent_is_the_seams_at_the_commanded_point():
 
 
 def test_buffer_is_bounded_and_counts_what_it_drops():
-    buf = LookAheadBuffer(maxlen=10)
+    buf = LookAheadBuffer(maxlen=10, outlier_mm=OUTLIER_MM)
     for k in range(25):
         buf.push(np.array([k * 0.3, 0, 0]), np.zeros((2, 3)), k)
     assert len(buf) == 10 and buf.dropped == 15
@@ -84,13 +88,13 @@ def test_buffer_smooths_noisy_points_without_lag():
     rng = np.random.default_rng(0)
     phi = np.linspace(0, 1.0, 240)
     true = np.stack([76 * np.cos(phi), 76 * np.sin(phi), 5 * np.sin(3 * phi)], axis=1)
-    buf = LookAheadBuffer(maxlen=1000, smooth_mm=3.0)
+    buf = LookAheadBuffer(maxlen=1000, smooth_mm=3.0, outlier_mm=OUTLIER_MM)
     for k, p in enumerate(true + rng.normal(0, 0.08, true.shape)):
         buf.push(p, np.full((2, 3), np.nan), k / 25)
     raw = np.array([np.linalg.norm(buf.points[k].p - true[k]) for k in range(20, 200)])
     fit = np.array([np.linalg.norm(buf.fit(k)[0] - true[k]) for k in range(20, 200)])
     assert np.sqrt(np.mean(fit**2)) < 0.5 * np.sqrt(np.mean(raw**2))
-    assert LookAheadBuffer().next_command(np.zeros(3), 2.0) is None
+    assert LookAheadBuffer(outlier_mm=OUTLIER_MM).next_command(np.zeros(3), 2.0) is None
 
 
 def test_buffer_leads_the_torch_onto_a_spot_seen_from_standing_still():

@@ -18,7 +18,7 @@ from torchseam.core.config import CONFIG_DIR, load_part
 from torchseam.plan.path import load_plan_config, six_segments
 from torchseam.plan.preflight import preflight
 from torchseam.plan.weld import Placement, PlanEvaluator
-from torchseam.robot.kinematics import IRB1410
+from torchseam.robot.kinematics import IRB1410, load_irb1410
 from torchseam.robot.reach import ReachGate, _oval_distance, _segment_oval_distance
 
 PARTS = CONFIG_DIR / "parts"
@@ -26,7 +26,10 @@ PARTS = CONFIG_DIR / "parts"
 
 @pytest.fixture(scope="module")
 def robot():
-    return IRB1410()
+    return load_irb1410()
+
+
+PLAN = load_plan_config()
 
 
 def _acute_crotch(phi_deg: np.ndarray) -> np.ndarray:
@@ -36,11 +39,12 @@ def _acute_crotch(phi_deg: np.ndarray) -> np.ndarray:
 
 
 def test_t_joint_keeps_its_configured_plan(cell, part, robot):
-    report = preflight(cell, part, robot=robot)
+    report = preflight(cell, part, config=PLAN, robot=robot)
     assert report.ok and report.configured is None and not report.plan.searched
     assert report.plan.part is part and report.plan.placement == Placement()
     cfg = load_plan_config()
-    for seg, ref in zip(report.plan.segments, six_segments(), strict=True):
+    configured = six_segments(np.radians(PLAN.segment_start_deg))
+    for seg, ref in zip(report.plan.segments, configured, strict=True):
         assert (seg.name, seg.phi_start, seg.phi_end, seg.rotation_deg) == (
             ref.name, ref.phi_start, ref.phi_end, ref.rotation_deg)
         assert seg.angles == (cfg.work_angle_deg, cfg.travel_angle_deg, 0.0)
@@ -51,7 +55,7 @@ def test_t_joint_keeps_its_configured_plan(cell, part, robot):
 
 def test_y_joint_75_plan_passes_every_segment_after_the_search(cell, robot):
     part = load_part(PARTS / "y_joint_75.yaml")
-    report = preflight(cell, part, robot=robot)
+    report = preflight(cell, part, config=PLAN, robot=robot)
     # as configured, axis 5 runs out of range on two segments
     assert report.configured is not None
     assert [v.passed for v in report.configured].count(False) >= 2
@@ -63,7 +67,7 @@ def test_y_joint_75_plan_passes_every_segment_after_the_search(cell, robot):
     assert min(v.margin_deg for v in report.verdicts) >= target
     # the plan is one the live loop can take: its settings and the placed part
     seg = report.plan.segments[1]
-    pc = report.plan.plan_config(seg)
+    pc = report.plan.plan_config(seg, PLAN)
     assert pc.segment_start_deg == report.plan.segment_start_deg
     assert (pc.work_angle_deg, pc.travel_angle_deg) == seg.angles[:2]
     T = report.plan.nominal_tcp(seg, np.array([0.0, 2.0]))
@@ -81,7 +85,7 @@ def test_y_joint_60_the_nozzle_fits_the_groove_a_cylinder_does_not(cell, robot):
     part = load_part(PARTS / "y_joint_60.yaml")
     tc = robot.config.torch
     assert tc.nozzle_length_mm > tc.tip_exclusion_mm and tc.nozzle_radius_mm < tc.radius_mm
-    report = preflight(cell, part, robot=robot)
+    report = preflight(cell, part, config=PLAN, robot=robot)
     assert any("axis 5 out of range" in v.reason for v in report.configured)
     assert report.ok, report.text()
     assert [v.passed for v in report.verdicts] == [True] * 6
@@ -93,7 +97,7 @@ def test_y_joint_60_the_nozzle_fits_the_groove_a_cylinder_does_not(cell, robot):
 
     cylinder = dataclasses.replace(robot.config, torch=dataclasses.replace(
         tc, nozzle_length_mm=0.0))
-    report = preflight(cell, part, robot=IRB1410(config=cylinder))
+    report = preflight(cell, part, config=PLAN, robot=IRB1410(config=cylinder))
     assert not report.ok
     for v in report.verdicts:
         assert v.other == 0, v.reason  # reach, ranges, singularity, speed: all clear
@@ -147,7 +151,7 @@ def test_search_moves_a_part_placed_where_no_segment_start_helps(cell, part, rob
     from torchseam.core.config import Pose
 
     far = dataclasses.replace(part, placement=Pose((1050.0, 0.0, 350.0), (1.0, 0.0, 0.0, 0.0)))
-    report = preflight(cell, far, robot=robot)
+    report = preflight(cell, far, config=PLAN, robot=robot)
     assert not all(v.passed for v in report.configured)
     assert report.ok and report.plan.placement != Placement()
     s = load_plan_config().search
@@ -156,7 +160,7 @@ def test_search_moves_a_part_placed_where_no_segment_start_helps(cell, part, rob
     assert s.tilt_deg[0] <= pl.tilt_deg <= s.tilt_deg[1]
     assert all(s.shift_mm[0] <= v <= s.shift_mm[1] for v in pl.shift_mm)
     # the plan's part carries the placement the gate was given
-    ev = PlanEvaluator(cell, far, robot=robot)
+    ev = PlanEvaluator(cell, far, PLAN, robot)
     np.testing.assert_allclose(report.plan.part.placement.matrix(), pl.matrix(far), atol=1e-9)
     np.testing.assert_allclose(ev.part_pose(pl, report.plan.segments[0]),
                                report.plan.geometry(report.plan.segments[0]).T_B_Tnom, atol=1e-9)

@@ -38,7 +38,7 @@ def test_ring_on_one_segment_writes_its_figures_and_every_command(tmp_path, caps
     assert f"poses: {n} ok, 0 refused" in capsys.readouterr().out
 
 
-def test_torch_axis_errors_measure_the_angle_to_the_true_bisector(part):
+def test_torch_axis_errors_measure_the_angle_to_the_true_bisector(part, parts):
     import numpy as np
 
     from torchseam.core.transforms import apply, rotation_about
@@ -53,19 +53,23 @@ def test_torch_axis_errors_measure_the_angle_to_the_true_bisector(part):
     tilt = np.radians(np.linspace(0.0, 3.0, 7))      # about each frame's own x (travel)
     x = np.array([1.0, 0, 0])
     R_off = np.stack([r @ rotation_about(x, a) for r, a in zip(R, tilt, strict=True)])
-    angle, dist = torch_axis_errors(scene, p, R_off, np.full(7, 1.0))
+    plan = parts.plan  # the work and travel angles of configs/plan.yaml
+    angle, dist = torch_axis_errors(scene, p, R_off, np.full(7, 1.0),
+                                    angles=(plan.work_angle_deg, plan.travel_angle_deg))
     np.testing.assert_allclose(angle, np.degrees(tilt), atol=0.02)
     assert dist.max() < 0.02   # the poses sit on the true seam (20 001 samples round it)
 
 
-def test_ring_poses_csv_round_trips_through_robot_check(cell, part, noise, tmp_path, capsys):
+def test_ring_poses_csv_round_trips_through_robot_check(cell, part, noise, parts, tmp_path,
+                                                        capsys):
     """Every planned command's torch pose (t, x, y, z, q1..q4 in the base frame) in the file
     ``torchseam robot check`` reads, which accepts it unchanged and passes every pose."""
     import numpy as np
 
     from torchseam.live.ring import run_ring, write_ring_poses
 
-    runs = run_ring(cell, part, noise, noise.level("strike"), 1, segments=[0], length_mm=20.0)
+    runs = run_ring(cell, part, noise, noise.level("strike"), 1, segments=[0], length_mm=20.0,
+                    parts=parts)
     assert runs[0].report is not None and runs[0].report.ok
     path = write_ring_poses(runs, tmp_path / "poses.csv")
     lines = path.read_text().splitlines()

@@ -22,6 +22,7 @@ from torchseam.robot.kinematics import (
     RobotInputError,
     URDFError,
     controller_to_urdf,
+    load_irb1410,
     pose_to_xyzq,
     rotation_angle,
     urdf_to_controller,
@@ -33,7 +34,7 @@ F64 = torch.float64
 
 @pytest.fixture(scope="module")
 def robot():
-    return IRB1410()
+    return load_irb1410()
 
 
 def random_joints(robot, n, seed=0):
@@ -392,7 +393,7 @@ def test_batch_shapes_and_dtype(robot):
     q[..., 4] = 30.0
     assert robot.fk(q).shape == (2, 3, 4, 4)
     assert robot.jacobian(q).shape == (2, 3, 6, 6)
-    r32 = IRB1410(dtype=torch.float32)
+    r32 = load_irb1410(dtype=torch.float32)
     T = r32.fk(torch.zeros(1, 6))
     assert T.dtype == torch.float32 and abs(T[0, 0, 3].item() - 955.0) < 1e-2
 
@@ -419,11 +420,11 @@ def test_bad_inputs_raise_clear_errors(robot, tmp_path):
     with pytest.raises(RobotInputError, match="expected 1 or 2 seeds"):
         robot.ik(torch.eye(4, dtype=F64).repeat(2, 1, 1), torch.zeros(3, 6))
     with pytest.raises(URDFError, match="cannot read URDF"):
-        IRB1410(tmp_path / "none.urdf")
+        IRB1410(load_robot(), tmp_path / "none.urdf")
     bad = tmp_path / "bad.urdf"
     bad.write_text(URDF_PATH.read_text().replace('xyz="0 0 0.6"', 'xyz="0 0.05 0.6"'))
     with pytest.raises(URDFError, match="not an IRB 1410-like arm"):
-        IRB1410(bad)
+        IRB1410(load_robot(), bad)
 
 
 def test_robot_config_errors_name_the_field():

@@ -17,6 +17,7 @@ from torchseam.robot.kinematics import (
     IRB1410,
     RobotInputError,
     arm_candidates,
+    load_irb1410,
     pose_to_xyzq,
     range_excess,
 )
@@ -27,7 +28,7 @@ F64 = torch.float64
 
 @pytest.fixture(scope="module")
 def robot():
-    return IRB1410()
+    return load_irb1410()
 
 
 @pytest.fixture(scope="module")
@@ -218,7 +219,7 @@ def test_segment_distance_hand_cases_and_brute_force():
 
 
 def test_egm_gate_interface(cell, part, ring):
-    g = ReachGate(cell=cell, part=part)
+    g = ReachGate(load_irb1410(), cell=cell, part=part)
     xyzq = pose_to_xyzq(ring[:3]).numpy()
     assert g(xyzq[0, :3], xyzq[0, 3:]) == (True, "")
     assert g(xyzq[1, :3], xyzq[1, 3:])[0]

@@ -12,6 +12,7 @@ import pytest
 
 from torchseam.cli import main
 from torchseam.core.config import load_cell, load_noise, load_part
+from torchseam.live.parts import load_live_parts
 from torchseam.live.search import (
     SeamSearch,
     across_seam,
@@ -21,6 +22,8 @@ from torchseam.live.search import (
     pattern,
     search_start,
 )
+
+PARTS = load_live_parts()  # the shipped settings and parts, as the command line reads them
 
 
 def _in_start_frame(T_start: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, float]:
@@ -93,7 +96,7 @@ def test_start_beyond_the_bound_is_a_clear_failure_without_motion_beyond_it():
     cfg = dataclasses.replace(load_search_config(), max_extent_mm=15.0, lateral_step_mm=15.0,
                               max_angle_deg=0.0)
     res = run_demo(cell, part, noise, noise.level("heavy"), 0, segments="a", length_mm=3.0,
-                   start_offset_mm=60.0, search=cfg)
+                   start_offset_mm=60.0, parts=dataclasses.replace(PARTS, search=cfg))
     s = res.summary
     assert demo_exit_code(s) == 1
     (inc,) = s["segments_incomplete"]
@@ -138,7 +141,7 @@ def test_a_start_the_gate_refuses_moves_nothing():
     cell, part, noise = load_cell(), load_part(), load_noise()
     cfg = dataclasses.replace(load_search_config(), standoff_mm=0.0, max_standoff_mm=0.0)
     res = run_demo(cell, part, noise, noise.level("heavy"), 0, segments="a", length_mm=3.0,
-                   start_offset_mm=-30.0, search=cfg)
+                   start_offset_mm=-30.0, parts=dataclasses.replace(PARTS, search=cfg))
     (inc,) = res.summary["segments_incomplete"]
     assert inc["reason"].startswith("start pose refused") and "0 mm stand-off" in inc["reason"]
     assert "tip" in inc["reason"] or "clearance" in inc["reason"]
@@ -148,11 +151,12 @@ def test_a_start_the_gate_refuses_moves_nothing():
 def test_cli_reports_a_seam_not_found_and_exits_1(tmp_path, capsys, monkeypatch):
     import json
 
-    import torchseam.live.demo as demo
+    import torchseam.live.parts as live_parts
 
     small = dataclasses.replace(load_search_config(), max_extent_mm=15.0, lateral_step_mm=15.0,
                                 max_angle_deg=0.0)
-    monkeypatch.setattr(demo, "load_search_config", lambda: small)
+    # the command line reads configs/search.yaml (through load_live_parts): a smaller one there
+    monkeypatch.setattr(live_parts, "load_search_config", lambda: small)
     rc = main(["demo", "--segments", "a", "--length-mm", "3", "--no-video", "--out",
                str(tmp_path), "--start-offset-mm", "60"])
     out = capsys.readouterr().out
@@ -193,12 +197,12 @@ def _segment_a(name):
 
     cell = load_cell()
     part = load_part(CONFIG_DIR / "parts" / f"{name}.yaml")
-    plan = preflight(cell, part).plan
+    plan = preflight(cell, part, config=PARTS.plan, robot=PARTS.robot).plan
     seg = plan.segments[0]
     geo = plan.geometry(seg)
     s0 = float(geo.s_at(np.array([seg.phi_start]))[0]) - (
         cell.process.look_ahead_mm + load_plan_config().approach_mm)
-    gate = ReachGate(cell=cell, part=plan.part, part_pose_mm=geo.T_B_Tnom)
+    gate = ReachGate(PARTS.robot, cell=cell, part=plan.part, part_pose_mm=geo.T_B_Tnom)
     return plan, seg, s0, plan.nominal_tcp(seg, np.array([s0]))[0], gate
 
 
@@ -263,7 +267,7 @@ def test_a_part_off_its_programmed_place_is_started_on_its_true_seam(tmp_path):
     _, _, _, T0, _ = _segment_a("t_joint")
     part = _shifted_part(tmp_path, [float(v) for v in 4.0 * T0[:3, 1] + 3.0 * T0[:3, 2]])
     res = run_demo(cell, part, noise, noise.level("heavy"), 0, segments="a", length_mm=4.0,
-                   start_offset_mm=20.0, start_angle_deg=8.0)
+                   start_offset_mm=20.0, start_angle_deg=8.0, parts=PARTS)
     s = res.summary
     (srch,) = s["search"]
     assert srch["found"], srch
@@ -278,7 +282,8 @@ def test_a_part_off_its_programmed_place_is_started_on_its_true_seam(tmp_path):
 
     cfg = dataclasses.replace(load_search_config(), max_seam_offset_mm=1.0)
     res = run_demo(cell, part, noise, noise.level("heavy"), 0, segments="a", length_mm=4.0,
-                   start_offset_mm=20.0, start_angle_deg=8.0, search=cfg)
+                   start_offset_mm=20.0, start_angle_deg=8.0,
+                   parts=dataclasses.replace(PARTS, search=cfg))
     (inc,) = res.summary["segments_incomplete"]
     assert "from the programmed seam (limit 1 mm" in inc["reason"]
     assert res.summary["poses_welded"] == 0 and res.summary["unsafe_poses_sent"] == 0
@@ -298,7 +303,7 @@ def test_search_frames_are_in_the_report_and_the_video():
     cell, part, noise = load_cell(), load_part(), load_noise()
     video = _FakeVideo()
     res = run_demo(cell, part, noise, noise.level("heavy"), 0, segments="a", length_mm=2.0,
-                   start_offset_mm=-25.0, start_angle_deg=10.0, video=video)
+                   start_offset_mm=-25.0, start_angle_deg=10.0, video=video, parts=PARTS)
     s = res.summary
     states = [f.state for f in res.frames]
     n_search, n_app = states.count("search"), states.count("approach")

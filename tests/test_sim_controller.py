@@ -11,7 +11,7 @@ import pytest
 from torchseam.core.transforms import matrix_to_quat, rotation_about
 from torchseam.robot.egm import load_egm_config
 from torchseam.robot.egm.messages import EgmRobot, EgmSensor
-from torchseam.robot.kinematics import IRB1410
+from torchseam.robot.kinematics import load_irb1410
 from torchseam.robot.sim_controller import SimController
 from torchseam.robot.sim_controller.arm import ArmModel, ProgrammedPath, straight_path
 from torchseam.robot.sim_controller.faults import Fault, FaultPlan
@@ -24,12 +24,14 @@ TOOL[:3, 3] = [0.0, 0.0, 300.0]
 
 @pytest.fixture(scope="module")
 def robot():
-    return IRB1410()
+    return load_irb1410()
 
 
-def test_the_config_is_the_callers_to_read():
+def test_the_config_the_arm_and_the_tool_are_the_callers_to_read():
     with pytest.raises(TypeError):
         SimController()  # type: ignore[call-arg]
+    with pytest.raises(TypeError):  # no robot.yaml or cell.yaml read behind the caller's back
+        SimController(CFG)  # type: ignore[call-arg]
 
 
 def test_the_arm_walks_to_a_target_within_its_speed_limits(robot):

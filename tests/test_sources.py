@@ -198,12 +198,12 @@ def test_threaded_source_passes_reader_errors_on():
     assert not any(t.name == "frame-reader" and t.is_alive() for t in threading.enumerate())
 
 
-def test_replay_of_a_recording_tracks_and_locates(recording, cell):
+def test_replay_of_a_recording_tracks_and_locates(recording, cell, parts):
     folder, truths = recording
     truth = {t.index: t.seam_B for t in truths}
     sink = RecordingSink()
-    res = run_replay(cell, FolderSource(folder), make_tracker("anchored"), sink=sink,
-                     truth=truth)
+    res = run_replay(cell, FolderSource(folder), make_tracker("anchored", parts.tipm),
+                     parts=parts, sink=sink, truth=truth)
     assert res.poses_known and res.start_index == 0 and len(res.index) == N_FRAMES - 1
     err = res.pixel_errors()
     assert len(err) == N_FRAMES - 1 and np.sqrt(np.mean(err**2)) < 2.0

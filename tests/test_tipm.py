@@ -9,7 +9,7 @@ import pytest
 from torchseam.core.dataset import check_frame, read_frame
 from torchseam.core.errors import FrameError
 from torchseam.sim.sequence import SequenceSpec, simulate
-from torchseam.vision.tipm import Tipm, draw_overlay
+from torchseam.vision.tipm import Tipm, draw_overlay, load_tipm, load_tipm_config
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,7 @@ def varied_clean_frames(cell, part, noise):
 
 
 def test_tipm_accuracy_on_clean_frames(varied_clean_frames):
-    tipm = Tipm()
+    tipm = load_tipm()
     err = []
     for img, t in varied_clean_frames:
         res = tipm(img)
@@ -39,14 +39,14 @@ def test_tipm_accuracy_on_clean_frames(varied_clean_frames):
 
 
 def test_thinning_centre_line_finds_the_point_too(varied_clean_frames):
-    tipm = Tipm(centre_line="thinning")
+    tipm = load_tipm(centre_line="thinning")
     err = [np.linalg.norm(tipm(img).uv - t.uv) for img, t in varied_clean_frames[:20]]
     assert np.sqrt(np.mean(np.square(err))) < 1.5
 
 
 def test_overlay_marks_the_point(varied_clean_frames):
     img, t = varied_clean_frames[0]
-    res = Tipm()(img)
+    res = load_tipm()(img)
     ov = draw_overlay(img, res, t.uv)
     assert ov.shape == img.shape and not np.array_equal(ov, img)
     u, v = np.round(res.uv).astype(int)
@@ -59,7 +59,7 @@ def test_overlay_marks_the_point(varied_clean_frames):
 
 
 def test_laser_off_and_dark_frames_give_no_point(cell, part, noise):
-    tipm = Tipm()
+    tipm = load_tipm()
     frames = list(simulate(cell, part, noise, SequenceSpec(n_frames=2, seed=1, laser_off=(0, 1))))
     for img, _ in frames:
         res = tipm(img)
@@ -71,19 +71,19 @@ def test_laser_off_and_dark_frames_give_no_point(cell, part, noise):
 def test_arc_saturated_frame_is_refused(clean_seq):
     img = clean_seq[0][0].copy()
     img[60:, :] = 255  # a flash that blinds most of the sensor
-    res = Tipm()(img)
+    res = load_tipm()(img)
     assert not res.ok and "saturated" in res.reason
 
 
 def test_straight_stripe_has_no_corner():
     img = np.zeros((492, 656, 3), np.uint8)
     cv2.line(img, (20, 240), (630, 250), (40, 50, 230), 3, cv2.LINE_AA)
-    res = Tipm()(img)
+    res = load_tipm()(img)
     assert not res.ok and "no corner" in res.reason
 
 
 def test_bad_frames_raise_clear_errors(tmp_path, clean_seq):
-    tipm = Tipm()
+    tipm = load_tipm()
     img = clean_seq[0][0]
     with pytest.raises(FrameError, match=r"mono \(H, W\) or BGR \(H, W, 3\)"):
         tipm(np.zeros((100, 100, 4), np.uint8))
@@ -109,16 +109,17 @@ def test_arm_ends_at_the_window_edge_do_not_move_the_corner(cell, noise):
     mask ends short of the stripe's cross-section and those columns' centres lean up. They
     bent the arm fits: the corner moved 0.3-0.4 px in v on clean frames."""
     from torchseam.core.config import CONFIG_DIR, load_part
-    from torchseam.plan.path import six_segments
+    from torchseam.plan.path import load_plan_config, six_segments
     from torchseam.sim.scene import Scene
 
     part = load_part(CONFIG_DIR / "parts" / "y_joint_60.yaml")
-    seg = next(s for s in six_segments() if s.name == "e")
+    start = np.radians(load_plan_config().segment_start_deg)
+    seg = next(s for s in six_segments(start) if s.name == "e")
     scene = Scene(part, seg.rotation_deg)
     s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
     spec = SequenceSpec(n_frames=40, level=0.0, seed=2, start_mm=s0 + 20.0,
                         rotation_deg=seg.rotation_deg)
-    tipm, r = Tipm(), 110
+    tipm, r = load_tipm(), 110
     err = []
     for img, t in list(simulate(cell, part, noise, spec))[::4]:
         x0, y0 = int(t.uv[0]) - r, int(t.uv[1]) - r
@@ -137,7 +138,7 @@ def test_a_red_glare_halo_under_the_corner_does_not_pull_it(cell, part, noise):
     raw red response, each column's centre leans toward the halo's brighter side (0.07-0.12 px
     in v here, up to 0.5 px on heavy-arc frames of the 60-degree joint); weighed by the ridge
     (red minus its local vertical mean) it does not."""
-    tipm = Tipm()
+    tipm = load_tipm()
     err = []
     for img, t in simulate(cell, part, noise, SequenceSpec(n_frames=6, level=0.0, seed=3)):
         h, w = img.shape[:2]
@@ -161,7 +162,7 @@ def test_under_heavy_arc_tipm_refuses_rather_than_guesses(cell, part, noise):
     the point was 50 px off, before such fits were refused; since the centre line is refined
     around each column's centroid, that frame gives a point 1.3 px off, and the refusal
     happens on seed 105's frame 19)."""
-    tipm = Tipm()
+    tipm = load_tipm()
     errs, reasons = [], []
     for seed in (103, 105):
         for img, t in simulate(cell, part, noise,
@@ -185,7 +186,7 @@ def test_a_stripe_saturated_on_glare_keeps_its_centre(cell, part, noise):
     the corner moves up to 1.1 px; with it, within 0.3 px."""
     from torchseam.sim.noise import ARC_BGR
 
-    tipm = Tipm()
+    tipm = load_tipm()
     masked_only = Tipm(dataclasses.replace(tipm.cfg, centre_passes=0))
     err, err_masked = [], []
     for img, t in simulate(cell, part, noise, SequenceSpec(n_frames=6, level=0.0, seed=3)):
@@ -303,7 +304,7 @@ def _centre_reference(response, mask, half, passes, reach, span):
 def test_compiled_centre_line_matches_its_numpy_statement(cell, part, noise):
     """The compiled centre line against a direct numpy statement of it, on clean and heavy-arc
     windows (stripe saturated on glare, spatter), at the frame border, and on an empty mask."""
-    tipm = Tipm()
+    tipm = load_tipm()
     cfg = tipm.cfg
     reach = cfg.ridge_px // 2 + 1
     frames = [f for f, _ in simulate(cell, part, noise, SequenceSpec(n_frames=40, level=1.0,
@@ -331,7 +332,7 @@ def test_compiled_centre_line_matches_its_numpy_statement(cell, part, noise):
     assert checked > 1000 and cut_by_border >= 4 and several > 20  # columns with 2+ runs
     empty = np.zeros((50, 80), np.uint8)
     assert tipm.centre(empty, empty).shape == (0, 2)
-    assert Tipm(centre_line="thinning").centre(empty, empty).shape == (0, 2)
+    assert load_tipm(centre_line="thinning").centre(empty, empty).shape == (0, 2)
 
 
 def _faint_v(seed: int, amp: float, noise: float = 14.0, corner=(330.0, 250.0)) -> np.ndarray:
@@ -348,7 +349,7 @@ def _faint_v(seed: int, amp: float, noise: float = 14.0, corner=(330.0, 250.0)) 
 def test_a_stripe_in_pixel_noise_is_found_by_the_second_look():
     # the stripe 65 grey levels over white noise of 14: the per-pixel threshold breaks it into
     # blobs; averaged along the stripe (smooth_px) it stands clear and the corner is right
-    tipm = Tipm()
+    tipm = load_tipm()
     once = Tipm(dataclasses.replace(tipm.cfg, smooth_px=1))
     assert tipm.cfg.smooth_px > 1
     for seed in range(3):
@@ -364,3 +365,21 @@ def test_a_stripe_in_pixel_noise_is_found_by_the_second_look():
     # noise alone gives no point on the second look either
     for seed in range(5):
         assert not tipm(_faint_v(seed, 0.0)).ok
+
+
+def test_tipm_takes_its_config_and_load_tipm_reads_the_shipped_one(tmp_path):
+    """No file is read behind the caller's back: Tipm needs its config; load_tipm reads
+    configs/tipm.yaml (or the file it is given)."""
+    import yaml
+
+    from torchseam.core.config import CONFIG_DIR
+
+    with pytest.raises(TypeError):
+        Tipm()  # type: ignore[call-arg]
+    assert load_tipm().cfg == load_tipm_config()
+    data = yaml.safe_load((CONFIG_DIR / "tipm.yaml").read_text())
+    data["dilate_px"] = int(data["dilate_px"]) + 1
+    (tmp_path / "tipm.yaml").write_text(yaml.safe_dump(data))
+    other = load_tipm(tmp_path / "tipm.yaml", centre_line="thinning")
+    assert other.cfg.dilate_px == load_tipm_config().dilate_px + 1
+    assert other.centre_line == "thinning"

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from torchseam.core.config import CONFIG_DIR, ConfigError, load_part
+from torchseam.core.config import CONFIG_DIR, ConfigError, load_cell, load_part
 from torchseam.robot.config import load_robot, robot_config_from_dict
 from torchseam.robot.kinematics import IRB1410
 from torchseam.robot.reach import ReachGate, _segment_convex_distance
@@ -21,7 +21,8 @@ PARTS = CONFIG_DIR / "parts"
 def _gate(part_name: str, **torch_kw) -> ReachGate:
     cfg = load_robot()
     cfg = dataclasses.replace(cfg, torch=dataclasses.replace(cfg.torch, **torch_kw))
-    return ReachGate(IRB1410(config=cfg), part=load_part(PARTS / f"{part_name}.yaml"))
+    return ReachGate(IRB1410(config=cfg), cell=load_cell(),
+                     part=load_part(PARTS / f"{part_name}.yaml"))
 
 
 def _plate_pose(part, alpha_deg: float, h_mm: float, x_mm: float = -200.0) -> np.ndarray:

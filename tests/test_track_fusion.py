@@ -272,10 +272,10 @@ def _corner(uv, rms, slopes=(-0.3, 0.3), gap_px=0.0):
 def _anchored_with_tipm(offsets, rms):
     """AnchoredTracker on a stub EAKF-STC fixed at (200, 150) and a stub TIPM returning the
     corner at ``offsets[k]`` from the true point (200, 150) on call k."""
-    from torchseam.track.live import AnchoredTracker
-    from torchseam.vision.tipm import load_tipm_config
+    from torchseam.track.live import AnchoredTracker, load_live_tracker
+    from torchseam.vision.tipm import load_tipm, load_tipm_config
 
-    trk = AnchoredTracker()
+    trk = AnchoredTracker(load_live_tracker(), load_tipm())
     trk.inner = _StubInner((200.0, 150.0))
     trk.x = None
     calls = iter(offsets)
@@ -350,9 +350,10 @@ def test_anchored_leans_on_its_prediction_under_red_glare():
     """A glare band over the corner: TIPM's fits stay tight while the corner slides along the
     stripe, and EAKF-STC follows. Under red haze around the point the filter trusts both less
     (the fitted glare_start, glare_scale) and moves onto them slowly."""
-    from torchseam.track.live import AnchoredTracker, glare_level
+    from torchseam.track.live import glare_level, load_live_tracker
 
-    cfg = AnchoredTracker().cfg  # the fitted glare weights (models/live_tracker.safetensors)
+    # the fitted glare weights (models/live_tracker.safetensors), as AnchoredTracker runs them
+    cfg = load_live_tracker().anchor_config()
     dark = np.zeros((480, 640, 3), np.uint8)
     haze = dark.copy()
     # a red haze as strong as a frame holds (250 grey levels at most): the covariances grow by
@@ -418,7 +419,7 @@ def test_corner_covariance_grows_when_an_arm_stops_short_of_the_corner():
 def test_tipm_arm_prior_keeps_the_corner_where_an_arm_has_a_gap():
     """A left arm with a gap next to the corner and a short bent stretch beyond it: the free
     quadratic slides the corner along the stripe, the prior of the previous shape does not."""
-    from torchseam.vision.tipm import Tipm
+    from torchseam.vision.tipm import load_tipm
 
     u = np.arange(0.0, 241.0)
     v = 100.0 + 0.3 * np.abs(u - 120.0)            # a 147 deg corner at (120, 100)
@@ -428,7 +429,7 @@ def test_tipm_arm_prior_keeps_the_corner_where_an_arm_has_a_gap():
     v[left] -= 0.002 * (u[left] - 60) ** 2        # bent by spatter touching the stripe
     keep = left | (u > 120)
     pts = np.stack([u[keep], v[keep]], axis=1)
-    tipm = Tipm()
+    tipm = load_tipm()
     free = tipm.corner(pts)
     prior = np.array([[-0.3, 0.0, 1e4, 1e9], [0.3, 0.0, 1e4, 1e9]])
     held = tipm.corner(pts, prior=prior)

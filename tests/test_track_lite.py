@@ -175,15 +175,16 @@ def test_from_module_refuses_settings_it_does_not_run(setting) -> None:
         LiteEAKFSTC.from_module(EAKFSTC(**setting))
 
 
-def test_eakf_stc_tracker_is_the_twin_and_follows_a_heavy_arc_seam(cell, part, noise) -> None:
+def test_eakf_stc_tracker_is_the_twin_and_follows_a_heavy_arc_seam(cell, part, noise,
+                                                                    tipm) -> None:
     from torchseam.sim.sequence import SequenceSpec, simulate
 
     pairs = list(simulate(cell, part, noise, SequenceSpec(n_frames=80,
                                                           level=noise.level("heavy"), seed=5)))
     frames, truth = [f for f, _ in pairs], np.array([t.uv for _, t in pairs], float)
-    trk = make_tracker("eakf-stc")
+    trk = make_tracker("eakf-stc", tipm)
     assert isinstance(trk, LiteTracker)
-    uv, status, secs, idle_secs, note = run_tracker(trk, frames, truth[0])
+    uv, status, secs, idle_secs, note = run_tracker(trk, frames, truth[0], tipm)
     assert uv.shape == (80, 2) and status.shape == (80,) and note == "given"
     assert idle_secs.shape == (80,) and idle_secs[1:].min() > 0  # the learning, between frames
     err = np.linalg.norm(uv - truth, axis=1)

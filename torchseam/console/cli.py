@@ -62,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     from torchseam.console.replay import replay_console
     from torchseam.console.server import is_loopback
     from torchseam.console.sim import simulated_console
-    from torchseam.core.config import load_part
+    from torchseam.core.config import load_cell, load_noise, load_part
+    from torchseam.live.parts import load_live_parts
 
     torch.set_num_threads(1)   # as `torchseam demo`: small ops, one thread is fastest
     cv2.setNumThreads(1)
@@ -71,11 +72,13 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= port <= 65535:
         raise TorchseamError(f"--port must be in 0..65535, got {port}")
     defaults = {"noise": args.noise, "segments": args.segments, "length_mm": args.length_mm}
+    cell, noise, parts = load_cell(), load_noise(), load_live_parts()
     try:
         if args.source == "sim":
-            console = simulated_console(cfg, part=load_part(args.part), defaults=defaults)
+            console = simulated_console(cfg, cell, load_part(args.part), noise, parts,
+                                        defaults=defaults)
         else:   # a folder or video: open_source's errors name the path
-            console = replay_console(args.source, cfg, defaults=defaults)
+            console = replay_console(args.source, cfg, cell, noise, parts, defaults=defaults)
     except ParamError as e:
         raise TorchseamError(str(e)) from None
     console.allowed_hosts = tuple(args.allow_host)

@@ -18,11 +18,12 @@ from typing import Any
 
 import numpy as np
 
-from torchseam.console.config import ConsoleConfig, WeldParams, load_console_config
+from torchseam.console.config import ConsoleConfig, WeldParams
 from torchseam.console.server import ConsoleServer
 from torchseam.console.sim import make_console
-from torchseam.core.config import CellConfig, NoiseConfig, load_cell, load_noise
+from torchseam.core.config import CellConfig, NoiseConfig
 from torchseam.live.demo import DemoControl, DemoEvent
+from torchseam.live.parts import LiveParts
 from torchseam.live.replay import ReplayResult, run_replay
 from torchseam.live.sources import CameraSource, FolderSource, open_source
 from torchseam.track.peers import make_tracker
@@ -71,35 +72,35 @@ def replay_summary(res: ReplayResult) -> dict[str, Any]:
     }
 
 
-def replay_weld(cell: CellConfig, path: str | os.PathLike[str]
+def replay_weld(cell: CellConfig, path: str | os.PathLike[str], parts: LiveParts
                 ) -> Callable[[WeldParams, Callable[[DemoEvent], None], DemoControl], ReplayWeld]:
     """A weld function for :class:`WeldSession`: :func:`run_replay` of ``path`` (opened anew
-    for every weld) with the page's tracker and process settings."""
+    for every weld) with the page's tracker and process settings and ``parts``."""
 
     def weld(p: WeldParams, observer: Callable[[DemoEvent], None],
              control: DemoControl) -> ReplayWeld:
         c = p.apply(cell)
         source = open_source(path, (c.camera.width, c.camera.height))
         with source:
-            res = run_replay(c, source, make_tracker(p.tracker), truth=_truth(source),
-                             observer=observer, control=control)
+            res = run_replay(c, source, make_tracker(p.tracker, parts.tipm), parts=parts,
+                             truth=_truth(source), observer=observer, control=control)
         return ReplayWeld(res, replay_summary(res))
 
     return weld
 
 
-def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig | None = None,
-                   cell: CellConfig | None = None, noise: NoiseConfig | None = None,
+def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig, cell: CellConfig,
+                   noise: NoiseConfig, parts: LiveParts,
                    defaults: dict[str, Any] | None = None) -> ConsoleServer:
     """A :class:`ConsoleServer` running the recorded folder, video file or live camera at
-    ``path`` (see :func:`~torchseam.live.sources.open_source`) open loop.
+    ``path`` (see :func:`~torchseam.live.sources.open_source`) open loop, with these settings
+    (the command line reads them; :func:`~torchseam.live.parts.load_live_parts` the shipped
+    ``parts``).
 
     Raises:
         DatasetError / FrameError: nothing readable at ``path`` (named), found here, before
             anything is served.
     """
-    cfg = cfg or load_console_config()
-    cell, noise = cell or load_cell(), noise or load_noise()
     src = open_source(path, (cell.camera.width, cell.camera.height))
     try:
         inner = getattr(src, "source", src)  # a camera comes wrapped in a ThreadedSource
@@ -112,5 +113,5 @@ def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig | None = Non
     period = 1.0 / fps if fps and fps > 0 else 1.0 / cell.process.frame_rate_hz
     if kind == "live camera":
         period = 0.0  # a camera paces itself; pacing on top would only drop frames
-    return make_console(cfg, cell, noise, replay_weld(cell, path), period,
+    return make_console(cfg, cell, noise, replay_weld(cell, path, parts), period,
                         f"{kind} {name} ({IGNORED})", defaults, open_loop=True)

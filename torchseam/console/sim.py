@@ -5,25 +5,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from torchseam.console.config import (
-    SEGMENT_LETTERS,
-    ConsoleConfig,
-    WeldParams,
-    load_console_config,
-    parse_params,
-)
+from torchseam.console.config import SEGMENT_LETTERS, ConsoleConfig, WeldParams, parse_params
 from torchseam.console.server import ConsoleServer
 from torchseam.console.session import WeldFn, WeldSession
-from torchseam.core.config import (
-    CellConfig,
-    NoiseConfig,
-    PartConfig,
-    load_cell,
-    load_noise,
-    load_part,
-)
+from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
 from torchseam.live.demo import FAULTS, DemoControl, DemoEvent, DemoResult, run_demo
-from torchseam.live.search import load_search_config
+from torchseam.live.parts import LiveParts
 from torchseam.track.peers import TRACKERS
 
 #: Form defaults that are not in ``cell.yaml`` (the demo's own defaults).
@@ -33,28 +20,29 @@ DEMO_DEFAULTS: dict[str, Any] = {"segments": SEGMENT_LETTERS, "length_mm": None,
                                  "start_angle_deg": 0.0}
 
 
-def sim_weld(cell: CellConfig, part: PartConfig, noise: NoiseConfig
+def sim_weld(cell: CellConfig, part: PartConfig, noise: NoiseConfig, parts: LiveParts
              ) -> Callable[[WeldParams, Callable[[DemoEvent], None], DemoControl], DemoResult]:
-    """A weld function for :class:`WeldSession`: :func:`run_demo` with the page's parameters."""
+    """A weld function for :class:`WeldSession`: :func:`run_demo` with the page's parameters
+    and ``parts``."""
 
     def weld(p: WeldParams, observer: Callable[[DemoEvent], None],
              control: DemoControl) -> DemoResult:
         return run_demo(p.apply(cell), part, noise, p.noise, p.seed, p.faults, p.segments,
                         p.tracker, length_mm=p.length_mm, observer=observer, control=control,
-                        start_offset_mm=p.start_offset_mm, start_angle_deg=p.start_angle_deg)
+                        start_offset_mm=p.start_offset_mm, start_angle_deg=p.start_angle_deg,
+                        parts=parts)
 
     return weld
 
 
-def simulated_console(cfg: ConsoleConfig | None = None, cell: CellConfig | None = None,
-                      part: PartConfig | None = None, noise: NoiseConfig | None = None,
+def simulated_console(cfg: ConsoleConfig, cell: CellConfig, part: PartConfig,
+                      noise: NoiseConfig, parts: LiveParts,
                       defaults: dict[str, Any] | None = None) -> ConsoleServer:
-    """A :class:`ConsoleServer` driving the simulated cell (shipped configs by default);
+    """A :class:`ConsoleServer` driving the simulated cell with these settings (the command
+    line reads them; :func:`~torchseam.live.parts.load_live_parts` the shipped ``parts``);
     ``defaults`` overrides the parameter form's initial values."""
-    cfg = cfg or load_console_config()
-    cell, part, noise = cell or load_cell(), part or load_part(), noise or load_noise()
-    search = load_search_config()
-    return make_console(cfg, cell, noise, sim_weld(cell, part, noise),
+    search = parts.search
+    return make_console(cfg, cell, noise, sim_weld(cell, part, noise, parts),
                         1.0 / cell.process.frame_rate_hz, "simulated cell", defaults,
                         start_bounds=(search.max_extent_mm, search.max_angle_deg))
 

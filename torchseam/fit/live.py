@@ -98,14 +98,15 @@ class LiveSequence:
 def simulate_set(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
                  families: Sequence[str], levels: Sequence[str], seeds: Sequence[int],
                  n_frames: int, hide_frames: Sequence[int] = (30, 60),
-                 progress: Callable[[str], None] | None = None) -> list[LiveSequence]:
+                 progress: Callable[[str], None] | None = None, *, tipm: Tipm
+                 ) -> list[LiveSequence]:
     """One sequence per (family, level, seed), simulated in memory and read in the view the
-    live loop finds on its first frame (:func:`~torchseam.vision.tipm.find_view`). Level
+    live loop finds on its first frame (:func:`~torchseam.vision.tipm.find_view` with
+    ``tipm``). Level
     ``beyond``: heavy arc plus the corner hidden under glare for each of ``hide_frames``
     frames, at places drawn from the seed (the benchmark's places are fixed: a fit must not
     learn them)."""
     out = []
-    tipm = Tipm()
     for fam in families:
         for name in levels:
             try:
@@ -137,15 +138,15 @@ def simulate_set(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
     return out
 
 
-def load_set(roots: Sequence[str | Path], progress: Callable[[str], None] | None = None
-             ) -> list[LiveSequence]:
+def load_set(roots: Sequence[str | Path], progress: Callable[[str], None] | None = None, *,
+             tipm: Tipm) -> list[LiveSequence]:
     """Labelled recordings (a dataset folder, or a folder of them: frames ``00000.png`` ... and
-    ``labels.csv``) as sequences in the view the live loop finds on their first frame; each is
+    ``labels.csv``) as sequences in the view the live loop finds on their first frame (with
+    ``tipm``); each is
     tracked from its first labelled frame, frames without a label count in no loss."""
     from torchseam.core.dataset import Dataset, check_frame
     from torchseam.fit.data import find_sequences
 
-    tipm = Tipm()
     out = []
     for root in roots:
         for d in find_sequences(root):
@@ -172,10 +173,11 @@ def _grey(frames: Sequence[np.ndarray]) -> Tensor:
 
 def track_set(module: LiveTracker, seqs: Sequence[LiveSequence], batch: int,
               chunk: int = 0, huber: float = 2.0,
-              opt: torch.optim.Optimizer | None = None, clip: float = 0.0
+              opt: torch.optim.Optimizer | None = None, clip: float = 0.0, *, tipm: Tipm
               ) -> tuple[float, list[np.ndarray], list[list[int]]]:
-    """Track ``seqs`` (equal lengths within a batch) from their frame-0 labels, B at a time.
-    With ``opt``: truncated BPTT, an optimiser step per ``chunk`` frames.
+    """Track ``seqs`` (equal lengths within a batch) from their frame-0 labels, B at a time
+    (``tipm``: the fixes' TIPM). With ``opt``: truncated BPTT, an optimiser step per ``chunk``
+    frames.
 
     Returns:
         (mean Huber per coordinate, per-sequence fused points (T, 2), statuses).
@@ -191,7 +193,8 @@ def track_set(module: LiveTracker, seqs: Sequence[LiveSequence], batch: int,
         labels = torch.from_numpy(np.stack([s.labels[:T] for s in group])).to(dtype)
         with torch.set_grad_enabled(opt is not None):
             state = module.init_state([s.frames[0] for s in group],
-                                      _grey([s.frames[0] for s in group]), labels[:, 0])
+                                      _grey([s.frames[0] for s in group]), labels[:, 0],
+                                      tipm=tipm)
             out = [labels[:, 0].detach().numpy().astype(float)]
             st: list[list[int]] = [[0] * len(group)]
             loss = labels.new_zeros(())
@@ -275,9 +278,10 @@ def readable(module: LiveTracker) -> dict[str, Any]:
 
 def fit_live(module: LiveTracker, train: Sequence[LiveSequence], val: Sequence[LiveSequence],
              cfg: LiveFitConfig, out: Path, info: dict[str, Any],
-             say: Callable[[str], None] = print) -> dict[str, Any]:
-    """Fit ``module`` (built learnable) on ``train``, select on ``val``; write
-    ``out/live_tracker.safetensors`` and ``out/metrics.json``.
+             say: Callable[[str], None] = print, *, tipm: Tipm) -> dict[str, Any]:
+    """Fit ``module`` (built learnable) on ``train``, select on ``val`` (``tipm``: the fixes'
+    TIPM, the one the live loop runs); write ``out/live_tracker.safetensors`` and
+    ``out/metrics.json``.
 
     Returns:
         The metrics (history per epoch, the kept epoch, validation errors by group).
@@ -288,7 +292,7 @@ def fit_live(module: LiveTracker, train: Sequence[LiveSequence], val: Sequence[L
     out.mkdir(parents=True, exist_ok=True)
 
     def validate() -> tuple[float, dict[str, dict[str, float]]]:
-        loss, uvs, _ = track_set(module, val, cfg.batch, huber=cfg.huber)
+        loss, uvs, _ = track_set(module, val, cfg.batch, huber=cfg.huber, tipm=tipm)
         return loss, errors_by_group(val, uvs, cfg.lost_px)
 
     t0 = time.time()
@@ -302,7 +306,8 @@ def fit_live(module: LiveTracker, train: Sequence[LiveSequence], val: Sequence[L
     for epoch in range(1, cfg.epochs + 1):
         t1 = time.time()
         order = [train[i] for i in rng.permutation(len(train))]
-        loss, _, _ = track_set(module, order, cfg.batch, cfg.chunk, cfg.huber, opt, cfg.clip)
+        loss, _, _ = track_set(module, order, cfg.batch, cfg.chunk, cfg.huber, opt, cfg.clip,
+                               tipm=tipm)
         v_loss, v_groups = validate()
         if not math.isfinite(v_loss):
             raise FitError(f"epoch {epoch}: the validation loss is not finite: the fit diverged "

@@ -95,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     from torchseam.fit.live import fit_live, load_live_fit_config, load_set, simulate_set
     from torchseam.fit.train import make_module
     from torchseam.track.live import LiveTracker, fitted_eakf_stc, load_anchor_config
+    from torchseam.vision.tipm import load_tipm
 
     cfg = load_live_fit_config(args.config)
     over = {k: getattr(args, k) for k in ("families", "levels", "seeds", "val_seeds",
@@ -121,19 +122,19 @@ def run(args: argparse.Namespace) -> int:
     if bool(args.data) != bool(args.val_data):
         raise TorchseamError("--data and --val-data go together: a fit on your recordings "
                              "selects its epoch on other recordings of yours")
-    cell, part = load_cell(), load_part()
+    cell, part, tipm = load_cell(), load_part(), load_tipm()
     say = print
     if args.data:
         say("reading the recordings ...", flush=True)
-        train, val = load_set(args.data), load_set(args.val_data)
+        train, val = load_set(args.data, tipm=tipm), load_set(args.val_data, tipm=tipm)
     else:
         say(f"simulating {len(cfg.families) * len(cfg.levels) * len(cfg.seeds)} training "
             f"and {len(cfg.families) * len(cfg.val_levels) * len(cfg.val_seeds)} validation "
             f"sequences of {cfg.frames} frames ...", flush=True)
         train = simulate_set(cell, part, noise, cfg.families, cfg.levels, cfg.seeds,
-                             cfg.frames, cfg.hide_frames)
+                             cfg.frames, cfg.hide_frames, tipm=tipm)
         val = simulate_set(cell, part, noise, cfg.families, cfg.val_levels, cfg.val_seeds,
-                           cfg.frames, cfg.hide_frames)
+                           cfg.frames, cfg.hide_frames, tipm=tipm)
     data: dict[str, object] = (
         {"train": {"recordings": [str(d) for d in args.data], "families": ["recorded"]},
          "val": {"recordings": [str(d) for d in args.val_data]}} if args.data else
@@ -146,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
                 f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()
                 if k in over)}
     metrics = fit_live(live, train, val, cfg, out, info,
-                       say=lambda s: print(s, flush=True))
+                       say=lambda s: print(s, flush=True), tipm=tipm)
     path = out / "live_tracker.safetensors"
     print(f"kept epoch {metrics['best_epoch']}; model {path}")
     if args.install:

@@ -53,7 +53,14 @@ class EcalConfig:
 
 
 def load_ecal_config(path: str | Path | None = None) -> EcalConfig:
+    """Read ``configs/ecal.yaml`` (or ``path``)."""
     return load_config(EcalConfig, path or CONFIG_DIR / "ecal.yaml")
+
+
+def load_ecal(path: str | Path | None = None) -> Ecal:
+    """The shipped arm finder: :class:`Ecal` with ``configs/ecal.yaml`` (or ``path``). For the
+    command line and scripts; library code takes the :class:`Ecal` as an argument."""
+    return Ecal(load_ecal_config(path))
 
 
 @dataclass
@@ -93,14 +100,13 @@ class Ecal:
         >>> mask = np.zeros((200, 200), np.uint8)
         >>> _ = cv2.line(mask, (100, 100), (10, 60), 255, 5)
         >>> _ = cv2.line(mask, (100, 100), (190, 60), 255, 5)
-        >>> res = Ecal()(mask, np.array([100.0, 100.0]))
+        >>> res = Ecal(load_ecal_config())(mask, np.array([100.0, 100.0]))
         >>> res.ok, bool(res.p[0, 0] < 100 < res.p[1, 0])
         (True, True)
     """
 
-    def __init__(self, cfg: EcalConfig | None = None) -> None:
-        self.cfg = cfg or load_ecal_config()
-        cfg = self.cfg
+    def __init__(self, cfg: EcalConfig) -> None:
+        self.cfg = cfg
         n = max(64, int(np.ceil(2 * np.pi * cfg.r_max_px / ARC_STEP_PX)))
         self._theta = np.arange(n) * (2 * np.pi / n)
         self._cos, self._sin = np.cos(self._theta), np.sin(self._theta)

@@ -123,6 +123,7 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     import numpy as np
 
     from torchseam.core.transforms import pose_matrix
+    from torchseam.live.parts import load_live_parts
     from torchseam.live.replay import run_replay
     from torchseam.live.sources import open_source
     from torchseam.track.fusion import TrackStatus
@@ -142,7 +143,7 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
         if not np.linalg.norm(q) > 0:
             raise TorchseamError("--pose: the quaternion is zero")
         pose = pose_matrix(np.array(v[:3]), q / np.linalg.norm(q))
-    cell = load_cell()
+    cell, parts = load_cell(), load_live_parts()
     source = open_source(args.source, (cell.camera.width, cell.camera.height), args.fps)
     truth = None
     meta = getattr(getattr(source, "ds", None), "meta", None)
@@ -151,9 +152,9 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
                  for e in meta["frames"] if "seam_mm" in e and "frame" in e}
     t0 = time.perf_counter()
     with source:
-        res = run_replay(cell, source, make_tracker(args.tracker, model_path=args.model),
-                         pose, uv0,
-                         max_frames=args.max_frames, truth=truth)
+        res = run_replay(cell, source,
+                         make_tracker(args.tracker, parts.tipm, model_path=args.model),
+                         pose, uv0, parts=parts, max_frames=args.max_frames, truth=truth)
     wall = time.perf_counter() - t0
     n = len(res.index)
     lost = int(np.sum(res.status == int(TrackStatus.LOST)))
@@ -208,15 +209,15 @@ def demo_exit_code(summary: dict) -> int:
     return 1 if summary.get("segments_incomplete") else 0
 
 
-def _expected_frames(cell, part, args: argparse.Namespace) -> int:
-    """Frames the weld should take: approach + segment length at weld speed (the bar's 100 %)."""
-    from torchseam.plan.path import load_plan_config
+def _expected_frames(cell, part, plan, args: argparse.Namespace) -> int:
+    """Frames the weld should take: approach + segment length at weld speed (the bar's 100 %;
+    ``plan``: the planning settings)."""
     from torchseam.sim.scene import Scene
 
     seg_len = Scene(part).seam_length_mm / 6.0
     if args.length_mm is not None:
         seg_len = min(seg_len, args.length_mm)
-    approach = cell.process.look_ahead_mm + load_plan_config().approach_mm
+    approach = cell.process.look_ahead_mm + plan.approach_mm
     per_seg = (approach + seg_len) / cell.process.weld_speed_mm_s * cell.process.frame_rate_hz
     return int(per_seg * len(args.segments))
 
@@ -242,15 +243,17 @@ def _demo_faults(args: argparse.Namespace) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     from torchseam.live.demo import run_demo, write_report
+    from torchseam.live.parts import load_live_parts
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     faults = _demo_faults(args)
+    parts = load_live_parts()
     if args.model is not None:
         from torchseam.track.peers import make_tracker
 
-        make_tracker(args.tracker, model_path=args.model)  # a bad file is refused here, not
-        # after the pre-flight and the first segment's approach
+        make_tracker(args.tracker, parts.tipm, model_path=args.model)  # a bad file is refused
+        # here, not after the pre-flight and the first segment's approach
     cell, part, noise = load_cell(), load_part(args.part), load_noise()
     try:
         level = noise.level(args.noise)
@@ -260,7 +263,8 @@ def run(args: argparse.Namespace) -> int:
     from torchseam.live.demo import PlanRefused
     from torchseam.plan.preflight import preflight
 
-    report = preflight(cell, part, part_name=str(args.part or "configs/parts/t_joint.yaml"))
+    report = preflight(cell, part, config=parts.plan, robot=parts.robot,
+                       part_name=str(args.part or "configs/parts/t_joint.yaml"))
     print(report.text(), flush=True)
     if not report.ok:
         print(f"torchseam demo: error: {PlanRefused(report).summary_line()}", file=sys.stderr)
@@ -275,13 +279,14 @@ def run(args: argparse.Namespace) -> int:
             raise TorchseamError(f"{args.out / 'weld.mp4'}: OpenCV cannot write MP4 here "
                                  "(use --no-video)")
     t0 = time.perf_counter()
-    bar = tqdm(desc="weld", unit="frame", total=_expected_frames(cell, part, args),
+    bar = tqdm(desc="weld", unit="frame", total=_expected_frames(cell, part, parts.plan, args),
                mininterval=0.5)
     try:
         res = run_demo(cell, part, noise, level, args.seed, faults, args.segments,
                        args.tracker, video, progress=bar.update, length_mm=args.length_mm,
                        model_path=args.model, report=report,
-                       start_offset_mm=args.start_offset_mm, start_angle_deg=args.start_angle_deg)
+                       start_offset_mm=args.start_offset_mm, start_angle_deg=args.start_angle_deg,
+                       parts=parts)
     finally:
         bar.close()
         if video is not None:

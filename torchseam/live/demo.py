@@ -50,24 +50,23 @@ from torchseam.live.loop import (
     PoseSink,
     StepReport,
     egm_config_for,
-    load_live_config,
 )
+from torchseam.live.parts import LiveParts
 from torchseam.live.ring import torch_axis_errors
 from torchseam.live.search import (
     SeamSearch,
     SearchConfig,
     across_seam,
     choose_standoff,
-    load_search_config,
     offset_pose,
     search_start,
     steps_between,
 )
 from torchseam.live.simcell import LockstepCell, SimClock
-from torchseam.plan.path import PlanConfig, load_plan_config
+from torchseam.plan.path import PlanConfig
 from torchseam.plan.preflight import PlanReport, preflight
 from torchseam.plan.weld import SegmentPlan, WeldPlan
-from torchseam.robot.egm import EgmConfig, EgmLink, load_egm_config
+from torchseam.robot.egm import EgmConfig, EgmLink
 from torchseam.robot.egm.messages import EgmSensor
 from torchseam.robot.reach import ReachGate
 from torchseam.sim.scene import Scene
@@ -245,17 +244,19 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
              length_mm: float | None = None,
              observer: Callable[[DemoEvent], None] | None = None,
              control: DemoControl | None = None,
-             live: LiveConfig | None = None,
              model_path: str | Path | None = None,
              report: PlanReport | None = None,
              part_name: str = "part",
-             start_offset_mm: float = 0.0, start_angle_deg: float = 0.0,
-             search: SearchConfig | None = None) -> DemoResult:
+             start_offset_mm: float = 0.0, start_angle_deg: float = 0.0, *,
+             parts: LiveParts) -> DemoResult:
     """Weld the ring; returns everything the report needs. ``length_mm`` welds only the first
     mm of each segment (quick runs and tests). ``observer`` is called once per frame with a
-    :class:`DemoEvent`; ``control`` lets an operator hold, resume or stop the weld. ``live``:
-    the loop's settings (default ``configs/live.yaml``; its ``demo`` section sets the packet
-    loss). The link's age limit follows from the loop's budget
+    :class:`DemoEvent`; ``control`` lets an operator hold, resume or stop the weld.
+    ``parts``: the settings and parts of the run (:class:`~torchseam.live.parts.LiveParts`;
+    :func:`~torchseam.live.parts.load_live_parts` reads the shipped ones): ``parts.live`` is
+    the loop's settings (its ``demo`` section sets the packet loss), ``parts.egm`` the link's
+    and the simulated controller's, ``parts.robot`` the gate's arm. The link's age limit
+    follows from the loop's budget
     (:func:`~torchseam.live.loop.egm_config_for`). ``model_path``: the EAKF-STC model file of
     the ``eakf-stc`` / ``anchored`` trackers (default the shipped one).
 
@@ -269,7 +270,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     part's surface on that side (:meth:`~torchseam.plan.weld.WeldPlan.search_arms`: along the
     main body or the plate, or up the branch; + is the torch frame's y side), lifted back along
     the torch axis by the search stand-off and turned ``start_angle_deg`` about the torch axis.
-    The stand-off is the lowest of ``search`` (default ``configs/search.yaml``) at which every
+    The stand-off is the lowest of ``parts.search`` at which every
     pose of the search region passes the reachability gate with the torch's tip off the part
     (:func:`~torchseam.live.search.choose_standoff`). A
     :class:`~torchseam.live.search.SeamSearch` then moves the torch, arc off, in a bounded
@@ -289,16 +290,15 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
         TorchseamError: the plan rolls the torch about its axis (the live loop applies work
             and travel angles only; ``search.roll_deg`` in configs/plan.yaml is [0, 0]).
     """
-    plan = load_plan_config()
-    report = _passed_preflight(cell, part, plan, report, part_name, segments)
+    plan, live = parts.plan, parts.live
+    report = _passed_preflight(cell, part, parts, report, part_name, segments)
     weld_plan = report.plan
-    live = live or load_live_config()
     writer = _VideoThread(video) if video is not None else None
     run = _Run(cell=cell, part=weld_plan.part,  # placed as planned
                noise=noise, level=level, seed=seed, faults=faults, tracker=tracker,
                model_path=model_path, live=live, plan=plan, weld_plan=weld_plan,
-               egm=_demo_egm_config(cell, live), length_mm=length_mm,
-               start_offset_mm=start_offset_mm, start_angle_deg=start_angle_deg, search=search,
+               egm=_demo_egm_config(cell, live, parts.egm), length_mm=length_mm,
+               start_offset_mm=start_offset_mm, start_angle_deg=start_angle_deg, parts=parts,
                observer=observer, control=control, progress=progress, writer=writer,
                res=DemoResult(part=weld_plan.part, report=report))
     try:
@@ -311,13 +311,14 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
     return run.finish()
 
 
-def _passed_preflight(cell: CellConfig, part: PartConfig, plan: PlanConfig,
+def _passed_preflight(cell: CellConfig, part: PartConfig, parts: LiveParts,
                       report: PlanReport | None, part_name: str, segments: str) -> PlanReport:
     """The pre-flight of ``part`` (``report``, or run here): raises :class:`PlanRefused` when
     it refused a pose, :class:`TorchseamError` when the plan rolls the torch on a segment to
     weld."""
     if report is None:
-        report = preflight(cell, part, config=plan, part_name=part_name)
+        report = preflight(cell, part, config=parts.plan, robot=parts.robot,
+                           part_name=part_name)
     if not report.ok:
         raise PlanRefused(report)
     rolled = [s.name for s in report.plan.segments if s.name in segments and s.roll_deg]
@@ -329,11 +330,11 @@ def _passed_preflight(cell: CellConfig, part: PartConfig, plan: PlanConfig,
     return report
 
 
-def _demo_egm_config(cell: CellConfig, live: LiveConfig) -> EgmConfig:
-    """The link's settings for the demo: pose mode, the loop's age limit, a step check the IPI
-    step passes, the simulated controller moving at weld speed."""
+def _demo_egm_config(cell: CellConfig, live: LiveConfig, egm: EgmConfig) -> EgmConfig:
+    """``egm`` as the demo's link runs it: pose mode, the loop's age limit, a step check the
+    IPI step passes, the simulated controller moving at weld speed."""
     proc = cell.process
-    egm = egm_config_for(load_egm_config(), live, proc.frame_rate_hz)
+    egm = egm_config_for(egm, live, proc.frame_rate_hz)
     # the IPI step must pass the link's step check; the controller moves at weld speed
     safety = dataclasses.replace(egm.safety,
                                  max_step_mm=max(egm.safety.max_step_mm, 1.25 * proc.step_mm))
@@ -374,7 +375,7 @@ class _Run:
     length_mm: float | None
     start_offset_mm: float
     start_angle_deg: float
-    search: SearchConfig | None
+    parts: LiveParts
     observer: Callable[[DemoEvent], None] | None
     control: DemoControl | None
     progress: Callable[[int], object] | None
@@ -398,7 +399,8 @@ class _Run:
             return
         scene = Scene(self.part, seg.rotation_deg)  # the part as planned, turned for seg
         res.part_poses[seg.name] = scene.T_B_Tnom
-        gate = ReachGate(cell=self.cell, part=self.part, part_pose_mm=scene.T_B_Tnom)
+        gate = ReachGate(self.parts.robot, cell=self.cell, part=self.part,
+                         part_pose_mm=scene.T_B_Tnom)
         s0 = float(scene.s_at(np.array([seg.phi_start]))[0])
         seg_len = (float(scene.s_at(np.array([seg.phi_end]))[0]) - s0) % scene.seam_length_mm
         if self.length_mm is not None:
@@ -422,7 +424,7 @@ class _Run:
         if not (offset_mm or angle_deg):
             return _Start(T0)
         res, clock = self.res, self.clock
-        scfg = self.search or load_search_config()
+        scfg = self.parts.search
         # across the seam along the part's surfaces
         across = across_seam(*self.weld_plan.search_arms(seg, u0))
         lift, n_ok, n_all = choose_standoff(T0, scfg, offset_mm, angle_deg,
@@ -547,9 +549,10 @@ class _SegmentWeld:
         run, seg = self.run, self.seg
         if self.start.search is not None:
             self._search(self.start.search)
-        self.loop = LiveLoop(run.cell, make_tracker(run.tracker, model_path=run.model_path),
+        tipm = run.parts.tipm
+        self.loop = LiveLoop(run.cell, make_tracker(run.tracker, tipm, model_path=run.model_path),
                              self.link, run.weld_plan.plan_config(seg, run.plan), run.live,
-                             nominal=self.nominal)
+                             tipm, run.parts.ecal, nominal=self.nominal)
         completed, travelled = self._frames()
         if not completed:
             why = self.search_failed or _incomplete_reason(
@@ -568,7 +571,7 @@ class _SegmentWeld:
             self.seg.name, scfg, start.T, start.lift, start.across, run.start_offset_mm,
             run.start_angle_deg, self.gate, self.simcell, self.renderer, self.tap, run.clock,
             run.dt, self.commands, run.res, run.cell, self.ref, run.writer, self.nominal,
-            self._programmed, run.plan.approach_mm)
+            self._programmed, run.plan.approach_mm, run.parts.tipm)
         self.welding += [False] * (len(self.commands) - len(self.welding))
         if not found["found"]:
             self.search_failed = found["reason"]
@@ -691,7 +694,8 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, lift: float, 
                  renderer: SensorRenderer, link, clock: SimClock, dt: float,
                  commands: list[Command], res: DemoResult, cell: CellConfig, ref: _SeamRef,
                  writer: _VideoThread | None, nominal: np.ndarray,
-                 programmed: Callable[[float], np.ndarray], max_along_mm: float) -> dict:
+                 programmed: Callable[[float], np.ndarray], max_along_mm: float, tipm: Tipm
+                 ) -> dict:
     """Search for the seam from ``T_start`` (the robot is there), arc off, then approach the
     seam point it found; every pose through ``gate`` (and, off the seam, the tip's clearance)
     and handed to ``link`` (kept in ``commands``). Each frame is recorded (state ``search``,
@@ -740,7 +744,6 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, lift: float, 
                        _Banner(state, message), seg)
         return r, T_now, truth
 
-    tipm = Tipm()
     tri = FastTriangulator(cell)
     t0 = clock.t
     lateral = None if across is None else (

@@ -55,9 +55,14 @@ class SeamLocator:
     Args:
         cell: calibration (camera, laser plane, hand-eye).
         tracker: any :class:`~torchseam.track.peers.FrameTracker` (EAKF-STC in the live loop).
+        tipm: TIPM: the start frame's pixel, the stripe's view with ``auto``, and the stripe
+            mask around the feature point that ECAL searches.
+        ecal: ECAL, the arm points (its ``r_max_px`` sizes the region around the feature
+            point; ``tipm_agreement_deg`` says when TIPM's arm directions are used).
     """
 
-    def __init__(self, cell: CellConfig, tracker: FrameTracker) -> None:
+    def __init__(self, cell: CellConfig, tracker: FrameTracker, tipm: Tipm, ecal: Ecal
+                 ) -> None:
         self.cell = cell
         self.tracker = tracker
         cam = cell.camera
@@ -65,8 +70,8 @@ class SeamLocator:
         self.axis: FrameView | None = (
             None if "auto" in self._view_setting
             else FrameView(cam.stripe_axis, cam.height, cam.stripe_response))
-        self.tipm = Tipm()
-        self.ecal = Ecal()
+        self.tipm = tipm
+        self.ecal = ecal
         self._agree_cos = float(np.cos(np.radians(self.ecal.cfg.tipm_agreement_deg)))
         self.tri = FastTriangulator(cell)
         self.prev_angles: np.ndarray | None = None

@@ -49,13 +49,15 @@ from scipy.spatial import cKDTree
 
 from torchseam.core.config import CONFIG_DIR, CellConfig, ConfigError, load_config
 from torchseam.core.config import config_field as _f
-from torchseam.core.transforms import matrix_to_quat, quat_to_matrix
+from torchseam.core.transforms import matrix_to_quat, quat_to_matrix, slerp
+from torchseam.geometry.ecal import Ecal
 from torchseam.geometry.torch_frame import MIN_ARM_MM, MIN_SIN
 from torchseam.live.locate import Location, SeamLocator
-from torchseam.plan.path import LookAheadBuffer, PlanConfig, ipi_step, load_plan_config
+from torchseam.plan.path import LookAheadBuffer, PlanConfig, ipi_step
 from torchseam.robot.egm import Verdict
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import FrameTracker
+from torchseam.vision.tipm import Tipm
 
 
 @dataclass(frozen=True)
@@ -187,18 +189,6 @@ TURN_SHARE = 0.8
 def _angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
     """Rotation between two unit quaternions (4,), degrees."""
     return 2.0 * math.degrees(math.acos(min(1.0, abs(float(q1 @ q2)))))
-
-
-def _slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
-    """Unit quaternion ``f`` of the way from ``q0`` to ``q1`` (the short way)."""
-    d = float(q0 @ q1)
-    if d < 0:
-        q1, d = -q1, -d
-    half = math.acos(min(1.0, d))
-    if half < 1e-9:
-        return q1
-    out = (math.sin((1 - f) * half) * q0 + math.sin(f * half) * q1) / math.sin(half)
-    return out / np.linalg.norm(out)
 
 
 def _turn_limited(q_prev: np.ndarray | None, q: np.ndarray, max_deg: float) -> np.ndarray:
@@ -368,7 +358,9 @@ class LiveLoop:
         tracker: the feature-point tracker (EAKF-STC by default in the demo).
         sink: where poses go (:class:`~torchseam.robot.egm.EgmLink` in pose mode; its
             ``safety.max_age_ms`` must cover the loop's budget, see :func:`check_link_budget`).
-        plan / live: settings (default ``configs/plan.yaml`` / ``configs/live.yaml``).
+        plan / live: settings (``configs/plan.yaml`` / ``configs/live.yaml``; the demo hands
+            each segment its weld plan's :meth:`~torchseam.plan.weld.WeldPlan.plan_config`).
+        tipm / ecal: the seam locator's TIPM and ECAL (:class:`SeamLocator`).
         nominal: (N, 3) the programmed (design) path, densely sampled (mm, base). A target
             farther than ``max_offset_mm`` from it is not sent: the tracker has left the seam
             (a box tracker sliding along the stripe, say) and the loop holds.
@@ -380,20 +372,21 @@ class LiveLoop:
     """
 
     def __init__(self, cell: CellConfig, tracker: FrameTracker, sink: PoseSink,
-                 plan: PlanConfig | None = None, live: LiveConfig | None = None,
+                 plan: PlanConfig, live: LiveConfig, tipm: Tipm, ecal: Ecal,
                  nominal: np.ndarray | None = None, open_loop: bool = False) -> None:
         self.cell = cell
-        self.plan = plan or load_plan_config()
-        self.cfg = live or load_live_config()
+        self.plan = plan
+        self.cfg = live
         check_link_budget(sink, self.cfg, cell.process.frame_rate_hz)
         check_link_turn(sink, self.cfg)
-        self.locator = SeamLocator(cell, tracker)
+        self.locator = SeamLocator(cell, tracker, tipm, ecal)
         self.sink = sink
         self.open_loop = open_loop
         self.nominal = None if nominal is None else np.asarray(nominal, float)
         # nearest programmed point per target in ~10 us (a dense path has thousands)
         self._nominal_tree = None if nominal is None else cKDTree(self.nominal)
-        self.buffer = LookAheadBuffer(self.plan.buffer_points, self.plan.smooth_mm)
+        self.buffer = LookAheadBuffer(self.plan.buffer_points, self.plan.smooth_mm,
+                                      outlier_mm=self.plan.outlier_mm)
         self.stats = LoopStats()
         self.state = LoopState.STARTING
         self.target: np.ndarray | None = None
@@ -825,7 +818,7 @@ class LiveLoop:
         f = max(TURN_SHARE * self.cfg.max_turn_deg / turn, self.cfg.min_step_mm / max(d, 1e-9))
         if f >= 1.0:
             return ip, q
-        qs = _slerp(w, q, f)
+        qs = slerp(w, q, f)
         if qs @ q < 0:
             qs = -qs
         return cp + f * (ip - cp), qs

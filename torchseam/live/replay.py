@@ -23,16 +23,8 @@ from torchseam.core.config import CellConfig
 from torchseam.core.errors import TorchseamError
 from torchseam.core.transforms import invert, quat_to_matrix
 from torchseam.live.demo import DemoControl, DemoEvent, FrameRecord
-from torchseam.live.loop import (
-    Command,
-    LiveConfig,
-    LiveLoop,
-    LoopState,
-    PoseSink,
-    RecordingSink,
-    load_live_config,
-)
-from torchseam.plan.path import PlanConfig
+from torchseam.live.loop import Command, LiveLoop, LoopState, PoseSink, RecordingSink
+from torchseam.live.parts import LiveParts
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import FrameTracker
 
@@ -75,9 +67,8 @@ class ReplayResult:
 
 
 def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
-               T_B_W: np.ndarray | None = None, uv0: np.ndarray | None = None,
-               live: LiveConfig | None = None, plan: PlanConfig | None = None,
-               max_frames: int | None = None, sink: PoseSink | None = None,
+               T_B_W: np.ndarray | None = None, uv0: np.ndarray | None = None, *,
+               parts: LiveParts, max_frames: int | None = None, sink: PoseSink | None = None,
                truth: dict[int, np.ndarray] | None = None,
                observer: Callable[[DemoEvent], None] | None = None,
                control: DemoControl | None = None) -> ReplayResult:
@@ -96,6 +87,8 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
         tracker: the feature-point tracker.
         T_B_W: (4, 4) torch pose for frames that carry none.
         uv0: (2,) start pixel (default: TIPM on the first frame, which must be arc-off).
+        parts: the loop's settings, TIPM and ECAL (``plan``, ``live``, ``tipm``, ``ecal``;
+            :func:`~torchseam.live.parts.load_live_parts` reads the shipped ones).
         max_frames: stop after this many frames.
         sink: where poses go (default a :class:`RecordingSink`).
         truth: frame number -> (3,) true seam point (base, mm), for the 3D error.
@@ -109,8 +102,8 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
     Raises:
         TorchseamError: the start frame shows no usable stripe (names the frame).
     """
-    cfg = live or load_live_config()
-    loop = LiveLoop(cell, tracker, sink or RecordingSink(), plan, cfg, open_loop=True)
+    loop = LiveLoop(cell, tracker, sink or RecordingSink(), parts.plan, parts.live, parts.tipm,
+                    parts.ecal, open_loop=True)
     tool_inv = invert(cell.tool.matrix())
     fixed = (np.asarray(T_B_W, float) if T_B_W is not None else cell.tool.matrix())
     rows: list[tuple] = []

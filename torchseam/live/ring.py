@@ -33,7 +33,8 @@ from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
 from torchseam.core.transforms import apply, invert
 from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
 from torchseam.live.locate import Location, SeamLocator
-from torchseam.plan.path import Located, LookAheadBuffer, Segment, load_plan_config
+from torchseam.live.parts import LiveParts
+from torchseam.plan.path import Located, LookAheadBuffer
 from torchseam.plan.preflight import PlanReport, preflight
 from torchseam.plan.weld import SegmentPlan, torch_angles
 from torchseam.robot.poses_csv import write_pose_csv
@@ -48,7 +49,7 @@ from torchseam.track.peers import make_tracker
 class SegmentRun:
     """One segment's frames, locations, commands and the truth to judge them by."""
 
-    segment: Segment
+    segment: SegmentPlan
     truths: list[FrameTruth] = field(default_factory=list)
     locations: list[Location] = field(default_factory=list)
     entries: list[Located | None] = field(default_factory=list)   # buffer entry per frame
@@ -69,20 +70,22 @@ def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
              progress: Callable[[int], None] | None = None,
              report: PlanReport | None = None,
              length_mm: float | None = None,
-             model_path: str | Path | None = None) -> list[SegmentRun]:
+             model_path: str | Path | None = None, *, parts: LiveParts) -> list[SegmentRun]:
     """Weld the ring in open loop; returns one :class:`SegmentRun` per segment.
 
     ``segments``: which of the six to run (default all). ``progress(n)`` is called per frame.
+    ``parts``: the planning settings, the arm model (the pre-flight's gate), TIPM and ECAL
+    (:func:`~torchseam.live.parts.load_live_parts` reads the shipped ones).
     ``report``: the weld plan's pre-flight (default :func:`~torchseam.plan.preflight.preflight`
-    of ``part``); its plan's placement, segments and torch angles are used. When the robot
-    cannot weld that plan the table goes to stderr and the open-loop run goes on (it moves no
-    robot; the closed loop refuses such a plan). ``length_mm`` runs only the first mm of each
-    segment (quick runs and tests).
+    of ``part`` with ``parts``); its plan's placement, segments and torch angles are used.
+    When the robot cannot weld that plan the table goes to stderr and the open-loop run goes
+    on (it moves no robot; the closed loop refuses such a plan). ``length_mm`` runs only the
+    first mm of each segment (quick runs and tests).
     """
     proc = cell.process
-    plan = load_plan_config()
+    plan = parts.plan
     if report is None:
-        report = preflight(cell, part, config=plan)
+        report = preflight(cell, part, config=plan, robot=parts.robot)
         if not report.ok:
             print(report.text() + "\n(open loop: the ring is run all the same)", file=sys.stderr)
     part = report.plan.part  # placed as planned
@@ -105,7 +108,8 @@ def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                             start_mm=s0 - approach, rotation_deg=seg.rotation_deg,
                             arc_on_frame=arc_on, t0_s=t0)
         run = SegmentRun(seg, scene=scene, report=report)
-        locator = SeamLocator(cell, make_tracker(tracker, model_path=model_path))
+        locator = SeamLocator(cell, make_tracker(tracker, parts.tipm, model_path=model_path),
+                              parts.tipm, parts.ecal)
         buf = LookAheadBuffer(maxlen=plan.buffer_points, smooth_mm=plan.smooth_mm,
                               outlier_mm=plan.outlier_mm)
         T_F_C_inv = invert(cell.hand_eye.matrix())
@@ -176,7 +180,7 @@ def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: f
     P = torch.tensor(np.array(ips))
     A = torch.tensor(np.array(arms))
     R, ok = torch_frame(P, P + A[:, 0], P + A[:, 1], tangent=torch.tensor(np.array(tangents)))
-    work, travel, roll = _angles(run.segment)
+    work, travel, roll = run.segment.angles
     R = tilt(R, work, travel)
     if roll:
         R = R @ torch.as_tensor(torch_angles(0.0, 0.0, roll), dtype=R.dtype)
@@ -192,30 +196,17 @@ def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: f
     run.nominal = scene.nominal_tcp(s0 + np.arange(0.0, seg_len, step))[:, :3, 3]
 
 
-def _angles(seg: Segment) -> tuple[float, float, float]:
-    """Work, travel and roll angles of a planned segment (``configs/plan.yaml``'s for a
-    plain one, no roll)."""
-    if isinstance(seg, SegmentPlan):
-        return seg.angles
-    plan = load_plan_config()
-    return plan.work_angle_deg, plan.travel_angle_deg, 0.0
-
-
 def torch_axis_errors(scene: Scene, p: np.ndarray, R: np.ndarray, t_s: np.ndarray,
-                      seam: SeamSample | None = None,
-                      angles: tuple[float, float] | None = None
+                      seam: SeamSample | None = None, *, angles: tuple[float, float]
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Torch axis of poses (``p`` (N, 3) mm, ``R`` (N, 3, 3), robot base) against the true
     one at the nearest point of the true seam, with the part where it was at ``t_s`` (N,):
     ``(angle (N,) degrees, distance to that seam point (N,) mm)``. The true frame gets the
-    work and travel ``angles`` (default those of ``configs/plan.yaml``) as the planned one
+    work and travel ``angles`` (the segment's: :attr:`SegmentPlan.angles`) as the planned one
     does (a roll about the torch axis does not move it). ``seam``: the true seam densely
     sampled (default: 20 001 points round it)."""
     if seam is None:
         seam = scene.true_joint.seam(np.linspace(0, 2 * np.pi, 20001))
-    if angles is None:
-        plan = load_plan_config()
-        angles = (plan.work_angle_deg, plan.travel_angle_deg)
     frames = torch.tensor(torch_frames(seam)[:, :3, :3])
     z_T = tilt(frames, *angles)[:, :, 2].numpy()
     angle, dist = np.full(len(p), np.nan), np.full(len(p), np.nan)
@@ -255,7 +246,7 @@ def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
         s = scene.true_joint.seam(np.linspace(0, 2 * np.pi, 20001))
         # the part as it was when the stripe saw each point
         ax, dist = torch_axis_errors(scene, np.array(run.commands), np.array(run.rotations),
-                                     np.array(run.command_t), s, _angles(run.segment)[:2])
+                                     np.array(run.command_t), s, angles=run.segment.angles[:2])
         planned += list(dist)
         axis += list(np.where(run.frame_ok, ax, np.nan))
         seg_of += [run.segment.name] * len(ax)

@@ -15,6 +15,7 @@ from torchseam.core.cliargs import model_arg, out_dir_arg, seed_arg, segments_ar
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import format_table
+from torchseam.live.parts import load_live_parts
 from torchseam.live.plots import quaternion_plot
 from torchseam.live.ring import ring_errors, run_ring, write_ring_poses
 from torchseam.track.peers import TRACKERS
@@ -54,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     bar = tqdm(desc="ring", unit="frame")
     runs = run_ring(cell, part, noise, level, args.seed, args.tracker, which,
-                    progress=bar.update, model_path=args.model)
+                    progress=bar.update, model_path=args.model, parts=load_live_parts())
     bar.close()
     errs = ring_errors(runs)
 

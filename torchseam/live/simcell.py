@@ -18,6 +18,7 @@ import torch
 from torchseam.core.config import CellConfig
 from torchseam.core.transforms import invert
 from torchseam.robot.egm import EgmConfig, EgmLink
+from torchseam.robot.kinematics import IRB1410
 from torchseam.robot.sim_controller import SimController
 
 
@@ -51,10 +52,11 @@ class LockstepCell:
         link: the sensor-side link (``bind=False``, clock = ``clock``).
         clock: the simulation clock, advanced by :meth:`advance`.
         T_B_W0: (4, 4) torch pose to start from (the controller's joints by IK).
+        robot: the controller's kinematic model (the reachability gate's, in the demo).
     """
 
     def __init__(self, cell: CellConfig, egm: EgmConfig, link: EgmLink, clock: SimClock,
-                 T_B_W0: np.ndarray, robot=None) -> None:
+                 T_B_W0: np.ndarray, robot: IRB1410) -> None:
         egm = dataclasses.replace(egm, mode="pose")
         self.ctrl = SimController(egm, mode="pose", robot=robot, tool=cell.tool.matrix(),
                                   bind_address=("127.0.0.1", 0))

@@ -49,14 +49,13 @@ def run(args: argparse.Namespace) -> int:
     from torchseam.core.config import load_cell, load_part
     from torchseam.plan.path import load_plan_config
     from torchseam.plan.preflight import preflight
-    from torchseam.robot.config import load_robot
-    from torchseam.robot.kinematics import IRB1410
+    from torchseam.robot.kinematics import load_irb1410
 
     torch.set_num_threads(1)  # small batches: one thread is fastest
     cell = load_cell()
     part = load_part(args.part)
     config = load_plan_config(args.plan_config)
-    robot = IRB1410(config=load_robot(args.robot_config) if args.robot_config else None)
+    robot = load_irb1410(args.robot_config)
     name = str(args.part) if args.part else "configs/parts/t_joint.yaml"
     report = preflight(cell, part, config=config, robot=robot, search=not args.no_search,
                        part_name=name)
@@ -67,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     return 0 if report.ok else 2
 
 
-def write_plan(report: Any, out: Path, cell: Any, config: Any, robot: Any = None) -> list[Path]:
+def write_plan(report: Any, out: Path, cell: Any, config: Any, robot: Any) -> list[Path]:
     """``plan.json``, ``part.yaml`` and per segment ``poses_<s>.csv`` / ``part_<s>.yaml`` of a
     :class:`~torchseam.plan.preflight.PlanReport` made with ``cell`` and ``config``."""
     from torchseam.core.config import Pose, save_config

@@ -97,15 +97,13 @@ class Segment:
     rotation_deg: float
 
 
-def six_segments(start_phi: float | None = None) -> list[Segment]:
-    """The six segments a..f of the ring, starting at branch angle ``start_phi`` (rad; default
-    ``segment_start_deg`` of ``configs/plan.yaml``).
+def six_segments(start_phi: float) -> list[Segment]:
+    """The six segments a..f of the ring, starting at branch angle ``start_phi`` (rad; the
+    configured one is ``radians(PlanConfig.segment_start_deg)``).
 
     Segment k is welded with the part turned by ``-60 k`` degrees, which brings it to where
     segment a was.
     """
-    if start_phi is None:
-        start_phi = float(np.radians(load_plan_config().segment_start_deg))
     step = 2 * np.pi / SEGMENTS
     return [Segment(SEGMENT_NAMES[k], k, start_phi + k * step, start_phi + (k + 1) * step,
                     -60.0 * k) for k in range(SEGMENTS)]
@@ -206,12 +204,11 @@ class LookAheadBuffer:
         ([2.0, 0.0, 0.0], [1.0, 0.0, 0.0])
     """
 
-    def __init__(self, maxlen: int = 2048, smooth_mm: float = 3.0,
-                 outlier_mm: float | None = None) -> None:
+    def __init__(self, maxlen: int = 2048, smooth_mm: float = 3.0, *, outlier_mm: float
+                 ) -> None:
         self.points: deque[Located] = deque(maxlen=maxlen)
         self.smooth_mm = smooth_mm
-        # default from configs/plan.yaml, so callers that predate the setting get it too
-        self.outlier_mm = load_plan_config().outlier_mm if outlier_mm is None else outlier_mm
+        self.outlier_mm = outlier_mm  # PlanConfig.outlier_mm in the live loop and the ring run
         self.dropped = 0  # points pushed out by a full buffer (reported, never silent)
         self.flagged = 0  # points flagged as off the seam so far (reported, never silent)
         # next_command worked out ahead by prepare(): (cp, step, result, fitted points (n, 3),

@@ -10,7 +10,10 @@ robot cannot weld the part).
 
 Example:
     >>> from torchseam.core.config import load_cell, load_part
-    >>> report = preflight(load_cell(), load_part())
+    >>> from torchseam.plan.path import load_plan_config
+    >>> from torchseam.robot.kinematics import load_irb1410
+    >>> report = preflight(load_cell(), load_part(), config=load_plan_config(),
+    ...                    robot=load_irb1410())
     >>> report.ok, [v.passed for v in report.verdicts]
     (True, [True, True, True, True, True, True])
 """
@@ -154,17 +157,17 @@ def _table(headers: list[str], rows: list[list[str]]) -> str:
     return "\n".join([line(headers), line(["-" * w for w in widths])] + [line(r) for r in rows])
 
 
-def preflight(cell: CellConfig, part: PartConfig, *, config: PlanConfig | None = None,
-              robot: IRB1410 | None = None, search: bool = True,
-              part_name: str | Path = "part") -> PlanReport:
+def preflight(cell: CellConfig, part: PartConfig, *, config: PlanConfig, robot: IRB1410,
+              search: bool = True, part_name: str | Path = "part") -> PlanReport:
     """Plan ``part`` and check every pose of the plan with the reachability gate.
 
     Args:
         cell: the cell (tool, weld speed, step, look-ahead).
         part: the part as its file describes it (its ``placement`` is the configured one).
-        config: planning settings and search limits (default ``configs/plan.yaml``).
-        robot: the kinematic model whose config holds the gate's limits (default
-            ``IRB1410()`` with ``configs/robot.yaml``).
+        config: planning settings and search limits (``configs/plan.yaml``:
+            :func:`~torchseam.plan.path.load_plan_config`).
+        robot: the kinematic model whose config holds the gate's limits (``configs/robot.yaml``:
+            :func:`~torchseam.robot.kinematics.load_irb1410`).
         search: search a plan when the configured one fails (False: check the configured plan
             only).
         part_name: what to call the part in the report.
@@ -180,7 +183,7 @@ def preflight(cell: CellConfig, part: PartConfig, *, config: PlanConfig | None =
     if all(v.passed for v in conf_v) or not search:
         return PlanReport(conf, tuple(conf_v), conf, None, str(part_name),
                           time.perf_counter() - t0)
-    plan = plan_weld(cell, part, evaluator=ev, configured=conf_v)
+    plan = plan_weld(ev, configured=conf_v)
     verdicts = tuple(ev.check_plan(plan))
     return PlanReport(plan, verdicts, conf, tuple(conf_v), str(part_name),
                       time.perf_counter() - t0)

@@ -51,7 +51,7 @@ import torch
 from torchseam.core.config import CellConfig, PartConfig, Pose
 from torchseam.core.part import SegmentGeometry, make_joint, nominal_part, torch_frames
 from torchseam.core.transforms import matrix_to_quat, rotation_about
-from torchseam.plan.path import SEGMENT_NAMES, SEGMENTS, PlanConfig, Segment, load_plan_config
+from torchseam.plan.path import SEGMENT_NAMES, SEGMENTS, PlanConfig, Segment
 from torchseam.robot.kinematics import IRB1410, checked_values
 from torchseam.robot.reach import ReachGate, ReachResult, Reason
 
@@ -162,11 +162,10 @@ class WeldPlan:
         """The design part as placed, turned by the positioner for ``seg``."""
         return SegmentGeometry(self.part, seg.rotation_deg)
 
-    def plan_config(self, seg: SegmentPlan, base: PlanConfig | None = None) -> PlanConfig:
-        """``configs/plan.yaml`` (or ``base``) with this plan's start and ``seg``'s work and
+    def plan_config(self, seg: SegmentPlan, base: PlanConfig) -> PlanConfig:
+        """``base`` (the planning settings) with this plan's start and ``seg``'s work and
         travel angles: the settings of the live loop for that segment. (The roll is not a
         plan setting: see :meth:`torch_rotation`.)"""
-        base = base or load_plan_config()
         return dataclasses.replace(base, segment_start_deg=self.segment_start_deg,
                                    work_angle_deg=seg.work_angle_deg,
                                    travel_angle_deg=seg.travel_angle_deg)
@@ -272,15 +271,17 @@ class PlanEvaluator:
     Args:
         cell: tool, weld speed, step and look-ahead (``configs/cell.yaml``).
         part: the part as its file describes it.
-        config: planning settings (default ``configs/plan.yaml``).
-        robot: the kinematic model (default ``IRB1410()``; its config holds the gate's limits).
+        config: planning settings (``configs/plan.yaml``:
+            :func:`~torchseam.plan.path.load_plan_config`).
+        robot: the kinematic model; its config holds the gate's limits
+            (``configs/robot.yaml``: :func:`~torchseam.robot.kinematics.load_irb1410`).
     """
 
-    def __init__(self, cell: CellConfig, part: PartConfig, config: PlanConfig | None = None,
-                 robot: IRB1410 | None = None) -> None:
+    def __init__(self, cell: CellConfig, part: PartConfig, config: PlanConfig,
+                 robot: IRB1410) -> None:
         self.cell, self.part = cell, part
-        self.config = config or load_plan_config()
-        self.robot = robot if robot is not None else IRB1410()
+        self.config = config
+        self.robot = robot
         ax = self.robot.config.axes
         self._lo, self._hi = np.asarray(ax.min_deg, float), np.asarray(ax.max_deg, float)
         self.joint = make_joint(part)
@@ -606,26 +607,25 @@ class _Layouts:
         return min(done, key=lambda lay: lay.key) if done else self.best()
 
 
-def configured_plan(part: PartConfig, config: PlanConfig | None = None) -> WeldPlan:
+def configured_plan(part: PartConfig, cfg: PlanConfig) -> WeldPlan:
     """The plan as configured: the part file's placement, ``segment_start_deg`` and the work
-    and travel angles of ``configs/plan.yaml``, no roll."""
-    cfg = config or load_plan_config()
+    and travel angles of ``cfg`` (the planning settings), no roll."""
     angles = (cfg.work_angle_deg, cfg.travel_angle_deg, 0.0)
     return WeldPlan(part, Placement(), cfg.segment_start_deg,
                     make_segments(cfg.segment_start_deg, [angles] * SEGMENTS))
 
 
-def plan_weld(cell: CellConfig, part: PartConfig, *, config: PlanConfig | None = None,
-              robot: IRB1410 | None = None, evaluator: PlanEvaluator | None = None,
-              configured: list[SegmentVerdict] | None = None) -> WeldPlan:
-    """The weld plan of ``part``: the configured one when the gate passes all its poses,
-    else the one the search finds (module docstring). The returned plan may still fail the
-    gate (a part out of the robot's reach, a joint the torch does not fit): check it with
+def plan_weld(ev: PlanEvaluator, *, configured: list[SegmentVerdict] | None = None
+              ) -> WeldPlan:
+    """The weld plan of the evaluator's part (``ev`` holds the cell, the part, the planning
+    settings and the robot): the configured one when the gate passes all its poses, else the
+    one the search finds (module docstring). The returned plan may still fail the gate (a part
+    out of the robot's reach, a joint the torch does not fit): check it with
     :func:`torchseam.plan.preflight.preflight`.
 
     ``configured``: the configured plan's verdicts when the caller has them already.
     """
-    ev = evaluator or PlanEvaluator(cell, part, config, robot)
+    part = ev.part
     plan = configured_plan(part, ev.config)
     if configured is None:
         configured = ev.check_plan(plan)

@@ -122,12 +122,10 @@ def parse_joints(text: str, what: str = "--joints") -> list[float]:
 def _robot(args: argparse.Namespace) -> Any:
     import torch
 
-    from torchseam.robot.config import load_robot
-    from torchseam.robot.kinematics import IRB1410
+    from torchseam.robot.kinematics import load_irb1410
 
     torch.set_num_threads(1)  # tiny batches: one thread is fastest
-    cfg = load_robot(args.robot_config) if args.robot_config else None
-    return IRB1410(args.urdf, config=cfg)
+    return load_irb1410(args.robot_config, args.urdf)
 
 
 def _fmt(values: Any, digits: int) -> str:

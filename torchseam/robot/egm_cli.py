@@ -61,7 +61,9 @@ def register(robot_subparsers: Any) -> None:
 
 def run_sim_controller(args: argparse.Namespace) -> int:
     """Entry point of ``torchseam robot sim-controller``."""
+    from torchseam.core.config import load_cell
     from torchseam.robot.egm_session import loopback_session
+    from torchseam.robot.kinematics import load_irb1410
     from torchseam.robot.sim_controller import SimController
 
     config = load_egm_config(args.config)
@@ -81,10 +83,11 @@ def run_sim_controller(args: argparse.Namespace) -> int:
     if args.duration < 0:
         raise ConfigError(f"--duration: expected seconds >= 0, got {args.duration:g}")
     mode = args.mode or config.mode
+    robot, tool = load_irb1410(), load_cell().tool.matrix()  # the arm and the cell's torch
     if args.sensor:
         if args.duration == 0:
             raise ConfigError("--sensor needs a --duration > 0")
-        result = loopback_session(config, args.duration, mode=mode)
+        result = loopback_session(config, args.duration, robot=robot, tool=tool, mode=mode)
         print(result.table())
         return 0
     host = args.host or net.host
@@ -101,7 +104,8 @@ def run_sim_controller(args: argparse.Namespace) -> int:
     if not ipaddress.ip_address(host).is_loopback and not args.allow_remote:
         raise ConfigError(f"--host {host} is not loopback: pass --allow-remote to stream a "
                           "simulated robot onto a network")
-    sim = SimController(config, mode=mode, sensor_address=(host, port), bind_address=bind)
+    sim = SimController(config, robot=robot, tool=tool, mode=mode, sensor_address=(host, port),
+                        bind_address=bind)
     print(f"simulated IRC5: {mode}, {config.sim_controller.rate_hz:g} Hz, EgmRobot from "
           f"{sim.address[0]}:{sim.address[1]} to {host}:{port}", file=sys.stderr)
     t0 = time.monotonic()

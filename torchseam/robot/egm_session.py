@@ -156,8 +156,8 @@ class SessionResult:
         return "\n".join(lines)
 
 
-def loopback_session(config: EgmConfig, duration_s: float = 10.0, *,
-                     mode: str | None = None, feed: Feed | None = None,
+def loopback_session(config: EgmConfig, duration_s: float = 10.0, *, robot: Any,
+                     tool: np.ndarray, mode: str | None = None, feed: Feed | None = None,
                      sensor_process: bool = True,
                      sim_kwargs: dict[str, Any] | None = None) -> SessionResult:
     """Run the simulated controller against an :class:`EgmLink` on loopback (ephemeral ports)
@@ -167,6 +167,10 @@ def loopback_session(config: EgmConfig, duration_s: float = 10.0, *,
         config: EGM configuration (the caller reads it, e.g. with
             :func:`~torchseam.robot.egm.config.load_egm_config`); its ports are not used.
         duration_s: session length, s (cycles = duration x ``sim_controller.rate_hz``).
+        robot: the simulated controller's kinematic model, an
+            :class:`~torchseam.robot.kinematics.IRB1410` (``load_irb1410()``: the shipped one).
+        tool: TCP pose in the flange frame, 4x4 mm (the cell's torch:
+            ``load_cell().tool.matrix()``).
         mode: ``pose`` or ``pathcorr`` (default the config's).
         feed: the synthetic tracker.
         sensor_process: run the link and its feed in a child process (default) or in threads
@@ -182,8 +186,9 @@ def loopback_session(config: EgmConfig, duration_s: float = 10.0, *,
     mode = mode or config.mode
     feed = feed or Feed()
     net = config.network
-    sim = SimController(config, mode=mode, sensor_address=(net.host, 0),
-                        bind_address=(net.controller_host, 0), **(sim_kwargs or {}))
+    sim = SimController(config, robot=robot, tool=tool, mode=mode,
+                        sensor_address=(net.host, 0), bind_address=(net.controller_host, 0),
+                        **(sim_kwargs or {}))
     link_cfg = dataclasses.replace(config, mode=mode, network=dataclasses.replace(
         net, port=0, controller_port=sim.address[1]))
     T = sim.tcp_pose()

@@ -230,16 +230,18 @@ class IRB1410:
     """ABB IRB 1410 kinematics, batched in torch (default float64 on the CPU).
 
     Args:
+        config: limits and IK tolerances (``configs/robot.yaml``: :func:`load_irb1410` reads it
+            and builds the model).
         urdf_path: URDF to build the chain from (default ``urdf/irb1410.urdf``).
         dtype: float dtype of every tensor the model returns.
         device: torch device of the chain and the results.
-        config: limits and IK tolerances (default ``configs/robot.yaml``).
 
     Raises:
         URDFError: unreadable URDF, wrong joint names, or not the 6R spherical-wrist structure.
 
     Example:
-        >>> robot = IRB1410()
+        >>> from torchseam.robot.config import load_robot
+        >>> robot = IRB1410(load_robot())
         >>> T = robot.fk(torch.zeros(1, 6, dtype=torch.float64))
         >>> T[0, :3, 3]
         tensor([ 955.0000,    0.0000, 1195.0000], dtype=torch.float64)
@@ -248,10 +250,9 @@ class IRB1410:
         True
     """
 
-    def __init__(self, urdf_path: str | os.PathLike[str] | None = None,
-                 dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu",
-                 *, config: RobotConfig | None = None) -> None:
-        self.config = config if config is not None else load_robot()
+    def __init__(self, config: RobotConfig, urdf_path: str | os.PathLike[str] | None = None,
+                 dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> None:
+        self.config = config
         self.urdf_path = Path(urdf_path) if urdf_path is not None else URDF_PATH
         self.dtype = dtype
         self.device = torch.device(device)
@@ -594,6 +595,16 @@ class IRB1410:
 # Written against the array-API names numpy >= 2 and torch share (atan2, acos, concat, stack
 # with axis=...), so the same code runs batched in torch and, for one pose, in numpy, where
 # it is several times faster (the live gate checks one pose per frame, within its 1 ms).
+
+def load_irb1410(path: str | os.PathLike[str] | None = None,
+                 urdf_path: str | os.PathLike[str] | None = None,
+                 dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
+                 ) -> IRB1410:
+    """The shipped arm: :class:`IRB1410` with ``configs/robot.yaml`` (or ``path``), read by
+    :func:`~torchseam.robot.config.load_robot` (a bad file: ``ConfigError`` naming the field).
+    For the command line and scripts; library code takes the model as an argument."""
+    return IRB1410(load_robot(path), urdf_path, dtype, device)
+
 
 def to_numpy(x: Tensor | np.ndarray) -> np.ndarray:
     """``x`` as a numpy array (a tensor detached and moved to the CPU first)."""

@@ -25,8 +25,9 @@ Batched (:meth:`ReachGate.check`) for a whole seam, or one pose at a time
 the callable ``gate(position_mm, quaternion) -> (ok, reason)`` the EGM link takes.
 
 Example:
-    >>> from torchseam.core.config import load_part
-    >>> gate = ReachGate(part=load_part())
+    >>> from torchseam.core.config import load_cell, load_part
+    >>> from torchseam.robot.kinematics import load_irb1410
+    >>> gate = ReachGate(load_irb1410(), cell=load_cell(), part=load_part())
     >>> T = nominal_torch_poses(load_part(), 360)
     >>> result = gate.check(T)
     >>> result.ok.shape
@@ -42,10 +43,9 @@ from enum import Enum
 import numpy as np
 import torch
 
-from torchseam.core.config import CellConfig, PartConfig, load_cell
+from torchseam.core.config import CellConfig, PartConfig
 from torchseam.core.part import make_joint, torch_frames
 from torchseam.core.transforms import pose_matrix
-from torchseam.robot.config import RobotConfig
 from torchseam.robot.kinematics import (
     IRB1410,
     RobotInputError,
@@ -136,28 +136,29 @@ class ReachGate:
     """Batched reachability gate for torch TCP poses in the robot base frame (mm).
 
     Args:
-        robot: the kinematic model (default: ``IRB1410()`` with ``config``).
-        cell: tool transform (TCP in flange) and weld speed (default ``configs/cell.yaml``).
+        robot: the kinematic model; its config holds the gate's limits
+            (:func:`~torchseam.robot.kinematics.load_irb1410`: the shipped one).
+        cell: tool transform (TCP in flange) and weld speed (``configs/cell.yaml``:
+            :func:`~torchseam.core.config.load_cell`).
         part: the work piece for the clearance check; ``None`` skips that check.
         part_pose_mm: (4, 4) pose of the joint frame {T} in the base; default the part's nominal
             ``placement`` (the clamping error is unknown to the planner).
-        config: robot/gate configuration when ``robot`` is not given (default
-            ``configs/robot.yaml``).
 
     Example:
-        >>> gate = ReachGate()
+        >>> from torchseam.core.config import load_cell
+        >>> from torchseam.robot.kinematics import load_irb1410
+        >>> gate = ReachGate(load_irb1410(), cell=load_cell())
         >>> T = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
         >>> T[:, :3, 3] = torch.tensor([[2000.0, 0, 500], [900.0, 0, 800]])
         >>> gate.check(T).code[0]
         <Reason.UNREACHABLE: 'unreachable'>
     """
 
-    def __init__(self, robot: IRB1410 | None = None, *, cell: CellConfig | None = None,
-                 part: PartConfig | None = None, part_pose_mm: np.ndarray | None = None,
-                 config: RobotConfig | None = None) -> None:
-        self.robot = robot if robot is not None else IRB1410(config=config)
+    def __init__(self, robot: IRB1410, *, cell: CellConfig, part: PartConfig | None = None,
+                 part_pose_mm: np.ndarray | None = None) -> None:
+        self.robot = robot
         self.config = self.robot.config
-        self.cell = cell if cell is not None else load_cell()
+        self.cell = cell
         self.tool = self.cell.tool.matrix()                   # TCP in flange, (4, 4) mm
         self.tool_inv = np.linalg.inv(self.tool)
         self.weld_speed_mm_s = float(self.cell.process.weld_speed_mm_s)

@@ -22,7 +22,7 @@ from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES, FrameView
 from torchseam.core.report import error_stats, format_table, percentiles_ms
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import STATUS_NAMES, TRACKERS, make_tracker
-from torchseam.vision.tipm import Tipm, find_view
+from torchseam.vision.tipm import Tipm, find_view, load_tipm
 
 MISSING = "missing"  # track.csv status of a frame number the folder has no image for
 #: track.csv status of a frame that cannot be decoded or is not the size of the folder's
@@ -111,29 +111,30 @@ def _start(img: np.ndarray, tipm: Tipm, uv0: np.ndarray | None, args: argparse.N
     return view, view.to_camera(res.uv), f"TIPM on frame {number}"
 
 
-def _make_tracker(args: argparse.Namespace):
+def _make_tracker(args: argparse.Namespace, tipm: Tipm):
     """The tracker ``--tracker`` names, with ``--model``'s parameters (checked here, before
     any output is written)."""
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
-    return make_tracker(args.tracker, model_path=args.model)
+    return make_tracker(args.tracker, tipm, model_path=args.model)
 
 
 def _follow(args: argparse.Namespace, tracker, ds: Dataset, uv0: np.ndarray | None,
-            on_frame: Callable[[int, np.ndarray, str], None]) -> tuple[str, list[float]]:
+            on_frame: Callable[[int, np.ndarray, str], None], tipm: Tipm
+            ) -> tuple[str, list[float]]:
     """Track ``ds`` frame by frame with ``tracker`` as the live loop drives it (``update``,
     then its ``idle``), calling ``on_frame(position, uv, status name)`` for each frame in
     order.
 
     A frame that cannot be decoded or is not the size of the first readable one is reported
     ``unreadable`` (NaN point, a warning on stderr) and skipped: the tracker goes on with the
-    next frame. The tracker starts on the first readable frame.
+    next frame. The tracker starts on the first readable frame (``tipm``: the start point
+    without ``--init``, the view with ``auto``).
 
     Returns:
         ``(start note, seconds of each update)``.
     """
     idle = getattr(tracker, "idle", None)
-    tipm = Tipm()
     view: FrameView | None = None
     size: tuple[int, ...] = ()
     note, secs, bad = "", [], 0
@@ -191,7 +192,8 @@ def run_track(args: argparse.Namespace) -> int:
     uv0 = _parse_init(args.init)
     ds = Dataset.open(args.frames_dir, labels=False)  # track needs no labels
     gone = {int(f) for f in _warn_missing(ds)}
-    tracker = _make_tracker(args)
+    tipm = load_tipm()
+    tracker = _make_tracker(args, tipm)
     counts = dict.fromkeys([*STATUS_NAMES.values(), UNREADABLE, MISSING], 0)
     state = {"next": int(ds.frames[0])}
     with contextlib.ExitStack() as stack:
@@ -214,7 +216,7 @@ def run_track(args: argparse.Namespace) -> int:
             counts[status] = counts.get(status, 0) + 1
             fh.flush()  # a run that stops early keeps the rows so far
 
-        note, _ = _follow(args, tracker, ds, uv0, row)
+        note, _ = _follow(args, tracker, ds, uv0, row, tipm)
     shown = ", ".join(f"{k} {n}" for k, n in counts.items()
                       if n or k in STATUS_NAMES.values())
     print(f"{args.tracker}: {len(ds)} frames -> {args.out} (start: {note}; {shown})")
@@ -233,7 +235,8 @@ def run_eval(args: argparse.Namespace) -> int:
         uv[i] = p
         n_bad += status == UNREADABLE
 
-    note, secs = _follow(args, _make_tracker(args), ds, uv0, keep)
+    tipm = load_tipm()
+    note, secs = _follow(args, _make_tracker(args, tipm), ds, uv0, keep, tipm)
     labelled = ds.labelled
     err = np.linalg.norm(uv - ds.labels, axis=1)[labelled]
     s = error_stats(err)

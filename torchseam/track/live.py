@@ -187,7 +187,7 @@ def arm_directions(res: TipmResult) -> np.ndarray:
     of an arm, tighter than ECAL's few circle crossings; see docs/benchmarks.md).
 
     Example:
-        >>> d = arm_directions(Tipm()(frame))  # doctest: +SKIP
+        >>> d = arm_directions(tipm(frame))  # doctest: +SKIP
     """
     s_left, s_right = arm_shape(res)[:, 0]  # dv / du of each arm at the corner
     d = np.array([[-1.0, -s_left], [1.0, s_right]])  # the left arm leaves towards -u
@@ -227,8 +227,9 @@ def corner_seen(res: TipmResult, support_px: float, points: int) -> bool:
     bends there.
 
     Example:
-        >>> r = Tipm().corner(np.stack([np.arange(0.0, 200), 100 - np.abs(np.arange(0.0, 200)
-        ...                             - 100) * 0.5], axis=1))
+        >>> from torchseam.vision.tipm import load_tipm
+        >>> u = np.arange(0.0, 200)
+        >>> r = load_tipm().corner(np.stack([u, 100 - np.abs(u - 100) * 0.5], axis=1))
         >>> corner_seen(r, 10.0, 5)
         True
     """
@@ -636,10 +637,10 @@ class LiveTracker(nn.Module):
         return {k: v.to(dt) for k, v in self.fusion.natural().items()}
 
     def init_state(self, frames: Sequence[np.ndarray], grey: Tensor, uv0: Tensor,
-                   tipm: Tipm | None = None) -> LiveState:
+                   tipm: Tipm) -> LiveState:
         """Start B streams at ``uv0`` (B, 2) on their first frames (``frames``: B colour or
-        mono frames; ``grey``: (B, H, W) their stripe response, what EAKF-STC sees)."""
-        tipm = tipm or Tipm()
+        mono frames; ``grey``: (B, H, W) their stripe response, what EAKF-STC sees; ``tipm``:
+        the fixes' TIPM, the live loop's)."""
         inner = self.eakf_stc.init_state(grey, uv0)
         ops = TorchOps(self.eakf_stc.eakf.dt.dtype)
         params = self._params()
@@ -714,24 +715,23 @@ class LiveTracker(nn.Module):
 class AnchoredTracker(Tracker):
     """The live tracker on one stream (the live loop's): EAKF-STC's numpy twin
     (:class:`~torchseam.track.lite.LiteEAKFSTC`) and :class:`AnchorFilter` on numpy, with the
-    fitted values of a :class:`LiveTracker` (the shipped model file by default).
+    fitted values of ``live`` (a :class:`LiveTracker`: :func:`load_live_tracker` reads the
+    shipped model file), its fixes found by ``tipm``.
 
     Example:
-        >>> trk = AnchoredTracker()           # models/live_tracker.safetensors
+        >>> from torchseam.vision.tipm import load_tipm
+        >>> trk = AnchoredTracker(load_live_tracker(), load_tipm())  # the shipped model
         >>> trk.init(frame0, uv0)             # doctest: +SKIP
         >>> res = trk.track(frame1)           # doctest: +SKIP
     """
 
     name = "anchored"
 
-    def __init__(self, live: LiveTracker | None = None, cfg: AnchorConfig | None = None
-                 ) -> None:
-        if live is None:
-            live = load_live_tracker(cfg=cfg)
+    def __init__(self, live: LiveTracker, tipm: Tipm) -> None:
         self.live = live
         self.inner = LiteTracker(live.eakf_stc)
         self.cfg = live.anchor_config()
-        self.filter = AnchorFilter(self.cfg, Tipm(), self.cfg.__dict__)
+        self.filter = AnchorFilter(self.cfg, tipm, self.cfg.__dict__)
         self._expected: np.ndarray | None = None
         self._frame: np.ndarray | None = None
         self.glare = 0.0
@@ -859,7 +859,7 @@ def load_live_tracker(model_path: str | Path | None = None, cfg: AnchorConfig | 
     (TrackerConfig fields) instead of a file; the fusion then keeps ``cfg``'s values (the
     starting values of a fit, ``configs/anchor.yaml``), as it does, with a warning, for a file
     of EAKF-STC alone or when no model file is present."""
-    cfg = cfg or load_anchor_config()
+    cfg = cfg if cfg is not None else load_anchor_config()
     live = LiveTracker(fitted_eakf_stc(model, model_path), cfg)
     if model:
         return live

@@ -57,12 +57,12 @@ def grey_tensor(frame: np.ndarray, planes: list[np.ndarray] | None = None) -> to
 
 
 class TipmPerFrame(Tracker):
-    """TIPM on every frame: no memory; a frame without a point is LOST (NaN)."""
+    """TIPM (``tipm``) on every frame: no memory; a frame without a point is LOST (NaN)."""
 
     name = "tipm"
 
-    def __init__(self) -> None:
-        self.tipm = Tipm()
+    def __init__(self, tipm: Tipm) -> None:
+        self.tipm = tipm
 
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
         pass
@@ -134,13 +134,16 @@ class OpenCVTracker(Tracker):
         return self.last, int(TrackStatus.TRACKED)
 
 
-def make_tracker(name: str, model: dict | None = None,
+def make_tracker(name: str, tipm: Tipm, model: dict | None = None,
                  model_path: str | Path | None = None) -> FrameTracker:
-    """A tracker by CLI name (see ``TRACKERS``). The EAKF-STC trackers load ``model_path``
-    (a model file; ``eakf-stc`` takes the EAKF-STC part of a live-tracker file), else
-    ``anchored`` ``models/live_tracker.safetensors`` and ``eakf-stc`` its own fit
-    ``models/eakf_stc.safetensors``, unless ``model`` (a TrackerConfig mapping) is given. A
-    ``model_path`` for a tracker without EAKF-STC is an error (it would be ignored)."""
+    """A tracker by CLI name (see ``TRACKERS``); ``tipm`` is the TIPM of those that run it
+    (``tipm`` on every frame, ``anchored`` for its fixes). The EAKF-STC trackers read their
+    fitted model: ``model_path`` (a model file; ``eakf-stc`` takes the EAKF-STC part of a
+    live-tracker file), else ``anchored`` ``models/live_tracker.safetensors`` (with
+    ``configs/anchor.yaml``, see :func:`~torchseam.track.live.load_live_tracker`) and
+    ``eakf-stc`` its own fit ``models/eakf_stc.safetensors``, unless ``model`` (a TrackerConfig
+    mapping) is given. A ``model_path`` for a tracker without EAKF-STC is an error (it would be
+    ignored)."""
     if model_path is not None and name not in ("eakf-stc", "anchored"):
         raise TorchseamError(f"--model {model_path}: tracker {name} loads no model (only "
                              "eakf-stc and anchored do)")
@@ -149,17 +152,17 @@ def make_tracker(name: str, model: dict | None = None,
             model_path = model_file.EAKF_STC_MODEL  # its own fit, not the live tracker's part
         return LiteTracker(fitted_eakf_stc(model, model_path))
     if name == "anchored":
-        return AnchoredTracker(load_live_tracker(model_path, model=model))
+        return AnchoredTracker(load_live_tracker(model_path, model=model), tipm)
     if name == "stc":
         return TorchTracker(name, STC())
     if name == "tipm":
-        return TipmPerFrame()
+        return TipmPerFrame(tipm)
     if name in ("kcf", "csrt", "mosse"):
         return OpenCVTracker(name)
     raise TorchseamError(f"unknown tracker {name!r}: use one of {', '.join(TRACKERS)}")
 
 
-def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
+def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None, tipm: Tipm,
                 progress: Callable[[int], None] | None = None, axis: str = "rows",
                 response: str = "red"
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]:
@@ -170,6 +173,7 @@ def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
     Args:
         uv0: start point on frame 0 (camera pixels); None: TIPM on frame 0 (it must find the
             stripe there).
+        tipm: that TIPM, also the one that finds the view with ``auto``.
         axis: how the stripe runs: ``rows``, ``columns`` (the tracker sees each frame turned,
             see :mod:`torchseam.core.orient`) or ``auto`` (found on frame 0).
         response: a colour frame's stripe response: ``red`` (red excess), ``intensity`` (the
@@ -186,7 +190,6 @@ def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None,
         first = next(it)
     except StopIteration:
         raise TorchseamError("no frames to track") from None
-    tipm = Tipm()
     first = check_frame(first, name="frame 0")
     if "auto" in (axis, response):
         found = find_view(first, tipm, axis, response)

@@ -12,7 +12,7 @@ import numpy as np
 from torchseam.core.dataset import read_frame
 from torchseam.core.errors import FrameError
 from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES, FrameView
-from torchseam.vision.tipm import Tipm, TipmResult, draw_overlay, find_view
+from torchseam.vision.tipm import Tipm, TipmResult, draw_overlay, find_view, load_tipm
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -61,7 +61,7 @@ def _overlay_name(path: Path, used: set[str]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    tipm = Tipm(centre_line=args.centre_line)
+    tipm = load_tipm(centre_line=args.centre_line)
     if args.overlay:
         try:
             args.overlay.mkdir(parents=True, exist_ok=True)

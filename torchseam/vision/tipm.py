@@ -107,7 +107,14 @@ def red_response(frame: np.ndarray, with_green: bool = False,
 
 
 def load_tipm_config(path: str | Path | None = None) -> TipmConfig:
+    """Read ``configs/tipm.yaml`` (or ``path``)."""
     return load_config(TipmConfig, path or CONFIG_DIR / "tipm.yaml")
+
+
+def load_tipm(path: str | Path | None = None, centre_line: str = "subpixel") -> Tipm:
+    """The shipped seam finder: :class:`Tipm` with ``configs/tipm.yaml`` (or ``path``). For
+    the command line and scripts; library code takes the :class:`Tipm` as an argument."""
+    return Tipm(load_tipm_config(path), centre_line)
 
 
 @dataclass
@@ -150,16 +157,16 @@ class Tipm:
     """Classic stripe image processing for the weld feature point.
 
     Example:
-        >>> tipm = Tipm()
+        >>> tipm = Tipm(load_tipm_config())
         >>> res = tipm(np.zeros((492, 656, 3), np.uint8))
         >>> res.ok, res.reason
         (False, 'no stripe found (no red pixels above threshold)')
     """
 
-    def __init__(self, cfg: TipmConfig | None = None, centre_line: str = "subpixel") -> None:
+    def __init__(self, cfg: TipmConfig, centre_line: str = "subpixel") -> None:
         if centre_line not in ("subpixel", "thinning"):
             raise ValueError(f"centre_line must be 'subpixel' or 'thinning', got {centre_line!r}")
-        self.cfg = cfg or load_tipm_config()
+        self.cfg = cfg
         self.centre_line = centre_line
         k = 2 * self.cfg.dilate_px + 1
         self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
@@ -444,11 +451,12 @@ def white_core(frame: np.ndarray, res: TipmResult) -> float:
     return float(np.mean((px[:, 2] >= 250) & (px[:, :2].max(axis=1) > 125)))
 
 
-def find_view(frame: np.ndarray, tipm: Tipm | None = None, axis: str = "auto",
+def find_view(frame: np.ndarray, tipm: Tipm, axis: str = "auto",
               response: str = "auto") -> FrameView | None:
-    """How to look at a stream, from one clean camera frame (H, W[, 3]): which way the stripe
-    runs (``axis``: rows, columns or auto) and, for a colour camera, which response shows it
-    (``response``: red, intensity or auto; see :mod:`torchseam.core.orient`).
+    """How to look at a stream, from one clean camera frame (H, W[, 3]) and ``tipm``: which
+    way the stripe runs (``axis``: rows, columns or auto) and, for a colour camera, which
+    response shows it (``response``: red, intensity or auto; see
+    :mod:`torchseam.core.orient`).
 
     Auto axis: TIPM is run on the frame as it is and turned a quarter; the layout in which it
     finds a corner wins, the one with the tighter arm fit when both do. Auto response: the
@@ -458,10 +466,9 @@ def find_view(frame: np.ndarray, tipm: Tipm | None = None, axis: str = "auto",
     next one).
 
     Example:
-        >>> find_view(np.zeros((64, 64), np.uint8)) is None
+        >>> find_view(np.zeros((64, 64), np.uint8), load_tipm()) is None
         True
     """
-    tipm = tipm or Tipm()
     frame = check_frame(frame)
     axes = ("rows", "columns") if axis == "auto" else (axis,)
     responses = ("red", "intensity") if response == "auto" else (response,)

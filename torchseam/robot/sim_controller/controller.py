@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 
-from torchseam.core.config import load_cell
 from torchseam.robot.egm import (
     SO_TIMESTAMPNS,
     TIMESPEC,
@@ -62,18 +61,20 @@ class SimController:
         bind_address: the controller's own address (default ``network.controller_host`` and
             ``network.controller_port``; port 0 binds an ephemeral one, see :attr:`address`).
         mode: ``pose`` or ``pathcorr`` (default the config's).
-        robot: the kinematic model (default :class:`~torchseam.robot.kinematics.IRB1410`).
-        tool: TCP pose in the flange frame, 4x4 mm (default the cell's torch).
+        robot: the kinematic model, an :class:`~torchseam.robot.kinematics.IRB1410`
+            (:func:`~torchseam.robot.kinematics.load_irb1410`: the shipped one).
+        tool: TCP pose in the flange frame, 4x4 mm (the cell's torch:
+            ``load_cell().tool.matrix()``).
         path: programmed TCP path for pathcorr, (N, 4, 4) mm in the base frame (default a
             straight line from the home pose along ``path_direction``).
         seed: seed of the ``corrupt`` fault's byte flips.
     """
 
-    def __init__(self, config: EgmConfig, *,
+    def __init__(self, config: EgmConfig, *, robot: IRB1410, tool: np.ndarray,
                  sensor_address: tuple[str, int] | None = None,
                  bind_address: tuple[str, int] | None = None,
-                 mode: str | None = None, robot: Any = None, tool: np.ndarray | None = None,
-                 path: np.ndarray | None = None, seed: int = 0) -> None:
+                 mode: str | None = None, path: np.ndarray | None = None, seed: int = 0
+                 ) -> None:
         self.config = config
         net = self.config.network
         self.sim = self.config.sim_controller
@@ -81,8 +82,8 @@ class SimController:
         if self.mode not in ("pose", "pathcorr"):
             raise EgmError(f"mode must be pose or pathcorr, got {self.mode!r}")
         self.sensor_address = sensor_address or (net.host, net.port)
-        self.robot = robot if robot is not None else IRB1410()
-        self.tool = np.asarray(tool if tool is not None else load_cell().tool.matrix(), float)
+        self.robot = robot
+        self.tool = np.asarray(tool, float)
         self.period = self.sim.period_s
         self._max_reply = self.config.link.max_datagram_bytes
         self.arm = ArmModel(self.robot, self.tool, self.sim, self.mode, path)
