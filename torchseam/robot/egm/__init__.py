@@ -32,6 +32,7 @@ from torchseam.robot.egm.link import (
     TIMESPEC,
     EgmError,
     EgmLink,
+    open_udp,
     rx_time_ns,
     set_realtime_priority,
 )
@@ -42,5 +43,5 @@ from torchseam.robot.egm.stats import EgmStats, LateReply, copy_stats, latency_s
 __all__ = ["ACCEPTED", "MODES", "SO_TIMESTAMPNS", "TIMESPEC", "EgmConfig", "EgmError",
            "EgmLink", "EgmLinkConfig", "EgmNetwork", "EgmSafety", "EgmStats", "Gate",
            "LateReply", "SimControllerConfig", "Verdict", "copy_stats", "egm_config_from_dict",
-           "latency_summary", "load_egm_config", "parse_robot", "parse_sensor", "rx_time_ns",
-           "set_realtime_priority"]
+           "latency_summary", "load_egm_config", "open_udp", "parse_robot", "parse_sensor",
+           "rx_time_ns", "set_realtime_priority"]

@@ -231,21 +231,8 @@ class EgmLink:
 
     def _open_socket(self) -> socket.socket:
         net = self.config.network
-        family = socket.AF_INET6 if ipaddress.ip_address(net.host).version == 6 else socket.AF_INET
-        sock = socket.socket(family, socket.SOCK_DGRAM)
-        try:
-            sock.bind((net.host, net.port))
-        except OSError as e:
-            sock.close()
-            hint = " (another EGM sensor running?)" if e.errno == errno.EADDRINUSE else ""
-            raise EgmError(f"cannot bind the EGM sensor to {net.host}:{net.port}: "
-                           f"{e.strerror or e}{hint}") from None
-        sock.setblocking(False)
-        if SO_TIMESTAMPNS is not None:
-            try:
-                sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-            except OSError:
-                pass  # fall back to user-space receive times
+        sock = open_udp((net.host, net.port), "the EGM sensor",
+                        " (another EGM sensor running?)")
         if _SO_RXQ_OVFL is not None:
             try:
                 sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
@@ -689,6 +676,36 @@ class EgmLink:
     def holding(self) -> bool:
         """True while the watchdog holds the robot."""
         return self._watchdog_holding
+
+
+def open_udp(address: tuple[str, int], what: str, in_use_hint: str = "") -> socket.socket:
+    """A non-blocking UDP socket bound to ``address`` (IPv4 or IPv6 by the host), with kernel
+    receive time stamps where the kernel gives them (else user-space receive times are used).
+    Both ends of the EGM link open theirs with it, so both time a datagram the same way.
+
+    Raises:
+        EgmError: the address cannot be bound: ``cannot bind WHAT to HOST:PORT: why`` (with
+            ``in_use_hint`` when the port is taken).
+    """
+    host, port = address
+    try:
+        v6 = ipaddress.ip_address(host).version == 6
+    except ValueError:  # a host name
+        v6 = False
+    sock = socket.socket(socket.AF_INET6 if v6 else socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.bind(address)
+    except OSError as e:
+        sock.close()
+        hint = in_use_hint if e.errno == errno.EADDRINUSE else ""
+        raise EgmError(f"cannot bind {what} to {host}:{port}: {e.strerror or e}{hint}") from None
+    sock.setblocking(False)
+    if SO_TIMESTAMPNS is not None:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        except OSError:
+            pass  # fall back to user-space receive times
+    return sock
 
 
 def set_realtime_priority(priority: int, what: str) -> bool:

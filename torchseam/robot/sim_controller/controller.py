@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 
 from torchseam.robot.egm import (
-    SO_TIMESTAMPNS,
     TIMESPEC,
     EgmConfig,
     EgmError,
+    open_udp,
     parse_sensor,
     rx_time_ns,
     set_realtime_priority,
@@ -463,20 +463,7 @@ class SimController:
 def _open_socket(bind_address: tuple[str, int]) -> tuple[socket.socket, bool]:
     """The controller's non-blocking UDP socket, bound, with kernel receive time stamps where
     the kernel gives them; and whether it stamps each datagram as it leaves."""
-    sock = socket.socket(socket.AF_INET6 if ":" in bind_address[0] else socket.AF_INET,
-                         socket.SOCK_DGRAM)
-    try:
-        sock.bind(bind_address)
-    except OSError as e:
-        sock.close()
-        raise EgmError(f"cannot bind the simulated controller to {bind_address}: "
-                       f"{e.strerror or e}") from None
-    sock.setblocking(False)
-    if SO_TIMESTAMPNS is not None:
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-        except OSError:
-            pass
+    sock = open_udp(bind_address, "the simulated controller")
     tx_stamps = False
     if _SO_TIMESTAMPING is not None:
         try:
