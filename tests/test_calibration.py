@@ -15,7 +15,8 @@ import torch
 from torchseam.core.camera import intrinsics, laser_plane_tensor, pixels_to_plane
 from torchseam.core.config import CONFIG_DIR, ConfigError, load_cell, load_config
 from torchseam.core.errors import TorchseamError
-from torchseam.core.transforms import invert, pose_matrix, rotation_about
+from torchseam.core.poses_csv import PoseFileError, read_pose_csv, write_pose_csv
+from torchseam.core.transforms import invert, matrix_to_quat, pose_matrix, rotation_about
 from torchseam.geometry import calib_cli
 from torchseam.geometry.calibrate import (
     CalibrationConfig,
@@ -29,9 +30,7 @@ from torchseam.geometry.calibrate import (
     hand_eye_linear,
     load_calibration,
     load_laser_set,
-    read_pose_csv,
     stripe_on_board,
-    write_pose_csv,
 )
 from torchseam.sim.board import (
     BoardRenderer,
@@ -355,25 +354,33 @@ def test_tcp_bad_sets_are_refused(cell, cfg):
 
 # --------------------------------------------------------------------------- files and config
 
+def write_flange_poses(path, label, names, T) -> None:
+    """A set's poses.csv as a user writes it: label column, then x,y,z,q1..q4 of T_B_F."""
+    write_pose_csv(path, T[:, :3, 3], matrix_to_quat(T[:, :3, :3]), label=label, labels=names)
+
+
 def test_pose_csv_round_trip_and_errors(tmp_path, handeye_set):
     p = tmp_path / "poses.csv"
-    write_pose_csv(p, handeye_set.names, handeye_set.T_B_F, "image")
-    keys, T = read_pose_csv(p, "image")
-    assert keys == handeye_set.names
-    np.testing.assert_allclose(T, handeye_set.T_B_F, atol=1e-5)
+    write_flange_poses(p, "image", handeye_set.names, handeye_set.T_B_F)
+    assert p.read_text().splitlines()[0] == "image,x,y,z,q1,q2,q3,q4"
+    got = read_pose_csv(p, label="image")
+    assert got.labels == handeye_set.names and got.t is None
+    np.testing.assert_allclose(got.T, handeye_set.T_B_F, atol=1e-5)
     lines = p.read_text().splitlines()
     p.write_text("\n".join([lines[0], lines[1], lines[2].replace(",", ",abc,", 1)[:-4]]))
-    with pytest.raises(CalibrationError, match=r"poses\.csv: line 3: expected 8 values"):
-        read_pose_csv(p, "image")
+    with pytest.raises(PoseFileError, match=r"poses\.csv: line 3: expected 8 fields, got 9"):
+        read_pose_csv(p, label="image")
     p.write_text("\n".join([lines[0], lines[1].split(",", 1)[0] + ",1,2,x,1,0,0,0"]))
-    with pytest.raises(CalibrationError, match=r"poses\.csv: line 2: z_mm: not a number"):
-        read_pose_csv(p, "image")
-    p.write_text("image,x,y,z,q1,q2,q3,q4\n")
-    with pytest.raises(CalibrationError, match=r"line 1: header must be image,x_mm"):
-        read_pose_csv(p, "image")
+    with pytest.raises(PoseFileError, match=r"poses\.csv: line 2: field 'z': not a number"):
+        read_pose_csv(p, label="image")
+    p.write_text("x,y,z,q1,q2,q3,q4\n1,2,3,1,0,0,0\n")  # a path file: no image column
+    with pytest.raises(PoseFileError, match=r"line 1: header lacks column\(s\) image "
+                                            r"\(expected image,x,y,z,q1,q2,q3,q4\)"):
+        read_pose_csv(p, label="image")
+    # a set recorded with the old header still reads; its messages name its own columns
     p.write_text("pose,x_mm,y_mm,z_mm,qw,qx,qy,qz\np0,0,0,0,0.5,0,0,0\n")
-    with pytest.raises(CalibrationError, match="quaternion norm is 0.5"):
-        read_pose_csv(p, "pose")
+    with pytest.raises(PoseFileError, match=r"line 2: quaternion qw..qz has norm 0.500000"):
+        read_pose_csv(p, label="pose")
 
 
 def test_laser_folder_needs_pairs(tmp_path, laser_set):
@@ -442,7 +449,7 @@ def test_cli_handeye_reads_its_folder(tmp_path, handeye_set, cell, capsys):
     folder.mkdir()
     for name, img in zip(handeye_set.names, handeye_set.images, strict=True):
         cv2.imwrite(str(folder / name), img)
-    write_pose_csv(folder / "poses.csv", handeye_set.names, handeye_set.T_B_F, "image")
+    write_flange_poses(folder / "poses.csv", "image", handeye_set.names, handeye_set.T_B_F)
     assert cli(["calibrate", "handeye", str(folder), "--write", str(tmp_path / "c.yaml")]) == 0
     got = load_cell(tmp_path / "c.yaml")
     X, X_true = as_matrix(got.hand_eye), cell.hand_eye.matrix()
@@ -450,6 +457,14 @@ def test_cli_handeye_reads_its_folder(tmp_path, handeye_set, cell, capsys):
     (folder / handeye_set.names[4]).unlink()
     with pytest.raises(CalibrationError, match=rf"image {handeye_set.names[4]} is not in"):
         cli(["calibrate", "handeye", str(folder)])
+    # a bad pose file: one line naming file, line and field, exit code 2, no traceback
+    from torchseam.cli import main
+
+    (folder / "poses.csv").write_text("image,x,y,z,q1,q2,q3,q4\n00.png,1,2,3,1,0,0,nan\n")
+    capsys.readouterr()
+    assert main(["calibrate", "handeye", str(folder)]) == 2
+    assert capsys.readouterr().err == (f"torchseam calibrate: error: {folder / 'poses.csv'}: "
+                                       "line 2: field 'q4': not finite (nan)\n")
 
 
 def test_cli_errors_name_the_folder(tmp_path):

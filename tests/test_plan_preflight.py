@@ -1,7 +1,7 @@
 """Weld plan and pre-flight check (issue 26): the plan of every shipped part through the
 reachability gate before any motion, the search when the configured plan fails, the
-``torchseam plan`` command, the pose-CSV writer, the oval main pipe's clearance and the report
-writer on a segment with no welded pose."""
+``torchseam plan`` command, the oval main pipe's clearance and the report writer on a segment
+with no welded pose (the pose-CSV writer: test_poses_csv.py)."""
 
 from __future__ import annotations
 
@@ -216,32 +216,10 @@ def test_report_writer_survives_a_segment_with_no_welded_pose(tmp_path):
     assert (tmp_path / "report" / "quaternions.png") in files
 
 
-def test_pose_csv_writer_refuses_what_robot_check_would(tmp_path):
-    from torchseam.robot.cli import CSV_COLUMNS, read_pose_csv
-    from torchseam.robot.poses_csv import write_pose_csv
-
-    p = np.array([[900.0, 0.0, 500.0], [902.0, 0.0, 500.0]])
-    q = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 2.0, 0.0, 0.0]])  # normalised on the way
-    path = write_pose_csv(tmp_path / "p.csv", p, q, [0.0, 0.25])
-    assert path.read_text().splitlines()[0] == ",".join(("t",) + CSV_COLUMNS)
-    T, t = read_pose_csv(path)
-    np.testing.assert_allclose(T[:, :3, 3], p)
-    np.testing.assert_allclose(t, [0.0, 0.25])
-    assert write_pose_csv(tmp_path / "n.csv", p, q).read_text().startswith("x,y,z,q1")
-    for bad_p, bad_q, bad_t, msg in ((p, q[:1], None, "quaternion: expected shape"),
-                                     (p * np.nan, q, None, "finite"),
-                                     (p, q * 0, None, "zero quaternion"),
-                                     (p, q, [1.0, 0.0], "time goes backwards")):
-        with pytest.raises(ValueError, match=msg):
-            write_pose_csv(tmp_path / "bad.csv", bad_p, bad_q, bad_t)
-
-
 def test_docstring_examples_run():
     import doctest
 
     import torchseam.plan.preflight
-    import torchseam.robot.poses_csv
 
-    for mod in (torchseam.plan.preflight, torchseam.robot.poses_csv):
-        result = doctest.testmod(mod)
-        assert result.failed == 0 and result.attempted > 0, mod.__name__
+    result = doctest.testmod(torchseam.plan.preflight)
+    assert result.failed == 0 and result.attempted > 0

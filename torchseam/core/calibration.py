@@ -1,11 +1,10 @@
-"""The calibration settings (``configs/calibration.yaml``) and a calibration set's pose file.
+"""The calibration settings (``configs/calibration.yaml``).
 
 :class:`CalibrationConfig` holds the checkerboard (:class:`BoardSpec`), each procedure's settings
 (:mod:`torchseam.geometry.calibrate` runs them) and the simulated sets' settings
 (:mod:`torchseam.sim.board` renders them): one config, read by both, so it lives in core. The
-robot pose file of a hand-eye or TCP set (``KEY,x_mm,y_mm,z_mm,qw,qx,qy,qz``: the flange pose
-``T_B_F`` per image or touch) is written by the simulator and read by the procedures:
-:func:`write_pose_csv`, :func:`read_pose_csv`.
+robot pose file of a hand-eye or TCP set (the flange pose ``T_B_F`` per image or touch) is the
+project's one pose CSV (:mod:`torchseam.core.poses_csv`) with a label column.
 
 Frames: {B} robot base, {F} flange, {O} board (origin at the first inner corner, x along the
 board's ``cols`` corners, y along its ``rows``, z into the board). Units: mm, degrees, pixels.
@@ -13,22 +12,14 @@ board's ``cols`` corners, y along its ``rows``, z into the board). Units: mm, de
 
 from __future__ import annotations
 
-import csv
-import math
 import os
-from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from torchseam.core.config import CONFIG_DIR, Pose, load_config
 from torchseam.core.config import config_field as _m
 from torchseam.core.errors import TorchseamError
-from torchseam.core.transforms import matrix_to_quat, pose_matrix
-
-#: Header of the robot pose files: key column, then the flange pose T_B_F (ABB tool0 robtarget).
-POSE_COLUMNS = ("x_mm", "y_mm", "z_mm", "qw", "qx", "qy", "qz")
 
 
 class CalibrationError(TorchseamError):
@@ -242,60 +233,3 @@ def load_calibration(path: str | os.PathLike[str] | None = None) -> CalibrationC
         ConfigError: naming the file and the field, like every config of the project.
     """
     return load_config(CalibrationConfig, path or CONFIG_DIR / "calibration.yaml")
-
-
-def read_pose_csv(path: Path, key: str) -> tuple[list[str], np.ndarray]:
-    """Robot poses: header ``KEY,x_mm,y_mm,z_mm,qw,qx,qy,qz`` (flange in base, ABB order).
-
-    Returns:
-        ``(keys, T_B_F (N, 4, 4))``.
-
-    Raises:
-        CalibrationError: ``"poses.csv: line 3: qw: not a number: 'a'"`` and the like.
-    """
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise CalibrationError(f"{path}: cannot read robot poses ({e.strerror or e})") from None
-    rows = list(csv.reader(text.splitlines()))
-    want = [key, *POSE_COLUMNS]
-    if not rows or [c.strip() for c in rows[0]] != want:
-        got = ",".join(rows[0]) if rows else "(empty file)"
-        raise CalibrationError(f"{path}: line 1: header must be {','.join(want)}, got {got}")
-    keys, poses = [], []
-    for line, row in enumerate(rows[1:], start=2):
-        if not row or not "".join(row).strip():
-            continue
-        if len(row) != len(want):
-            raise CalibrationError(f"{path}: line {line}: expected {len(want)} values, "
-                                   f"got {len(row)}")
-        vals = []
-        for col, v in zip(POSE_COLUMNS, row[1:], strict=True):
-            try:
-                x = float(v)
-            except ValueError:
-                raise CalibrationError(f"{path}: line {line}: {col}: not a number: {v!r}") from None
-            if not math.isfinite(x):
-                raise CalibrationError(f"{path}: line {line}: {col}: not finite: {v!r}")
-            vals.append(x)
-        q = np.array(vals[3:])
-        norm = float(np.linalg.norm(q))
-        if abs(norm - 1.0) > 1e-3:
-            raise CalibrationError(f"{path}: line {line}: quaternion norm is {norm:.6f}, "
-                                   "expected 1 (w, x, y, z)")
-        keys.append(row[0].strip())
-        poses.append(pose_matrix(np.array(vals[:3]), q / norm))
-    if not poses:
-        raise CalibrationError(f"{path}: holds no poses")
-    return keys, np.stack(poses)
-
-
-def write_pose_csv(path: Path, keys: Sequence[str], T: np.ndarray, key: str) -> None:
-    """Inverse of :func:`read_pose_csv`."""
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow([key, *POSE_COLUMNS])
-        for k, M in zip(keys, T, strict=True):
-            q = matrix_to_quat(M[:3, :3])
-            w.writerow([k, *(f"{x:.6f}" for x in M[:3, 3]), *(f"{x:.9f}" for x in q)])

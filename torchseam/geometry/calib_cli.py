@@ -7,11 +7,14 @@ camera   ``DIR/*.png`` (or .jpg, .bmp, .tif): the checkerboard at 20-30 poses, t
 laser    ``DIR/NAME_board.png`` (checkerboard, lamp on, laser off) and ``DIR/NAME_laser.png``
          (same pose, laser on, lamp dimmed) for each of 6-10 board poses across the stripe's
          depth range.
-handeye  ``DIR/poses.csv`` with header ``image,x_mm,y_mm,z_mm,qw,qx,qy,qz``: per image the
-         flange pose in the robot base (ABB tool0 robtarget: mm, quaternion w x y z) and the
-         image of the board, fixed in the cell, taken there.
-tcp      ``DIR/poses.csv`` with header ``pose,x_mm,y_mm,z_mm,qw,qx,qy,qz``: flange poses with
-         the torch tip on one fixed point, the torch tilted about different axes.
+handeye  ``DIR/poses.csv`` with header ``image,x,y,z,q1,q2,q3,q4``: per image the flange
+         pose in the robot base (ABB tool0 robtarget: mm, quaternion q1..q4 = w x y z) and
+         the image of the board, fixed in the cell, taken there.
+tcp      ``DIR/poses.csv`` with header ``pose,x,y,z,q1,q2,q3,q4``: flange poses with the
+         torch tip on one fixed point, the torch tilted about different axes.
+
+poses.csv is the pose CSV that ``robot check`` reads too: columns in any order, blank lines
+and ``#`` lines skipped; the older header spelling ``x_mm,y_mm,z_mm,qw,qx,qy,qz`` is still read.
 
 A simulated set also holds ``truth.json``; the command then prints the true values beside the
 recovered ones. The result goes into a copy of ``--cell`` (default ``configs/cell.yaml``)

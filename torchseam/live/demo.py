@@ -1085,7 +1085,7 @@ def write_report(res: DemoResult, out: Path) -> list[Path]:
 
 def write_poses_csv(res: DemoResult, path: Path) -> list[Path]:
     """Every pose the link accepted, in order, in the pose CSV that ``torchseam robot check``
-    reads (:func:`~torchseam.robot.poses_csv.write_pose_csv`): ``t,x,y,z,q1,q2,q3,q4``, the
+    reads (:func:`~torchseam.core.poses_csv.write_pose_csv`): ``t,x,y,z,q1,q2,q3,q4``, the
     command time s on the simulation clock plus ``TRANSFER_S`` for each change of segment
     before it, the torch TCP in the robot base (mm, quaternion w, x, y, z). The positioner
     turns the part between segments, so ``robot check``'s clearance test with the part as
@@ -1094,8 +1094,8 @@ def write_poses_csv(res: DemoResult, path: Path) -> list[Path]:
     import dataclasses as dc
 
     from torchseam.core.config import Pose, save_config
+    from torchseam.core.poses_csv import write_pose_csv
     from torchseam.core.transforms import matrix_to_quat
-    from torchseam.robot.poses_csv import write_pose_csv
 
     segs = list(dict.fromkeys(seg for seg, *_ in res.sent))
     t = np.array([c[4] + TRANSFER_S * segs.index(c[0]) for c in res.sent])

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
+from torchseam.core.poses_csv import write_pose_csv
 from torchseam.core.transforms import apply, invert
 from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
 from torchseam.live.locate import Location, SeamLocator
@@ -37,7 +38,6 @@ from torchseam.live.parts import LiveParts
 from torchseam.plan.path import Located, LookAheadBuffer
 from torchseam.plan.preflight import PlanReport, preflight
 from torchseam.plan.weld import SegmentPlan, torch_angles
-from torchseam.robot.poses_csv import write_pose_csv
 from torchseam.sim.joint import SeamSample
 from torchseam.sim.scene import Scene, torch_frames
 from torchseam.sim.sequence import FrameTruth, SequenceSpec, simulate
@@ -265,7 +265,7 @@ def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
 def write_ring_poses(runs: list[SegmentRun], path: str | Path) -> Path:
     """``poses.csv`` of a ring: every planned command's torch TCP pose in the base frame (t,
     x, y, z, q1..q4; ``t`` when the torch gets there at weld speed), segment after segment, in
-    the format ``torchseam robot check`` reads (:func:`~torchseam.robot.poses_csv.
+    the format ``torchseam robot check`` reads (:func:`~torchseam.core.poses_csv.
     write_pose_csv`). The part turns between segments: check a segment other than a with its
     turned part (``torchseam plan --out`` writes ``part_<s>.yaml``)."""
     have = [r for r in runs if r.commands]

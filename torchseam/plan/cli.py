@@ -70,9 +70,9 @@ def write_plan(report: Any, out: Path, cell: Any, config: Any, robot: Any) -> li
     """``plan.json``, ``part.yaml`` and per segment ``poses_<s>.csv`` / ``part_<s>.yaml`` of a
     :class:`~torchseam.plan.preflight.PlanReport` made with ``cell`` and ``config``."""
     from torchseam.core.config import Pose, save_config
+    from torchseam.core.poses_csv import write_pose_csv
     from torchseam.core.transforms import matrix_to_quat
     from torchseam.plan.weld import PlanEvaluator
-    from torchseam.robot.poses_csv import write_pose_csv
 
     out.mkdir(parents=True, exist_ok=True)
     plan = report.plan

@@ -8,12 +8,11 @@ plus an ABB quaternion q1..q4 = w, x, y, z)::
                                                     # -> A1 .. A6, or "unreachable: <reason>"
     torchseam robot check poses.csv                 # one verdict per pose + a summary
 
-``check`` reads a CSV file with a header row naming the columns ``x,y,z,q1,q2,q3,q4`` (torch TCP
-pose in the base frame, mm, quaternion w, x, y, z; any order, extra columns ignored) and
-optionally ``t`` (time stamp of the pose, s). Without ``t`` the time between poses is the TCP
-distance at the cell's weld speed. Blank lines and lines starting with ``#`` are skipped.
-:func:`torchseam.robot.poses_csv.write_pose_csv` writes such files (``torchseam plan --out``,
-:func:`torchseam.live.ring.write_ring_poses` for a ring's commands).
+``check`` reads a pose CSV (:mod:`torchseam.core.poses_csv`: header ``x,y,z,q1,q2,q3,q4`` in
+any order, the torch TCP pose in the base frame, mm, quaternion w, x, y, z; optionally ``t``,
+the time stamp of the pose, s). Without ``t`` the time between poses is the TCP distance at the
+cell's weld speed. ``torchseam plan --out``, ``torchseam demo`` and
+:func:`torchseam.live.ring.write_ring_poses` write such files.
 
 Exit codes: 0 all poses fine, 1 a pose is unreachable / refused, 2 bad input.
 """
@@ -21,17 +20,12 @@ Exit codes: 0 all poses fine, 1 a pose is unreachable / refused, 2 bad input.
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 from pathlib import Path
 from typing import Any
 
 from torchseam.core.errors import TorchseamError
-from torchseam.robot.poses_csv import CSV_COLUMNS  # the format, shared with its writer
-
-
-class PoseFileError(TorchseamError, ValueError):
-    """A pose CSV file is missing, has a bad header, or a bad value (names file/row/field)."""
+from torchseam.core.poses_csv import POSE_COLUMNS, read_pose_csv
 
 
 def register(subparsers: Any) -> None:
@@ -57,7 +51,7 @@ def register(subparsers: Any) -> None:
                                     "flange (tool0, as `robot fk` prints it) unless --tool "
                                     "torch says it is the torch tip (the TCP of the cell "
                                     "config's tool), as `robot check` and the weld take it.")
-    for name in CSV_COLUMNS:
+    for name in POSE_COLUMNS:
         unit = ("mm, robot base frame" if name in ("x", "y", "z")
                 else "unit quaternion, w x y z order")
         ik.add_argument(name.upper(), type=float, help=f"pose {name} ({unit})")
@@ -149,7 +143,7 @@ def run_ik(args: argparse.Namespace) -> int:
     from torchseam.core.transforms import pose_matrix
     from torchseam.robot.reach import ReachGate
 
-    pose = [getattr(args, n.upper()) for n in CSV_COLUMNS]
+    pose = [getattr(args, n.upper()) for n in POSE_COLUMNS]
     if not all(math.isfinite(v) for v in pose):
         raise TorchseamError(f"pose: expected finite numbers, got {pose}")
     quat = np.asarray(pose[3:])
@@ -172,67 +166,6 @@ def run_ik(args: argparse.Namespace) -> int:
     return 0
 
 
-def read_pose_csv(path: Path) -> tuple[Any, Any]:
-    """Poses (N, 4, 4) mm and time stamps (N,) s or None from a pose CSV (module docstring).
-
-    Raises:
-        PoseFileError: missing file, no/bad header, bad number, non-unit quaternion, time going
-            backwards -- naming the file, the line and the field.
-    """
-    import numpy as np
-
-    from torchseam.core.transforms import pose_matrix
-
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise PoseFileError(f"{path}: cannot read ({e.strerror or e})") from None
-    lines = [(i + 1, ln) for i, ln in enumerate(text.splitlines())
-             if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines:
-        raise PoseFileError(f"{path}: no header and no poses (expected a header row "
-                            f"{','.join(CSV_COLUMNS)}[,t])")
-    rows = list(csv.reader([ln for _, ln in lines]))
-    header = [h.strip().lower() for h in rows[0]]
-    missing = [c for c in CSV_COLUMNS if c not in header]
-    if missing:
-        raise PoseFileError(f"{path}: line {lines[0][0]}: header lacks column(s) "
-                            f"{', '.join(missing)} (expected {','.join(CSV_COLUMNS)}[,t])")
-    cols = list(CSV_COLUMNS) + (["t"] if "t" in header else [])
-    where = {c: header.index(c) for c in cols}
-    data = []
-    for (line_no, _), row in zip(lines[1:], rows[1:], strict=True):
-        if len(row) < len(header):
-            raise PoseFileError(f"{path}: line {line_no}: expected {len(header)} fields, "
-                                f"got {len(row)}")
-        values = []
-        for c in cols:
-            raw = row[where[c]].strip()
-            try:
-                v = float(raw)
-            except ValueError:
-                raise PoseFileError(f"{path}: line {line_no}: field {c!r}: not a number "
-                                    f"({raw!r})") from None
-            if not math.isfinite(v):
-                raise PoseFileError(f"{path}: line {line_no}: field {c!r}: not finite ({raw})")
-            values.append(v)
-        norm = math.sqrt(sum(x * x for x in values[3:7]))
-        if abs(norm - 1.0) > 1e-3:
-            raise PoseFileError(f"{path}: line {line_no}: quaternion q1..q4 has norm {norm:.6f}"
-                                " (must be 1; order w, x, y, z)")
-        data.append(values)
-    if not data:
-        raise PoseFileError(f"{path}: header only, no poses")
-    arr = np.asarray(data)
-    T = pose_matrix(arr[:, :3], arr[:, 3:7] / np.linalg.norm(arr[:, 3:7], axis=1, keepdims=True))
-    t = arr[:, 7] if "t" in cols else None
-    if t is not None and (np.diff(t) < 0).any():
-        i = int(np.flatnonzero(np.diff(t) < 0)[0]) + 1
-        raise PoseFileError(f"{path}: line {lines[i + 1][0]}: field 't': time goes backwards "
-                            f"({t[i - 1]:g} -> {t[i]:g})")
-    return T, t
-
-
 def run_check(args: argparse.Namespace) -> int:
     import time
 
@@ -241,7 +174,8 @@ def run_check(args: argparse.Namespace) -> int:
     from torchseam.core.config import load_cell, load_part
     from torchseam.robot.reach import ReachGate
 
-    T, t = read_pose_csv(args.path)
+    poses = read_pose_csv(args.path)  # a bad file: PoseFileError, one line naming file/line/field
+    T, t = poses.T, poses.t
     robot = _robot(args)
     cell = load_cell(args.cell)
     part = None if (args.part or "").lower() == "none" else load_part(args.part)

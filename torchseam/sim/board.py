@@ -31,8 +31,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from torchseam.core.calibration import BoardSpec, CalibrationConfig, RenderSettings, write_pose_csv
+from torchseam.core.calibration import BoardSpec, CalibrationConfig, RenderSettings
 from torchseam.core.config import CameraConfig, CellConfig, LaserPlane, Pose, to_dict
+from torchseam.core.poses_csv import write_pose_csv
 from torchseam.core.transforms import invert, matrix_to_quat, rotation_about
 from torchseam.sim.noise import STRIPE_BGR
 from torchseam.sim.sensor import LaserSensor, StripeView
@@ -439,8 +440,9 @@ def write_set(kind: str, out: str | os.PathLike[str], cell: CellConfig, cfg: Cal
     calibrate KIND DIR`` reads, with ``truth.json`` (the true values, board poses).
 
     Layouts: camera ``NN.png``; laser ``NN_board.png`` + ``NN_laser.png``; handeye
-    ``NN.png`` + ``poses.csv`` (``image,x_mm,y_mm,z_mm,qw,qx,qy,qz``); tcp ``poses.csv``
-    (``pose,...``).
+    ``NN.png`` + ``poses.csv`` (``image,x,y,z,q1,q2,q3,q4``: the recorded flange pose in the
+    base per image); tcp ``poses.csv`` (``pose,x,y,z,q1,q2,q3,q4``). The pose files are the
+    project's pose CSV (:mod:`torchseam.core.poses_csv`), as a user writes them for a real set.
 
     Returns:
         The truth written to ``truth.json``.
@@ -480,7 +482,7 @@ def write_set(kind: str, out: str | os.PathLike[str], cell: CellConfig, cfg: Cal
         he = simulate_handeye_set(cell, cfg, seed, views)
         for name, img in zip(he.names, he.images, strict=True):
             save(name, img)
-        write_pose_csv(out / "poses.csv", he.names, he.T_B_F, "image")
+        _write_flange_poses(out / "poses.csv", "image", he.names, he.T_B_F)
         truth["hand_eye"] = to_dict(he.hand_eye)
         truth["board_in_base"] = _pose_json(he.T_B_O)
         truth["camera"] = to_dict(cell.camera)
@@ -488,8 +490,14 @@ def write_set(kind: str, out: str | os.PathLike[str], cell: CellConfig, cfg: Cal
                                                                  strict=True)}
     else:
         tcp = simulate_tcp_set(cell, cfg, seed, views)
-        write_pose_csv(out / "poses.csv", tcp.names, tcp.T_B_F, "pose")
+        _write_flange_poses(out / "poses.csv", "pose", tcp.names, tcp.T_B_F)
         truth["tool"] = to_dict(tcp.tool)
         truth["point_mm"] = [float(x) for x in tcp.point_B]
     (out / "truth.json").write_text(json.dumps(truth, indent=1))
     return truth
+
+
+def _write_flange_poses(path: Path, label: str, names: list[str], T_B_F: np.ndarray) -> None:
+    """A set's ``poses.csv``: per view its name and the recorded flange pose in the base."""
+    T = np.asarray(T_B_F)
+    write_pose_csv(path, T[:, :3, 3], matrix_to_quat(T[:, :3, :3]), label=label, labels=names)

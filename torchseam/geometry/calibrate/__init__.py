@@ -17,8 +17,9 @@ Four procedures, each from a set of views, each returning a typed result with it
 
 :mod:`.sets` holds what they share: reading a set's image files, finding the board and its pose
 in an image, and the checks that a set is usable. Each procedure's module also reads its own
-folder layout (``load_*_set``); the robot pose file of the hand-eye and TCP sets is read by
-:func:`torchseam.core.calibration.read_pose_csv`, beside the settings (the simulator writes it).
+folder layout (``load_*_set``); the robot pose file of the hand-eye and TCP sets is the
+project's one pose CSV, read by :func:`torchseam.core.poses_csv.read_pose_csv` (the simulator
+writes it with :func:`~torchseam.core.poses_csv.write_pose_csv`).
 :mod:`.cellfile` writes a result into a cell config, keeping the file's comments; the
 ``torchseam calibrate`` command (:mod:`torchseam.geometry.calib_cli`) is the one that calls it.
 
@@ -41,7 +42,6 @@ camera that sees its face). Units: mm, degrees, pixels; quaternions (w, x, y, z)
 from __future__ import annotations
 
 from torchseam.core.calibration import (
-    POSE_COLUMNS,
     BoardSpec,
     CalibrationConfig,
     CalibrationError,
@@ -57,8 +57,6 @@ from torchseam.core.calibration import (
     TcpSetSim,
     TcpSettings,
     load_calibration,
-    read_pose_csv,
-    write_pose_csv,
 )
 from torchseam.geometry.calibrate.camera import CameraCalibration, calibrate_camera, load_camera_set
 from torchseam.geometry.calibrate.cellfile import splice_section, update_cell
@@ -87,9 +85,9 @@ from torchseam.geometry.calibrate.sets import (
 )
 from torchseam.geometry.calibrate.tcp import TcpCalibration, calibrate_tcp, load_tcp_set
 
-#: the settings and the pose file live in :mod:`torchseam.core.calibration` (the simulator
-#: reads them too); re-exported here with the procedures
-__all__ = ["HAND_EYE_METHODS", "IMAGE_SUFFIXES", "POSE_COLUMNS", "BoardSpec", "CalibrationConfig",
+#: the settings live in :mod:`torchseam.core.calibration` (the simulator reads them too);
+#: re-exported here with the procedures
+__all__ = ["HAND_EYE_METHODS", "IMAGE_SUFFIXES", "BoardSpec", "CalibrationConfig",
            "CalibrationError", "CameraCalibration", "CameraSetSim", "CameraSettings",
            "DetectSettings", "HandEyeCalibration", "HandEyeSetSim", "HandEyeSettings",
            "LaserCalibration", "LaserSetSim", "LaserSettings", "RenderSettings",
@@ -97,5 +95,5 @@ __all__ = ["HAND_EYE_METHODS", "IMAGE_SUFFIXES", "POSE_COLUMNS", "BoardSpec", "C
            "calibrate_camera", "calibrate_hand_eye", "calibrate_laser_plane", "calibrate_tcp",
            "detect_board", "extract_stripe", "fit_plane", "hand_eye_linear", "list_images",
            "load_calibration", "load_camera_set", "load_handeye_set", "load_laser_set",
-           "load_tcp_set", "read_image", "read_pose_csv", "splice_section", "stripe_on_board",
-           "to_grey", "update_cell", "write_pose_csv"]
+           "load_tcp_set", "read_image", "splice_section", "stripe_on_board",
+           "to_grey", "update_cell"]

@@ -5,7 +5,7 @@ Needs the calibrated camera. The board is fixed in the robot base; ``AX = XB`` i
 (:func:`hand_eye_linear`: ``cv2.calibrateHandEye`` where the installed OpenCV has it, Park &
 Martin otherwise), optionally refined by bundle adjustment of the corner reprojection error.
 The set's flange poses come from its ``poses.csv``
-(:func:`torchseam.core.calibration.read_pose_csv`).
+(:func:`torchseam.core.poses_csv.read_pose_csv`, label column ``image``).
 """
 
 from __future__ import annotations
@@ -20,8 +20,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from torchseam.core.calibration import CalibrationConfig, CalibrationError, read_pose_csv
+from torchseam.core.calibration import CalibrationConfig, CalibrationError
 from torchseam.core.config import CameraConfig, Pose
+from torchseam.core.poses_csv import read_pose_csv
 from torchseam.core.transforms import invert, matrix_to_quat
 from torchseam.geometry.calibrate.sets import (
     board_pose,
@@ -233,11 +234,18 @@ def calibrate_hand_eye(images: Sequence[np.ndarray], names: Sequence[str], T_B_F
 
 
 def load_handeye_set(folder: Path) -> tuple[list[np.ndarray], list[str], np.ndarray]:
-    """``poses.csv`` (``image,x_mm,...,qz``: flange pose per image) and the images it names."""
+    """``poses.csv`` (``image,x,y,z,q1,q2,q3,q4``: the flange pose in the base per image; a pose
+    CSV, :mod:`torchseam.core.poses_csv`) and the images it names.
+
+    Raises:
+        CalibrationError: no folder, an image the file names is missing or unreadable.
+        PoseFileError: ``poses.csv`` cannot be read (naming its line and field).
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise CalibrationError(f"{folder}: no such folder (hand-eye calibration set)")
-    keys, T = read_pose_csv(folder / "poses.csv", "image")
+    poses = read_pose_csv(folder / "poses.csv", label="image")
+    keys, T = poses.labels or [], poses.T
     images = []
     for k in keys:
         if not (folder / k).is_file():

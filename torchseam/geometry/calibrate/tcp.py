@@ -2,7 +2,7 @@
 
 The torch tip touches one fixed point from several orientations; linear least squares. Needs no
 camera: only the flange poses of the set's ``poses.csv``
-(:func:`torchseam.core.calibration.read_pose_csv`).
+(:func:`torchseam.core.poses_csv.read_pose_csv`, label column ``pose``).
 """
 
 from __future__ import annotations
@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from torchseam.core.calibration import CalibrationConfig, CalibrationError, read_pose_csv
+from torchseam.core.calibration import CalibrationConfig, CalibrationError
 from torchseam.core.config import Pose
+from torchseam.core.poses_csv import read_pose_csv
 from torchseam.geometry.calibrate.sets import check_count, check_motion, rms
 
 __all__ = ["TcpCalibration", "calibrate_tcp", "load_tcp_set"]
@@ -87,8 +88,15 @@ def calibrate_tcp(T_B_F: np.ndarray, names: Sequence[str], cfg: CalibrationConfi
 
 
 def load_tcp_set(folder: Path) -> tuple[list[str], np.ndarray]:
-    """``poses.csv`` (``pose,x_mm,...,qz``): flange poses with the tip on the fixed point."""
+    """``poses.csv`` (``pose,x,y,z,q1,q2,q3,q4``; a pose CSV, :mod:`torchseam.core.poses_csv`):
+    the touches' names and flange poses in the base, the torch tip on the fixed point.
+
+    Raises:
+        CalibrationError: no folder.
+        PoseFileError: ``poses.csv`` cannot be read (naming its line and field).
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise CalibrationError(f"{folder}: no such folder (TCP calibration set)")
-    return read_pose_csv(folder / "poses.csv", "pose")
+    poses = read_pose_csv(folder / "poses.csv", label="pose")
+    return poses.labels or [], poses.T
