@@ -19,7 +19,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from torchseam.track._synth import v_stripe_sequence
+from torchseam.sim.vstripe import v_stripe_sequence
 from torchseam.track.eakf import EAKF
 from torchseam.track.fusion import EAKFSTC
 from torchseam.track.stc import STC

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from torchseam.core.errors import TorchseamError
+from torchseam.sim.vstripe import VStripeSequence, v_stripe_sequence
 from torchseam.track import EAKFSTC, STC, DriftGuard, TrackerConfig, TrackStatus
-from torchseam.track._synth import VStripeSequence, v_stripe_sequence
 
 # heavy clutter near the corner (a quarter of the frames with bright blobs, a quarter with
 # spatter streaks) and two stretches where the stripe vanishes

@@ -2,8 +2,9 @@
 
 The feature point follows the EAKF's own model (METHOD.md section 3, eq. 12 and 16) with a
 chosen acceleration colour ``lam``: ``w(k) = lam w(k-1) + n(k)``, ``n ~ N(0, q)``. Each frame
-draws a V-shaped laser stripe (two arms meeting at the corner, Gaussian profile) with its corner
-at the true point plus white measurement jitter (``jitter_px``), over a dim noisy background.
+draws a V-shaped laser stripe (two arms meeting at the corner, Gaussian profile; the drawing is
+:mod:`torchseam.sim.vstripe`'s, shared with the tracker tests) with its corner at the true point
+plus white measurement jitter (``jitter_px``), over a dim noisy background.
 Because the data obey the model, the EAKF's best ``lam`` is known: fitting should move towards it.
 """
 
@@ -17,6 +18,7 @@ import cv2
 import numpy as np
 
 from torchseam.core.dataset import frame_name, write_labels
+from torchseam.sim.vstripe import draw_v_stripes
 
 __all__ = ["coloured_track", "render_v_stripes", "write_synthetic_sequences"]
 
@@ -61,23 +63,20 @@ def render_v_stripes(corners: np.ndarray, size: tuple[int, int] = (96, 96), *,
                      noise: float = 4.0, seed: int = 0) -> np.ndarray:
     """(T, H, W) uint8 grey frames of a V stripe with its corner at ``corners`` (T, 2) (u, v).
 
-    The arms rise from the corner at ``arm_deg`` above the horizontal to the left and right.
+    The fit's frame convention on the shared drawing (:func:`torchseam.sim.vstripe.draw_v_stripes`):
+    the arms rise from the corner at ``arm_deg`` above the horizontal to the left and right, a
+    dim background (12 grey) and Gaussian read noise of sigma ``noise`` (seeded), as a camera
+    gives uint8 frames.
+
+    >>> render_v_stripes(np.array([[48.0, 60.0], [49.5, 60.5]])).shape
+    (2, 96, 96)
     """
     rng = np.random.default_rng(seed)
-    H, W = size
-    py, px = np.mgrid[0:H, 0:W].astype(np.float32)
-    out = np.empty((len(corners), H, W), np.uint8)
     a = math.radians(arm_deg)
-    dirs = [(-math.cos(a), -math.sin(a)), (math.cos(a), -math.sin(a))]
-    for k, (cu, cv_) in enumerate(corners):
-        d2 = np.full((H, W), np.inf, np.float32)
-        for ex, ey in dirs:
-            dx, dy = px - cu, py - cv_
-            t = np.clip(dx * ex + dy * ey, 0.0, None)
-            d2 = np.minimum(d2, (dx - t * ex) ** 2 + (dy - t * ey) ** 2)
-        img = 12.0 + peak * np.exp(-d2 / (2 * width_px**2)) + noise * rng.standard_normal((H, W))
-        out[k] = np.clip(img, 0, 255).astype(np.uint8)
-    return out
+    img = draw_v_stripes(corners, size, (math.pi + a, -a), peak=peak, width_px=width_px,
+                         background=12.0)
+    img += noise * rng.standard_normal(img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
 
 
 def write_synthetic_sequences(root: str | os.PathLike[str], n: int = 4, T: int = 24, *,
