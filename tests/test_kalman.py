@@ -55,4 +55,4 @@ def test_a_weighted_update_has_a_gradient_in_its_weight():
     inn = kalman.innovation(x, P, torch.tensor([2.0, 0.0], dtype=torch.float64), I2, I2)
     x1, _ = kalman.update(x, P, inn, I2, I2, w)
     x1[0].backward()
-    assert float(x1[0]) == 0.5 and float(w.grad) == 1.0
+    assert x1[0].item() == 0.5 and w.grad is not None and w.grad.item() == 1.0
