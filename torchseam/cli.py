@@ -35,6 +35,7 @@ from torchseam.core.cliargs import (
     out_file_arg,
     seed_arg,
     segments_arg,
+    threads_arg,
 )
 from torchseam.core.errors import TorchseamError
 
@@ -42,7 +43,7 @@ from torchseam.core.errors import TorchseamError
 #: there); re-exported here for callers of the command line's module
 __all__ = ["COMMANDS", "COMMAND_MODULES", "MAX_SEED", "SEGMENT_LETTERS", "OneLineParser",
            "build_parser", "config_dir_arg", "main", "model_arg", "out_dir_arg", "out_file_arg",
-           "seed_arg", "segments_arg", "use_config_dir"]
+           "seed_arg", "segments_arg", "threads_arg", "use_config_dir"]
 
 #: Every sub-command: name, the stage module whose ``register(subparsers)`` adds it, and its
 #: one-line help (the same text the module gives ``add_parser``), in the order ``--help`` lists

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import NoReturn
 
 __all__ = ["MAX_SEED", "SEGMENT_LETTERS", "OneLineParser", "config_dir_arg", "model_arg",
-           "out_dir_arg", "out_file_arg", "seed_arg", "segments_arg"]
+           "out_dir_arg", "out_file_arg", "seed_arg", "segments_arg", "threads_arg"]
 
 #: largest seed the commands take (NumPy, torch and OpenCV all accept it)
 MAX_SEED = 2**31 - 1
@@ -41,6 +41,17 @@ def seed_arg(text: str) -> int:
     if not 0 <= seed <= MAX_SEED:
         raise argparse.ArgumentTypeError(f"{text} is out of range: use 0 .. {MAX_SEED}")
     return seed
+
+
+def threads_arg(text: str) -> int:
+    """``--threads``: a whole number >= 1 (torch refuses 0 and below)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text}: use 1 or more threads")
+    return n
 
 
 def out_dir_arg(text: str) -> Path:

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchseam.core.cliargs import model_arg, out_file_arg
+from torchseam.core.cliargs import model_arg, out_file_arg, threads_arg
 from torchseam.core.dataset import Dataset
 from torchseam.core.errors import FrameError, TorchseamError
 from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES, FrameView
@@ -59,7 +59,7 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="a colour stream's stripe response: red (red excess), intensity (the "
                         "red channel: a stripe overexposed into white) or auto: chosen on the "
                         "first frame (default)")
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--threads", type=threads_arg, default=1, metavar="N",
                    help="torch and OpenCV threads (default 1: the live loop's setting)")
     p.add_argument("--model", type=model_arg, default=None, metavar="FILE",
                    help="tracker model file for the anchored and eakf-stc trackers, e.g. a "
