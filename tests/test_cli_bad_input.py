@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -77,6 +80,23 @@ def _labels_outside(tmp: Path, seq: Path) -> Path:
     return d
 
 
+def _bad_yaml(tmp: Path, name: str = "bad.yaml") -> Path:
+    p = tmp / name
+    p.write_text("a: 1\nnot: [valid\n")
+    return p
+
+
+def _bad_yaml_dir(tmp: Path) -> Path:
+    d = tmp / "cfgs"
+    d.mkdir()
+    _bad_yaml(d, "cell.yaml")
+    return d
+
+
+_NOT_YAML = (r"bad\.yaml: not valid YAML: expected ',' or '\]', but got '<stream end>' "
+             r"\(line 3, column 1\)$")
+
+
 def _a_file(tmp: Path) -> Path:
     p = tmp / "a_file"
     p.write_text("not a folder")
@@ -97,6 +117,13 @@ CASES = [
     ("camera width", lambda t, s: ["simulate", str(t / "o"), "--frames", "1", "--cell",
                                    str(_cell_file(t))],
      r"cell\.yaml: camera\.width: expected a whole number <= 16384"),
+    ("part not yaml", lambda t, s: ["simulate", str(t / "o"), "--part", str(_bad_yaml(t))],
+     _NOT_YAML),
+    ("cell not yaml", lambda t, s: ["simulate", str(t / "o"), "--cell", str(_bad_yaml(t))],
+     _NOT_YAML),
+    ("train config not yaml", lambda t, s: ["train", "--config", str(_bad_yaml(t))], _NOT_YAML),
+    ("plan robot-config not yaml", lambda t, s: ["plan", "--robot-config", str(_bad_yaml(t))],
+     _NOT_YAML),
     ("simulate start nan", lambda t, s: ["simulate", str(t / "o"), "--start-mm", "nan"],
      r"--start-mm must be an arc length"),
     ("simulate seed -1", lambda t, s: ["simulate", str(t / "o"), "--seed", "-1"],
@@ -273,3 +300,24 @@ def test_train_writes_a_run_folder_and_install_keeps_a_backup(tmp_path, monkeypa
     assert rc == 0, err
     rc, out, err = _run([*common, "--name", "r1"], capsys)  # that run exists
     assert rc == 2 and out == "" and "last.pt exists" in err and "--resume" in err
+
+
+# --------------------------------------------------------------------------- bad YAML, one line
+
+def test_bad_yaml_in_a_config_folder_is_one_line(tmp_path, capsys):
+    """A config folder (``--config-dir`` or ``$TORCHSEAM_CONFIGS``) with a file that is not
+    YAML: one line naming the file, the problem, its line and column; exit code 2."""
+    d = _bad_yaml_dir(tmp_path)
+    rc, out, err = _run(["--config-dir", str(d), "simulate", str(tmp_path / "o")], capsys)
+    assert rc == 2 and out == ""
+    assert err.count("\n") == 1, err
+    assert re.search(r"^torchseam simulate: error: .*cfgs/cell\.yaml: not valid YAML: "
+                     r"expected ',' or '\]', but got '<stream end>' \(line 3, column 1\)$",
+                     err.strip()), err
+    env = dict(os.environ, TORCHSEAM_CONFIGS=str(d))
+    r = subprocess.run([sys.executable, "-m", "torchseam", "simulate", str(tmp_path / "o")],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.count("\n") == 1, r.stderr
+    assert "cfgs/cell.yaml: not valid YAML: expected ',' or ']'" in r.stderr
+    assert not (tmp_path / "o").exists()

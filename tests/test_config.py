@@ -75,8 +75,11 @@ def test_unknown_field_and_bad_files(tmp_path):
         load_cell(tmp_path / "absent.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("camera: [1, 2\n")
-    with pytest.raises(ConfigError, match="not valid YAML"):
+    with pytest.raises(ConfigError, match="not valid YAML") as e:
         load_config(CellConfig, bad)
+    # one line: PyYAML's problem and where (not its multi-line text)
+    assert str(e.value) == (f"{bad}: not valid YAML: expected ',' or ']', but got "
+                            "'<stream end>' (line 2, column 1)")
 
 
 def test_part_validation(tmp_path):

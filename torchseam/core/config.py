@@ -590,7 +590,19 @@ def read_yaml(path: str | os.PathLike[str]) -> Any:
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise ConfigError(f"{p}: not valid YAML ({e})") from None
+        raise ConfigError(f"{p}: not valid YAML: {yaml_problem(e)}") from None
+
+
+def yaml_problem(e: yaml.YAMLError) -> str:
+    """PyYAML's multi-line error as one line: ``PROBLEM (line L, column C)`` (1-based), from
+    a :class:`yaml.MarkedYAMLError`'s ``problem`` and ``problem_mark``; its context when it has
+    no problem text."""
+    if isinstance(e, yaml.MarkedYAMLError):
+        what = e.problem or e.context or "cannot parse"
+        mark = e.problem_mark or e.context_mark
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+        return " ".join(f"{what}{where}".split())
+    return " ".join(str(e).split()) or type(e).__name__
 
 
 def load_cell(path: str | os.PathLike[str] | None = None) -> CellConfig:
