@@ -118,7 +118,10 @@ def test_plan_command_refuses_a_part_out_of_reach_with_the_table(tmp_path, capsy
     out, err = capsys.readouterr()
     assert rc == 2
     assert "Traceback" not in out + err
-    assert "the robot cannot weld this plan: segment(s) a, b, c, d, e, f refused" in out
+    # the one error line on stderr; the tables on stdout
+    assert err.startswith("torchseam plan: error: the robot cannot weld this plan: segment(s) "
+                          "a, b, c, d, e, f refused (segment a: out of reach")
+    assert err.count("\n") == 1 and "cannot weld" not in out
     rows = [ln for ln in out.splitlines() if re.match(r"[a-f] +\d", ln)]
     assert len(rows) == 12  # the configured plan's table, then the searched one's
     for ln in rows:
@@ -223,3 +226,28 @@ def test_docstring_examples_run():
 
     result = doctest.testmod(torchseam.plan.preflight)
     assert result.failed == 0 and result.attempted > 0
+
+
+def test_plan_no_search_refused_says_so_on_stderr(capsys):
+    """``--no-search`` on a plan the gate refuses: the header says refused (not "it passes
+    the gate"), the table stays on stdout, the one error line goes to stderr, exit code 2."""
+    rc = main(["plan", "--part", str(PARTS / "y_joint_60.yaml"), "--no-search"])
+    out, err = capsys.readouterr()
+    assert rc == 2
+    assert "passes the gate" not in out and "cannot weld" not in out
+    assert "configured plan (not searched): refused on segment(s) b, c, d, e" in out
+    assert err.count("\n") == 1
+    assert re.match(r"torchseam plan: error: the robot cannot weld this plan: segment\(s\) "
+                    r"b, c, d, e refused \(segment b: axis 5 out of range", err), err
+
+
+def test_plan_out_into_a_file_is_refused_before_the_work(tmp_path, capsys):
+    f = tmp_path / "a_file"
+    f.write_text("x")
+    for out in (f, f / "sub"):
+        with pytest.raises(SystemExit) as e:
+            main(["plan", "--out", str(out)])
+        assert e.value.code == 2
+        o, err = capsys.readouterr()
+        assert o == "" and err.count("\n") == 1  # no table: refused up front
+        assert err.startswith("torchseam plan: error: argument --out: ") and "a_file" in err

@@ -16,10 +16,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from torchseam.core.cliargs import out_dir_arg
 
 
 def register(sub: Any) -> None:
@@ -31,7 +34,7 @@ def register(sub: Any) -> None:
                     "every segment through the gate and print one row per segment. Exit code 2 "
                     "when the robot cannot weld the part.")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
-    p.add_argument("--out", type=Path, default=None,
+    p.add_argument("--out", type=out_dir_arg, default=None,
                    help="folder for plan.json, part.yaml and each segment's poses_<s>.csv and "
                         "part_<s>.yaml (default: print only)")
     p.add_argument("--no-search", action="store_true",
@@ -59,11 +62,14 @@ def run(args: argparse.Namespace) -> int:
     name = str(args.part) if args.part else "configs/parts/t_joint.yaml"
     report = preflight(cell, part, config=config, robot=robot, search=not args.no_search,
                        part_name=name)
-    print(report.text())
+    print(report.text(verdict=False), flush=True)
     if args.out is not None:
         files = write_plan(report, args.out, cell, config, robot)
-        print("wrote " + ", ".join(str(f) for f in files))
-    return 0 if report.ok else 2
+        print("wrote " + ", ".join(str(f) for f in files), flush=True)
+    if not report.ok:  # the one error line, on stderr (the table above says where and why)
+        print(f"torchseam plan: error: {report.refused_line()}", file=sys.stderr)
+        return 2
+    return 0
 
 
 def write_plan(report: Any, out: Path, cell: Any, config: Any, robot: Any) -> list[Path]:

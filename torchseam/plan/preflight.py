@@ -93,9 +93,17 @@ class PlanReport:
         return _table(["segment", "branch deg", "poses", "reachable", "clearance mm",
                        "turn deg", "work/travel/roll deg", "worst joint margin or reason"], rows)
 
-    def text(self) -> str:
+    def refused_line(self) -> str:
+        """One line for a refused plan: which segments, the first refusal's reason."""
+        seg, v = next((s, v) for s, v in zip(self.plan.segments, self.verdicts, strict=True)
+                      if not v.passed)
+        return (f"the robot cannot weld this plan: segment(s) {', '.join(self.refused)} "
+                f"refused (segment {seg.name}: {v.reason}; see the reason column)")
+
+    def text(self, verdict: bool = True) -> str:
         """The whole report: the plan's choices, its table (after the configured plan's, when
-        that failed and the plan was searched) and the verdict."""
+        that failed and the plan was searched) and the verdict (``verdict=False``: not the
+        refusal line, which the caller reports as its error)."""
         p, c = self.plan, self.configured_plan
         pos = ", ".join(f"{x:.1f}" for x in p.part.placement.position_mm)
         quat = ", ".join(f"{x:.4f}" for x in p.part.placement.quaternion)
@@ -107,8 +115,11 @@ class PlanReport:
                     + ", ".join(s.name for s, v in zip(c.segments, self.configured, strict=True)
                                 if not v.passed), self.table(configured=True), "",
                     f"searched plan ({p.candidates} candidates screened in {p.search_s:.1f} s):"]
-        else:
+        elif self.ok:
             out += ["", "configured plan (it passes the gate: no search)"]
+        else:  # refused and not searched (search=False)
+            out += ["", "configured plan (not searched): refused on segment(s) "
+                    + ", ".join(self.refused)]
         out += [f"  placement: {p.placement.describe()} (joint frame at ({pos}) mm, quaternion "
                 f"({quat}))",
                 f"  segment a starts at {p.segment_start_deg:g} deg of branch angle"
@@ -120,8 +131,8 @@ class PlanReport:
                        f"{min(v.margin_deg for v in self.verdicts):.1f} deg, smallest clearance "
                        f"{min(v.clearance_mm for v in self.verdicts):.1f} mm")
         else:
-            out.append("the robot cannot weld this plan: segment(s) " + ", ".join(self.refused)
-                       + " refused (see the reason column)")
+            if verdict:
+                out.append(self.refused_line())
             if p.searched and all(set(v.counts) <= {"clearance"} for v in self.verdicts):
                 out.append("  only clearance refusals: the torch body (configs/robot.yaml torch: "
                            "nozzle and body radii, tip exclusion, clearance margin) does not "
