@@ -321,3 +321,29 @@ def test_bad_yaml_in_a_config_folder_is_one_line(tmp_path, capsys):
     assert r.stderr.count("\n") == 1, r.stderr
     assert "cfgs/cell.yaml: not valid YAML: expected ',' or ']'" in r.stderr
     assert not (tmp_path / "o").exists()
+
+
+# --------------------------------------------------------------------------- $TORCHSEAM_MODELS
+
+@pytest.mark.parametrize("folder", ["missing", "empty"])
+def test_models_env_naming_no_model_is_an_error(folder, seq, tmp_path, capsys, monkeypatch):
+    """``$TORCHSEAM_MODELS`` set to a folder that is missing, or has no live-tracker model: one
+    line naming the variable and the path, exit code 2 (no silent fallback to other values).
+    The variable is read at import (as the command does at start): set here as it was read."""
+    d = tmp_path / folder
+    if folder == "empty":
+        d.mkdir()
+    monkeypatch.setattr(model_file, "MODELS_FROM_ENV", str(d))
+    monkeypatch.setattr(model_file, "MODEL_DIR", d)
+    monkeypatch.setattr(model_file, "DEFAULT_MODEL", d / "live_tracker.safetensors")
+    monkeypatch.setattr(model_file, "EAKF_STC_MODEL", d / "eakf_stc.safetensors")
+    for tracker in ("anchored", "eakf-stc"):
+        rc, out, err = _run(["eval", str(seq), "--tracker", tracker], capsys)
+        assert rc == 2 and out == ""
+        assert err.count("\n") == 1, err
+        want = ("no such folder" if folder == "missing"
+                else "no live_tracker.safetensors in that folder")
+        assert err.startswith(f"torchseam eval: error: $TORCHSEAM_MODELS={d}: {want}"), err
+    # TIPM loads no model: the variable does not matter
+    rc, out, err = _run(["eval", str(seq), "--tracker", "tipm"], capsys)
+    assert rc == 0, err

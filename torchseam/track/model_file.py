@@ -24,17 +24,21 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchseam import model_dir
+from torchseam import MODELS_ENV, model_dir
 from torchseam.core.errors import TorchseamError
 
 __all__ = ["DEFAULT_MODEL", "EAKF_STC_MODEL", "INNER", "LIVE_FORMAT", "MODEL_DIR",
-           "MODEL_FORMAT", "FitError", "load_fitted", "read_model"]
+           "MODEL_FORMAT", "MODELS_FROM_ENV", "FitError", "check_models_env", "load_fitted",
+           "read_model"]
 
 log = logging.getLogger("torchseam.fit")
 
 #: Folder of the fitted model: ``$TORCHSEAM_MODELS``, else the one shipped in the package (the
 #: repository's ``models/`` in a checkout).
 MODEL_DIR = model_dir()
+#: ``$TORCHSEAM_MODELS`` as it was set when :data:`MODEL_DIR` was read (None: not set): a
+#: folder the user named, so a missing model there is an error, not a silent fallback.
+MODELS_FROM_ENV = os.environ.get(MODELS_ENV) or None
 #: The model the tracker loads by default.
 DEFAULT_MODEL = MODEL_DIR / "live_tracker.safetensors"
 #: The plain ``eakf-stc`` tracker's model: EAKF-STC fitted alone, as a tracker of its own (the
@@ -84,6 +88,24 @@ def read_model(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tensor], d
     return tensors, meta
 
 
+def check_models_env(path: Path) -> None:
+    """Refuse a missing default model ``path`` when ``$TORCHSEAM_MODELS`` named its folder:
+    the user asked for the models there (a typo must not fall back to other parameters).
+
+    Raises:
+        FitError: naming the variable and the folder or the file missing in it.
+    """
+    if MODELS_FROM_ENV is None or path.parent != MODEL_DIR:
+        return
+    if not MODEL_DIR.is_dir():
+        raise FitError(f"${MODELS_ENV}={MODELS_FROM_ENV}: "
+                       + ("no such folder" if not MODEL_DIR.exists() else "not a folder")
+                       + " (unset it to use the shipped models)")
+    raise FitError(f"${MODELS_ENV}={MODELS_FROM_ENV}: no {path.name} in that folder (install "
+                   "one there with `torchseam train-live --install`, or unset the variable "
+                   "to use the shipped models)")
+
+
 def load_fitted(module: nn.Module, path: str | os.PathLike[str] | None = None) -> bool:
     """Load fitted parameters into an EAKF-STC tracker.
 
@@ -110,6 +132,7 @@ def load_fitted(module: nn.Module, path: str | os.PathLike[str] | None = None) -
     if path is None:
         path = DEFAULT_MODEL
         if not Path(path).is_file():
+            check_models_env(Path(path))
             log.warning("no fitted EAKF-STC model at %s: using the paper's defaults "
                         "(fit one with `torchseam train`)", path)
             return False
