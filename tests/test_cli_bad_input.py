@@ -145,6 +145,14 @@ CASES = [
      r"argument --threads: 0: use 1 or more threads"),
     ("eval threads -1", lambda t, s: ["eval", str(s), "--threads", "-1"],
      r"argument --threads: -1: use 1 or more threads"),
+    ("calibrate write into a file", lambda t, s: ["calibrate", "tcp", str(t),
+                                                  "--write", str(_a_file(t) / "c.yaml")],
+     r"argument --write: .*a_file/c\.yaml: .*a_file is a file, not a folder"),
+    ("calibrate write a folder", lambda t, s: ["calibrate", "tcp", str(t), "--write", str(t)],
+     r"argument --write: .* is a folder, not a file"),
+    ("calibrate simulate into a file", lambda t, s: ["calibrate", "simulate", "tcp",
+                                                     str(_a_file(t))],
+     r"argument DIR: .*a_file is a file, not a folder"),
     ("track model missing", lambda t, s: ["track", str(s), "--model", str(t / "no.st")],
      r"argument --model: .*no\.st: no such model file"),
     ("track model junk", lambda t, s: ["track", str(s), "--model", str(_a_file(t))],
@@ -175,7 +183,7 @@ def test_bad_input_is_one_line(argv, message, tmp_path, seq, capsys, monkeypatch
     assert out == ""
     lines = err.strip().splitlines()
     assert len(lines) == 1, err
-    assert lines[0].startswith(f"torchseam {args[0]}: error: ")
+    assert re.match(rf"torchseam {args[0]}( {args[1]})?: error: ", lines[0]), lines[0]
     assert re.search(message, lines[0]), lines[0]
     assert not any(work.iterdir())  # a refused command leaves no output behind
 

@@ -73,7 +73,10 @@ def out_file_arg(text: str) -> Path:
     p = Path(text)
     if p.is_dir():
         raise argparse.ArgumentTypeError(f"{text} is a folder, not a file")
-    out_dir_arg(str(p.parent))
+    try:
+        out_dir_arg(str(p.parent))
+    except argparse.ArgumentTypeError as e:  # name the file asked for, then its folder
+        raise argparse.ArgumentTypeError(f"{text}: {e}") from None
     return p
 
 

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from torchseam.core.cliargs import out_dir_arg, out_file_arg
 from torchseam.core.config import CONFIG_DIR, load_cell
 from torchseam.core.errors import TorchseamError
 from torchseam.core.transforms import pose_matrix
@@ -69,7 +70,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         q.add_argument("dir", type=Path, metavar="DIR", help="folder of the calibration set")
         q.add_argument("--cell", type=Path,
                        help="cell config to start from (default configs/cell.yaml)")
-        q.add_argument("--write", type=Path, metavar="OUT.yaml",
+        q.add_argument("--write", type=out_file_arg, metavar="OUT.yaml",
                        help="where to write the updated cell config (default DIR/cell.yaml; "
                             "may be the --cell file itself)")
         q.add_argument("--calib", type=Path, help="calibration settings "
@@ -91,7 +92,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                      "cell and write it to DIR with its truth (truth.json).")
     s.add_argument("set_kind", choices=tuple(KINDS), metavar="KIND",
                    help="camera, laser, handeye or tcp")
-    s.add_argument("dir", type=Path, metavar="DIR", help="output folder")
+    s.add_argument("dir", type=out_dir_arg, metavar="DIR", help="output folder")
     s.add_argument("--seed", type=int, default=None, help="random seed (default: the config's)")
     s.add_argument("--views", type=int, default=None,
                    help="number of views or poses (default: configs/calibration.yaml)")
@@ -110,6 +111,9 @@ def run(args: argparse.Namespace) -> int:
     cell = load_cell(cell_path)
     folder = Path(args.dir)
     section, _ = KINDS[args.kind]
+    out = Path(args.write) if args.write else folder / "cell.yaml"
+    if args.write is None and out.is_dir():  # checked before the work (--write: by argparse)
+        raise TorchseamError(f"{out} is a folder, not a file: give --write OUT.yaml")
     if args.kind == "camera":
         images, names = load_camera_set(folder)
         res: Any = calibrate_camera(images, names, cfg, skip_failed=args.skip_failed)
@@ -140,7 +144,6 @@ def run(args: argparse.Namespace) -> int:
     if truth.is_file():
         for line in compare_with_truth(args.kind, value, json.loads(truth.read_text())):
             print("  " + line)
-    out = Path(args.write) if args.write else folder / "cell.yaml"
     note = (f"calibrated: torchseam calibrate {args.kind} {folder} "
             f"({_dt.date.today().isoformat()}; {headline})")
     _, kept = update_cell(cell_path, out, section, value, note)
