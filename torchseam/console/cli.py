@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
+import sys
 from pathlib import Path
 
 import cv2
@@ -53,7 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="initial segments on the page, letters of abcdef (default abcdef: "
                         "the whole ring)")
     p.add_argument("--length-mm", type=float, default=None,
-                   help="initial length per segment on the page (default: whole segments)")
+                   help="initial length per segment on the page, and of a start request "
+                        "that gives none (default: whole segments)")
     p.set_defaults(func=run)
 
 
@@ -82,19 +85,21 @@ def run(args: argparse.Namespace) -> int:
     except ParamError as e:
         raise TorchseamError(str(e)) from None
     console.allowed_hosts = tuple(args.allow_host)
-    if not is_loopback(args.host):
-        print(f"WARNING: the console is bound to {args.host}, not loopback: anyone who can "
-              "reach this machine and has the token can start and stop the weld (pages are "
-              f"answered as {args.host} or a --allow-host name)", flush=True)
-    asyncio.run(_serve(console, args.host, port))
+    asyncio.run(_serve(console, args.host, port, loopback=is_loopback(args.host)))
     return 0
 
 
-async def _serve(console, host: str, port: int) -> None:
+async def _serve(console, host: str, port: int, loopback: bool = True) -> None:
     try:
         await console.start(host, port)
     except OSError as e:
-        raise TorchseamError(f"cannot serve on {host}:{port}: {e.strerror or e}") from None
+        # asyncio's text repeats the address; the system's reason is enough
+        why = os.strerror(e.errno) if e.errno else (e.strerror or str(e))
+        raise TorchseamError(f"cannot serve on {host}:{port}: {why}") from None
+    if not loopback:   # after the bind: a console that cannot serve warns of nothing
+        print(f"torchseam console: warning: bound to {host}, not loopback: anyone who can "
+              "reach this machine and has the token can start and stop the weld (pages are "
+              f"answered as {host} or a --allow-host name)", file=sys.stderr, flush=True)
     # the token is in the address, as a notebook server prints it: the page keeps it
     print(f"torchseam console on {console.url()}  (Ctrl-C stops)", flush=True)
     try:

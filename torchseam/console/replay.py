@@ -22,6 +22,7 @@ from torchseam.console.config import ConsoleConfig, WeldParams
 from torchseam.console.server import ConsoleServer
 from torchseam.console.sim import make_console
 from torchseam.core.config import CellConfig, NoiseConfig
+from torchseam.core.errors import FrameError
 from torchseam.live.demo import DemoControl, DemoEvent
 from torchseam.live.parts import LiveParts
 from torchseam.live.replay import ReplayResult, run_replay
@@ -66,9 +67,11 @@ def replay_summary(res: ReplayResult) -> dict[str, Any]:
         "seam_rmse_mm": math.nan, "seam_max_mm": math.nan,   # no torch moves in a replay
         "located_rmse_mm": rms(d), "pixel_rmse_px": rms(pix),
         "latency_p50_ms": lat[0], "latency_p99_ms": lat[1],
-        "poses_sent": sum(c.ok for c in res.commands),
+        # open loop: the loop plans poses and a RecordingSink keeps them; none is sent to a
+        # robot (``torchseam replay``'s "poses planned (open loop, not sent)")
+        "poses_planned": sum(c.ok for c in res.commands),
         "poses_refused": sum(not c.ok for c in res.commands),
-        "unsafe_poses_sent": 0, "open_loop": True, "stopped": res.stopped,
+        "poses_sent": 0, "unsafe_poses_sent": 0, "open_loop": True, "stopped": res.stopped,
     }
 
 
@@ -98,18 +101,20 @@ def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig, cell: CellC
     ``parts``).
 
     Raises:
-        DatasetError / FrameError: nothing readable at ``path`` (named), found here, before
-            anything is served.
+        DatasetError / FrameError: nothing readable at ``path``, or its first frame cannot be
+            decoded or has the wrong format or size (named, as ``torchseam replay`` names
+            it), found here, before anything is served.
     """
-    src = open_source(path, (cell.camera.width, cell.camera.height))
-    try:
+    with open_source(path, (cell.camera.width, cell.camera.height)) as src:
         inner = getattr(src, "source", src)  # a camera comes wrapped in a ThreadedSource
         kind, name = {FolderSource: ("recorded folder", str(Path(path))),
                       CameraSource: ("live camera", str(path))}.get(
             type(inner), ("video file", str(Path(path))))
         fps = getattr(inner, "fps", None)
-    finally:
-        src.close()
+        # the first frame through the source's own checks (decodes, format, the camera's
+        # size), the ones a replay makes: a source the weld would fail on is refused now
+        if next(iter(src), None) is None:
+            raise FrameError(f"{name}: the source gave no frames")
     period = 1.0 / fps if fps and fps > 0 else 1.0 / cell.process.frame_rate_hz
     if kind == "live camera":
         period = 0.0  # a camera paces itself; pacing on top would only drop frames

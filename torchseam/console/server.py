@@ -7,7 +7,8 @@
   what is newer than what this client has, plus the status and link state). Binary messages
   are the newest camera frame as JPEG (drawn feature point and status), at most
   ``publish.jpeg_rate_hz`` (and ``publish.rate_hz``), only when there is a new one.
-* ``POST /api/start`` (JSON weld parameters), ``/api/hold``, ``/api/resume``, ``/api/stop``:
+* ``POST /api/start`` (JSON weld parameters; a field left out takes the form's default),
+  ``/api/hold``, ``/api/resume``, ``/api/stop``:
   200 ``{"ok": true}``, or 400 / 409 ``{"error": "..."}`` with a message for the operator.
 * ``GET /api/state`` the same snapshot as ``hello``; ``GET /frame.jpg`` the newest frame;
   ``GET /api/auth`` 200 when the request carries the token (the page asks when its stream

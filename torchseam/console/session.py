@@ -12,16 +12,19 @@ from __future__ import annotations
 import collections
 import itertools
 import math
+import sys
 import threading
 import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
 from torchseam.console.config import ConsoleConfig, WeldParams
+from torchseam.core.errors import TorchseamError
 from torchseam.live.demo import DemoControl, DemoEvent
 from torchseam.robot.egm import set_realtime_priority
 
@@ -133,6 +136,7 @@ class WeldSession:
         self.state = RunState.IDLE
         self.params: WeldParams | None = None
         self.summary: dict[str, Any] | None = None
+        self.error: str | None = None  # why the last weld failed (state FAILED), for the page
         self.latest: LatestFrame | None = None
         self.link: Any = None          # the running segment's EgmLink (its .stats is locked)
         self.loop_stats: dict[str, Any] = {}
@@ -173,7 +177,7 @@ class WeldSession:
             self._done_holds, self._done_refused = collections.Counter(), collections.Counter()
             self._holds_seen = 0
             self.latest, self.link, self.loop_stats = None, None, {}
-            self.params, self.summary = params, None
+            self.params, self.summary, self.error = params, None, None
             self.state = RunState.RUNNING
             self.started_wall = time.time()
             self.control = PacedControl(self._period)
@@ -234,10 +238,14 @@ class WeldSession:
         try:
             res = self._weld(params, self.observe, control)
         except Exception as e:  # noqa: BLE001 - shown to the operator, the console lives on
+            why = failure_text(e)
             with self.lock:
                 self.state = RunState.FAILED
-            self.log(f"weld failed: {type(e).__name__}: {e}", level="error")
-            traceback.print_exc()
+                self.error = why
+            self.log(f"weld {self.weld_id} failed: {why}", level="error")
+            # the terminal gets the same one line (no traceback: the message names the cause)
+            print(f"torchseam console: weld {self.weld_id} failed: {why}", file=sys.stderr,
+                  flush=True)
             return
         s: dict[str, Any] = {k: (num(v) if isinstance(v, float) else v)
                              for k, v in res.summary.items()}
@@ -249,9 +257,11 @@ class WeldSession:
                     f"torch vs seam RMSE {s.get('seam_rmse_mm')} mm, axis RMSE "
                     f"{s.get('axis_rmse_deg')} deg")
         holds, refused = self.hold_counts()
+        poses = (f"poses planned (open loop, not sent) {s.get('poses_planned')}"
+                 if s.get("open_loop") else f"poses sent {s.get('poses_sent')}")
         self.log(f"weld {'stopped' if s.get('stopped') else 'finished'}: {s.get('frames')} "
-                 f"frames, {accuracy}, poses sent {s.get('poses_sent')}, refused "
-                 f"{s.get('poses_refused')}, frame->command p99 {s.get('latency_p99_ms')} ms")
+                 f"frames, {accuracy}, {poses}, refused {s.get('poses_refused')}, "
+                 f"frame->command p99 {s.get('latency_p99_ms')} ms")
         if holds or refused:
             self.log(f"weld {'stopped' if s.get('stopped') else 'finished'} with "
                      f"{_counted(holds, 'hold')} and {_counted(refused, 'refusal')} seen by "
@@ -407,7 +417,8 @@ class WeldSession:
                    "held": bool(self.control is not None and self.control.held
                                 and self.running),
                    "params": self.params.as_dict() if self.params else None,
-                   "summary": self.summary, "loop": dict(self.loop_stats),
+                   "summary": self.summary, "error": self.error,
+                   "open_loop": self.open_loop, "loop": dict(self.loop_stats),
                    "frame": None if lf is None else {
                        "seq": lf.seq, "seg": lf.seg, "t": num(lf.t_s), "state": lf.state,
                        "status": lf.status, "message": lf.message,
@@ -416,6 +427,21 @@ class WeldSession:
                               "p99": num(np.percentile(lat, 99)), "n": int(lat.size)}
                              if lat.size else None)
         return out
+
+
+def failure_text(e: BaseException) -> str:
+    """One line for the operator saying why a weld failed: a :class:`TorchseamError` (bad
+    input: a frame of the wrong size, a source that ended, a start without a stripe) is its
+    own message, which names the file, frame or field; anything else is a fault of the
+    program, named with its type and where it was raised (file:line), still one line."""
+    if isinstance(e, TorchseamError):
+        return str(e) or type(e).__name__
+    tb = traceback.extract_tb(e.__traceback__)
+    where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
+    text = " ".join(str(e).split())
+    if len(text) > 300:
+        text = text[:297] + "..."
+    return f"internal error ({type(e).__name__}{': ' + text if text else ''}{where})"
 
 
 def _counted(counts: collections.Counter, what: str) -> str:

@@ -53,7 +53,8 @@ def make_console(cfg: ConsoleConfig, cell: CellConfig, noise: NoiseConfig, weld:
                  open_loop: bool = False,
                  start_bounds: tuple[float, float] | None = None) -> ConsoleServer:
     """A :class:`ConsoleServer` running ``weld`` with the demo's parameter form (initial
-    values from ``cell``'s process settings, overridden by ``defaults``); ``source`` is what
+    values from ``cell``'s process settings, overridden by ``defaults``; a start request that
+    leaves a field out gets its initial value); ``source`` is what
     the page shows as the frame source, ``open_loop`` says it replays frames.
     ``start_bounds``: the largest start offset (mm) and angle (deg) off the seam the form
     takes (None: it starts on the seam only)."""
@@ -63,6 +64,11 @@ def make_console(cfg: ConsoleConfig, cell: CellConfig, noise: NoiseConfig, weld:
     session = WeldSession(cfg, weld, frame_period_s, open_loop)
 
     def validate(raw: dict[str, Any]) -> WeldParams:
+        # a field the request leaves out takes the form's default (the config's and the
+        # command line's values: --segments, --length-mm, ...), as the page would send it;
+        # one sent empty or null is the request's own (an empty length: whole segments)
+        if isinstance(raw, dict):
+            raw = {**form, **raw}
         return parse_params(raw, cfg.limits, noise, FAULTS, TRACKERS, start_bounds)
 
     validate(form)  # the defaults themselves must pass (a bad --length-mm, say)
