@@ -298,6 +298,10 @@ def test_train_writes_a_run_folder_and_install_keeps_a_backup(tmp_path, monkeypa
     assert {"eakf_stc.safetensors", "last.pt", "metrics.json"} <= {p.name for p in run.iterdir()}
     assert shipped.read_bytes() == old
     assert len(list(shipped.parent.iterdir())) == 1  # nothing replaced, no backup
+    # the closing advice names what works: train --install is refused (below)
+    advice = out.strip().splitlines()[-1]
+    assert "--model " in advice and "`torchseam train-live --install`" in advice, advice
+    assert "train --install" not in out
 
     # EAKF-STC alone cannot replace the live tracker's model: refused before any fitting
     rc, out, err = _run([*common, "--name", "r1", "--install"], capsys)

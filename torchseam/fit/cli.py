@@ -9,8 +9,9 @@ Several processes (DistributedDataParallel over gloo; each takes a shard of ever
     torchrun --nproc_per_node 2 train/fit_tracker.py --generate 16 --levels heavy,strike
 
 Options come from ``configs/train.yaml`` (or ``--config``), then the command line. Each run
-writes into its own folder, ``runs/<--name or the start time>/``; ``--install`` makes its model
-the one the trackers load (``models/eakf_stc.safetensors``, the old one kept as a backup).
+writes into its own folder, ``runs/<--name or the start time>/``; give its model to track, eval
+or replay with ``--model``. ``--install`` is refused: EAKF-STC alone cannot replace the live
+tracker's model, which ``torchseam train-live --install`` fits and installs.
 """
 
 from __future__ import annotations
@@ -165,8 +166,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="starting-point TrackerConfig overrides, e.g. rho=0.05,crop=bilinear "
                         "(merged over the config file's tracker section; default: the paper's "
                         "values)")
-    b = p.add_argument_group("output (a run folder; the model the trackers load is replaced "
-                             "only with --install)")
+    b = p.add_argument_group("output (a run folder; the model the trackers load is not "
+                             "replaced: that is train-live --install)")
     b.add_argument("--name", type=run_name_arg, metavar="NAME",
                    help=f"run name: the run goes to {RUNS_DIR}/NAME/ (default: the start time, "
                         "YYYYmmdd-HHMMSS)")
@@ -175,8 +176,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "metrics.json, report.md, loss_curve.png and the model (default: "
                         f"{RUNS_DIR}/NAME)")
     b.add_argument("--model", metavar="FILE",
-                   help=f"fitted model file to write (default RUN/{RUN_MODEL}); the shipped "
-                        "model is replaced only with --install")
+                   help=f"fitted model file to write (default RUN/{RUN_MODEL}); not the "
+                        "model the trackers load (train-live --install replaces that)")
     b.add_argument("--install", action="store_true",
                    help="refused: EAKF-STC alone cannot replace the live tracker's model "
                         "(models/live_tracker.safetensors); `torchseam train-live --install` "
@@ -448,8 +449,11 @@ def run_outputs(cfg: FitConfig, args: argparse.Namespace) -> FitConfig:
             where = "--model" if getattr(args, "model", None) is not None else "model"
             raise TorchseamError(
                 f"{where} {model} is the model the trackers load: training writes into its run "
-                f"folder ({out}); give --install to make the result the loaded model (the old "
-                "one is kept as a backup)")
+                f"folder ({out}); "
+                + ("give --install to make the result the loaded model (the old one is kept "
+                   "as a backup)" if getattr(args, "live", False) else
+                   "give another --model, or fit the loaded model with "
+                   "`torchseam train-live --install`"))
         model = out / RUN_MODEL  # --install copies it over, with a backup
     if out.exists() and not out.is_dir():
         raise TorchseamError(f"run folder {out} is a file")
@@ -529,8 +533,8 @@ def _run(cfg: FitConfig, resume: bool | str, info: DistInfo, install: bool = Fal
         print(f"installed {path} as {dest}"
               + (f" (the model it replaced: {backup})" if backup else ""))
     else:
-        print(f"use it with --model {path} (track, eval, replay), or install it as the "
-              "trackers' default with train --install")
+        print(f"use it with --model {path} (track, eval, replay); to change the trackers' "
+              "default model, fit the live tracker with `torchseam train-live --install`")
     return 0
 
 
