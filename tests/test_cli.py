@@ -44,8 +44,9 @@ def test_bad_noise_level_is_a_clear_error(tmp_path, capsys):
 def test_detect_reports_unreadable_files(tmp_path, capsys):
     bad = tmp_path / "00000.png"
     bad.write_text("nope")
-    assert main(["detect", str(bad)]) == 1
+    assert main(["detect", str(bad)]) == 2  # bad input
     out = capsys.readouterr()
+    assert out.err.startswith("torchseam detect: error: ") and out.err.count("\n") == 1
     assert "cannot be decoded" in out.err and out.out == ""
 
 

@@ -9,8 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from torchseam.core.cliargs import out_dir_arg
 from torchseam.core.dataset import read_frame
-from torchseam.core.errors import FrameError
+from torchseam.core.errors import FrameError, TorchseamError
 from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES, FrameView
 from torchseam.vision.tipm import Tipm, TipmResult, draw_overlay, find_view, load_tipm
 
@@ -20,11 +21,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "detect", help="find the weld feature point in frames (TIPM, clean frames)",
         description="Run TIPM on each frame and print 'FILE u v' or 'FILE none: <reason>'. "
                     "Frames may be colour or mono, 8 or 16 bit, of any size (the camera's "
-                    "size matters for 3D, not for finding the corner). Unreadable files are "
-                    "reported on stderr and skipped.")
+                    "size matters for 3D, not for finding the corner). A file that cannot be "
+                    "read is one error line on stderr and skipped; the others are still "
+                    "detected. Exit code 0 when a point was found, 1 when none was, 2 when a "
+                    "file could not be read.")
     p.add_argument("frames", nargs="+", type=Path, metavar="FRAME",
                    help="image files (PNG, JPEG, TIFF, ...)")
-    p.add_argument("--overlay", type=Path, metavar="DIR",
+    p.add_argument("--overlay", type=out_dir_arg, metavar="DIR",
                    help="write an overlay image per frame into DIR: the stripe's centre "
                         "line, the arm fits and the point found (default: none)")
     p.add_argument("--stripe-axis", choices=STRIPE_AXES, default="auto",
@@ -66,15 +69,15 @@ def run(args: argparse.Namespace) -> int:
         try:
             args.overlay.mkdir(parents=True, exist_ok=True)
         except OSError as e:
-            print(f"--overlay {args.overlay}: cannot create the folder ({e.strerror})",
-                  file=sys.stderr)
-            return 2
-    found, used = 0, set[str]()
+            raise TorchseamError(f"--overlay {args.overlay}: cannot create the folder "
+                                 f"({e.strerror})") from None
+    found, unread, used = 0, 0, set[str]()
     for path in args.frames:
         try:
             img = read_frame(path)
-        except FrameError as e:
-            print(f"error: {e}", file=sys.stderr)
+        except FrameError as e:  # bad input: one line, the other frames still detected
+            print(f"torchseam detect: error: {e}", file=sys.stderr, flush=True)
+            unread += 1
             continue
         res, axis = _detect(tipm, img, args.stripe_axis, args.stripe_response)
         uv = axis.to_camera(res.uv)
@@ -84,6 +87,8 @@ def run(args: argparse.Namespace) -> int:
             shown = draw_overlay(np.ascontiguousarray(axis.frame(img)), res)
             if axis.turned:
                 shown = cv2.rotate(shown, cv2.ROTATE_90_COUNTERCLOCKWISE)
-            cv2.imwrite(str(args.overlay / _overlay_name(path, used)), shown)
-    # exit 1 when no frame gave a point, so scripts notice
-    return 0 if found else 1
+            dest = args.overlay / _overlay_name(path, used)
+            if not cv2.imwrite(str(dest), shown):
+                raise TorchseamError(f"--overlay: {dest}: cannot be written")
+    # exit 2 when a file could not be read (bad input), 1 when no frame gave a point
+    return 2 if unread else 0 if found else 1
