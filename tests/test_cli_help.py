@@ -46,3 +46,16 @@ def test_robot_ik_and_check_say_which_point_the_pose_is_of():
     check = cmds[("robot", "check")].format_help()
     assert "flange" in ik and "torch tip" in ik
     assert "torch tip" in check and "not of the flange" in " ".join(check.split())
+
+
+def test_help_says_what_the_code_does():
+    """Help texts that once said otherwise: replay's --pose default (the flange at the base
+    origin: 3D points are located), ring's --model (the live tracker's file, as the other
+    commands say)."""
+    cmds = dict(PARSERS)
+    replay = " ".join(cmds[("replay",)].format_help().split())
+    assert "flange at the base origin" in replay and "pixels only" not in replay
+    ring = " ".join(cmds[("ring",)].format_help().split())
+    assert "EAKF-STC model file" not in ring
+    assert "tracker model file for the anchored and eakf-stc trackers" in ring
+    assert "models/live_tracker.safetensors" in ring

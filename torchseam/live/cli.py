@@ -94,7 +94,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="start pixel (default: TIPM on the first frame, which must be arc-off)")
     r.add_argument("--pose", default=None, metavar="X,Y,Z,Q1,Q2,Q3,Q4",
                    help="torch pose for frames without one (mm, quaternion w,x,y,z; default: "
-                        "none, such frames give pixels only)")
+                        "the tool pose with the flange at the base origin, so such frames' 3D "
+                        "points are located in the flange frame)")
     r.add_argument("--fps", type=float, default=None,
                    help="frame rate for time stamps the source lacks (default: the file's, "
                         "else 25)")

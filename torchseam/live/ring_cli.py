@@ -34,8 +34,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="feature-point tracker (default anchored: EAKF-STC fused with TIPM)")
     p.add_argument("--segments", type=segments_arg, default="abcdef",
                    help="which segments, each letter once (default abcdef)")
-    p.add_argument("--model", type=model_arg, metavar="FILE",
-                   help="EAKF-STC model file for eakf-stc / anchored (default: the shipped one)")
+    p.add_argument("--model", type=model_arg, default=None, metavar="FILE",
+                   help="tracker model file for the anchored and eakf-stc trackers, e.g. a "
+                        "run's runs/NAME/live_tracker.safetensors (default "
+                        "models/live_tracker.safetensors)")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
     p.add_argument("--out", type=out_dir_arg, default=Path("ring_out"),
                    help="folder for quaternions.png, ring.json, commands.csv and poses.csv "
