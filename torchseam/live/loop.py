@@ -196,15 +196,10 @@ def _turn_limited(q_prev: np.ndarray | None, q: np.ndarray, max_deg: float) -> n
     z, same hemisphere): the torch turns to a newly seen frame over several steps."""
     if q_prev is None:
         return q
-    d = min(1.0, max(-1.0, float(q_prev @ q)))
-    half = math.acos(abs(d))
-    ang = 2.0 * math.degrees(half)
+    ang = 2.0 * math.degrees(math.acos(min(1.0, abs(float(q_prev @ q)))))
     if ang <= max_deg:
         return q
-    f = max_deg / ang
-    out = (math.sin((1 - f) * half) * q_prev
-           + math.copysign(1.0, d) * math.sin(f * half) * q) / math.sin(half)
-    return out / np.linalg.norm(out)
+    return slerp(q_prev, q, max_deg / ang)
 
 
 def _blend(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
