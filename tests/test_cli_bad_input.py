@@ -114,6 +114,13 @@ CASES = [
     ("part 1e300 as text", lambda t, s: ["simulate", str(t / "o"), "--frames", "1", "--part",
                                          str(_part_file(t, "1e300"))],
      r"part\.yaml: main_od_mm: expected a number, got '1e300' \(YAML reads this as text"),
+    ("part od 0", lambda t, s: ["simulate", str(t / "o"), "--frames", "1", "--part",
+                                str(_part_file(t, "0"))],
+     r"part\.yaml: main_od_mm: the main pipe's outer diameter must be > 0 \(at least 10 mm\), "
+     r"got 0\.0$"),
+    ("part od -5", lambda t, s: ["simulate", str(t / "o"), "--frames", "1", "--part",
+                                 str(_part_file(t, "-5"))],
+     r"part\.yaml: main_od_mm: the main pipe's outer diameter must be > 0 .*got -5\.0$"),
     ("camera width", lambda t, s: ["simulate", str(t / "o"), "--frames", "1", "--cell",
                                    str(_cell_file(t))],
      r"cell\.yaml: camera\.width: expected a whole number <= 16384"),

@@ -82,6 +82,31 @@ def test_unknown_field_and_bad_files(tmp_path):
                             "'<stream end>' (line 2, column 1)")
 
 
+def test_part_sizes_must_be_positive(tmp_path):
+    """A pipe's diameter or a sphere's radius given as 0 or below: "> 0", not "missing" nor
+    ">= 0"; left out: missing. (0 stays the value of a kind that has none: files round-trip.)"""
+    d = yaml.safe_load((CONFIG_DIR / "parts" / "t_joint.yaml").read_text())
+    for v in (0, -5):
+        d["main_od_mm"] = v
+        with pytest.raises(ConfigError, match=r"main_od_mm: the main pipe's outer diameter "
+                                              rf"must be > 0 \(at least 10 mm\), got {v}\.0$"):
+            load_part(_write(tmp_path, d, "p.yaml"))
+    del d["main_od_mm"]
+    with pytest.raises(ConfigError, match=r"main_od_mm: missing \(the main pipe's outer"):
+        load_part(_write(tmp_path, d, "p.yaml"))
+    s = yaml.safe_load((CONFIG_DIR / "parts" / "pipe_on_sphere.yaml").read_text())
+    s["sphere_radius_mm"] = 0
+    with pytest.raises(ConfigError, match=r"sphere_radius_mm: the sphere's radius must be > 0, "
+                                          r"got 0\.0$"):
+        load_part(_write(tmp_path, s, "p.yaml"))
+    plate = yaml.safe_load((CONFIG_DIR / "parts" / "pipe_on_plate.yaml").read_text())
+    plate["main_od_mm"] = 0.0  # as save_config writes a plate
+    assert load_part(_write(tmp_path, plate, "p.yaml")).main_od_mm == 0.0
+    plate["main_od_mm"] = -5.0
+    with pytest.raises(ConfigError, match="main_od_mm: a part of kind plate has none"):
+        load_part(_write(tmp_path, plate, "p.yaml"))
+
+
 def test_part_validation(tmp_path):
     d = yaml.safe_load((CONFIG_DIR / "parts" / "t_joint.yaml").read_text())
     d["intersection_angle_deg"] = 45.0

@@ -69,8 +69,10 @@ def test_shipped_kinds_load_and_pipe_files_load_unchanged():
 
 @pytest.mark.parametrize("change, message", [
     ({"kind": "plate"}, "main_od_mm: a part of kind plate has none"),
-    ({"kind": "sphere", "main_od_mm": None, "main_ovality": None},
+    ({"kind": "sphere", "main_od_mm": None, "main_ovality": None, "sphere_radius_mm": None},
      "sphere_radius_mm: missing"),
+    ({"kind": "sphere", "main_od_mm": None, "main_ovality": None},  # given as 0
+     r"sphere_radius_mm: the sphere's radius must be > 0, got 0\.0"),
     ({"main_od_mm": None}, "main_od_mm: missing"),
     ({"design_offset_mm": 5.0}, "design_offset_mm: a part of kind pipe has none"),
     ({"kind": "offset", "design_offset_mm": 24.0}, "branch radius plus its y offset"),

@@ -148,6 +148,12 @@ class CellConfig:
 PART_KINDS = ("pipe", "offset", "plate", "sphere")
 
 
+def _positive(name: str, value: float, what: str, least: float | None = None) -> str:
+    """The message for a size that must be > 0."""
+    bound = "> 0" + (f" (at least {least:g} mm)" if least is not None else "")
+    return f"{name}: {what} must be {bound}, got {value!r}"
+
+
 @dataclass(frozen=True, kw_only=True)
 class PartConfig:
     """The joint's geometry and its real-part deviations (``configs/parts/*.yaml``).
@@ -162,11 +168,12 @@ class PartConfig:
     """
 
     kind: str = _f(default="pipe", choices=PART_KINDS)
-    main_od_mm: float = _f(lo=0.0, hi=MAX_PIPE_OD_MM, default=0.0)  # 0: none (plate, sphere)
+    # 0 (the default): none (plate, sphere); a pipe kind's must be > 0 (_check says so)
+    main_od_mm: float = _f(hi=MAX_PIPE_OD_MM, default=0.0)
     branch_od_mm: float = _f(lo=MIN_PIPE_OD_MM, hi=MAX_PIPE_OD_MM)
     intersection_angle_deg: float = _f(lo=60.0, hi=90.0)
     design_offset_mm: float = _f(lo=-MAX_PIPE_OD_MM, hi=MAX_PIPE_OD_MM, default=0.0)
-    sphere_radius_mm: float = _f(lo=0.0, hi=MAX_PIPE_OD_MM, default=0.0)  # 0: no sphere
+    sphere_radius_mm: float = _f(hi=MAX_PIPE_OD_MM, default=0.0)  # 0: no sphere (as main_od_mm)
     branch_offset_mm: tuple[float, ...] = _f(2, lo=-100.0, hi=100.0)
     main_ovality: float = _f(lo=0.0, hi=0.1, default=0.0)
     branch_ovality: float = _f(lo=0.0, hi=0.1, default=0.0)
@@ -175,6 +182,13 @@ class PartConfig:
     placement: Pose = field(default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
     placement_error: Pose = field(
         default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
+
+    def _check_given(self, given: frozenset[str]) -> None:
+        """A size the kind needs, left out of the file (its default 0 means none)."""
+        if self.kind in ("pipe", "offset") and "main_od_mm" not in given:
+            raise ValueError("main_od_mm: missing (the main pipe's outer diameter)")
+        if self.kind == "sphere" and "sphere_radius_mm" not in given:
+            raise ValueError("sphere_radius_mm: missing (the sphere's radius)")
 
     def _check(self) -> None:
         kind = self.kind
@@ -187,8 +201,9 @@ class PartConfig:
         r = self.branch_od_mm / 2 * (1 + self.branch_ovality)
         y = self.design_offset_mm + self.branch_offset_mm[1]
         if pipe:
-            if self.main_od_mm == 0.0:
-                raise ValueError("main_od_mm: missing (the main pipe's outer diameter)")
+            if self.main_od_mm <= 0.0:
+                raise ValueError(_positive("main_od_mm", self.main_od_mm,
+                                           "the main pipe's outer diameter", MIN_PIPE_OD_MM))
             if self.main_od_mm < MIN_PIPE_OD_MM:
                 raise ValueError(f"main_od_mm: expected a number >= {MIN_PIPE_OD_MM}, got "
                                  f"{self.main_od_mm!r}")
@@ -199,8 +214,9 @@ class PartConfig:
                     f"branch_od_mm: branch radius plus {what} must stay inside the main pipe "
                     f"({r + abs(y):.1f} mm >= {R:.1f} mm)")
         if kind == "sphere":
-            if self.sphere_radius_mm == 0.0:
-                raise ValueError("sphere_radius_mm: missing (the sphere's radius)")
+            if self.sphere_radius_mm <= 0.0:
+                raise ValueError(_positive("sphere_radius_mm", self.sphere_radius_mm,
+                                           "the sphere's radius"))
             off = math.hypot(self.branch_offset_mm[0], y)
             if r + off >= self.sphere_radius_mm:
                 raise ValueError(
@@ -561,9 +577,13 @@ def _parse_dataclass(cls: type[T], data: Any, path: str) -> T:
             raise ConfigError(f"{where}: {e}") from None
     obj = cls(**kwargs)
     check = getattr(obj, "_check", None)
-    if check is not None:
+    given = getattr(obj, "_check_given", None)  # checks that need to know what the file gave
+    if check is not None or given is not None:
         try:
-            check()
+            if given is not None:
+                given(frozenset(data))
+            if check is not None:
+                check()
         except ValueError as e:
             raise ConfigError(f"{path + '.' if path else ''}{e}") from None
     return obj
