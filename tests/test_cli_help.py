@@ -59,3 +59,18 @@ def test_help_says_what_the_code_does():
     assert "EAKF-STC model file" not in ring
     assert "tracker model file for the anchored and eakf-stc trackers" in ring
     assert "models/live_tracker.safetensors" in ring
+
+
+def test_calibrate_help_gives_the_pose_csv_header_simulate_writes(tmp_path):
+    """The hand-eye and TCP poses.csv header in the help is the one format
+    (torchseam/core/poses_csv.py) that ``calibrate simulate`` writes; the old spelling is
+    named only as still read."""
+    from torchseam.cli import main
+
+    text = " ".join(dict(PARSERS)[("calibrate",)].format_help().split())
+    assert "header image,x,y,z,q1,q2,q3,q4" in text and "header pose,x,y,z,q1,q2,q3,q4" in text
+    assert "x_mm,y_mm,z_mm,qw,qx,qy,qz is still read" in text
+    assert main(["calibrate", "simulate", "tcp", str(tmp_path / "t")]) == 0
+    header = next(ln for ln in (tmp_path / "t" / "poses.csv").read_text().splitlines()
+                  if ln and not ln.startswith("#"))
+    assert header == "pose,x,y,z,q1,q2,q3,q4"
