@@ -371,3 +371,19 @@ def test_models_env_naming_no_model_is_an_error(folder, seq, tmp_path, capsys, m
     # TIPM loads no model: the variable does not matter
     rc, out, err = _run(["eval", str(seq), "--tracker", "tipm"], capsys)
     assert rc == 0, err
+
+
+# --------------------------------------------------------------------------- a label, no image
+
+def test_eval_skips_a_label_whose_image_is_missing_with_a_warning(seq, tmp_path, capsys):
+    """A frame lost from the folder while its label stays (a dropped frame) is a gap, which
+    the README says is not an error: eval scores the rest and names the frame on stderr."""
+    d = _copy(seq, tmp_path / "gap")
+    (d / "00005.png").unlink()
+    rc, out, err = _run(["eval", str(d), "--tracker", "tipm"], capsys)
+    assert rc == 0, err
+    assert "Traceback" not in err and "error" not in err
+    assert re.search(r"warning: .*gap/labels\.csv: 1 label\(s\) of frames with no image "
+                     r"skipped \(frame 5\)", err), err
+    assert re.search(r"warning: .*gap: 1 frame number\(s\) missing \(5\)", err), err
+    assert re.search(r"^ *tipm +7 ", out, re.M), out  # the 7 frames with images, scored

@@ -68,6 +68,23 @@ def test_mislabelled_folders(tmp_path, labels, message):
         Dataset.open(_folder(tmp_path, labels=labels))
 
 
+def test_a_label_without_its_image_is_a_gap_skipped_with_a_warning(tmp_path, capsys):
+    """A label row whose frame has no image (a dropped frame) is a gap in the frames, as the
+    numbering's gaps are: skipped, counted and named in one warning line on stderr."""
+    ds = Dataset.open(_folder(tmp_path, labels="frame,u,v\n0,1.5,2.5\n7,3,4\n2,5,6\n9,1,1\n"))
+    assert ds.unimaged_labels.tolist() == [7, 9]
+    assert ds.labelled.tolist() == [True, False, True]
+    np.testing.assert_allclose(ds.labels[2], [5, 6])
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert err.startswith("warning: ") and "labels.csv: 2 label(s) of frames with no image " \
+        "skipped (frame 7, 9)" in err
+    # still refused: twice the same frame, with or without an image
+    (tmp_path / "b").mkdir()
+    with pytest.raises(DatasetError, match="line 3: frame 7 is labelled twice"):
+        Dataset.open(_folder(tmp_path / "b", labels="frame,u,v\n7,1,2\n7,1,2\n0,1,1\n"))
+
+
 def test_labels_on_the_image_edge_and_with_a_byte_order_mark(tmp_path):
     """Pixel centres are on integers: -0.5 .. 15.5 lies on a 16 px frame. A spreadsheet's
     UTF-8 byte-order mark before the header is skipped."""

@@ -152,8 +152,9 @@ def test_data_folder_errors_name_the_problem(tmp_path, syn_dir):
     bad.mkdir()
     for p in (syn_dir / "seq-00").glob("0000[0-3].png"):
         (bad / p.name).write_bytes(p.read_bytes())
-    (bad / "labels.csv").write_text("frame,u,v\n0,10,10\n9,11,11\n")
-    with pytest.raises(DatasetError, match="line 3: frame 9 has no image 00009.png"):
+    (bad / "labels.csv").write_text("frame,u,v\n9,11,11\n")  # no label has an image
+    with pytest.raises(DatasetError, match="no label names a frame in the folder "
+                                           r"\(line 2: frame 9 has no image 00009.png\)"):
         load_sequences([bad], progress=False)
     (bad / "labels.csv").write_text("frame,u,v\n3,10,10\n")  # only the last frame labelled
     with pytest.raises(DatasetError, match="at least 2 frames"):

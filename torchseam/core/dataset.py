@@ -17,8 +17,9 @@ import json
 import math
 import os
 import re
+import sys
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -116,6 +117,8 @@ class Dataset:
         labels: (N, 2) float64 labelled pixels, NaN where a frame has no label; None when the
             folder has no ``labels.csv``.
         meta: parsed ``meta.json`` or None.
+        unimaged_labels: frame numbers ``labels.csv`` labels that have no image (a gap in the
+            frames, as a dropped camera frame): skipped, with a warning on stderr when opened.
 
     Example:
         >>> ds = Dataset.open("data/seq0")          # doctest: +SKIP
@@ -127,6 +130,7 @@ class Dataset:
     paths: list[Path]
     labels: np.ndarray | None
     meta: dict[str, Any] | None
+    unimaged_labels: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 
     @classmethod
     def open(cls, root: str | os.PathLike[str], require_labels: bool = False,
@@ -152,12 +156,18 @@ class Dataset:
             raise DatasetError(f"{root}: frame number {dup[0]} appears twice (e.g. 1.png and "
                                "00001.png)")
         paths = [p for _, p in found]
-        uv = None
+        uv, unimaged = None, np.zeros(0, int)
         lp = root / "labels.csv"
         if not labels:
             pass
         elif lp.exists():
-            uv = _read_labels(lp, frames, _image_size(paths))
+            uv, unimaged = _read_labels(lp, frames, _image_size(paths))
+            if len(unimaged):  # a gap in the frames, not an error; never silent
+                shown = (", ".join(str(int(f)) for f in unimaged[:10])
+                         + (" ..." if len(unimaged) > 10 else ""))
+                print(f"warning: {lp}: {len(unimaged)} label(s) of frames with no image "
+                      f"skipped (frame {shown}): a gap in the frames, not scored",
+                      file=sys.stderr, flush=True)
         elif require_labels:
             raise DatasetError(f"{root}: labels.csv is missing (header: frame,u,v)")
         meta = None
@@ -167,7 +177,7 @@ class Dataset:
                 meta = json.loads(mp.read_text())
             except (OSError, ValueError) as e:
                 raise DatasetError(f"{mp}: not valid JSON ({e})") from None
-        return cls(root, frames, paths, uv, meta)
+        return cls(root, frames, paths, uv, meta, unimaged)
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -220,11 +230,32 @@ def _image_size(paths: list[Path]) -> tuple[int, int] | None:
     return None
 
 
-def _read_labels(path: Path, frames: np.ndarray,
-                 size: tuple[int, int] | None = None) -> np.ndarray:
-    """The labels of ``labels.csv`` per frame position (NaN: unlabelled). ``size``: the frames'
-    (width, height); a label outside them (pixel centres on integers, so -0.5 .. W - 0.5) is
-    refused. A UTF-8 byte-order mark (spreadsheet programs write one) is skipped."""
+def _label_value(path: Path, line: int, name: str, cell: str,
+                 size: tuple[int, int] | None) -> float:
+    """Label field ``name`` (u or v) of ``labels.csv`` line ``line``: a finite number, inside
+    the frames of ``size`` (width, height) when known."""
+    try:
+        x = float(cell)
+    except ValueError:
+        raise DatasetError(f"{path}: line {line}: {name} {cell!r} is not a number") from None
+    if not math.isfinite(x):
+        raise DatasetError(f"{path}: line {line}: {name} is {cell!r}")
+    if size is not None:
+        side = size[0] if name == "u" else size[1]
+        if not -0.5 <= x <= side - 0.5:
+            raise DatasetError(
+                f"{path}: line {line}: {name} {cell.strip()} lies outside the "
+                f"{size[0]} x {size[1]} px frames ({name} must be in -0.5 .. {side - 0.5:g})")
+    return x
+
+
+def _read_labels(path: Path, frames: np.ndarray, size: tuple[int, int] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The labels of ``labels.csv`` per frame position (NaN: unlabelled), and the frame
+    numbers of label rows with no image (a gap in the frames: skipped; an error when no row
+    has an image). ``size``: the frames' (width, height); a label outside them (pixel centres
+    on integers, so -0.5 .. W - 0.5) is refused. A UTF-8 byte-order mark (spreadsheet
+    programs write one) is skipped."""
     pos = {int(f): i for i, f in enumerate(frames)}
     labels = np.full((len(frames), 2), np.nan)
     try:
@@ -235,7 +266,8 @@ def _read_labels(path: Path, frames: np.ndarray,
     if not rows or [c.strip() for c in rows[0]] != LABEL_HEADER:
         got = ",".join(rows[0]) if rows else "an empty file"
         raise DatasetError(f"{path}: header must be 'frame,u,v', got {got!r}")
-    seen = set()
+    seen: set[int] = set()
+    unimaged: dict[int, int] = {}  # frame -> first line
     for line, row in enumerate(rows[1:], start=2):
         if not row or all(not c.strip() for c in row):
             continue
@@ -246,32 +278,22 @@ def _read_labels(path: Path, frames: np.ndarray,
         except ValueError:
             raise DatasetError(f"{path}: line {line}: frame {row[0]!r} is not a whole number"
                                ) from None
-        vals = []
-        for name, cell in zip(("u", "v"), row[1:], strict=True):
-            try:
-                x = float(cell)
-            except ValueError:
-                raise DatasetError(f"{path}: line {line}: {name} {cell!r} is not a number"
-                                   ) from None
-            if not math.isfinite(x):
-                raise DatasetError(f"{path}: line {line}: {name} is {cell!r}")
-            if size is not None:
-                side = size[0] if name == "u" else size[1]
-                if not -0.5 <= x <= side - 0.5:
-                    raise DatasetError(
-                        f"{path}: line {line}: {name} {cell.strip()} lies outside the "
-                        f"{size[0]} x {size[1]} px frames ({name} must be in -0.5 .. "
-                        f"{side - 0.5:g})")
-            vals.append(x)
-        if f not in pos:
-            raise DatasetError(f"{path}: line {line}: frame {f} has no image {frame_name(f)}")
-        if f in seen:
+        vals = [_label_value(path, line, name, cell, size)
+                for name, cell in zip(("u", "v"), row[1:], strict=True)]
+        if f in seen or f in unimaged:
             raise DatasetError(f"{path}: line {line}: frame {f} is labelled twice")
+        if f not in pos:
+            unimaged[f] = line
+            continue
         seen.add(f)
         labels[pos[f]] = vals
     if not seen:
+        if unimaged:
+            f, line = next(iter(unimaged.items()))
+            raise DatasetError(f"{path}: no label names a frame in the folder (line {line}: "
+                               f"frame {f} has no image {frame_name(f)})")
         raise DatasetError(f"{path}: no labels below the header")
-    return labels
+    return labels, np.array(sorted(unimaged), int)
 
 
 def write_labels(path: str | os.PathLike[str], frames: np.ndarray, uv: np.ndarray) -> None:
