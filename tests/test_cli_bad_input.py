@@ -223,7 +223,7 @@ def test_track_marks_bad_frames_unreadable_and_goes_on(seq, tmp_path, capsys):
 
 def test_track_writes_each_row_as_it_goes(seq, tmp_path, capsys, monkeypatch):
     """A run that stops part-way keeps the rows of the frames it tracked."""
-    import torchseam.track.cli as tcli
+    import torchseam.track.peers as peers
     from torchseam.core.errors import TorchseamError
 
     class Failing:
@@ -239,7 +239,7 @@ def test_track_writes_each_row_as_it_goes(seq, tmp_path, capsys, monkeypatch):
                 raise TorchseamError("the tracker gave up")
             return np.array([300.0, 200.0]), 0
 
-    monkeypatch.setattr(tcli, "make_tracker", lambda *a, **k: Failing())
+    monkeypatch.setattr(peers, "make_tracker", lambda *a, **k: Failing())
     out = tmp_path / "t.csv"
     rc, _, err = _run(["track", str(seq), "--out", str(out), "--init", "300,200"], capsys)
     assert rc == 2 and "the tracker gave up" in err

@@ -74,3 +74,39 @@ def test_calibrate_help_gives_the_pose_csv_header_simulate_writes(tmp_path):
     header = next(ln for ln in (tmp_path / "t" / "poses.csv").read_text().splitlines()
                   if ln and not ln.startswith("#"))
     assert header == "pose,x,y,z,q1,q2,q3,q4"
+
+
+#: what a command's parser must not import: the command imports them when it runs
+HEAVY = ("torch", "pytorch_kinematics", "matplotlib", "scipy", "cv2")
+
+
+def test_command_help_imports_nothing_heavy():
+    """``torchseam COMMAND --help`` (and ``calibrate camera --help``, ``robot ik --help``, ...)
+    builds the command's parser without torch, pytorch_kinematics, matplotlib, scipy or
+    OpenCV (seconds of imports): one fresh interpreter goes through every command path,
+    checking after each which heavy modules it has imported."""
+    import json
+    import subprocess
+    import sys
+
+    paths = [list(p) for p, _ in PARSERS if p]
+    code = """if True:
+        import contextlib, io, json, sys
+        from torchseam.cli import main
+        heavy, paths = json.loads(sys.argv[1])
+        found = {}
+        for path in paths:
+            with contextlib.redirect_stdout(io.StringIO()) as out, \\
+                    contextlib.suppress(SystemExit):
+                main([*path, "--help"])
+            assert "usage: torchseam " + " ".join(path) in out.getvalue(), path
+            loaded = [m for m in heavy if m in sys.modules]
+            if loaded:
+                found[" ".join(path)] = loaded
+                break
+        print(json.dumps(found))
+    """
+    r = subprocess.run([sys.executable, "-c", code, json.dumps([HEAVY, paths])],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout) == {}, "a command's --help imported " + r.stdout

@@ -3,17 +3,42 @@
 :class:`~torchseam.console.session.WeldSession` runs the live loop's closed-loop weld on a worker
 thread and keeps bounded history; :class:`~torchseam.console.server.ConsoleServer` serves the
 page and pushes updates over a WebSocket. See ``docs/console.md``.
+
+The names below are imported on first use, so that the command line's parser
+(:mod:`torchseam.console.cli`) does not import torch.
 """
 
-from torchseam.console.config import (
-    ConsoleConfig,
-    ParamError,
-    WeldParams,
-    load_console_config,
-    parse_params,
-)
-from torchseam.console.server import ConsoleServer
-from torchseam.console.session import PacedControl, RunState, WeldSession
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from torchseam.console.config import (
+        ConsoleConfig,
+        ParamError,
+        WeldParams,
+        load_console_config,
+        parse_params,
+    )
+    from torchseam.console.server import ConsoleServer
+    from torchseam.console.session import PacedControl, RunState, WeldSession
+
+#: each exported name: its module
+_LAZY = {
+    **dict.fromkeys(("ConsoleConfig", "ParamError", "WeldParams", "load_console_config",
+                     "parse_params"), "torchseam.console.config"),
+    "ConsoleServer": "torchseam.console.server",
+    **dict.fromkeys(("PacedControl", "RunState", "WeldSession"), "torchseam.console.session"),
+}
 
 __all__ = ["ConsoleConfig", "ConsoleServer", "PacedControl", "ParamError", "RunState",
            "WeldParams", "WeldSession", "load_console_config", "parse_params"]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name]), name)
+    globals()[name] = value
+    return value

@@ -8,9 +8,6 @@ import os
 import sys
 from pathlib import Path
 
-import cv2
-import torch
-
 from torchseam.console.config import DEFAULT_HOST
 from torchseam.core.errors import TorchseamError
 
@@ -61,6 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import cv2  # here, not at the top: the parser (--help) needs no OpenCV or torch
+    import torch
+
     from torchseam.console.config import ParamError, load_console_config
     from torchseam.console.replay import replay_console
     from torchseam.console.server import is_loopback

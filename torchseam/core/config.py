@@ -26,7 +26,6 @@ import yaml
 
 from torchseam import config_dir
 from torchseam.core.errors import TorchseamError
-from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES
 
 T = TypeVar("T")
 
@@ -71,6 +70,11 @@ MIN_IMAGE_PX, MAX_IMAGE_PX = 32, 16384
 MIN_PIPE_OD_MM, MAX_PIPE_OD_MM = 10.0, 3000.0
 #: No number in a config is larger in magnitude (the rest of the code can square it safely).
 MAX_CONFIG_NUMBER = 1e12
+#: the settings a cell config's ``camera.stripe_axis`` takes (the views of
+#: :class:`torchseam.core.orient.FrameView`, or ``auto``)
+STRIPE_AXES = ("auto", "rows", "columns")
+#: the settings of ``camera.stripe_response``
+STRIPE_RESPONSES = ("auto", "red", "intensity")
 
 
 @dataclass(frozen=True)

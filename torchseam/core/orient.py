@@ -26,10 +26,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-#: the settings a cell config's ``camera.stripe_axis`` takes
-STRIPE_AXES = ("auto", "rows", "columns")
-#: the settings of ``camera.stripe_response``
-STRIPE_RESPONSES = ("auto", "red", "intensity")
+# the settings of ``camera.stripe_axis`` and ``camera.stripe_response`` (``auto`` and the two
+# views below) are STRIPE_AXES and STRIPE_RESPONSES in :mod:`torchseam.core.config`, which the
+# command line's parsers read without importing OpenCV
 
 
 @dataclass(frozen=True)

@@ -25,31 +25,18 @@ import re
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
-import torch
-import torch.distributed as dist
 import yaml
 
 from torchseam.core.config import ConfigError
 from torchseam.core.errors import DatasetError, TorchseamError
 from torchseam.core.report import format_table
-from torchseam.fit import model_io
 from torchseam.fit.config import TRAIN_YAML, FitConfig, load_fit_config, parse_seeds
-from torchseam.fit.data import find_sequences, generate_sequences, load_sequences
-from torchseam.fit.model_io import save_fitted
-from torchseam.fit.train import (
-    DistInfo,
-    EpochRecord,
-    barrier,
-    evaluate_folders,
-    init_distributed,
-    make_module,
-    readable_params,
-    train,
-)
+
+if TYPE_CHECKING:  # torch: imported when the command runs, not by its parser (--help)
+    from torchseam.fit.train import DistInfo, EpochRecord
 
 __all__ = ["add_arguments", "main", "register", "run"]
 
@@ -267,6 +254,9 @@ def _seeds(cfg: FitConfig, spec: str, name: str, n: int | None = None) -> tuple[
 def _resolve(cfg: FitConfig, info: DistInfo
              ) -> tuple[list[Path], list[Path], list[Path], dict[str, Any]]:
     """Training, validation and test folders, plus a description for the model file."""
+    from torchseam.fit.data import find_sequences, generate_sequences
+    from torchseam.fit.train import barrier
+
     desc: dict[str, Any] = {}
     test: list[Path] = []
     if cfg.generate > 0:
@@ -331,6 +321,9 @@ def _resolve(cfg: FitConfig, info: DistInfo
 
 
 def _load(dirs: list[Path], cfg: FitConfig, info: DistInfo, roi: int | None = None):
+    from torchseam.fit.data import load_sequences
+    from torchseam.fit.train import barrier
+
     kw: dict[str, Any] = {"roi": roi or cfg.roi, "margin": cfg.margin,
                           "max_frames": cfg.max_frames,
           "cache": cfg.cache}
@@ -438,6 +431,8 @@ def run_outputs(cfg: FitConfig, args: argparse.Namespace) -> FitConfig:
             out, n = RUNS_DIR / f"{stamp}-{n}", n + 1
     model = (Path(cfg.model) if getattr(args, "model", None) is not None or "model" in keys
              else out / RUN_MODEL)
+    from torchseam.fit import model_io
+
     shipped = model_io.DEFAULT_MODEL
     if getattr(args, "install", False) and not getattr(args, "live", False):
         raise TorchseamError(
@@ -465,6 +460,10 @@ def run_outputs(cfg: FitConfig, args: argparse.Namespace) -> FitConfig:
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch.distributed as dist
+
+    from torchseam.fit.train import init_distributed
+
     cfg = run_outputs(config_from_args(args), args)
     info = init_distributed()
     try:
@@ -475,6 +474,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(cfg: FitConfig, resume: bool | str, info: DistInfo, install: bool = False) -> int:
+    import cv2
+    import torch
+
+    from torchseam.fit import model_io
+    from torchseam.fit.data import load_sequences
+    from torchseam.fit.train import evaluate_folders, make_module, readable_params, train
+
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(cfg.threads)
     cv2.setNumThreads(1)
@@ -522,7 +528,7 @@ def _run(cfg: FitConfig, resume: bool | str, info: DistInfo, install: bool = Fal
                 "tracker_source": _tracker_fingerprint(),
                 "seconds_per_epoch": float(np.median(per_epoch)) if per_epoch else None,
                 "command": " ".join(sys.argv)}
-    path = save_fitted(module, cfg.model, info_doc)
+    path = model_io.save_fitted(module, cfg.model, info_doc)
     (out / "metrics.json").write_text(json.dumps(info_doc, indent=1, default=float))
     (out / "report.md").write_text(report_markdown(info_doc))
     _loss_png(history, out / "loss_curve.png")

@@ -23,7 +23,7 @@ from torchseam.core.config import (
     from_dict,
     read_yaml,
 )
-from torchseam.track.fusion import EAKFSTC, TrackerConfig
+from torchseam.track.config import TrackerConfig
 
 __all__ = ["FitConfig", "PARAM_GROUPS", "TRAIN_YAML", "load_fit_config", "parse_seeds"]
 
@@ -204,6 +204,8 @@ class FitConfig:
         if unknown:
             raise ValueError(f"fit: unknown parameter group {unknown[0]!r} (use "
                              f"{', '.join(PARAM_GROUPS)})")
+        from torchseam.track.fusion import EAKFSTC  # torch: not for the parser's defaults
+
         try:
             EAKFSTC(self.tracker_config())  # the tracker checks its own values
         except Exception as e:  # ConfigError, InputError or TypeError from a bad value

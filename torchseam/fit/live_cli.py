@@ -12,8 +12,6 @@ import dataclasses
 import time
 from pathlib import Path
 
-import torch
-
 from torchseam.core.cliargs import model_arg
 from torchseam.core.errors import TorchseamError
 
@@ -89,6 +87,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch  # here, not at the top: the parser (--help) needs no torch
+
     from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
     from torchseam.fit import model_io
     from torchseam.fit.cli import RUNS_DIR

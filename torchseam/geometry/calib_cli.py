@@ -35,20 +35,7 @@ import numpy as np
 from torchseam.core.cliargs import out_dir_arg, out_file_arg
 from torchseam.core.config import CONFIG_DIR, load_cell
 from torchseam.core.errors import TorchseamError
-from torchseam.core.transforms import pose_matrix
-from torchseam.geometry.calibrate import (
-    HAND_EYE_METHODS,
-    calibrate_camera,
-    calibrate_hand_eye,
-    calibrate_laser_plane,
-    calibrate_tcp,
-    load_calibration,
-    load_camera_set,
-    load_handeye_set,
-    load_laser_set,
-    load_tcp_set,
-    update_cell,
-)
+from torchseam.geometry.names import HAND_EYE_METHODS
 
 KINDS = {
     "camera": ("camera", "intrinsics and distortion from checkerboard images"),
@@ -106,6 +93,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 # --------------------------------------------------------------------------- commands
 
 def run(args: argparse.Namespace) -> int:
+    # imported here: the parser (--help) needs no OpenCV or scipy
+    from torchseam.geometry.calibrate import (
+        calibrate_camera,
+        calibrate_hand_eye,
+        calibrate_laser_plane,
+        calibrate_tcp,
+        load_calibration,
+        load_camera_set,
+        load_handeye_set,
+        load_laser_set,
+        load_tcp_set,
+        update_cell,
+    )
+
     cfg = load_calibration(args.calib)
     cell_path = Path(args.cell) if args.cell else CONFIG_DIR / "cell.yaml"
     cell = load_cell(cell_path)
@@ -153,6 +154,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
+    from torchseam.geometry.calibrate import load_calibration
     from torchseam.sim.board import write_set
 
     if args.views is not None and args.views < 1:
@@ -176,6 +178,8 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 def compare_with_truth(kind: str, value: Any, truth: dict[str, Any]) -> list[str]:
     """Lines comparing a recovered value with a simulated set's ``truth.json``."""
+    from torchseam.core.transforms import pose_matrix
+
     out = ["vs simulator truth (truth.json):"]
     try:
         if kind == "camera":

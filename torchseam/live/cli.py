@@ -9,8 +9,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
-import torch
 from tqdm import tqdm
 
 from torchseam.core.cliargs import (
@@ -24,12 +22,11 @@ from torchseam.core.cliargs import (
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import format_table
-from torchseam.track.peers import TRACKERS
+from torchseam.live.names import FAULTS
+from torchseam.track.names import TRACKERS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from torchseam.live.demo import FAULTS
-
     p = sub.add_parser(
         "demo",
         help="weld a simulated part (default the T joint) in closed loop and write a report",
@@ -121,7 +118,9 @@ def _floats(text: str, n: int, what: str) -> list[float]:
 
 
 def run_replay_cmd(args: argparse.Namespace) -> int:
+    import cv2  # here, not at the top: the parser (--help) needs no OpenCV or torch
     import numpy as np
+    import torch
 
     from torchseam.core.transforms import pose_matrix
     from torchseam.live.parts import load_live_parts
@@ -225,8 +224,6 @@ def _expected_frames(cell, part, plan, args: argparse.Namespace) -> int:
 
 def _demo_faults(args: argparse.Namespace) -> tuple[str, ...]:
     """The faults ``demo`` injects, its options checked first (one-line errors)."""
-    from torchseam.live.demo import FAULTS
-
     faults = tuple(f.strip() for a in args.fault for f in a.split(",") if f.strip())
     bad = [f for f in faults if f not in FAULTS]
     if bad:
@@ -243,6 +240,9 @@ def _demo_faults(args: argparse.Namespace) -> tuple[str, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import cv2  # here, not at the top: the parser (--help) needs no OpenCV or torch
+    import torch
+
     from torchseam.live.demo import run_demo, write_report
     from torchseam.live.parts import load_live_parts
 

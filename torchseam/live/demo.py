@@ -51,6 +51,7 @@ from torchseam.live.loop import (
     StepReport,
     egm_config_for,
 )
+from torchseam.live.names import FAULTS as FAULTS  # the faults run_demo injects (re-exported)
 from torchseam.live.parts import LiveParts
 from torchseam.live.ring import torch_axis_errors
 from torchseam.live.search import (
@@ -75,7 +76,6 @@ from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import make_tracker
 from torchseam.vision.tipm import Tipm
 
-FAULTS = ("dropped-frames", "arc-flash", "laser-off", "packet-loss", "controller-silence")
 FAULT_FRAMES = 30          # how long each fault lasts, frames (1.2 s); packet loss: the segment
 POSES_CSV_HEADER = "t,x,y,z,q1,q2,q3,q4"  # poses.csv: what ``torchseam robot check`` reads
 # the demo skips the positioner's turn and the torch's return between two segments (its clock

@@ -6,19 +6,14 @@ import argparse
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from torchseam.core.cliargs import model_arg, out_dir_arg, seed_arg, segments_arg
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import format_table
-from torchseam.live.parts import load_live_parts
-from torchseam.live.plots import quaternion_plot
-from torchseam.live.ring import ring_errors, run_ring, write_ring_poses
-from torchseam.track.peers import TRACKERS
+from torchseam.track.names import TRACKERS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,6 +41,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # imported here: the parser (--help) needs no torch, OpenCV or matplotlib
+    import cv2
+    import torch
+
+    from torchseam.live.parts import load_live_parts
+    from torchseam.live.plots import quaternion_plot
+    from torchseam.live.ring import ring_errors, run_ring, write_ring_poses
+
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     cell, part, noise = load_cell(), load_part(args.part), load_noise()

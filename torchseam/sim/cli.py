@@ -5,15 +5,14 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
-
-import cv2
-import numpy as np
+from typing import TYPE_CHECKING
 
 from torchseam.core.cliargs import MAX_SEED, out_dir_arg, seed_arg
 from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
-from torchseam.sim.record import contact_sheet, write_sequence
-from torchseam.sim.sequence import SequenceSpec
+
+if TYPE_CHECKING:  # imported when the command runs: the parser (--help) needs no OpenCV
+    import numpy as np
 
 #: largest ``--start-mm`` (the seam is a closed ring of well under a metre: larger values are
 #: typos, and at 1e16 mm a frame's step no longer changes the float)
@@ -52,6 +51,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import cv2
+    import numpy as np
+
+    from torchseam.sim.record import contact_sheet, write_sequence
+    from torchseam.sim.sequence import SequenceSpec
+
     if args.frames < 1:
         raise TorchseamError(f"--frames must be at least 1, got {args.frames}")
     if args.start_mm is not None and not (math.isfinite(args.start_mm)
@@ -83,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _read_frame(path: Path) -> np.ndarray:
     """A frame this command has just written (for the preview sheet)."""
+    import cv2
+
     img = cv2.imread(str(path))
     if img is None:
         raise TorchseamError(f"{path}: cannot read the frame back for the preview")

@@ -2,16 +2,48 @@
 
 METHOD.md sections 2-4. Images are (B, H, W) grey, pixel coordinates (u, v) = (column, row).
 :class:`LiteEAKFSTC` runs a fitted EAKF-STC module's equations in numpy for one live stream.
+
+The names below are imported on first use (``from torchseam.track import EAKFSTC``), so that
+importing a light module of the package (:mod:`torchseam.track.names`, the command line's
+parser) does not import torch.
 """
 
-from torchseam.core.checks import InputError as TrackInputError  # the tracker's name for it
-from torchseam.track.config import TrackerConfig
-from torchseam.track.eakf import EAKF, EAKFState, eakf_filter
-from torchseam.track.fusion import EAKFSTC, DriftGuard, TrackResult, TrackStatus
-from torchseam.track.lite import LiteEAKFSTC
-from torchseam.track.stc import STC, STCState, extract_windows, locate_peak, peak_quality
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from torchseam.core.checks import InputError as TrackInputError  # the tracker's name for it
+    from torchseam.track.config import TrackerConfig
+    from torchseam.track.eakf import EAKF, EAKFState, eakf_filter
+    from torchseam.track.fusion import EAKFSTC, DriftGuard, TrackResult, TrackStatus
+    from torchseam.track.lite import LiteEAKFSTC
+    from torchseam.track.stc import STC, STCState, extract_windows, locate_peak, peak_quality
+
+#: each exported name: (module, name there)
+_LAZY = {
+    "TrackInputError": ("torchseam.core.checks", "InputError"),
+    "TrackerConfig": ("torchseam.track.config", "TrackerConfig"),
+    **{n: ("torchseam.track.eakf", n) for n in ("EAKF", "EAKFState", "eakf_filter")},
+    **{n: ("torchseam.track.fusion", n)
+       for n in ("EAKFSTC", "DriftGuard", "TrackResult", "TrackStatus")},
+    "LiteEAKFSTC": ("torchseam.track.lite", "LiteEAKFSTC"),
+    **{n: ("torchseam.track.stc", n)
+       for n in ("STC", "STCState", "extract_windows", "locate_peak", "peak_quality")},
+}
 
 __all__ = ["EAKF", "EAKFSTC", "STC", "DriftGuard", "EAKFState", "LiteEAKFSTC", "STCState",
            "TrackInputError",
            "TrackResult", "TrackStatus", "TrackerConfig", "eakf_filter", "extract_windows",
            "locate_peak", "peak_quality"]
+
+
+def __getattr__(name: str) -> Any:
+    try:
+        module, attr = _LAZY[name]
+    except KeyError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    value = getattr(importlib.import_module(module), attr)
+    globals()[name] = value
+    return value

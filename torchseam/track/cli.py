@@ -9,20 +9,21 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from torchseam.core.cliargs import model_arg, out_file_arg, threads_arg
-from torchseam.core.dataset import Dataset
+from torchseam.core.config import STRIPE_AXES, STRIPE_RESPONSES
 from torchseam.core.errors import FrameError, TorchseamError
-from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES, FrameView
 from torchseam.core.report import error_stats, format_table, percentiles_ms
-from torchseam.track.fusion import TrackStatus
-from torchseam.track.peers import STATUS_NAMES, TRACKERS, make_tracker
-from torchseam.vision.tipm import Tipm, find_view, load_tipm
+from torchseam.track.names import TRACKERS
+
+if TYPE_CHECKING:  # imported when the command runs: the parser (--help) needs no torch
+    from torchseam.core.dataset import Dataset
+    from torchseam.core.orient import FrameView
+    from torchseam.vision.tipm import Tipm
 
 MISSING = "missing"  # track.csv status of a frame number the folder has no image for
 #: track.csv status of a frame that cannot be decoded or is not the size of the folder's
@@ -93,6 +94,9 @@ def _start(img: np.ndarray, tipm: Tipm, uv0: np.ndarray | None, args: argparse.N
            name: str, number: int) -> tuple[FrameView, np.ndarray, str]:
     """How to view the stream and where to start, from its first readable frame ``img``
     (as :func:`~torchseam.track.peers.run_tracker` starts)."""
+    from torchseam.core.orient import FrameView
+    from torchseam.vision.tipm import find_view
+
     axis, response = args.stripe_axis, args.stripe_response
     if "auto" in (axis, response):
         view = find_view(img, tipm, axis, response)
@@ -114,6 +118,11 @@ def _start(img: np.ndarray, tipm: Tipm, uv0: np.ndarray | None, args: argparse.N
 def _make_tracker(args: argparse.Namespace, tipm: Tipm):
     """The tracker ``--tracker`` names, with ``--model``'s parameters (checked here, before
     any output is written)."""
+    import cv2
+    import torch
+
+    from torchseam.track.peers import make_tracker
+
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     return make_tracker(args.tracker, tipm, model_path=args.model)
@@ -134,6 +143,9 @@ def _follow(args: argparse.Namespace, tracker, ds: Dataset, uv0: np.ndarray | No
     Returns:
         ``(start note, seconds of each update)``.
     """
+    from torchseam.track.fusion import TrackStatus
+    from torchseam.track.peers import STATUS_NAMES
+
     idle = getattr(tracker, "idle", None)
     view: FrameView | None = None
     size: tuple[int, ...] = ()
@@ -189,6 +201,10 @@ def _warn_missing(ds: Dataset) -> np.ndarray:
 
 
 def run_track(args: argparse.Namespace) -> int:
+    from torchseam.core.dataset import Dataset
+    from torchseam.track.peers import STATUS_NAMES
+    from torchseam.vision.tipm import load_tipm
+
     uv0 = _parse_init(args.init)
     ds = Dataset.open(args.frames_dir, labels=False)  # track needs no labels
     gone = {int(f) for f in _warn_missing(ds)}
@@ -224,6 +240,9 @@ def run_track(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
+    from torchseam.core.dataset import Dataset
+    from torchseam.vision.tipm import load_tipm
+
     uv0 = _parse_init(args.init)
     ds = Dataset.open(args.frames_dir, require_labels=True)
     _warn_missing(ds)

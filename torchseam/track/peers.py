@@ -32,6 +32,7 @@ from torchseam.track.live import (
     fitted_eakf_stc,
     load_live_tracker,
 )
+from torchseam.track.names import TRACKERS
 from torchseam.track.stc import STC
 from torchseam.vision.tipm import (
     Tipm,
@@ -39,7 +40,6 @@ from torchseam.vision.tipm import (
     red_response,
 )
 
-TRACKERS = ("eakf-stc", "anchored", "stc", "tipm", "kcf", "csrt", "mosse")
 STATUS_NAMES = {int(s): s.name.lower() for s in TrackStatus}
 OPENCV_BOX_PX = 64  # side of the box the OpenCV trackers follow (twice the target, like STC)
 

@@ -5,15 +5,17 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-
-import cv2
-import numpy as np
+from typing import TYPE_CHECKING
 
 from torchseam.core.cliargs import out_dir_arg
-from torchseam.core.dataset import read_frame
+from torchseam.core.config import STRIPE_AXES, STRIPE_RESPONSES
 from torchseam.core.errors import FrameError, TorchseamError
-from torchseam.core.orient import STRIPE_AXES, STRIPE_RESPONSES, FrameView
-from torchseam.vision.tipm import Tipm, TipmResult, draw_overlay, find_view, load_tipm
+
+if TYPE_CHECKING:  # imported when the command runs: the parser (--help) needs no OpenCV
+    import numpy as np
+
+    from torchseam.core.orient import FrameView
+    from torchseam.vision.tipm import Tipm, TipmResult
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,6 +48,11 @@ def _detect(tipm: Tipm, img: np.ndarray, axis: str, response: str
             ) -> tuple[TipmResult, FrameView]:
     """TIPM on ``img`` in the view the settings give (auto: the one that finds a corner); the
     result's point is in the view's pixels."""
+    import numpy as np
+
+    from torchseam.core.orient import FrameView
+    from torchseam.vision.tipm import find_view
+
     view = (find_view(img, tipm, axis, response)
             or FrameView("rows" if axis == "auto" else axis, img.shape[0],
                          "red" if response == "auto" else response))
@@ -64,6 +71,12 @@ def _overlay_name(path: Path, used: set[str]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    import cv2
+    import numpy as np
+
+    from torchseam.core.dataset import read_frame
+    from torchseam.vision.tipm import draw_overlay, load_tipm
+
     tipm = load_tipm(centre_line=args.centre_line)
     if args.overlay:
         try:

@@ -32,6 +32,7 @@ from torchseam.geometry.calibrate.sets import (
     read_image,
     rms,
 )
+from torchseam.geometry.names import HAND_EYE_CV_FLAGS, HAND_EYE_METHODS
 
 __all__ = ["HAND_EYE_METHODS", "HandEyeCalibration", "calibrate_hand_eye", "hand_eye_linear",
            "load_handeye_set"]
@@ -104,12 +105,6 @@ def _hand_eye_park(T_B_F: np.ndarray, T_C_O: np.ndarray) -> np.ndarray:
     return X
 
 
-_CV_METHODS = {"tsai": "CALIB_HAND_EYE_TSAI", "park": "CALIB_HAND_EYE_PARK",
-               "horaud": "CALIB_HAND_EYE_HORAUD", "andreff": "CALIB_HAND_EYE_ANDREFF",
-               "daniilidis": "CALIB_HAND_EYE_DANIILIDIS"}
-HAND_EYE_METHODS = tuple(_CV_METHODS)
-
-
 def hand_eye_linear(T_B_F: np.ndarray, T_C_O: np.ndarray, method: str = "park"
                     ) -> tuple[np.ndarray, str]:
     """Closed-form eye-in-hand ``AX = XB``: camera pose in the flange.
@@ -125,13 +120,13 @@ def hand_eye_linear(T_B_F: np.ndarray, T_C_O: np.ndarray, method: str = "park"
     Returns:
         ``(T_F_C (4, 4), the method that ran)``.
     """
-    if method not in _CV_METHODS:
-        raise ValueError(f"hand-eye method {method!r}: use one of {', '.join(_CV_METHODS)}")
+    if method not in HAND_EYE_CV_FLAGS:
+        raise ValueError(f"hand-eye method {method!r}: use one of {', '.join(HAND_EYE_CV_FLAGS)}")
     fn = getattr(cv2, "calibrateHandEye", None)
     if fn is None:
         return _hand_eye_park(T_B_F, T_C_O), "park (numpy; no cv2.calibrateHandEye)"
     R, t = fn(list(T_B_F[:, :3, :3]), list(T_B_F[:, :3, 3:]), list(T_C_O[:, :3, :3]),
-              list(T_C_O[:, :3, 3:]), method=getattr(cv2, _CV_METHODS[method]))
+              list(T_C_O[:, :3, 3:]), method=getattr(cv2, HAND_EYE_CV_FLAGS[method]))
     X = np.eye(4)
     X[:3, :3], X[:3, 3] = R, np.asarray(t).ravel()
     return X, f"{method} (cv2.calibrateHandEye)"
