@@ -9,8 +9,6 @@ import sys
 import time
 from pathlib import Path
 
-from tqdm import tqdm
-
 from torchseam.core.cliargs import (
     MAX_SEED,
     model_arg,
@@ -242,6 +240,7 @@ def _demo_faults(args: argparse.Namespace) -> tuple[str, ...]:
 def run(args: argparse.Namespace) -> int:
     import cv2  # here, not at the top: the parser (--help) needs no OpenCV or torch
     import torch
+    from tqdm import tqdm
 
     from torchseam.live.demo import run_demo, write_report
     from torchseam.live.parts import load_live_parts

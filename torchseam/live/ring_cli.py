@@ -7,7 +7,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from torchseam.core.cliargs import model_arg, out_dir_arg, seed_arg, segments_arg
 from torchseam.core.config import load_cell, load_noise, load_part
@@ -44,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
     # imported here: the parser (--help) needs no torch, OpenCV or matplotlib
     import cv2
     import torch
+    from tqdm import tqdm
 
     from torchseam.live.parts import load_live_parts
     from torchseam.live.plots import quaternion_plot

@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tqdm import tqdm
 
 from torchseam.core.cliargs import model_arg, out_file_arg, threads_arg
 from torchseam.core.config import STRIPE_AXES, STRIPE_RESPONSES
@@ -143,6 +142,8 @@ def _follow(args: argparse.Namespace, tracker, ds: Dataset, uv0: np.ndarray | No
     Returns:
         ``(start note, seconds of each update)``.
     """
+    from tqdm import tqdm
+
     from torchseam.track.fusion import TrackStatus
     from torchseam.track.peers import STATUS_NAMES
 
