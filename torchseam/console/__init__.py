@@ -10,8 +10,9 @@ The names below are imported on first use, so that the command line's parser
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from torchseam.core.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from torchseam.console.config import (
@@ -35,10 +36,4 @@ _LAZY = {
 __all__ = ["ConsoleConfig", "ConsoleServer", "PacedControl", "ParamError", "RunState",
            "WeldParams", "WeldSession", "load_console_config", "parse_params"]
 
-
-def __getattr__(name: str) -> Any:
-    if name not in _LAZY:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(_LAZY[name]), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _LAZY)

@@ -12,10 +12,11 @@ The names above are imported on first use, so that the command line's parsers
 
 from __future__ import annotations
 
-import importlib
 import sys
 import types
 from typing import TYPE_CHECKING, Any
+
+from torchseam.core.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from torchseam.fit.config import PARAM_GROUPS, FitConfig, load_fit_config, parse_seeds
@@ -75,10 +76,4 @@ class _Package(types.ModuleType):
 
 sys.modules[__name__].__class__ = _Package
 
-
-def __getattr__(name: str) -> Any:
-    if name not in _LAZY:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(_LAZY[name]), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _LAZY)

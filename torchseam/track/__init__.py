@@ -10,8 +10,9 @@ parser) does not import torch.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from torchseam.core.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from torchseam.core.checks import InputError as TrackInputError  # the tracker's name for it
@@ -38,12 +39,4 @@ __all__ = ["EAKF", "EAKFSTC", "STC", "DriftGuard", "EAKFState", "LiteEAKFSTC", "
            "TrackResult", "TrackStatus", "TrackerConfig", "eakf_filter", "extract_windows",
            "locate_peak", "peak_quality"]
 
-
-def __getattr__(name: str) -> Any:
-    try:
-        module, attr = _LAZY[name]
-    except KeyError:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
-    value = getattr(importlib.import_module(module), attr)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _LAZY)
