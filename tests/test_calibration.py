@@ -27,6 +27,7 @@ from torchseam.geometry.calibrate import (
     calibrate_laser_plane,
     calibrate_tcp,
     detect_board,
+    extract_stripe,
     hand_eye_linear,
     load_calibration,
     load_laser_set,
@@ -40,6 +41,7 @@ from torchseam.sim.board import (
     simulate_laser_set,
     simulate_tcp_set,
 )
+from torchseam.vision.tipm import load_tipm_config
 
 
 def angle_deg(a, b) -> float:
@@ -492,3 +494,21 @@ def test_simulated_sets_are_deterministic(cell, cfg, tmp_path):
     assert cli(["calibrate", "simulate", "tcp", str(tmp_path / "t")]) == 0
     with pytest.raises(TorchseamError, match="already holds"):
         cli(["calibrate", "simulate", "tcp", str(tmp_path / "t")])
+
+
+def test_a_two_lobed_stripe_on_the_board_is_read_between_its_lobes():
+    """The laser plane must be where TIPM reads the stripe: a stripe of two unequal lobes (a
+    diode in two modes) is read at their middle by the calibration as by TIPM, not at the
+    centroid that leans toward the brighter."""
+    h, w, v0, half = 120, 200, 60.3, 1.9
+    rows = np.arange(h, dtype=float)[:, None]
+    prof = (200 * np.exp(-((rows - v0 - half) ** 2) / 2)
+            + 120 * np.exp(-((rows - v0 + half) ** 2) / 2))
+    img = np.zeros((h, w, 3), np.uint8)
+    img[..., 2] = np.clip(np.rint(20 + prof), 0, 255).astype(np.uint8)
+    rule = load_tipm_config().lobes
+    uv = extract_stripe(img, 40.0, 6, rule)
+    assert len(uv) == w
+    np.testing.assert_allclose(uv[:, 1], v0, atol=0.1)
+    plain = extract_stripe(img, 40.0, 6, dataclasses.replace(rule, ridge=1.0))
+    assert np.all(plain[:, 1] - v0 > 0.4)  # the centroid's lean

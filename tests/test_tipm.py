@@ -9,7 +9,13 @@ import pytest
 from torchseam.core.dataset import check_frame, read_frame
 from torchseam.core.errors import FrameError
 from torchseam.sim.sequence import SequenceSpec, simulate
-from torchseam.vision.tipm import Tipm, draw_overlay, load_tipm, load_tipm_config
+from torchseam.vision.tipm import (
+    Tipm,
+    draw_overlay,
+    load_tipm,
+    load_tipm_config,
+    two_lobe_centres,
+)
 
 
 @pytest.fixture(scope="module")
@@ -383,3 +389,49 @@ def test_tipm_takes_its_config_and_load_tipm_reads_the_shipped_one(tmp_path):
     other = load_tipm(tmp_path / "tipm.yaml", centre_line="thinning")
     assert other.cfg.dilate_px == load_tipm_config().dilate_px + 1
     assert other.centre_line == "thinning"
+
+
+def test_a_two_lobed_stripe_is_centred_between_its_lobes(cell, part, noise):
+    """The ``glint`` family's stripe has two unequal lobes (a diode in two modes): the centroid
+    leans toward the brighter by most of a pixel on every frame; TIPM's lobe rule puts the
+    corner between them, at the light plane's middle. On a one-lobed stripe the rule never
+    fires: the answer is the centroid's to the last bit."""
+    tipm = load_tipm()
+    plain = Tipm(dataclasses.replace(tipm.cfg, lobe_ridge=1.0))  # no cross-section qualifies
+    frames = list(simulate(cell, part, noise, SequenceSpec(n_frames=10, level=0.0, seed=7,
+                                                             family="glint")))
+    d_lobes, d_plain = [], []
+    for img, t in frames:
+        a, b = tipm(img), plain(img)
+        assert a.ok and b.ok, (a.reason, b.reason)
+        d_lobes.append(a.uv - t.uv)
+        d_plain.append(b.uv - t.uv)
+    d_lobes, d_plain = np.array(d_lobes), np.array(d_plain)
+    assert np.sqrt(np.mean(np.sum(d_lobes**2, axis=1))) <= 0.3
+    assert np.abs(d_plain.mean(axis=0)).max() > 0.5  # the centroid's constant lean
+    for img, _ in simulate(cell, part, noise, SequenceSpec(n_frames=3, level=0.0, seed=7)):
+        assert np.array_equal(tipm(img).uv, plain(img).uv)
+
+
+def test_a_spatter_dot_beside_the_stripe_is_not_a_second_lobe():
+    """Two ridges in a few columns (a spatter dot beside the stripe) or at random distances
+    do not make a stripe two-lobed; steady lobes along most of it do."""
+    x = np.arange(13.0)
+    one = np.exp(-((x - 6) ** 2) / 2)
+    dot = one + 0.8 * np.exp(-((x - 10) ** 2) / 0.5)
+    rule = load_tipm_config().lobes
+    first = np.zeros(40)
+    prof = np.tile(one, (40, 1))
+    prof[:12] = dot
+    assert np.isnan(two_lobe_centres(prof, first, rule)).all()
+    rng = np.random.default_rng(0)
+    gaps = rng.uniform(3.0, 6.0, 40)
+    scattered = np.stack([np.exp(-((x - 3) ** 2) / 2) + 0.6 * np.exp(-((x - 3 - g) ** 2) / 2)
+                          for g in gaps])
+    mid = two_lobe_centres(scattered, first, rule)
+    kept = np.isfinite(mid)
+    assert 0 < kept.sum() < 35  # only those near the median distance apart, centred between
+    assert np.abs(gaps[kept] - np.median(gaps)).max() <= rule.tol_px + 0.3
+    np.testing.assert_allclose(mid[kept], 3 + gaps[kept] / 2, atol=0.15)
+    steady = np.tile(np.exp(-((x - 4) ** 2) / 2) + 0.5 * np.exp(-((x - 8) ** 2) / 2), (40, 1))
+    np.testing.assert_allclose(two_lobe_centres(steady, first + 100, rule), 106.0, atol=0.05)

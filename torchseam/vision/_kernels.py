@@ -281,3 +281,60 @@ def corner(pts, gap, window, min_pts, prior, arms):  # pragma: no cover - compil
     cosang = (1.0 + s1 * s2) / (np.sqrt(1.0 + s1 * s1) * np.sqrt(1.0 + s2 * s2))
     corner = np.degrees(np.arccos(min(max(-cosang, -1.0), 1.0)))
     return 0, 0, u0, x, rms, v, corner
+
+
+@numba.njit("f8[:, ::1](u1[:, ::1], f8[:, ::1], i8)", cache=True, nogil=True)
+def cross_sections(response, pts, half):  # pragma: no cover - compiled
+    """(N, 2 half + 1) the response down each centre-line point's column (``pts`` (N, 2) (u,
+    v)), rows ``round(v) - half`` to ``round(v) + half``, clamped to the image."""
+    h = response.shape[0]
+    out = np.empty((pts.shape[0], 2 * half + 1))
+    for i in range(pts.shape[0]):
+        c, r0 = int(pts[i, 0]), int(np.rint(pts[i, 1])) - half
+        for j in range(2 * half + 1):
+            out[i, j] = response[min(max(r0 + j, 0), h - 1), c]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _vertex(prof, i, j):  # pragma: no cover - compiled
+    """Sub-pixel position of the local maximum at sample ``j`` of cross-section ``i``: the
+    vertex of the parabola through it and its two neighbours."""
+    d = prof[i, j - 1] - 2.0 * prof[i, j] + prof[i, j + 1]
+    return j + (0.5 * (prof[i, j - 1] - prof[i, j + 1]) / d if d < 0.0 else 0.0)
+
+
+@numba.njit("f8[:, ::1](f8[:, ::1], f8, f8)", cache=True, nogil=True)
+def two_ridges(prof, ridge, dip):  # pragma: no cover - compiled
+    """Per stripe cross-section (a row of ``prof`` (N, K)): ``(distance, middle)`` of its two
+    strongest local maxima (samples from its first; sub-pixel), NaN where it does not hold two
+    ridges: each at least ``ridge`` times the cross-section's peak, the profile between them
+    falling to ``dip`` times the weaker or below."""
+    n, k = prof.shape
+    out = np.full((n, 2), np.nan)
+    for i in range(n):
+        a = b = -1  # the strongest local maximum and the next
+        for j in range(1, k - 1):
+            x = prof[i, j]
+            if x > 0.0 and x >= prof[i, j - 1] and x > prof[i, j + 1]:
+                if a < 0 or x > prof[i, a]:
+                    a, b = j, a
+                elif b < 0 or x > prof[i, b]:
+                    b = j
+        if b < 0:
+            continue
+        peak = 0.0
+        for j in range(k):
+            peak = max(peak, prof[i, j])
+        lo, hi = min(a, b), max(a, b)
+        weak = min(prof[i, a], prof[i, b])
+        if weak < ridge * peak:
+            continue
+        low = weak
+        for j in range(lo, hi + 1):
+            low = min(low, prof[i, j])
+        if low > dip * weak:
+            continue
+        va, vb = _vertex(prof, i, lo), _vertex(prof, i, hi)
+        out[i, 0], out[i, 1] = vb - va, 0.5 * (va + vb)
+    return out

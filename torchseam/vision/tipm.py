@@ -67,6 +67,65 @@ class TipmConfig:
     max_saturated_fraction: float = config_field(lo=0.0, hi=1.0)
     white_core_fraction: float = config_field(lo=0.0, hi=1.0)
     smooth_px: int = config_field(lo=1)
+    lobe_ridge: float = config_field(lo=0.0, hi=1.0)
+    lobe_dip: float = config_field(lo=0.0, hi=1.0)
+    lobe_columns: float = config_field(lo=0.0, hi=1.0)
+    lobe_tol_px: float = config_field(lo=0.0)
+
+    @property
+    def lobes(self) -> LobeRule:
+        """The two-lobed stripe rule of these settings (:func:`two_lobe_centres`)."""
+        return LobeRule(self.lobe_ridge, self.lobe_dip, self.lobe_columns, self.lobe_tol_px)
+
+
+@dataclass(frozen=True)
+class LobeRule:
+    """When a stripe is two-lobed (:func:`two_lobe_centres`; ``lobe_*`` in
+    ``configs/tipm.yaml``): a cross-section holds two ridges when each stands at least
+    ``ridge`` times its peak and the light between them falls to ``dip`` times the weaker;
+    the stripe is two-lobed when at least ``columns`` of its cross-sections do, and then those
+    whose ridges lie within ``tol_px`` of the median distance apart are centred between them."""
+
+    ridge: float
+    dip: float
+    columns: float
+    tol_px: float
+
+
+def two_lobe_centres(prof: np.ndarray, first_row: np.ndarray, rule: LobeRule) -> np.ndarray:
+    """(N,) centres of a two-lobed stripe's cross-sections, NaN where the centroid stands.
+
+    Why: a laser diode running in two modes (or a stripe split by glare) draws two parallel
+    lobes of unequal brightness; the centroid of the cross-section leans toward the brighter
+    by a constant fraction of their distance, the corner with it (a constant offset that
+    no amount of averaging removes). The light plane's middle is between the lobes. A
+    cross-section with a second ridge from a spatter dot is not taken for a lobed stripe:
+    the rule needs lobes a steady distance apart along much of the stripe.
+
+    Args:
+        prof: (N, K) cross-sections of the stripe (one per column), background removed.
+        first_row: (N,) the row of each cross-section's first sample.
+        rule: the thresholds (:class:`LobeRule`).
+
+    Example:
+        >>> x = np.arange(13.0)
+        >>> lobes = np.exp(-(x - 4) ** 2 / 2) + 0.6 * np.exp(-(x - 8) ** 2 / 2)
+        >>> c = two_lobe_centres(np.tile(lobes, (20, 1)), np.full(20, 100.0),
+        ...                      LobeRule(0.15, 0.7, 0.5, 1.0))
+        >>> bool(np.all(np.abs(c - 106.0) < 0.1))
+        True
+    """
+    prof = np.ascontiguousarray(prof, dtype=np.float64)
+    out = np.full(len(prof), np.nan)
+    if prof.ndim != 2 or prof.shape[1] < 3 or not len(prof):
+        return out
+    ridges = load_kernels(__package__).two_ridges(prof, float(rule.ridge), float(rule.dip))
+    two = np.isfinite(ridges[:, 0])
+    if two.sum() < max(1, rule.columns * len(prof)):
+        return out
+    ok = two & (np.abs(ridges[:, 0] - np.median(ridges[two, 0])) <= rule.tol_px)
+    out[ok] = np.asarray(first_row, float)[ok] + ridges[ok, 1]
+    return out
 
 
 def red_response(frame: np.ndarray, with_green: bool = False,
@@ -312,9 +371,15 @@ class Tipm:
             order = np.argsort(u, kind="stable")
             pts = np.stack([u[order], v[order]], axis=1).astype(float)
             return pts[~self._k.border_columns(mask, reach)[u[order]]]
-        return self._k.centre_line(np.ascontiguousarray(response, dtype=np.uint8), mask,
-                                   float(self.cfg.centre_half_px), int(self.cfg.centre_passes),
-                                   reach, int(self.cfg.run_span_px))
+        response = np.ascontiguousarray(response, dtype=np.uint8)
+        pts = self._k.centre_line(response, mask, float(self.cfg.centre_half_px),
+                                  int(self.cfg.centre_passes), reach, int(self.cfg.run_span_px))
+        if len(pts):
+            half = int(self.cfg.centre_half_px)
+            mid = two_lobe_centres(self._k.cross_sections(response, pts, half),
+                                   np.rint(pts[:, 1]) - half, self.cfg.lobes)
+            pts[:, 1] = np.where(np.isfinite(mid), mid, pts[:, 1])
+        return pts
 
     # ------------------------------------------------------------------ main
     def __call__(self, frame: np.ndarray, prior: np.ndarray | None = None) -> TipmResult:

@@ -5,7 +5,8 @@ Needs the calibrated camera. The board pose per view comes from a checkerboard i
 the same pose (``solvePnP``) or is given; the stripe centre line is found per column by sub-pixel
 grey gravity (:func:`extract_stripe`), kept only on white squares (:func:`stripe_on_board`); the
 undistorted rays are cut with the board plane and a plane is fitted by SVD (:func:`fit_plane`)
-with outliers dropped.
+with outliers dropped. A two-lobed stripe is centred between its lobes by TIPM's rule
+(:func:`~torchseam.vision.tipm.two_lobe_centres`): the plane is where TIPM will read the stripe.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from torchseam.geometry.calibrate.sets import (
     read_image,
     rms,
 )
+from torchseam.vision.tipm import LobeRule, load_tipm_config, two_lobe_centres
 
 __all__ = ["LaserCalibration", "calibrate_laser_plane", "extract_stripe", "fit_plane",
            "load_laser_set", "stripe_on_board"]
@@ -74,18 +76,21 @@ class LaserCalibration:
         ]
 
 
-def extract_stripe(image: np.ndarray, min_peak: float, half_window: int) -> np.ndarray:
+def extract_stripe(image: np.ndarray, min_peak: float, half_window: int,
+                   lobes: LobeRule) -> np.ndarray:
     """Stripe centre line: one sub-pixel row per column by grey gravity.
 
     The stripe is the red channel of a BGR image (or the grey image). Per column: the peak row
     of the lightly smoothed column; the floor is the mean of the two pixels just outside the
     window on each side; the centre is the centroid of ``I - floor`` (clipped at 0) over
-    ``peak +- half_window`` rows.
+    ``peak +- half_window`` rows, or the middle between the lobes of a two-lobed stripe
+    (``lobes``, TIPM's rule).
 
     Args:
         image: (H, W, 3) BGR or (H, W) uint8.
         min_peak: the peak must stand this many grey levels above the floor.
         half_window: centroid half window (rows); about 3 sigma of the stripe profile.
+        lobes: when the stripe is two-lobed (:func:`~torchseam.vision.tipm.two_lobe_centres`).
 
     Returns:
         (M, 2) float64 ``(u, v)`` pixels of the columns that hold a stripe.
@@ -107,6 +112,8 @@ def extract_stripe(image: np.ndarray, min_peak: float, half_window: int) -> np.n
     off = np.arange(-hw, hw + 1, dtype=np.float64)
     mass = win.sum(axis=1)
     centre = v0 + (win * off).sum(axis=1) / np.maximum(mass, 1e-9)
+    mid = two_lobe_centres(win[good], (v0 - hw)[good].astype(float), lobes)
+    centre[good] = np.where(np.isfinite(mid), mid, centre[good])
     return np.stack([cols[good].astype(np.float64), centre[good]], axis=1)
 
 
@@ -143,7 +150,8 @@ def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
 
 
 def stripe_on_board(image: np.ndarray, T_C_O: np.ndarray, camera: CameraConfig,
-                    cfg: CalibrationConfig, name: str) -> tuple[np.ndarray, np.ndarray]:
+                    cfg: CalibrationConfig, name: str, lobes: LobeRule | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Stripe samples of one laser image that lie on white squares, and their 3D points.
 
     :func:`extract_stripe`, then each sample's ray (and the rays of its window's ends) cut
@@ -154,6 +162,7 @@ def stripe_on_board(image: np.ndarray, T_C_O: np.ndarray, camera: CameraConfig,
     Args:
         image: (H, W, 3) BGR stripe image; T_C_O: (4, 4) the board's pose (mm).
         camera: the camera; cfg: settings (board, ``laser``); name: for errors.
+        lobes: TIPM's two-lobed stripe rule (default: ``configs/tipm.yaml``'s).
 
     Returns:
         ``(uv (M, 2) px, X (M, 3) points in {C}, mm)``.
@@ -162,7 +171,8 @@ def stripe_on_board(image: np.ndarray, T_C_O: np.ndarray, camera: CameraConfig,
         CalibrationError: no stripe, or too few samples on white squares (naming ``name``).
     """
     ls = cfg.laser
-    uv = extract_stripe(image, ls.min_peak_grey, ls.half_window_px)
+    lobes = load_tipm_config().lobes if lobes is None else lobes
+    uv = extract_stripe(image, ls.min_peak_grey, ls.half_window_px, lobes)
     if len(uv) < ls.min_points_per_view:
         raise CalibrationError(
             f"{name}: no laser stripe found ({len(uv)} columns with a peak "
@@ -185,7 +195,8 @@ def calibrate_laser_plane(laser_images: Sequence[np.ndarray], names: Sequence[st
                           board_images: Sequence[np.ndarray] | None = None,
                           board_names: Sequence[str] | None = None,
                           board_poses: Sequence[np.ndarray] | None = None,
-                          source_mm: Sequence[float] | None = None) -> LaserCalibration:
+                          source_mm: Sequence[float] | None = None,
+                          lobes: LobeRule | None = None) -> LaserCalibration:
     """Laser plane in {C} from stripe images on the flat board at several poses.
 
     Each view is a laser image (stripe on the board, lamp dimmed) and the board's pose: from a
@@ -203,6 +214,8 @@ def calibrate_laser_plane(laser_images: Sequence[np.ndarray], names: Sequence[st
         board_poses: N (4, 4) ``T_C_O`` (mm) instead of ``board_images``.
         source_mm: (3,) the laser source in {C} to keep (projected onto the fitted plane);
             default: the foot of the perpendicular from the camera centre.
+        lobes: the two-lobed stripe rule of the TIPM that will read the stripe (default:
+            ``configs/tipm.yaml``'s), so that the plane and the tracked points agree.
 
     Returns:
         :class:`LaserCalibration`.
@@ -229,9 +242,10 @@ def calibrate_laser_plane(laser_images: Sequence[np.ndarray], names: Sequence[st
         if len(poses) != n_views:
             raise ValueError(f"{n_views} laser images but {len(poses)} board poses")
     ls = cfg.laser
+    lobes = load_tipm_config().lobes if lobes is None else lobes
     pts, view_of = [], []
     for k, (img, name) in enumerate(zip(laser_images, names, strict=True)):
-        _, X = stripe_on_board(img, poses[k], camera, cfg, name)
+        _, X = stripe_on_board(img, poses[k], camera, cfg, name, lobes)
         pts.append(X)
         view_of.append(np.full(len(X), k))
     P, V = np.concatenate(pts), np.concatenate(view_of)
