@@ -43,6 +43,7 @@ def border_columns(mask, reach):  # pragma: no cover - compiled
     return cut
 
 
+MAD_SIGMA = 1.4826  # sigma of a normal distribution per unit of its median absolute deviation
 MAX_RUNS = 8  # runs of masked rows kept per column (more join the last one)
 
 
@@ -221,9 +222,13 @@ def fit_arms(pts, u0, gap, window, min_pts, prior, arms):  # pragma: no cover - 
         k0, k1, k2 = quad_fit(x, y, keep, prior[side])
         res = y - (k0 + k1 * x + k2 * x * x)
         ss = (res * res).sum()
-        # one robust pass: drop points far off the fit (spatter touching the stripe); the
-        # residuals of a fit with an intercept have zero mean, so their std is their RMS
-        lim = max(3.0 * np.sqrt(ss / m), 0.5)
+        # one robust pass: refit without the points far off the fit (spatter touching the
+        # stripe), more than 3 sigma, the sigma taken from the residuals' median absolute
+        # deviation: their RMS grows with the very outliers it is to reject (a streak along an
+        # arm, in a mono frame where no colour tells it from the stripe, hid in its own
+        # spread). The fit's RMS, TIPM's measure of how clean the stripe is, stays over every
+        # point about the refit line: dropped points lower the confidence, never raise it.
+        lim = max(3.0 * MAD_SIGMA * np.median(np.abs(res - np.median(res))), 0.5)
         n_good = 0
         for j in range(m):
             keep[j] = abs(res[j]) < lim
@@ -232,10 +237,8 @@ def fit_arms(pts, u0, gap, window, min_pts, prior, arms):  # pragma: no cover - 
             k0, k1, k2 = quad_fit(x, y, keep, prior[side])
             ss = 0.0
             for j in range(m):
-                if keep[j]:
-                    r = y[j] - (k0 + k1 * x[j] + k2 * x[j] * x[j])
-                    ss += r * r
-            m = n_good
+                r = y[j] - (k0 + k1 * x[j] + k2 * x[j] * x[j])
+                ss += r * r
         arms[side, 0], arms[side, 1], arms[side, 2] = k0, k1, k2
         rms = max(rms, np.sqrt(ss / m))
     c0, c1, c2 = arms[0, 0] - arms[1, 0], arms[0, 1] - arms[1, 1], arms[0, 2] - arms[1, 2]
