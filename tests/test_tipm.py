@@ -439,11 +439,11 @@ def test_a_spatter_dot_beside_the_stripe_is_not_a_second_lobe():
 
 
 def test_arm_fit_rms_counts_every_point_in_its_window():
-    """TIPM's arm-fit RMS is the fix's noise (the live tracker weighs a fix by it): it is taken
-    over every centre-line point in each arm's window about the fitted arm, the points the
-    robust pass left out of the fit included. A spatter streak along an arm then shows in
-    it, never hides from it (measuring only the kept points made a contaminated fix look
-    clean)."""
+    """TIPM's arm-fit RMS, how clean the stripe is (TIPM refuses a corner above
+    ``max_rms_px``), is taken over every centre-line point in each arm's window about the
+    fitted arm, the points the robust pass left out of the fit included: a spatter streak
+    along an arm shows in it, never hides from it. The inlier RMS, over the kept points, is
+    how well the arms are placed: the corner's noise as a measurement."""
     tipm = load_tipm()
     cfg = tipm.cfg
     rng = np.random.default_rng(1)
@@ -466,3 +466,6 @@ def test_arm_fit_rms_counts_every_point_in_its_window():
             rms.append(np.sqrt(np.mean(r**2)))
         assert res.rms_px == pytest.approx(max(rms), rel=1e-9)
     assert tipm.corner(streak).rms_px > 0.5 > 10 * tipm.corner(clean).rms_px
+    # the fit placed over the points it kept: that spread is the corner's noise as a measurement
+    assert tipm.corner(streak).inlier_rms_px < 0.1
+    assert tipm.corner(clean).inlier_rms_px == pytest.approx(tipm.corner(clean).rms_px)

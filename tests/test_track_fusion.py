@@ -266,6 +266,7 @@ def _corner(uv, rms, slopes=(-0.3, 0.3), gap_px=0.0):
     x = x[(x >= 0) | (x <= -gap_px)]
     v = uv[1] + np.where(x < 0, slopes[0], slopes[1]) * x
     return TipmResult(True, np.asarray(uv, float), arms=arms, u0=float(uv[0]), rms_px=rms,
+                      inlier_rms_px=rms,
                       centre=np.stack([uv[0] + x, v], axis=1))
 
 

@@ -12,7 +12,7 @@ Per frame (:class:`AnchorFilter`, one stream):
    (:func:`corner_cov_shape` gives ``M``, the glare term ``g`` is
    ``1 + (relu(glare - glare_start) / glare_scale)^2``), taken through a Mahalanobis gate:
    ``y = z - x``, ``S = P + R``, ``K = P S^-1``, ``x <- x + K y``, ``P <- (I - K) P``; a clean
-   corner (arm-fit RMS <= ``max_rms_px``) outside the gate restarts the filter there
+   corner (inlier arm-fit RMS <= ``max_rms_px``) outside the gate restarts the filter there
    (``x <- z``, ``P <- R``: in closed loop the image jumps when the torch turns);
 5. the EAKF-STC point is a weak measurement through its own gate;
 6. EAKF-STC is re-anchored on the fused point when a fix was taken and it is more than
@@ -156,8 +156,9 @@ def corner_cov(res: TipmResult, noise: float, floor_px: float,
                prior: np.ndarray | None = None,
                arm_cols: tuple[float, float] = (5.0, 120.0)) -> np.ndarray:
     """(2, 2) covariance of a TIPM corner whose arm lines are off along their normals by
-    ``noise * max(rms, floor_px)`` (see :func:`corner_cov_shape`)."""
-    sigma = noise * max(res.rms_px, floor_px)
+    ``noise * max(rms, floor_px)``, ``rms`` the arm fits' over the points they kept
+    (:attr:`TipmResult.inlier_rms_px`; see :func:`corner_cov_shape`)."""
+    sigma = noise * max(res.inlier_rms_px, floor_px)
     return sigma * sigma * corner_cov_shape(res, prior, arm_cols)
 
 
@@ -490,7 +491,7 @@ class AnchorFilter:
         inflate = 1.0 + (o.relu(obs.glare - p["glare_start"]) / p["glare_scale"]) ** 2
         taken, fix = False, None
         if obs.res is not None:
-            rms = obs.res.rms_px
+            rms = obs.res.inlier_rms_px
             sigma = p["fix_noise"] * o.maximum(p["fix_floor_px"], rms)
             cov = (sigma * sigma) * o.const(obs.shape_cov)
             R = inflate * cov
@@ -814,7 +815,7 @@ class AnchoredTracker(Tracker):
             self.inner.reanchor(frame, out)
         self.glare, self.fix = obs.glare, fix
         arm_dirs = (arm_directions(obs.res) if fix is not None and fix.taken
-                    and obs.res is not None and obs.res.rms_px <= self.cfg.max_rms_px
+                    and obs.res is not None and obs.res.inlier_rms_px <= self.cfg.max_rms_px
                     else None)
         self.arm_dirs = arm_dirs
         status = self.filter.verdict(out, fix)

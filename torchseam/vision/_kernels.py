@@ -205,17 +205,18 @@ def best_split(pts, min_pts):  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True)
 def fit_arms(pts, u0, gap, window, min_pts, prior, arms):  # pragma: no cover - compiled
     """Quadratic fit of each arm beside column ``u0`` into ``arms`` (2, 3), centred on ``u0``;
-    returns (fail code, its count, rms, x of the meeting point relative to ``u0``). ``pts`` is
+    returns (fail code, its count, rms over all points, rms over the kept points, x of the
+    meeting point relative to ``u0``), each rms the worse arm's. ``pts`` is
     sorted by u, so each arm's window is a slice."""
     u = pts[:, 0]
-    rms = 0.0
+    rms = rms_in = 0.0
     for side in range(2):
         lo, hi = (u0 - window, u0 - gap) if side == 0 else (u0 + gap, u0 + window)
         i0 = np.searchsorted(u, lo)
         i1 = np.searchsorted(u, hi + 1e-9)
         m = i1 - i0
         if m < min_pts:
-            return 2.0 + side, float(m), 0.0, 0.0
+            return 2.0 + side, float(m), 0.0, 0.0, 0.0
         x = u[i0:i1] - u0
         y = np.ascontiguousarray(pts[i0:i1, 1])
         keep = np.ones(m, np.bool_)
@@ -226,54 +227,61 @@ def fit_arms(pts, u0, gap, window, min_pts, prior, arms):  # pragma: no cover - 
         # stripe), more than 3 sigma, the sigma taken from the residuals' median absolute
         # deviation: their RMS grows with the very outliers it is to reject (a streak along an
         # arm, in a mono frame where no colour tells it from the stripe, hid in its own
-        # spread). The fit's RMS, TIPM's measure of how clean the stripe is, stays over every
-        # point about the refit line: dropped points lower the confidence, never raise it.
+        # spread). Two RMS about the refit arm: over every point (how clean the stripe is:
+        # dropped points count against it, TIPM refuses a dirty one) and over the kept ones
+        # (how well the line is placed: the corner's noise as a measurement).
         lim = max(3.0 * MAD_SIGMA * np.median(np.abs(res - np.median(res))), 0.5)
         n_good = 0
         for j in range(m):
             keep[j] = abs(res[j]) < lim
             n_good += keep[j]
+        ss_in, n_in = ss, m
         if min_pts <= n_good < m:
             k0, k1, k2 = quad_fit(x, y, keep, prior[side])
-            ss = 0.0
+            ss = ss_in = 0.0
             for j in range(m):
                 r = y[j] - (k0 + k1 * x[j] + k2 * x[j] * x[j])
                 ss += r * r
+                if keep[j]:
+                    ss_in += r * r
+            n_in = n_good
         arms[side, 0], arms[side, 1], arms[side, 2] = k0, k1, k2
         rms = max(rms, np.sqrt(ss / m))
+        rms_in = max(rms_in, np.sqrt(ss_in / n_in))
     c0, c1, c2 = arms[0, 0] - arms[1, 0], arms[0, 1] - arms[1, 1], arms[0, 2] - arms[1, 2]
     if abs(c2) > 1e-12:
         disc = c1 * c1 - 4.0 * c2 * c0
         if disc < 0:
-            return 4.0, 0.0, rms, 0.0
+            return 4.0, 0.0, rms, rms_in, 0.0
         sq = np.sqrt(disc)
         xa, xb = (-c1 - sq) / (2.0 * c2), (-c1 + sq) / (2.0 * c2)
         x_meet = xa if abs(xa) <= abs(xb) else xb
     elif abs(c1) > 1e-12:
         x_meet = -c0 / c1
     else:
-        return 5.0, 0.0, rms, 0.0
+        return 5.0, 0.0, rms, rms_in, 0.0
     if abs(x_meet) > window:
-        return 6.0, 0.0, rms, 0.0
-    return 0.0, 0.0, rms, x_meet
+        return 6.0, 0.0, rms, rms_in, 0.0
+    return 0.0, 0.0, rms, rms_in, x_meet
 
 
-@numba.njit("Tuple((i8, i8, f8, f8, f8, f8, f8))(f8[:, ::1], f8, f8, i8, f8[:, ::1], f8[:, ::1])",
+@numba.njit("Tuple((i8, i8, f8, f8, f8, f8, f8, f8))(f8[:, ::1], f8, f8, i8, f8[:, ::1], "
+            "f8[:, ::1])",
             cache=True, nogil=True)
 def corner(pts, gap, window, min_pts, prior, arms):  # pragma: no cover - compiled
     """The corner search of :meth:`Tipm.corner` on centre-line points (N, 2) sorted by u:
-    (fail code (0: found, see ``CORNER_FAILS``), its count, u0, x, rms, v, corner angle in
-    degrees); the arms (2, 3), centred on u0, go into ``arms``."""
+    (fail code (0: found, see ``CORNER_FAILS``), its count, u0, x, rms, inlier rms, v, corner
+    angle in degrees); the arms (2, 3), centred on u0, go into ``arms``."""
     u0 = best_split(pts, min_pts)
     if np.isnan(u0):
-        return 1, 0, 0.0, 0.0, 0.0, 0.0, 0.0
+        return 1, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     # The two-line split is only roughly at the corner (the arms are curved): fit the arms
     # next to it, move to where they meet, and refit there until the corner stays put.
-    x = rms = 0.0
+    x = rms = rms_in = 0.0
     for it in range(3):
-        code, count, rms, x = fit_arms(pts, u0, gap, window, min_pts, prior, arms)
+        code, count, rms, rms_in, x = fit_arms(pts, u0, gap, window, min_pts, prior, arms)
         if code:
-            return int(code), int(count), u0, 0.0, rms, 0.0, 0.0
+            return int(code), int(count), u0, 0.0, rms, rms_in, 0.0, 0.0
         if abs(x) < 0.05 or it == 2:
             break
         u0 += x
@@ -283,7 +291,7 @@ def corner(pts, gap, window, min_pts, prior, arms):  # pragma: no cover - compil
     s2 = arms[1, 1] + 2.0 * arms[1, 2] * x
     cosang = (1.0 + s1 * s2) / (np.sqrt(1.0 + s1 * s1) * np.sqrt(1.0 + s2 * s2))
     corner = np.degrees(np.arccos(min(max(-cosang, -1.0), 1.0)))
-    return 0, 0, u0, x, rms, v, corner
+    return 0, 0, u0, x, rms, rms_in, v, corner
 
 
 @numba.njit("f8[:, ::1](u1[:, ::1], f8[:, ::1], i8)", cache=True, nogil=True)

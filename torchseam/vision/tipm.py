@@ -188,7 +188,12 @@ class TipmResult:
         arms: ((3,), (3,)) quadratic coefficients (a, b, c) of each arm in ``u - u0``, or None.
         u0: the column the arm fits are centred on.
         corner_deg: angle between the two arms' directions at the corner (180 = straight).
-        rms_px: RMS residual of the arm fits.
+        rms_px: RMS residual of the arm fits over every centre-line point in their windows
+            (the worse arm): how clean the stripe is; TIPM refuses a corner above
+            ``max_rms_px``.
+        inlier_rms_px: the same over the points the fits' robust pass kept: how well the
+            arm lines are placed, the noise of the corner as a measurement (the live tracker
+            weighs a fix by it).
         mask: (H, W) uint8 stripe mask after filtering (for the overlay).
     """
 
@@ -201,6 +206,7 @@ class TipmResult:
     corner_deg: float = float("nan")
     rms_px: float = float("nan")
     mask: np.ndarray | None = None
+    inlier_rms_px: float = float("nan")
 
 
 #: the failure reason of a frame blinded by arc light
@@ -436,7 +442,7 @@ class Tipm:
             return _fail(f"no stripe found ({len(pts)} centre-line points)", mask, pts)
         arms = np.empty((2, 3))
         k = self._k
-        code, count, u0, x, rms, v, corner = k.corner(
+        code, count, u0, x, rms, rms_in, v, corner = k.corner(
             pts, float(cfg.corner_gap_px), float(cfg.fit_window_px),
             int(cfg.min_points_per_arm), k.NO_PRIOR if prior is None else
             np.ascontiguousarray(prior, dtype=np.float64), arms)
@@ -452,7 +458,7 @@ class Tipm:
         if 180.0 - corner < cfg.min_corner_deg:
             return _fail(f"no corner: the stripe is straight ({corner:.1f} deg)", mask, pts)
         return TipmResult(True, np.array([u0 + x, v]), "", pts, (arms[0], arms[1]), u0, corner,
-                          rms, mask)
+                          rms, mask, rms_in)
 
 
 def arm_shape(res: TipmResult) -> np.ndarray:
