@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from torchseam.core.checks import InputError
 from torchseam.core.dataset import check_frame, read_frame
 from torchseam.core.errors import FrameError
 from torchseam.sim.sequence import SequenceSpec, simulate
@@ -436,6 +437,10 @@ def test_a_spatter_dot_beside_the_stripe_is_not_a_second_lobe():
     np.testing.assert_allclose(mid[kept], 3 + gaps[kept] / 2, atol=0.15)
     steady = np.tile(np.exp(-((x - 4) ** 2) / 2) + 0.5 * np.exp(-((x - 8) ** 2) / 2), (40, 1))
     np.testing.assert_allclose(two_lobe_centres(steady, first + 100, rule), 106.0, atol=0.05)
+    with pytest.raises(InputError, match="prof: expected"):
+        two_lobe_centres(steady[0], first, rule)
+    with pytest.raises(InputError, match="first_row"):
+        two_lobe_centres(steady, first[:3], rule)
 
 
 def test_arm_fit_rms_counts_every_point_in_its_window():

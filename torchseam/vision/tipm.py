@@ -35,6 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from torchseam.core.checks import InputError, check_shape
 from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.dataset import check_frame
 from torchseam.core.kernels import load_kernels
@@ -115,9 +116,13 @@ def two_lobe_centres(prof: np.ndarray, first_row: np.ndarray, rule: LobeRule) ->
         >>> bool(np.all(np.abs(c - 106.0) < 0.1))
         True
     """
+    check_shape(prof, "N K", "prof", kind="array")
+    if np.shape(first_row) != (len(prof),):
+        raise InputError(f"first_row: expected shape ({len(prof)},), one row per cross-section, "
+                         f"got {np.shape(first_row)}")
     prof = np.ascontiguousarray(prof, dtype=np.float64)
     out = np.full(len(prof), np.nan)
-    if prof.ndim != 2 or prof.shape[1] < 3 or not len(prof):
+    if prof.shape[1] < 3 or not len(prof):
         return out
     ridges = load_kernels(__package__).two_ridges(prof, float(rule.ridge), float(rule.dip))
     two = np.isfinite(ridges[:, 0])
