@@ -270,9 +270,10 @@ def _corner(uv, rms, slopes=(-0.3, 0.3), gap_px=0.0):
                       centre=np.stack([uv[0] + x, v], axis=1))
 
 
-def _anchored_with_tipm(offsets, rms):
+def _anchored_with_tipm(offsets, rms, shapes=None):
     """AnchoredTracker on a stub EAKF-STC fixed at (200, 150) and a stub TIPM returning the
-    corner at ``offsets[k]`` from the true point (200, 150) on call k."""
+    corner at ``offsets[k]`` from the true point (200, 150) on call k (``shapes[k]``: its
+    ``_corner`` keyword arguments, slopes and gap)."""
     from torchseam.track.live import AnchoredTracker, load_live_tracker
     from torchseam.vision.tipm import load_tipm, load_tipm_config
 
@@ -280,6 +281,7 @@ def _anchored_with_tipm(offsets, rms):
     trk.inner = _StubInner((200.0, 150.0))
     trk.x = None
     calls = iter(offsets)
+    kinds = iter(shapes if shapes is not None else [{}] * len(offsets))
 
     class StubTipm:
         """TIPM as the tracker calls it on its window."""
@@ -290,7 +292,8 @@ def _anchored_with_tipm(offsets, rms):
             trk.priors.append(prior)
             z = np.zeros(roi.shape[:2], np.uint8)
             # the ROI starts window_px up-left of the filtered point
-            return _corner(np.array([200.0, 150.0]) + next(calls) - trk.roi_origin(), rms), z, z
+            return _corner(np.array([200.0, 150.0]) + next(calls) - trk.roi_origin(), rms,
+                           **next(kinds)), z, z
 
     trk.priors = []
     trk.roi_origin = lambda: np.floor(trk.x) - trk.cfg.window_px
@@ -309,6 +312,28 @@ def test_anchored_fix_pulls_the_point_and_reanchors_eakf_stc():
     # once a fix was taken, TIPM fits the arms with that fix's shape as a prior
     assert trk.priors[0] is None and trk.priors[-1] is not None
     np.testing.assert_allclose(trk.priors[-1][:, :2], [[-0.3, 0.0], [0.3, 0.0]])
+
+
+def test_the_arm_prior_learns_only_from_corners_the_image_shows():
+    """Glare over the corner: TIPM's arms stop short of it and the corner is extrapolated,
+    pulled toward the arm prior. Such a fix is still a measurement, but its shape is the
+    prior's own: were it the next prior, a prior bent by the glare would hold itself for as
+    long as the corner stays hidden and bias the fixes after it. So the prior keeps the shape
+    of the last corner seen (both arms reach it) and weakens with the frames since."""
+    frame = np.zeros((480, 640, 3), np.uint8)
+    on = np.zeros(2)
+    seen, hidden, new = ({"slopes": (-0.3, 0.3)}, {"slopes": (-0.2, 0.2), "gap_px": 40.0},
+                         {"slopes": (-0.25, 0.25)})
+    trk = _anchored_with_tipm([on] * 8, rms=0.15, shapes=[seen] * 2 + [hidden] * 4 + [new] * 2)
+    for _ in range(8):
+        trk.update(frame)
+    assert trk.priors[0] is None
+    for k in range(2, 7):  # after the seen corners, through the hidden ones
+        np.testing.assert_allclose(trk.priors[k][:, :2], [[-0.3, 0.0], [0.3, 0.0]])
+    w = [trk.priors[k][0, 2] for k in range(2, 7)]
+    assert all(a > b for a, b in zip(w, w[1:], strict=False))  # weaker every frame
+    assert trk.fix is not None and trk.fix.taken and trk.fix.seen
+    np.testing.assert_allclose(trk.priors[7][:, :2], [[-0.25, 0.0], [0.25, 0.0]])  # seen again
 
 
 def test_anchored_takes_a_far_clean_fix_at_once_and_refuses_far_loose_ones():

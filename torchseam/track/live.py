@@ -7,7 +7,8 @@ Per frame (:class:`AnchorFilter`, one stream):
 2. the fusion filter predicts the point, ``x <- x``, ``P <- P + Q`` (a random walk), or takes
    the robot's expected pixel (:meth:`AnchoredTracker.expect`);
 3. TIPM looks for the stripe corner in a window around the prediction, its arm fits pulled
-   toward the arm shape of the last fix taken (:func:`observe`);
+   toward the arm shape of the last fix taken where the corner was seen (:func:`observe`; a
+   corner extrapolated under glare has the prior's own shape, see :meth:`AnchorFilter.step`);
 4. the corner is a measurement ``z`` with covariance ``R = g (s max(rms, floor))^2 M``
    (:func:`corner_cov_shape` gives ``M``, the glare term ``g`` is
    ``1 + (relu(glare - glare_start) / glare_scale)^2``), taken through a Mahalanobis gate:
@@ -403,7 +404,7 @@ class AnchorFilter:
         self.set_params(params)
         self.x: Any = None               # filtered point (u, v)
         self.P: Any = None
-        self.shape: np.ndarray | None = None   # arm_shape of the last fix taken
+        self.shape: np.ndarray | None = None   # arm_shape of the last fix taken and seen
         self.age = 0                           # frames since that fix
         self.coast = 0                         # frames without evidence in a row
         self.last_evidence: np.ndarray | None = None
@@ -433,8 +434,8 @@ class AnchorFilter:
         self._found, self._reacquire = [], None
 
     def prior(self) -> np.ndarray | None:
-        """The arm prior for TIPM: the last fix's arm shape, its variance grown by a random
-        walk of ``slope_step`` / ``curvature_step`` per frame since."""
+        """The arm prior for TIPM: the arm shape of the last fix taken and seen, its variance
+        grown by a random walk of ``slope_step`` / ``curvature_step`` per frame since."""
         if self.shape is None:
             return None
         c = self.cfg
@@ -506,7 +507,11 @@ class AnchorFilter:
                     self.x = o.blend(self.x, z, w)
                     self.P = o.blend(self.P, R, w)
                 taken = clean
-            if taken:
+            if taken and obs.seen:
+                # the prior learns only from a corner the image shows: one extrapolated over
+                # arms that stop short (glare over the corner) has the prior's own shape, and
+                # taking it as the next prior would keep a bent prior for as long as the
+                # corner is hidden and bias the fixes after it
                 self.shape, self.age = arm_shape(obs.res), 0
             assert obs.z is not None  # set with obs.res
             fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, obs.seen)
