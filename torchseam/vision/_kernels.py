@@ -47,19 +47,76 @@ MAD_SIGMA = 1.4826  # sigma of a normal distribution per unit of its median abso
 MAX_RUNS = 8  # runs of masked rows kept per column (more join the last one)
 
 
-@numba.njit("f8[:, ::1](u1[:, ::1], u1[:, ::1], f8, i8, i8, i8)", cache=True, nogil=True)
-# C901: one compiled loop over the columns with its steps inline (split, they would be calls
-# in the innermost loop)
-def centre_line(response, mask, half, passes, reach, span):  # noqa: C901  # pragma: no cover
-    """Sub-pixel centre line (N, 2) (u, v) of :meth:`Tipm.centre`.
+#: a tie-break between paths equal in length and smoothness: the brighter run, by at most
+#: this share of one column's worth (a reflection beside the whole stripe is dimmer)
+PATH_TIE = 0.01
 
-    Per column the runs of masked rows (columns within ``reach`` of the top or bottom row
-    left out): one run gives its ``response``-weighed centroid; of several (a spatter streak
-    or a reflection in the same column as the stripe) the run whose centroid lies nearest
-    the median centroid of the one-run columns within ``span`` columns (of all columns
-    there, by their strongest run, when none has one run). That centre is then moved
-    ``passes`` times to the centroid of the response within ``half`` rows of it over a band
-    of rows around it (mask or not)."""
+
+@numba.njit("i8[::1](f8[:, ::1], f8[:, ::1], i8[::1], b1[::1], f8, f8)", cache=True,
+            nogil=True)
+def stripe_path(cen, weight, n_run, usable, step, step_cost):  # pragma: no cover
+    """Which run of mask each column's stripe is: the longest smooth path across the columns.
+
+    ``cen`` / ``weight`` (W, R): each column's runs (centroid row, summed response; weight 0:
+    none), ``n_run`` (W,) how many, ``usable`` (W,) columns that may hold a point. A path
+    steps from a run to one in a later column (over a dropout, any number of columns) at most
+    ``step`` rows per column away; it scores one per column it holds, less ``step_cost`` per
+    row it steps (the smoother of two ways wins) plus :data:`PATH_TIE` times the run's share
+    of its column's strongest. The best path is found by dynamic programming; the search
+    back over the columns stops where no path could do better (about O(W R^2) on a stripe).
+    Returns (W,) the run index per column on it, -1 off it (a spatter streak in the same
+    columns as the stripe, or alone in a dropout of it: in a mono frame only where it lies
+    tells it from the stripe)."""
+    w, r = cen.shape
+    score = np.full((w, r), -np.inf)
+    upto = np.full(w, -np.inf)  # the best score of a path ending in column c or before
+    back = np.full((w, r, 2), -1, np.int64)
+    best, end_c, end_k = -np.inf, -1, -1
+    for c in range(w):
+        if c > 0:
+            upto[c] = upto[c - 1]
+        if not usable[c]:
+            continue
+        top = 0.0
+        for k in range(n_run[c]):
+            top = max(top, weight[c, k])
+        for k in range(n_run[c]):
+            if weight[c, k] <= 0:
+                continue
+            y = cen[c, k]
+            base, pc, pk = 0.0, -1, -1  # or the path starts here
+            for c2 in range(c - 1, -1, -1):
+                if upto[c2] <= base:
+                    break  # no path ending there or before can do better (steps cost >= 0)
+                g = c - c2
+                for k2 in range(n_run[c2]):
+                    if score[c2, k2] == -np.inf:
+                        continue
+                    dy = abs(y - cen[c2, k2])
+                    if dy > step * g:
+                        continue
+                    sc = score[c2, k2] - step_cost * dy
+                    if sc > base:
+                        base, pc, pk = sc, c2, k2
+            score[c, k] = base + 1.0 + PATH_TIE * weight[c, k] / top
+            back[c, k, 0], back[c, k, 1] = pc, pk
+            upto[c] = max(upto[c], score[c, k])
+            if score[c, k] > best:
+                best, end_c, end_k = score[c, k], c, k
+    choice = np.full(w, -1, np.int64)
+    c, k = end_c, end_k
+    while c >= 0:
+        choice[c] = k
+        c, k = back[c, k, 0], back[c, k, 1]
+    return choice
+
+
+@numba.njit(cache=True, nogil=True)
+def column_runs(response, mask, reach):  # pragma: no cover - compiled
+    """Each column's runs of masked rows: ``(cen (W, R), weight (W, R), n_run (W,), usable
+    (W,))``, their ``response``-weighed centroid row and summed response (up to
+    :data:`MAX_RUNS` a column, more join the last), and the columns that hold a run with
+    response and do not come within ``reach`` of the top or bottom row."""
     h, w = mask.shape
     n_run = np.zeros(w, np.int64)
     s0 = np.zeros((w, MAX_RUNS))
@@ -79,43 +136,38 @@ def centre_line(response, mask, half, passes, reach, span):  # noqa: C901  # pra
             else:
                 inside[c] = False
     cut = border_columns(mask, reach)
-    # per column: runs with any response, and the centroid of the strongest
-    runs = np.zeros(w, np.int64)
-    first = np.full(w, np.nan)
+    cen = np.zeros((w, MAX_RUNS))
+    usable = np.zeros(w, np.bool_)
     for c in range(w):
-        best = 0.0
         for k in range(n_run[c]):
             if s0[c, k] > 0:
-                runs[c] += 1
-                if s0[c, k] > best:
-                    best = s0[c, k]
-                    first[c] = s1[c, k] / s0[c, k]
+                cen[c, k] = s1[c, k] / s0[c, k]
+                usable[c] = not cut[c]
+    return cen, s0, n_run, usable
+
+
+@numba.njit("f8[:, ::1](u1[:, ::1], u1[:, ::1], f8, i8, i8, f8, f8)", cache=True,
+            nogil=True)
+def centre_line(response, mask, half, passes, reach, step, step_cost):  # pragma: no cover
+    """Sub-pixel centre line (N, 2) (u, v) of :meth:`Tipm.centre`.
+
+    Per column the runs of masked rows (:func:`column_runs`); the stripe is the run on the
+    :func:`stripe_path` (``step``, ``step_cost``), columns off it give no point. That centre
+    is then moved ``passes`` times to the centroid of the response within ``half`` rows of
+    it over a band of rows around it (mask or not)."""
+    h, w = mask.shape
+    cen, s0, n_run, usable = column_runs(response, mask, reach)
+    choice = stripe_path(cen, s0, n_run, usable, step, step_cost)
     n = 0
     for c in range(w):
-        n += runs[c] > 0 and not cut[c]
+        n += choice[c] >= 0
     pts = np.empty((n, 2))
     band = int(np.ceil(half)) + 3  # wide enough for the window to move a few px
-    near = np.empty(2 * span + 1)
     i = 0
     for c in range(w):
-        if runs[c] == 0 or cut[c]:
+        if choice[c] < 0:
             continue
-        v = first[c]
-        if runs[c] > 1:
-            m = 0
-            for single in (True, False):
-                for j in range(max(0, c - span), min(w, c + span + 1)):
-                    if runs[j] > 0 and (runs[j] == 1 or not single):
-                        near[m] = first[j]
-                        m += 1
-                if m > 0:
-                    break
-            ref = np.median(near[:m])
-            gap = np.inf
-            for k in range(n_run[c]):
-                if s0[c, k] > 0 and abs(s1[c, k] / s0[c, k] - ref) < gap:
-                    gap = abs(s1[c, k] / s0[c, k] - ref)
-                    v = s1[c, k] / s0[c, k]
+        v = cen[c, choice[c]]
         r0 = int(np.rint(v))
         for _ in range(passes):
             a = b = 0.0

@@ -59,13 +59,15 @@ class TipmConfig:
     dilate_px: int = config_field(lo=0)
     centre_half_px: float = config_field(lo=0.0, lo_open=True)
     centre_passes: int = config_field(lo=0)
-    run_span_px: int = config_field(lo=1)
+    path_step_px: float = config_field(lo=0.0, lo_open=True)
+    path_step_cost: float = config_field(lo=0.0)
     corner_gap_px: float = config_field(lo=0.0)
     fit_window_px: float = config_field(lo=0.0, lo_open=True)
     min_points_per_arm: int = config_field(lo=3)
     max_rms_px: float = config_field(lo=0.0, lo_open=True)
     min_corner_deg: float = config_field(lo=0.0, hi=180.0)
     max_saturated_fraction: float = config_field(lo=0.0, hi=1.0)
+    max_red_clipped_fraction: float = config_field(lo=0.0, hi=1.0)
     white_core_fraction: float = config_field(lo=0.0, hi=1.0)
     smooth_px: int = config_field(lo=1)
     lobe_ridge: float = config_field(lo=0.0, hi=1.0)
@@ -270,8 +272,15 @@ class Tipm:
         hw = frame.shape[:2]
         planes = [self._plane(c, hw) for c in "bgr"]
         red, g = red_response(frame, with_green=True, out=planes)
-        # the stripe saturates R only; white arc light saturates G as well
         # OpenCV takes a scalar src2; its stubs allow arrays only
+        if frame.ndim == 3:
+            # an arc flash that clips R nearly everywhere: the stripe can raise only G and B
+            # there, so the red excess dips where the stripe is and its edges pass as stripe
+            r = planes[2]  # R (red_response split the frame into the planes)
+            clip = cv2.compare(r, 250, cv2.CMP_GE, dst=r)  # type: ignore[call-overload]
+            if cv2.countNonZero(clip) > cfg.max_red_clipped_fraction * red.size:
+                return red, np.zeros_like(red), SATURATED
+        # the stripe saturates R only; white arc light saturates G as well
         sat = cv2.compare(g, 250, cv2.CMP_GE, dst=planes[2])  # type: ignore[call-overload]
         if cv2.countNonZero(sat) > cfg.max_saturated_fraction * red.size:
             return red, np.zeros_like(red), SATURATED
@@ -355,10 +364,13 @@ class Tipm:
 
     def centre(self, response: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """(N, 2) centre-line points (u, v) of the masked stripe: per column the centroid of
-        ``response`` (the stripe response of :meth:`stripe_mask`) within the mask; where a
-        column holds several runs of mask (a spatter streak or a reflection beside the
-        stripe: in a mono frame nothing tells them apart by colour), the run that continues
-        the stripe of the neighbouring columns (``run_span_px``), not their mixture.
+        ``response`` (the stripe response of :meth:`stripe_mask`) within one run of the mask.
+        Which run, and which columns: the stripe is the longest smooth path of runs across
+        the columns (``path_step_px``, ``path_step_cost``; a dynamic programme, see
+        ``_kernels.stripe_path``). A spatter streak or a reflection beside the stripe, or a
+        streak alone in the columns of a dropout of it, is off that path and gives no point:
+        in a mono frame nothing tells them from the stripe by colour, a streak can be the
+        brighter, and beside a long one no column holds the stripe alone.
 
         Columns where the stripe comes within the ridge filter's reach of the top or bottom
         row of the image (or of the window the tracker cut) are left out: the border skews the
@@ -384,7 +396,8 @@ class Tipm:
             return pts[~self._k.border_columns(mask, reach)[u[order]]]
         response = np.ascontiguousarray(response, dtype=np.uint8)
         pts = self._k.centre_line(response, mask, float(self.cfg.centre_half_px),
-                                  int(self.cfg.centre_passes), reach, int(self.cfg.run_span_px))
+                                  int(self.cfg.centre_passes), reach, float(self.cfg.path_step_px),
+                                  float(self.cfg.path_step_cost))
         if len(pts):
             half = int(self.cfg.centre_half_px)
             mid = two_lobe_centres(self._k.cross_sections(response, pts, half),
