@@ -603,18 +603,100 @@ def load_config(cls: type[T], path: str | os.PathLike[str]) -> T:
     return from_dict(cls, read_yaml(p), str(p))
 
 
+class DuplicateKeyError(yaml.YAMLError):
+    """A YAML mapping gives the same key twice (PyYAML keeps the last silently).
+
+    Attributes:
+        key: the dotted path of the key (``camera.fx``, ``frames[2].t_s``).
+        line: 1-based line of the second one; first: 1-based line of the first one.
+    """
+
+    def __init__(self, key: str, line: int, first: int) -> None:
+        super().__init__(f"{key} given twice (first on line {first})")
+        self.key, self.line, self.first = key, line, first
+
+
+#: PyYAML's tag of a merge key (``<<: *base``): it may be followed by keys that override the
+#: merged ones, which is what merging is for, not a duplicate.
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+def _key_text(text: str) -> str:
+    """A mapping key as written, as it is shown in a path (clipped: a message is one line)."""
+    text = " ".join(text.split())
+    return text if len(text) <= 60 else text[:52] + "..."
+
+
+class UniqueKeyLoader(yaml.SafeLoader):
+    """:class:`yaml.SafeLoader` that refuses a key given twice in one mapping
+    (:class:`DuplicateKeyError` naming the key's dotted path and both lines).
+
+    Keys are compared as the values they load as (``1`` and ``1.0``, ``yes`` and ``true`` are
+    the same key, as in the dict they would make); keys brought in by a merge (``<<: *base``)
+    may be overridden. The nodes are checked as the parser wrote them, before anything is
+    constructed, so anchors and merges cannot hide a duplicate or fake one."""
+
+    def construct_document(self, node: yaml.Node) -> Any:
+        self._check_unique_keys(node)
+        return super().construct_document(node)
+
+    def _check_unique_keys(self, root: yaml.Node) -> None:
+        seen: set[int] = set()
+        todo: list[tuple[yaml.Node, str]] = [(root, "")]
+        while todo:
+            node, path = todo.pop()
+            if id(node) in seen:   # an alias: checked where it was anchored (cycles end here)
+                continue
+            seen.add(id(node))
+            if isinstance(node, yaml.SequenceNode):
+                todo.extend((v, f"{path}[{i}]") for i, v in reversed(list(enumerate(node.value))))
+            elif isinstance(node, yaml.MappingNode):
+                first: dict[Any, int] = {}
+                children = []
+                for key_node, value_node in node.value:
+                    if key_node.tag == _MERGE_TAG:   # an inline merged mapping is checked too
+                        children.append((value_node, path))
+                        continue
+                    name = path
+                    if isinstance(key_node, yaml.ScalarNode):
+                        key = self.construct_object(key_node, deep=True)
+                        shown = _key_text(key_node.value)
+                        name = f"{path}.{shown}" if path else shown
+                        try:
+                            line = first.get(key)
+                        except TypeError:  # unhashable: PyYAML's own error names it
+                            line = None
+                        else:
+                            if line is not None:
+                                raise DuplicateKeyError(name, key_node.start_mark.line + 1,
+                                                        line)
+                            first[key] = key_node.start_mark.line + 1
+                    children.append((value_node, name))
+                todo.extend(reversed(children))
+
+
+def load_yaml(text: str, name: str = "<yaml>") -> Any:
+    """``text`` parsed as YAML with :class:`UniqueKeyLoader` (what ``yaml.safe_load`` gives,
+    but a key given twice is refused). Raises :class:`ConfigError`: ``NAME:L: KEY given twice
+    (first on line F)``, or ``NAME: not valid YAML: PROBLEM (line L, column C)``."""
+    try:
+        return yaml.load(text, Loader=UniqueKeyLoader)  # a SafeLoader: no Python objects
+    except DuplicateKeyError as e:
+        raise ConfigError(f"{name}:{e.line}: {e}") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{name}: not valid YAML: {yaml_problem(e)}") from None
+
+
 def read_yaml(path: str | os.PathLike[str]) -> Any:
     """The parsed YAML of ``path``; :class:`ConfigError` naming the file when it cannot be read
-    or parsed."""
+    or parsed, or gives a key twice (``configs/cell.yaml:12: camera.fx given twice (first on
+    line 5)``: see :func:`load_yaml`)."""
     p = Path(path)
     try:
         text = p.read_text()
     except OSError as e:
         raise ConfigError(f"{p}: cannot read config ({e.strerror or e})") from None
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{p}: not valid YAML: {yaml_problem(e)}") from None
+    return load_yaml(text, str(p))
 
 
 def yaml_problem(e: yaml.YAMLError) -> str:
