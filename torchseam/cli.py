@@ -70,6 +70,10 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
      "weld a simulated part (default the T joint) in closed loop and write a report"),
     ("replay", "torchseam.live.cli",
      "feed recorded frames (folder, video or camera) through the live loop, open loop"),
+    ("weld", "torchseam.live.cell_cli",
+     "weld a cell: camera frames and the controller's EGM in, poses and the arc out"),
+    ("virtual-cell", "torchseam.live.cell_cli",
+     "a simulated IRC5 and laser camera in their own processes"),
     ("console", "torchseam.console.cli",
      "operator console: a local web page to run and watch the weld"),
 )

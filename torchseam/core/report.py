@@ -2,9 +2,20 @@
 
 from __future__ import annotations
 
+import json
+import math
+import os
+import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
+
+from torchseam.core.errors import TorchseamError
+
+
+class ReportError(TorchseamError):
+    """A report cannot be written (its folder, a full disk, a permission)."""
 
 
 def format_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
@@ -43,3 +54,48 @@ def percentiles_ms(seconds: Sequence[float]) -> tuple[float, float]:
     """(p50, p99) in milliseconds."""
     t = np.asarray(seconds) * 1000.0
     return float(np.percentile(t, 50)), float(np.percentile(t, 99))
+
+
+def write_json_atomic(path: Path, data: object) -> Path:
+    """Write ``data`` as JSON to ``path`` atomically (a temporary file in the same folder, then
+    a rename): a reader sees the old file or the whole new one, never half of it. NaN becomes
+    null (JSON has no NaN)."""
+    def clean(x: object) -> object:
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        return x
+
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text(json.dumps(clean(data), indent=1))
+        os.replace(tmp, path)
+    except OSError as e:
+        raise ReportError(f"{path}: cannot write the report ({e.strerror or e})") from None
+    return path
+
+
+def prepare_out_dir(out: Path, command: str) -> Path:
+    """The run's report folder, never mixing two runs: created when missing; a folder that
+    holds an earlier run's files is moved aside to ``OUT.previous-N`` (said on stderr) and a
+    new empty one made. An ``out`` that is a file, or cannot be made, is a :class:`ReportError`
+    naming it."""
+    out = Path(out)
+    try:
+        if out.exists() and not out.is_dir():
+            raise ReportError(f"{out}: --out is a file, not a folder")
+        if out.is_dir() and any(out.iterdir()):
+            n = 1
+            while out.with_name(f"{out.name}.previous-{n}").exists():
+                n += 1
+            aside = out.with_name(f"{out.name}.previous-{n}")
+            out.rename(aside)
+            print(f"{command}: {out} held an earlier run's report: moved to {aside}",
+                  file=sys.stderr)
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ReportError(f"{out}: cannot make the report folder ({e.strerror or e})") from None
+    return out

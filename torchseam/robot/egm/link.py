@@ -181,14 +181,27 @@ class EgmLink:
             :meth:`set_correction`; without one the correction is refused.
         clock: seconds, monotonic; measurement times are on this clock (tests pass a fake).
         bind: open the UDP socket now (``False``: only :meth:`handle_datagram` is used).
+        on_robot: called (on the link's thread) with every ``EgmRobot`` the link accepted and
+            its arrival on ``clock``, before it is answered: a weld reads the fed-back pose,
+            the controller's time and the RAPID data from it. Returns True when this datagram
+            starts a new guided motion (RAPID ran ``EGMActPose`` / ``EGMRunPose`` again from
+            wherever it moved the robot): the link then starts a new session on it, its first
+            reply holding on this datagram's fed-back pose, so nothing from the previous
+            motion is commanded. Keep it short: the reply waits for it.
+        on_reply: called (on the link's thread) with every outgoing ``EgmSensor`` before it is
+            serialised: a weld writes ``RAPIDtoRobot`` (arc request, segment state) into it.
 
     Use as a context manager or ``start()`` / ``stop()``; :attr:`address` is the bound address
     (port 0 in the config binds an ephemeral port).
     """
 
     def __init__(self, config: EgmConfig, *, gate: Gate | None = None,
-                 clock: Callable[[], float] = time.monotonic, bind: bool = True) -> None:
+                 clock: Callable[[], float] = time.monotonic, bind: bool = True,
+                 on_robot: Callable[[Any, float], bool] | None = None,
+                 on_reply: Callable[[Any], None] | None = None) -> None:
         self.config = config
+        self._on_robot = on_robot
+        self._on_reply = on_reply
         self.mode = self.config.mode
         self.gate = gate
         self._clock = clock
@@ -509,7 +522,15 @@ class EgmLink:
         if decision.action == DROP:
             self._drop(decision.reason, sender)
             return None
-        if decision.action == NEW_SESSION:
+        if self._on_robot is not None and self._on_robot(robot, now if at is None else at):
+            # a new guided motion: nothing from the previous one is a reference any more
+            with self._lock:
+                self._stats.sessions += 1
+            self._session_pose = fb_pose
+            self._sent_vec = self._sent_quat = None
+            self._meas = None
+            self._new_session = True
+        elif decision.action == NEW_SESSION:
             self._start_session(decision.reason, fb_pose, robot.header.seqno)
         elif decision.reason == "jump":
             with self._lock:
@@ -635,6 +656,8 @@ class EgmLink:
         p, q = pose_command(target, self._last_sent_pose(), self._session_pose, self._safety)
         msg = EgmSensor()
         self._header(msg, EgmHeader.MSGTYPE_CORRECTION)
+        if self._on_reply is not None:
+            self._on_reply(msg)
         c = msg.planned.cartesian
         c.pos.x, c.pos.y, c.pos.z = (float(x) for x in p)
         c.orient.u0, c.orient.u1, c.orient.u2, c.orient.u3 = (float(x) for x in q)

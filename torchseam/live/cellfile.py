@@ -1,0 +1,92 @@
+"""The cell file ``torchseam weld`` reads: how to reach the cell's camera and controller, and the
+cell's calibration.
+
+A cell file is YAML with three sections (``torchseam virtual-cell --write-cell FILE`` writes
+one for the virtual cell; for a real cell copy it and edit it)::
+
+    calibration:          # the cell config (configs/cell.yaml's fields): camera intrinsics,
+      camera: {...}       # laser plane, hand-eye, tool (the torch's TCP), process
+      ...
+    camera:
+      source: tcp://127.0.0.1:7000   # the frame stream (torchseam.live.framestream)
+      latency_ms: 20.0               # exposure -> arrival at the PC (torchseam calibrate latency)
+      stall_frames: 1.5              # no frame for this many periods: hold, arc off
+    controller:           # the EGM link (configs/egm.yaml's network section)
+      host: 127.0.0.1                # where the weld listens (the UdpUc device's remote address)
+      port: 6510
+      controller_host: 127.0.0.1     # datagrams from any other address are dropped
+      controller_port: 6511
+      cycle_ms: 4.0                  # the EGM cycle: the fed-back pose is this old on arrival
+      rapid_data: true               # RobotWare >= 6.10: arc and segment state over EGM
+
+:func:`load_weld_cell` validates it (one line naming the file and the field on a bad value).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from torchseam.core.config import CellConfig, ConfigError, load_config, to_dict
+from torchseam.core.config import config_field as _f
+from torchseam.robot.egm.config import EgmNetwork
+
+
+def _tcp_url(v: object) -> object:
+    """``camera.source`` must be a ``tcp://HOST:PORT`` frame stream."""
+    from torchseam.live.framestream import FrameStreamError, parse_url
+
+    if not isinstance(v, str):
+        raise ValueError(f"expected tcp://HOST:PORT, got {v!r}")
+    try:
+        parse_url(v)
+    except FrameStreamError:
+        raise ValueError(f"expected tcp://HOST:PORT, got {v!r}") from None
+    return v
+
+
+@dataclass(frozen=True)
+class CameraLink:
+    """How the weld reads the camera (``camera:`` of a cell file)."""
+
+    source: str = _f(convert=_tcp_url)
+    latency_ms: float = _f(lo=0.0, hi=1000.0)
+    stall_frames: float = _f(default=1.5, lo=1.0, hi=50.0)
+
+
+@dataclass(frozen=True)
+class ControllerLink(EgmNetwork):
+    """Where the weld listens for the controller's EGM datagrams and whom it accepts them from
+    (``controller:`` of a cell file)."""
+
+    cycle_ms: float = _f(default=4.0, lo=1.0, hi=100.0)
+    rapid_data: bool = _f(default=True)
+
+
+@dataclass(frozen=True)
+class WeldCell:
+    """A cell file: calibration, camera link, controller link."""
+
+    calibration: CellConfig
+    camera: CameraLink
+    controller: ControllerLink
+
+
+def load_weld_cell(path: str | os.PathLike[str]) -> WeldCell:
+    """Read and validate a cell file (:class:`ConfigError` naming the file and the field)."""
+    return load_config(WeldCell, path)
+
+
+def save_weld_cell(cell: WeldCell, path: str | os.PathLike[str], header: str = "") -> None:
+    """Write a cell file atomically (a reader never sees half of it)."""
+    p = Path(path)
+    text = header + yaml.safe_dump(to_dict(cell), sort_keys=False)
+    tmp = p.with_name(f".{p.name}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, p)
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot write the cell file ({e.strerror or e})") from None

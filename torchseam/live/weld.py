@@ -1,0 +1,517 @@
+"""``torchseam weld``: weld a real cell (or the virtual one) through its real interfaces.
+
+The weld process gets what a real cell gives: frames with their exposure time on the camera's
+clock (:class:`~torchseam.live.framestream.StreamCamera`) and the controller's EGM datagrams
+(:class:`~torchseam.robot.egm.EgmLink`, pose mode) with the fed-back pose, the controller's time
+and RAPID's data (:mod:`torchseam.robot.egm.rapid_data`). It gives back what a real cell takes:
+torch poses over EGM and, in the same replies, the arc request and the segment's state.
+
+Per segment, RAPID brings the torch to the segment's start and hands over to EGM (phase
+GUIDED); the weld tracks, guides and asks for the arc; when the torch reached the segment's
+end it says DONE (or ABORT with the reason) and RAPID takes back.
+
+**The pose of a frame** is the controller's fed-back pose interpolated at the frame's exposure
+time (:mod:`torchseam.live.clocks`): the camera's clock is brought onto the PC's by an offset
+estimated online with the camera's latency from the cell file, the controller's clock the same
+way with one EGM cycle. A frame with no fed-back pose on both sides of its exposure time gives
+no measurement (counted, never guessed).
+
+**It never claims more than it did**: a camera that stops delivering for ``stall_frames``
+frame periods holds the robot where it is and puts the arc out at once; a segment RAPID takes
+back before its end (EGM's timeout, RAPID's own), a segment the loop could not finish, a
+signal: each is reported with its reason and the exit code says the weld is incomplete.
+SIGINT / SIGTERM: the arc out, the robot held, the segment aborted towards RAPID, the report
+marked ``interrupted`` (exit 130 / 143).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import signal
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from torchseam.core.errors import TorchseamError
+from torchseam.core.transforms import invert, pose_matrix
+from torchseam.live.cellfile import WeldCell
+from torchseam.live.clocks import ClockOffset, PoseHistory
+from torchseam.live.loop import LiveLoop, egm_config_for
+from torchseam.live.parts import LiveParts
+from torchseam.robot.egm import rapid_data as rd
+
+#: exit codes of ``torchseam weld``
+EXIT_OK, EXIT_INCOMPLETE, EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 2, 130, 143
+
+
+@dataclass
+class ControllerView:
+    """What the weld knows of the controller, kept up to date by the EGM link's thread.
+
+    Attributes:
+        offset: the controller's clock against the PC's.
+        poses: fed-back torch poses on the PC's clock.
+        rapid: RAPID's newest data (None: none yet, or a controller on the older schema).
+        motions: guided motions RAPID has started (a new one each time the phase becomes
+            GUIDED): the link starts a new session on each.
+        datagrams: EgmRobot accepted; ``without_rapid``: of them without RAPID data.
+    """
+
+    cycle_s: float
+    offset: ClockOffset = field(init=False)
+    poses: PoseHistory = field(init=False)
+    rapid: rd.RapidData | None = None
+    motions: int = 0
+    datagrams: int = 0
+    without_rapid: int = 0
+    _resets: int = 0
+
+    def __post_init__(self) -> None:
+        self.offset = ClockOffset(known_delay_s=self.cycle_s, window=1000)
+        self.poses = PoseHistory(maxlen=1500, max_gap_s=max(0.02, 5 * self.cycle_s))
+
+    def on_robot(self, robot: Any, at: float) -> bool:
+        """The link's hook: one accepted ``EgmRobot`` arrived at ``at`` (PC clock)."""
+        self.datagrams += 1
+        fb = robot.feedBack
+        t_fb = fb.time.sec + fb.time.usec * 1e-6
+        self.offset.add(t_fb, at)
+        if self.offset.resets != self._resets:   # the controller's clock jumped
+            self._resets = self.offset.resets
+            self.poses.clear()
+        c = fb.cartesian
+        q = np.array([c.orient.u0, c.orient.u1, c.orient.u2, c.orient.u3])
+        n = float(np.linalg.norm(q))
+        if n > 0:
+            self.poses.add(self.offset.to_pc(t_fb),
+                           pose_matrix(np.array([c.pos.x, c.pos.y, c.pos.z]), q / n))
+        data = rd.read_rapid_data(robot)
+        if data is None:
+            self.without_rapid += 1
+        prev, self.rapid = self.rapid, data
+        new = (data is not None and data.phase == rd.RapidPhase.GUIDED
+               and (prev is None or prev.phase != rd.RapidPhase.GUIDED
+                    or prev.segment != data.segment))
+        if new:
+            self.motions += 1
+        return new
+
+
+@dataclass
+class SensorReply:
+    """What the weld says to RAPID in every reply (the link's thread writes it)."""
+
+    arc_request: bool = False
+    segment: int = 0
+    state: rd.SensorState = rd.SensorState.WAIT
+    heartbeat: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def set(self, arc_request: bool, segment: int, state: rd.SensorState) -> None:
+        with self._lock:
+            self.arc_request, self.segment, self.state = arc_request, segment, state
+
+    def on_reply(self, msg: Any) -> None:
+        with self._lock:
+            self.heartbeat = rd.next_heartbeat(self.heartbeat)
+            rd.write_sensor_data(msg, rd.SensorData(self.arc_request, self.segment, self.state,
+                                                    self.heartbeat))
+
+
+@dataclass
+class SegmentOutcome:
+    name: str
+    welded: bool
+    reason: str
+    travelled_mm: float = 0.0
+    frames: int = 0
+
+
+@dataclass
+class WeldResult:
+    segments: list[SegmentOutcome] = field(default_factory=list)
+    messages: list[str] = field(default_factory=list)
+    frames: int = 0
+    frames_no_pose: int = 0
+    frames_dropped: int = 0
+    stalls: int = 0
+    holds: Counter[str] = field(default_factory=Counter)
+    latency_ms: list[float] = field(default_factory=list)
+    interrupted: str = ""
+    link: dict[str, Any] = field(default_factory=dict)
+    clocks: dict[str, Any] = field(default_factory=dict)
+
+
+class Interrupted(Exception):
+    """SIGINT / SIGTERM arrived."""
+
+
+class WeldRunner:
+    """One weld: the cell's interfaces, the weld plan, the live loop per segment.
+
+    Args:
+        cell: the cell file (calibration, camera, controller).
+        plan_report: the pre-flight of the part (passed).
+        parts: the live stack's settings.
+        segments: the segment letters to weld.
+        length_mm: weld only this much of each segment (None: all of it).
+        tracker: the tracker name (default the live tracker).
+        progress: ``progress(text)`` for the terminal.
+    """
+
+    def __init__(self, cell: WeldCell, plan_report: Any, parts: LiveParts, segments: str,
+                 length_mm: float | None, tracker: str = "anchored",
+                 model_path: Any = None, progress: Any = print,
+                 connect_timeout_s: float = 60.0, wait_rapid_s: float = 60.0) -> None:
+        self.cell, self.report, self.parts = cell, plan_report, parts
+        self.calib = cell.calibration
+        self.segments, self.length_mm = segments, length_mm
+        self.tracker, self.model_path = tracker, model_path
+        self.progress = progress
+        self.connect_timeout_s, self.wait_rapid_s = connect_timeout_s, wait_rapid_s
+        self.res = WeldResult()
+        self.view = ControllerView(cycle_s=cell.controller.cycle_ms / 1e3)
+        self.reply = SensorReply()
+        self.tool_inv = invert(self.calib.tool.matrix())
+        self.period_s = 1.0 / self.calib.process.frame_rate_hz
+        self.stall_s = cell.camera.stall_frames * self.period_s
+        self.cam_offset = ClockOffset(known_delay_s=cell.camera.latency_ms / 1e3, window=250)
+        self._signal = 0
+
+    # ------------------------------------------------------------------ set-up
+
+    def _egm_config(self) -> Any:
+        parts, proc = self.parts, self.calib.process
+        egm = egm_config_for(parts.egm, parts.live, proc.frame_rate_hz)
+        safety = dataclasses.replace(egm.safety,
+                                     max_step_mm=max(egm.safety.max_step_mm, 1.25 * proc.step_mm))
+        c = self.cell.controller
+        net = dataclasses.replace(egm.network, host=c.host, port=c.port,
+                                  controller_host=c.controller_host,
+                                  controller_port=c.controller_port)
+        return dataclasses.replace(egm, mode="pose", safety=safety, network=net)
+
+    def on_signal(self, signum: int, _frame: Any) -> None:
+        self._signal = signum
+
+    def _check_signal(self) -> None:
+        if self._signal:
+            raise Interrupted(signal.Signals(self._signal).name)
+
+    # ------------------------------------------------------------------ the run
+
+    def run(self) -> WeldResult:
+        from torchseam.live.framestream import StreamCamera
+        from torchseam.robot.egm import EgmLink
+
+        cfg = self._egm_config()
+        self.link = EgmLink(cfg, on_robot=self.view.on_robot, on_reply=self.reply.on_reply)
+        self.link.start()
+        self.progress(f"weld: EGM listening on {cfg.network.host}:{cfg.network.port} for the "
+                      f"controller at {cfg.network.controller_host}:"
+                      f"{cfg.network.controller_port}; camera {self.cell.camera.source}")
+        cam = None
+        try:
+            cam = StreamCamera(self.cell.camera.source, connect_timeout_s=self.connect_timeout_s)
+            self.cam = cam
+            self._wait_controller()
+            todo = [s for s in self.report.plan.segments if s.name in self.segments]
+            for seg in todo:
+                self._check_signal()
+                self.res.segments.append(self._segment(seg))
+        except Interrupted as e:
+            self.res.interrupted = str(e)
+            self._abort_current("interrupted by " + str(e))
+        finally:
+            self.reply.set(False, self.reply.segment, self.reply.state)
+            time.sleep(0.05)           # the arc-off reaches the controller
+            self.res.link = _link_figures(self.link)
+            self.res.clocks = {
+                "controller_offset_s": self.view.offset.offset_s,
+                "controller_clock_resets": self.view.offset.resets,
+                "camera_offset_s": self.cam_offset.offset_s,
+                "camera_latency_ms": self.cell.camera.latency_ms}
+            if cam is not None:
+                self.res.frames_dropped += cam.dropped
+                cam.close()
+            self.link.stop()
+        return self.res
+
+    def _abort_current(self, why: str) -> None:
+        """Tell RAPID the segment in hand is aborted, arc off, robot held where it stands."""
+        self.reply.set(False, self.reply.segment, rd.SensorState.ABORT
+                       if self.reply.segment else rd.SensorState.WAIT)
+        self._hold_here()
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline:     # RAPID takes back (or the controller is gone)
+            r = self.view.rapid
+            if r is None or r.phase != rd.RapidPhase.GUIDED:
+                break
+            time.sleep(0.01)
+        if why:
+            self.res.messages.append(why)
+
+    def _wait_controller(self) -> None:
+        """Until the controller's datagrams arrive; says whether RAPID's data comes with them."""
+        deadline = time.monotonic() + self.connect_timeout_s
+        while self.view.datagrams < 5:
+            self._check_signal()
+            if time.monotonic() > deadline:
+                raise TorchseamError(
+                    f"no EGM datagram from the controller at {self.cell.controller.controller_host}"
+                    f":{self.cell.controller.controller_port} within "
+                    f"{self.connect_timeout_s:g} s (is RAPID's EGM set up towards "
+                    f"{self.cell.controller.host}:{self.cell.controller.port}?)")
+            time.sleep(0.02)
+        if self.view.rapid is None:
+            raise TorchseamError(
+                "the controller's EgmRobot carries no RAPIDfromRobot: its EGM is of the older "
+                "schema (RobotWare before 6.10): the arc and the segment sequence stay with "
+                "RAPID, and this weld needs them (run RAPID's own sequence, or update the "
+                "controller)")
+        self.progress(f"weld: controller connected (clock offset "
+                      f"{self.view.offset.offset_s:+.3f} s to this PC), RAPID data channel on")
+
+    def _wait_guided(self, number: int, name: str) -> str:
+        """Wait until RAPID hands segment ``number`` over to EGM; '' or why it did not."""
+        deadline = time.monotonic() + self.wait_rapid_s
+        self.reply.set(False, 0, rd.SensorState.WAIT)
+        while True:
+            self._check_signal()
+            r = self.view.rapid
+            if r is not None and r.phase == rd.RapidPhase.GUIDED and r.segment == number:
+                return ""
+            if r is not None and r.phase == rd.RapidPhase.ENDED:
+                return "RAPID's program ended before the segment"
+            if r is not None and r.phase == rd.RapidPhase.GUIDED and r.segment != number:
+                # RAPID runs a segment this weld was not asked to weld: say no to it
+                self.reply.set(False, r.segment, rd.SensorState.ABORT)
+            if time.monotonic() > deadline:
+                return f"RAPID did not hand segment {name} over within {self.wait_rapid_s:g} s"
+            time.sleep(0.005)
+
+    def _segment(self, seg: Any) -> SegmentOutcome:  # noqa: C901 - the per-frame loop
+        from torchseam.robot.reach import ReachGate
+        from torchseam.track.peers import make_tracker
+
+        number = seg.index + 1
+        why = self._wait_guided(number, seg.name)
+        if why:
+            self.progress(f"weld: segment {seg.name}: {why}")
+            return SegmentOutcome(seg.name, False, why)
+        geo = segment_geometry(self.report.plan, seg, self.calib, self.parts.plan,
+                               self.length_mm)
+        self.link.gate = ReachGate(self.parts.robot, cell=self.calib, part=self.report.plan.part,
+                                   part_pose_mm=geo.part_pose)
+        tipm = self.parts.tipm
+        loop = LiveLoop(self.calib, make_tracker(self.tracker, tipm, model_path=self.model_path),
+                        self.link, self.report.plan.plan_config(seg, self.parts.plan),
+                        self.parts.live, tipm, self.parts.ecal, nominal=geo.nominal)
+        self.reply.set(False, number, rd.SensorState.TRACKING)
+        self.progress(f"weld: segment {seg.name}: EGM guides ({geo.length_mm:.1f} mm after a "
+                      f"{geo.approach_mm:.0f} mm approach)")
+        out = SegmentOutcome(seg.name, False, "")
+        started, travelled, prev = False, 0.0, None
+        stalled_since: float | None = None
+        motions = self.view.motions
+        t_handover = last_print = time.monotonic()
+        try:
+            while True:
+                self._check_signal()
+                r = self.view.rapid
+                if r is None or r.phase != rd.RapidPhase.GUIDED or r.segment != number:
+                    out.reason = ("RAPID took the segment back "
+                                  f"({'no data' if r is None else r.phase.name}) after "
+                                  f"{max(0.0, travelled - geo.approach_mm):.1f} of "
+                                  f"{geo.length_mm:.1f} mm")
+                    break
+                if self.view.motions != motions:     # EGM restarted: the robot stood still
+                    motions = self.view.motions
+                    self.res.messages.append(f"segment {seg.name}: EGM restarted by the "
+                                             "controller; going on from where the robot is")
+                f = self.cam.get(self.stall_s)
+                now = time.monotonic()
+                if f is None:
+                    if self.cam.error:
+                        out.reason = self.cam.error
+                        break
+                    if stalled_since is None:
+                        stalled_since = now
+                        self.res.stalls += 1
+                        self.reply.set(False, number, rd.SensorState.TRACKING)
+                        self._hold_here()
+                        self.res.messages.append(
+                            f"segment {seg.name}: no frame for {self.stall_s * 1e3:.0f} ms: "
+                            "arc off, robot held")
+                        self.progress(self.res.messages[-1])
+                    elif (now - stalled_since) * 1e3 > 5 * self.parts.live.max_blind_ms:
+                        out.reason = (f"the camera delivered no frame for "
+                                      f"{now - stalled_since:.1f} s")
+                        break
+                    continue
+                self.cam_offset.add(f.t_exp_s, f.t_arrival_s)
+                t_exp = self.cam_offset.to_pc(f.t_exp_s)
+                T_B_W = self.view.poses.at(t_exp)
+                self.res.frames += 1
+                out.frames += 1
+                if T_B_W is None:
+                    self.res.frames_no_pose += 1
+                    continue
+                if stalled_since is not None:
+                    self.res.messages.append(f"segment {seg.name}: frames back after "
+                                             f"{now - stalled_since:.2f} s")
+                    stalled_since = None
+                if not started:
+                    # the start frame: exposed after the hand-over (the robot stood at the
+                    # segment's start), arc off, with the stripe's corner in it
+                    if t_exp < t_handover + self.period_s:
+                        continue
+                    try:
+                        loop.start(f.image, T_B_W, t_s=t_exp)
+                    except TorchseamError as e:
+                        if now - t_handover > 2.0:
+                            out.reason = f"no start frame in 2 s: {e}"
+                            break
+                        continue
+                    started, prev = True, T_B_W[:3, 3]
+                    continue
+                travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
+                prev = T_B_W[:3, 3]
+                if travelled >= geo.approach_mm + geo.length_mm:
+                    out.welded, out.reason = True, ""
+                    break
+                rep = loop.on_frame(f.image, T_B_W @ self.tool_inv, T_B_W, t_exp)
+                moving = self._moving()
+                self.reply.set(bool(travelled >= geo.approach_mm and loop.arc_ok and moving),
+                               number, rd.SensorState.TRACKING)
+                if rep.message and (not self.res.messages
+                                    or not self.res.messages[-1].endswith(rep.message)):
+                    self.res.messages.append(f"segment {seg.name}: {rep.state.value}: "
+                                             f"{rep.message}")
+                if now - last_print > 2.0:
+                    last_print = now
+                    self.progress(f"weld: segment {seg.name}: "
+                                  f"{max(0.0, travelled - geo.approach_mm):5.1f} / "
+                                  f"{geo.length_mm:.1f} mm, {loop.state.value}")
+        finally:
+            out.travelled_mm = max(0.0, travelled - geo.approach_mm)
+            self.res.latency_ms += list(loop.stats.timings_ms.get("frame->command", []))
+            for k, n in loop.stats.hold_reasons.items():
+                self.res.holds[k] += n
+            loop.finish()
+        state = rd.SensorState.DONE if out.welded else rd.SensorState.ABORT
+        self.reply.set(False, number, state)
+        self._hold_here()
+        self._wait_taken_back(number)
+        self.progress(f"weld: segment {seg.name}: " + (
+            f"welded ({out.travelled_mm:.1f} mm)" if out.welded else f"NOT welded: {out.reason}"))
+        return out
+
+    def _moving(self) -> bool:
+        """The torch moved at least a fifth of the weld speed over the last 0.1 s (the arc is
+        never asked for over a torch that stands: it would burn through)."""
+        newest = self.view.poses.newest
+        if newest is None:
+            return False
+        t, T = newest
+        T0 = self.view.poses.at(t - 0.1)
+        if T0 is None:
+            return False
+        v = float(np.linalg.norm(T[:3, 3] - T0[:3, 3])) / 0.1
+        return v >= 0.2 * self.calib.process.weld_speed_mm_s
+
+    def _hold_here(self) -> None:
+        """Hold the robot where it stands: its fed-back pose as the target (the link checks
+        it like any), else the link's own hold on the last pose it sent."""
+        newest = self.view.poses.newest
+        ok = False
+        if newest is not None:
+            _, T = newest
+            from torchseam.core.transforms import matrix_to_quat
+
+            ok = bool(self.link.set_target(T[:3, 3], matrix_to_quat(T[:3, :3]),
+                                           measured_at=time.monotonic()).ok)
+        if not ok:
+            self.link.clear_measurement()
+
+    def _wait_taken_back(self, number: int, timeout_s: float = 3.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            r = self.view.rapid
+            if r is None or r.phase != rd.RapidPhase.GUIDED or r.segment != number:
+                return
+            time.sleep(0.01)
+
+
+@dataclass(frozen=True)
+class SegmentJobGeometry:
+    """Where a segment runs on the design part: the part's pose (turned for it), the
+    programmed path (positions, (N, 3) base mm, from the programmed start), the approach and
+    the length to weld."""
+
+    part_pose: np.ndarray
+    nominal: np.ndarray
+    approach_mm: float
+    length_mm: float
+
+
+def segment_geometry(plan: Any, seg: Any, cell: Any, plan_cfg: Any,
+                     length_mm: float | None) -> SegmentJobGeometry:
+    """The :class:`SegmentJobGeometry` of ``seg`` of ``plan`` (the demo's, from the design)."""
+    geo = plan.geometry(seg)
+    s0 = float(geo.s_at(np.array([seg.phi_start]))[0])
+    seg_len = (float(geo.s_at(np.array([seg.phi_end]))[0]) - s0) % geo.seam_length_mm
+    if length_mm is not None:
+        seg_len = min(seg_len, length_mm)
+    approach = cell.process.look_ahead_mm + plan_cfg.approach_mm
+    nominal = geo.nominal_tcp(s0 - approach + np.arange(0.0, approach + seg_len + 10.0, 0.5))
+    return SegmentJobGeometry(geo.T_B_Tnom, nominal[:, :3, 3], approach, seg_len)
+
+
+def _link_figures(link: Any) -> dict[str, Any]:
+    st = link.stats
+    lat = np.array(list(st.latency_ms)) if len(st.latency_ms) else np.zeros(0)
+    return {"received": st.received, "sent": st.sent, "late_replies": st.late_replies,
+            "reply_p50_ms": float(np.percentile(lat, 50)) if len(lat) else None,
+            "reply_p99_ms": float(np.percentile(lat, 99)) if len(lat) else None,
+            "refused": dict(st.refused), "dropped": dict(st.dropped),
+            "sessions": st.sessions, "watchdog_trips": st.watchdog_trips}
+
+
+def weld_summary(res: WeldResult, info: dict[str, Any]) -> dict[str, Any]:
+    """summary.json of a weld (no truth columns: a real cell has none)."""
+    lat = np.array(res.latency_ms)
+    incomplete = [{"segment": s.name, "reason": s.reason} for s in res.segments
+                  if not s.welded]
+    asked = info.get("segments", "")
+    done = {s.name for s in res.segments}
+    incomplete += [{"segment": n, "reason": "not reached"} for n in asked if n not in done]
+    return {
+        **info,
+        "segments_welded": [s.name for s in res.segments if s.welded],
+        "segments_incomplete": incomplete,
+        "welded_mm": {s.name: round(s.travelled_mm, 3) for s in res.segments},
+        "frames": res.frames, "frames_without_pose": res.frames_no_pose,
+        "frames_dropped_by_weld": res.frames_dropped, "camera_stalls": res.stalls,
+        "holds": dict(res.holds),
+        "latency_p50_ms": float(np.percentile(lat, 50)) if len(lat) else None,
+        "latency_p99_ms": float(np.percentile(lat, 99)) if len(lat) else None,
+        "link": res.link, "clocks": res.clocks,
+        "interrupted": res.interrupted or False,
+        "messages": res.messages[-200:],
+    }
+
+
+def exit_code(res: WeldResult) -> int:
+    if res.interrupted:
+        return EXIT_SIGINT if res.interrupted == "SIGINT" else EXIT_SIGTERM
+    return EXIT_OK if res.segments and all(s.welded for s in res.segments) else EXIT_INCOMPLETE
+
+
+__all__ = ["ControllerView", "SensorReply", "WeldRunner", "WeldResult", "weld_summary",
+           "exit_code", "Path"]
