@@ -53,6 +53,18 @@ ROBOT_MD = {
                   ("speedRef", 3, "EgmSpeedRef", "o")],
     "EgmSensorPathCorr": [("header", 1, "EgmHeader", "o"), ("pathCorr", 2, "EgmPathCorr", "o")],
 }
+# The newer schema's fields, transcribed from the published egm.proto that egm.proto's header
+# names (macs-lab/abb-egm-with-python, egm.proto): message -> [(field, number, type, label)];
+# the fields of a message ROBOT_MD has too are added to its list.
+NEWER = {
+    "EgmCollisionInfo": [("collsionTriggered", 1, "bool", "o"), ("collDetQuota", 2, "double", "*")],
+    "EgmRAPIDdata": [("digVal", 1, "bool", "o"), ("dnum", 2, "double", "*")],
+    "EgmRobot": [("moveIndex", 11, "uint32", "o"), ("CollisionInfo", 12, "EgmCollisionInfo", "o"),
+                 ("RAPIDfromRobot", 13, "EgmRAPIDdata", "o")],
+    "EgmSensor": [("RAPIDtoRobot", 4, "EgmRAPIDdata", "o")],
+}
+SCHEMA_TABLE = {name: ROBOT_MD.get(name, []) + NEWER.get(name, [])
+                for name in [*ROBOT_MD, *NEWER]}
 ENUMS = {
     "EgmHeader.MessageType": {0: "UNDEFINED", 1: "COMMAND", 2: "DATA", 3: "CORRECTION",
                               4: "PATH_CORRECTION"},
@@ -97,8 +109,9 @@ def _fill(msg, k: int = 0):
 
 
 def test_schema_matches_robot_md_field_table():
-    assert set(m.MESSAGE_NAMES) == set(ROBOT_MD)
-    for name, fields in ROBOT_MD.items():
+    """ROBOT.md's table, plus the newer schema's optional fields as published."""
+    assert set(m.MESSAGE_NAMES) == set(SCHEMA_TABLE)
+    for name, fields in SCHEMA_TABLE.items():
         desc = m.CLASSES[name].DESCRIPTOR
         assert desc.full_name == f"abb.egm.{name}"
         got = [(f.name, f.number, _type_name(f), _label(f)) for f in desc.fields]
@@ -145,6 +158,50 @@ def test_known_wire_bytes():
     # ...and a packed encoding from another implementation parses all the same
     packed = b"\x0a\x10" + struct.pack("<dd", 1.0, 2.0)
     assert list(m.EgmJoints.FromString(packed).joints) == [1.0, 2.0]
+
+
+def test_rapid_data_wire_bytes():
+    """The RAPID data channel at the published field numbers: EgmSensor.RAPIDtoRobot 4,
+    EgmRobot.RAPIDfromRobot 13, EgmRAPIDdata digVal 1 (varint), dnum 2 (doubles, unpacked)."""
+    s = m.EgmSensor()
+    s.RAPIDtoRobot.digVal = True
+    s.RAPIDtoRobot.dnum.extend([2.0, 1.0])
+    inner = (bytes([0x08, 1]) + b"\x11" + struct.pack("<d", 2.0)
+             + b"\x11" + struct.pack("<d", 1.0))
+    assert s.SerializeToString() == bytes([0x22, len(inner)]) + inner  # field 4, length-delim.
+    r = m.EgmRobot()
+    r.RAPIDfromRobot.digVal = False
+    r.RAPIDfromRobot.dnum.append(3.0)
+    inner = bytes([0x08, 0]) + b"\x11" + struct.pack("<d", 3.0)
+    assert r.SerializeToString() == bytes([0x6A, len(inner)]) + inner  # field 13
+    r2 = m.EgmRobot(moveIndex=7)
+    r2.CollisionInfo.collsionTriggered = True
+    assert r2.SerializeToString() == bytes([0x58, 7, 0x62, 2, 0x08, 1])  # fields 11 and 12
+    # the bytes another client wrote (moveIndex 7, RAPIDfromRobot {digVal: true}) parse
+    back = m.EgmRobot.FromString(b"\x58\x07" + b"\x6a\x02\x08\x01")
+    assert back.moveIndex == 7 and back.RAPIDfromRobot.digVal is True
+    assert list(back.RAPIDfromRobot.dnum) == []
+
+
+def test_messages_of_the_older_schema_still_parse():
+    """A controller (or sensor) on the older schema sends no RAPID data: its messages parse,
+    the new fields absent; and a newer controller's EgmMeasuredForce (fcActive = 1, force = 2
+    there, force = 1 here) parses too, its values left unknown."""
+    old = m.EgmRobot(mciConvergenceMet=True, utilizationRate=12.5)
+    old.header.mtype = m.EgmHeader.MSGTYPE_DATA
+    msg, reason = parse_robot(old.SerializeToString())
+    assert reason == "" and not msg.HasField("RAPIDfromRobot") and not msg.HasField("moveIndex")
+    sensor = m.EgmSensor()
+    sensor.header.mtype = m.EgmHeader.MSGTYPE_CORRECTION
+    sensor.planned.cartesian.pos.x = sensor.planned.cartesian.pos.y = 1.0
+    sensor.planned.cartesian.pos.z = 1.0
+    q = sensor.planned.cartesian.orient
+    q.u0, q.u1, q.u2, q.u3 = 1.0, 0.0, 0.0, 0.0
+    msg, reason = parse_sensor(sensor.SerializeToString(), "pose")
+    assert reason == "" and not msg.HasField("RAPIDtoRobot")
+    force = b"\x08\x01" + b"\x11" + struct.pack("<d", 5.0)
+    newer = m.EgmRobot.FromString(bytes([0x4A, len(force)]) + force)
+    assert newer.HasField("measuredForce") and list(newer.measuredForce.force) == []
 
 
 def test_required_fields_are_enforced():

@@ -18,7 +18,8 @@ from torchseam.cli import COMMANDS, build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the repository folders that ship inside the package, and the files of each that must ship
-SHIPPED = {"configs": "**/*.yaml", "urdf": "*.urdf", "models": "*.safetensors"}
+SHIPPED = {"configs": "**/*.yaml", "urdf": "*.urdf", "models": "*.safetensors",
+           "rapid": "*.mod"}
 #: third-party modules that take seconds to import: ``torchseam --help`` needs none of them
 HEAVY = ("torch", "cv2", "numpy", "scipy", "numba", "matplotlib", "yaml", "pytorch_kinematics",
          "aiohttp")

@@ -7,12 +7,17 @@ plus an ABB quaternion q1..q4 = w, x, y, z)::
     torchseam robot ik 900 0 800 0 0 1 0 --tool torch
                                                     # -> A1 .. A6, or "unreachable: <reason>"
     torchseam robot check poses.csv                 # one verdict per pose + a summary
+    torchseam robot rapid --out TorchseamWeld.mod   # the shipped RAPID module (stdout without)
 
 ``check`` reads a pose CSV (:mod:`torchseam.core.poses_csv`: header ``x,y,z,q1,q2,q3,q4`` in
 any order, the torch TCP pose in the base frame, mm, quaternion w, x, y, z; optionally ``t``,
 the time stamp of the pose, s). Without ``t`` the time between poses is the TCP distance at the
 cell's weld speed. ``torchseam plan --out``, ``torchseam demo`` and
 :func:`torchseam.live.ring.write_ring_poses` write such files.
+
+``rapid`` prints (or writes) the RAPID module that runs a weld with the sensor guiding over EGM
+(``torchseam/rapid/TorchseamWeld.mod``, shipped with the package; its data channel's layout is
+:mod:`torchseam.robot.egm.rapid_data`).
 
 Exit codes: 0 all poses fine, 1 a pose is unreachable / refused, 2 bad input.
 """
@@ -21,15 +26,20 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
+from torchseam.core.cliargs import out_file_arg
 from torchseam.core.errors import TorchseamError
 from torchseam.core.poses_csv import POSE_COLUMNS, read_pose_csv
 
+#: the shipped RAPID module (in the package's ``rapid`` folder: the repository's ``rapid/``)
+RAPID_MODULE = "TorchseamWeld.mod"
+
 
 def register(subparsers: Any) -> None:
-    """Add the ``robot`` command group (fk, ik, check, and the EGM commands)."""
+    """Add the ``robot`` command group (fk, ik, check, rapid, and the EGM commands)."""
     p = subparsers.add_parser(
         "robot", help="IRB 1410 kinematics, reachability checks and the EGM link",
         description="ABB IRB 1410 model: forward/inverse kinematics and the reachability gate. "
@@ -83,6 +93,17 @@ def register(subparsers: Any) -> None:
                          "config)")
     _common(ck)
     ck.set_defaults(func=run_check)
+
+    rp = sub.add_parser("rapid", help="print the RAPID module that runs a weld over EGM",
+                        description="Print the RAPID module (TorchseamWeld.mod) that runs a weld "
+                                    "segment by segment with the sensor guiding over EGM and "
+                                    "the arc switched through the EGM RAPID data channel. Its "
+                                    "header says what the integrator fills in and what was "
+                                    "not verified (it has not run on a controller).")
+    rp.add_argument("--out", type=out_file_arg, default=None, metavar="FILE",
+                    help="write the module to FILE instead of printing it (default: print "
+                         "to stdout)")
+    rp.set_defaults(func=run_rapid)
 
     # the EGM helper's commands (sim-controller) live in their own module
     from torchseam.robot import egm_cli
@@ -194,3 +215,23 @@ def run_check(args: argparse.Namespace) -> int:
             print(f"{i:>{width}} refused: {r.reasons[i]}")
     print(f"{r.summary()}; checked in {elapsed * 1e3:.1f} ms")
     return 0 if bool(r.ok.all()) else 1
+
+
+def rapid_module_path() -> Path:
+    """The shipped RAPID module (:data:`RAPID_MODULE` in the package's ``rapid`` folder)."""
+    import torchseam
+
+    return torchseam.shipped("rapid") / RAPID_MODULE
+
+
+def run_rapid(args: argparse.Namespace) -> int:
+    """Entry point of ``torchseam robot rapid``: the module's text, unchanged, to stdout or
+    ``--out`` (a folder or an unwritable path: one line on stderr, exit code 2)."""
+    text = rapid_module_path().read_text(encoding="ascii")
+    if args.out is None:
+        sys.stdout.write(text)
+        return 0
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text, encoding="ascii")
+    print(f"wrote {args.out}")
+    return 0

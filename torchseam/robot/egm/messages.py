@@ -2,9 +2,13 @@
 the parsers that turn one datagram into a validated message (:func:`parse_robot`,
 :func:`parse_sensor`: size, type, required fields, finite values) without ever raising.
 
-The schema lives in one table below, written from the field table in ``shared/ROBOT.md``; the
-readable ``egm.proto`` next to this file says the same thing, and a test compiles that file with
-``grpc_tools.protoc`` and checks the two agree descriptor by descriptor and byte by byte.
+The schema lives in one table below, written from the field table in ``shared/ROBOT.md`` plus
+the newer schema's optional fields (``RAPIDtoRobot`` / ``RAPIDfromRobot``, the data channel
+between the sensor and the RAPID program, and ``moveIndex``, ``CollisionInfo``; the proto file
+names the published file they come from); the readable ``egm.proto`` next to this file says the
+same thing, and a test compiles that file with ``grpc_tools.protoc`` and checks the two agree
+descriptor by descriptor and byte by byte. What the RAPID data's values mean is
+:mod:`torchseam.robot.egm.rapid_data`'s.
 
 Why a table and not generated ``*_pb2.py``: generated code is tied to the protoc version that
 wrote it (newer gencode is refused by an older runtime, very old gencode by a newer one), while a
@@ -103,6 +107,13 @@ SCHEMA: tuple[tuple[str, dict[str, list[tuple[str, int]]],
        "RAPID_UNDEFINED")]),
     ("EgmTestSignals", {}, [("repeated", "double", "signals", 1, None)]),
     ("EgmMeasuredForce", {}, [("repeated", "double", "force", 1, None)]),
+    # the newer schema (egm.proto says where from): collision info and the RAPID data channel
+    ("EgmCollisionInfo", {},
+     [("optional", "bool", "collsionTriggered", 1, None),  # ABB's spelling
+      ("repeated", "double", "collDetQuota", 2, None)]),
+    ("EgmRAPIDdata", {},
+     [("optional", "bool", "digVal", 1, None),
+      ("repeated", "double", "dnum", 2, None)]),
     ("EgmRobot", {},
      [("optional", "EgmHeader", "header", 1, None),
       ("optional", "EgmFeedBack", "feedBack", 2, None),
@@ -113,11 +124,15 @@ SCHEMA: tuple[tuple[str, dict[str, list[tuple[str, int]]],
       ("optional", "EgmTestSignals", "testSignals", 7, None),
       ("optional", "EgmRapidCtrlExecState", "rapidExecState", 8, None),
       ("optional", "EgmMeasuredForce", "measuredForce", 9, None),
-      ("optional", "double", "utilizationRate", 10, None)]),
+      ("optional", "double", "utilizationRate", 10, None),
+      ("optional", "uint32", "moveIndex", 11, None),
+      ("optional", "EgmCollisionInfo", "CollisionInfo", 12, None),
+      ("optional", "EgmRAPIDdata", "RAPIDfromRobot", 13, None)]),
     ("EgmSensor", {},
      [("optional", "EgmHeader", "header", 1, None),
       ("optional", "EgmPlanned", "planned", 2, None),
-      ("optional", "EgmSpeedRef", "speedRef", 3, None)]),
+      ("optional", "EgmSpeedRef", "speedRef", 3, None),
+      ("optional", "EgmRAPIDdata", "RAPIDtoRobot", 4, None)]),
     ("EgmSensorPathCorr", {},
      [("optional", "EgmHeader", "header", 1, None),
       ("optional", "EgmPathCorr", "pathCorr", 2, None)]),
@@ -182,6 +197,8 @@ EgmMCIState: Any = CLASSES["EgmMCIState"]
 EgmRapidCtrlExecState: Any = CLASSES["EgmRapidCtrlExecState"]
 EgmTestSignals: Any = CLASSES["EgmTestSignals"]
 EgmMeasuredForce: Any = CLASSES["EgmMeasuredForce"]
+EgmCollisionInfo: Any = CLASSES["EgmCollisionInfo"]
+EgmRAPIDdata: Any = CLASSES["EgmRAPIDdata"]
 EgmRobot: Any = CLASSES["EgmRobot"]
 EgmSensor: Any = CLASSES["EgmSensor"]
 EgmSensorPathCorr: Any = CLASSES["EgmSensorPathCorr"]
