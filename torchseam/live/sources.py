@@ -38,6 +38,7 @@ import numpy as np
 
 from torchseam.core.dataset import Dataset, check_frame
 from torchseam.core.errors import DatasetError, FrameError
+from torchseam.core.imageio import regular_file
 from torchseam.core.transforms import pose_matrix
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg")
@@ -433,6 +434,8 @@ def open_source(path: str | os.PathLike[str], size: tuple[int, int] | None = Non
         return FolderSource(p, size, fps or 25.0)
     if p.is_file():
         return VideoSource(p, size, fps)
+    if p.exists():   # a FIFO, a socket, a device: said so, never opened (a FIFO would block)
+        regular_file(p)
     raise DatasetError(f"{p}: no such folder or video file (a camera: camera:N or a stream "
                        "URL)")
 

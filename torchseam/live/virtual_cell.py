@@ -90,6 +90,8 @@ class ProgramLog:
     outcome: dict[int, str] = field(default_factory=dict)   # segment -> done/abort/timeout
     last_reply_t: float = float("nan")
     stopped_after_timeout_s: float = float("nan")
+    # per camera stall: from the first withheld frame's delivery time to the arc going out
+    arc_off_after_stall_s: list[float] = field(default_factory=list)
 
 
 def _shared_ring(ctx: Any) -> Any:
@@ -129,7 +131,7 @@ class VirtualController:
                  ring: Any, sensor_address: tuple[str, int], *, clock_offset_s: float,
                  comm_timeout_s: float, arc_hold_ms: float, transfer_s: float,
                  faults: tuple[str, ...], seed: int, max_segment_s: float,
-                 wait_sensor_s: float, n_segments: int = 6) -> None:
+                 wait_sensor_s: float, n_segments: int = 6, marks: Any = None) -> None:
         from torchseam.robot.egm import rapid_data as rd
         from torchseam.robot.sim_controller import SimController
 
@@ -141,6 +143,8 @@ class VirtualController:
         self.tool_inv = invert(cell.tool.matrix())
         self.jobs, self.ring = jobs, ring
         self.n_segments = n_segments
+        self.marks = marks              # shared with the camera: [stall start (delivery time)]
+        self._stall_seen = float("nan")
         self.offset = float(clock_offset_s)
         self.comm_timeout_s = comm_timeout_s
         self.arc_hold_s = arc_hold_ms / 1e3
@@ -242,6 +246,11 @@ class VirtualController:
             seg, arc, guided_since = self._segment_number(), self.arc, self.guided_since
         T = ctrl.tcp_pose()
         self.log.cycles.append(_Cycle(now, T, arc, seg))
+        if self.marks is not None:
+            mark = float(self.marks[0])
+            if math.isfinite(mark) and mark != self._stall_seen and now >= mark and not arc:
+                self._stall_seen = mark
+                self.log.arc_off_after_stall_s.append(round(now - mark, 4))
         write_pose(self.ring, self._k, now, self.job_i, arc, guided_since, T)
         self._k += 1
         if self.phase == rd.RapidPhase.ENDED and now - self.t_phase > 1.0:
@@ -416,7 +425,7 @@ class CameraSpec:
     port: int
 
 
-def camera_main(spec: CameraSpec, ring: Any, port_out: Any, stop: Any) -> None:
+def camera_main(spec: CameraSpec, ring: Any, port_out: Any, stop: Any, marks: Any) -> None:
     """The laser camera: expose at the frame rate, render from the robot's pose at the
     exposure time, deliver ``latency_s`` later, stamped on the camera's own clock."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # the parent ends it
@@ -437,6 +446,7 @@ def camera_main(spec: CameraSpec, ring: Any, port_out: Any, stop: Any) -> None:
     t_next = time.monotonic() + period
     index = 0
     sent_late = 0
+    stalled = False
     try:
         while not stop.is_set():
             t_exp = t_next
@@ -463,7 +473,11 @@ def camera_main(spec: CameraSpec, ring: Any, port_out: Any, stop: Any) -> None:
             fault = math.isfinite(guided) and spec.fault_at_s[job] <= into < (
                 spec.fault_at_s[job] + FAULT_S)
             if fault and "camera-stall" in spec.faults:
+                if not stalled:
+                    stalled = True
+                    marks[0] = t_exp + spec.latency_s   # when this frame was due
                 continue
+            stalled = False
             if fault and "camera-drop" in spec.faults and rng.random() < 0.5:
                 continue
             due = t_exp + spec.latency_s
@@ -536,6 +550,7 @@ def summarise(log: ProgramLog, jobs: list[SegmentJob], scenes: list[Any], gate_f
         seg["welded_mm"] += float(np.linalg.norm(c.T[:3, 3] - p.T[:3, 3]))
     axis: list[float] = []
     unsafe = 0
+    unsafe_why: list[str] = []
     for i, job in enumerate(jobs):
         wire = [w for w in log.wire if w[1] == job.number]
         if not wire:
@@ -545,9 +560,16 @@ def summarise(log: ProgramLog, jobs: list[SegmentJob], scenes: list[Any], gate_f
         bad = ~np.isfinite(T).all(axis=(1, 2))
         import torch
 
-        ok = gate.check(torch.tensor(T[~bad])).ok.numpy()
+        verdict = gate.check(torch.tensor(T[~bad]))
+        ok = verdict.ok.numpy()
         steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
-        unsafe += int(bad.sum() + (~ok).sum() + (steps > max_step_mm * (1 + 1e-9)).sum())
+        n_step = int((steps > max_step_mm * (1 + 1e-9)).sum())
+        unsafe += int(bad.sum() + (~ok).sum() + n_step)
+        for k in np.flatnonzero(~ok)[:5]:
+            unsafe_why.append(f"segment {job.name}: gate: {verdict.reasons[int(k)]}")
+        if n_step:
+            unsafe_why.append(f"segment {job.name}: {n_step} step(s) > {max_step_mm:g} mm "
+                              f"(largest {steps.max():.2f} mm)")
         welded = [w for w in wire if w[2]]
         if welded:
             Tw = np.array([w[3] for w in welded])
@@ -577,12 +599,13 @@ def summarise(log: ProgramLog, jobs: list[SegmentJob], scenes: list[Any], gate_f
         "seam_rmse_mm": rms(d), "seam_max_mm": float(d.max()) if len(d) else float("nan"),
         "axis_rmse_deg": rms(ax), "axis_max_deg": float(ax.max()) if len(ax) else float("nan"),
         "axis_within_1deg": int((ax <= 1.0).sum()), "poses_welded": len(ax),
-        "unsafe_poses_sent": unsafe,
+        "unsafe_poses_sent": unsafe, "unsafe_reasons": unsafe_why,
         "arc_on_while_still_s": round(still_s, 3),
         "arc_on_off_seam_s": round(off_s, 3),
         "segments": per_seg,
         "segments_incomplete": incomplete,
         "events": list(log.events),
+        "arc_off_after_camera_stall_s": list(log.arc_off_after_stall_s),
         "robot_stopped_after_comm_loss_s": (None if math.isnan(log.stopped_after_timeout_s)
                                             else round(log.stopped_after_timeout_s, 3)),
         "controller": {"cycles": len(cyc)},
@@ -649,11 +672,12 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
     ring = _shared_ring(ctx)
     stop = ctx.Event()
     port_rx, port_tx = ctx.Pipe(duplex=False)
+    marks = ctx.Array("d", [float("nan")], lock=False)
     spec = CameraSpec(cell, plan.part, noise, level, args.seed, None,
                       tuple(j.rotation_deg for j in jobs), tuple(_fault_at_s(j) for j in jobs),
                       args.camera_latency_ms / 1e3, tuple(args.fault), 0)
-    cam = ctx.Process(target=camera_main, args=(spec, ring, port_tx, stop), name="laser-camera",
-                      daemon=True)
+    cam = ctx.Process(target=camera_main, args=(spec, ring, port_tx, stop, marks),
+                      name="laser-camera", daemon=True)
     cam.start()
     if not port_rx.poll(60.0):
         raise TorchseamError("the virtual camera did not start within 60 s")
@@ -667,7 +691,7 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
                            comm_timeout_s=comm_timeout, arc_hold_ms=args.arc_hold_ms,
                            transfer_s=1.0, faults=tuple(args.fault), seed=args.seed,
                            max_segment_s=max_seg_s, wait_sensor_s=args.wait_sensor_s,
-                           n_segments=len(plan.segments))
+                           n_segments=len(plan.segments), marks=marks)
     # the robot waits at the first segment's start pose's neighbourhood: its home
     weld_cell = WeldCell(
         calibration=cell,
@@ -711,8 +735,10 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
             "faults": list(args.fault), "camera_latency_ms": args.camera_latency_ms,
             "clock_offset_s": args.clock_offset_s, "comm_timeout_s": comm_timeout,
             "interrupted": bool(stopping["sig"])}
-    summary = summarise(vc.log, jobs, scenes, lambda i: gates[i], angles,
-                        parts.egm.safety.max_step_mm, vc.t_start, info)
+    # the step a pose may make: the link's limit for the IPI step (torchseam weld's link)
+    max_step = max(parts.egm.safety.max_step_mm, 1.25 * cell.process.step_mm)
+    summary = summarise(vc.log, jobs, scenes, lambda i: gates[i], angles, max_step,
+                        vc.t_start, info)
     write_json_atomic(out / "summary.json", summary)
     s = summary
     print(f"virtual cell: seam RMSE {s['seam_rmse_mm']:.3f} mm, max {s['seam_max_mm']:.3f} mm, "

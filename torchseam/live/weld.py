@@ -47,6 +47,9 @@ from torchseam.robot.egm import rapid_data as rd
 
 #: exit codes of ``torchseam weld``
 EXIT_OK, EXIT_INCOMPLETE, EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 2, 130, 143
+#: seam passed with the arc out (after the approach) above this is an unwelded gap: the segment
+#: is not welded (the strike at the approach's end and frame timing leave a few tenths)
+MAX_GAP_MM = 0.5
 
 
 @dataclass
@@ -129,6 +132,7 @@ class SegmentOutcome:
     welded: bool
     reason: str
     travelled_mm: float = 0.0
+    unwelded_mm: float = 0.0
     frames: int = 0
 
 
@@ -316,7 +320,7 @@ class WeldRunner:
         self.progress(f"weld: segment {seg.name}: EGM guides ({geo.length_mm:.1f} mm after a "
                       f"{geo.approach_mm:.0f} mm approach)")
         out = SegmentOutcome(seg.name, False, "")
-        started, travelled, prev = False, 0.0, None
+        started, travelled, prev, arc_out_mm = False, 0.0, None, 0.0
         stalled_since: float | None = None
         motions = self.view.motions
         t_handover = last_print = time.monotonic()
@@ -380,10 +384,16 @@ class WeldRunner:
                         continue
                     started, prev = True, T_B_W[:3, 3]
                     continue
-                travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
+                step = float(np.linalg.norm(T_B_W[:3, 3] - prev))
+                travelled += step
                 prev = T_B_W[:3, 3]
+                if travelled >= geo.approach_mm and not self.reply.arc_request:
+                    arc_out_mm += step          # past the approach with the arc out: a gap
                 if travelled >= geo.approach_mm + geo.length_mm:
-                    out.welded, out.reason = True, ""
+                    out.welded = arc_out_mm <= MAX_GAP_MM
+                    out.reason = "" if out.welded else (
+                        f"the torch reached the end with {arc_out_mm:.1f} mm of the seam "
+                        "passed with the arc out (unwelded)")
                     break
                 rep = loop.on_frame(f.image, T_B_W @ self.tool_inv, T_B_W, t_exp)
                 moving = self._moving()
@@ -400,6 +410,7 @@ class WeldRunner:
                                   f"{geo.length_mm:.1f} mm, {loop.state.value}")
         finally:
             out.travelled_mm = max(0.0, travelled - geo.approach_mm)
+            out.unwelded_mm = arc_out_mm
             self.res.latency_ms += list(loop.stats.timings_ms.get("frame->command", []))
             for k, n in loop.stats.hold_reasons.items():
                 self.res.holds[k] += n
@@ -495,7 +506,8 @@ def weld_summary(res: WeldResult, info: dict[str, Any]) -> dict[str, Any]:
         **info,
         "segments_welded": [s.name for s in res.segments if s.welded],
         "segments_incomplete": incomplete,
-        "welded_mm": {s.name: round(s.travelled_mm, 3) for s in res.segments},
+        "travelled_mm": {s.name: round(s.travelled_mm, 3) for s in res.segments},
+        "unwelded_mm": {s.name: round(s.unwelded_mm, 3) for s in res.segments},
         "frames": res.frames, "frames_without_pose": res.frames_no_pose,
         "frames_dropped_by_weld": res.frames_dropped, "camera_stalls": res.stalls,
         "holds": dict(res.holds),

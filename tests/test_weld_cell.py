@@ -1,0 +1,195 @@
+"""The weld through the cell's real interfaces: clocks, the frame stream, and `torchseam weld`
+against `torchseam virtual-cell` in processes of their own (loopback only)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from torchseam.core.transforms import pose_matrix
+from torchseam.live.clocks import ClockOffset, PoseHistory
+from torchseam.live.framestream import FrameStreamError, FrameStreamServer, StreamCamera
+
+REPO = Path(__file__).resolve().parents[1]
+PART = REPO / "configs" / "parts" / "t_joint.yaml"
+
+
+# --------------------------------------------------------------------------- clocks
+
+
+def test_clock_offset_recovers_the_offset_through_jitter_and_a_jump():
+    rng = np.random.default_rng(0)
+    off = ClockOffset(known_delay_s=0.020, window=200)
+    true = 3600.0
+    for k in range(300):
+        t_remote = 10.0 + 0.04 * k
+        delay = 0.020 + rng.exponential(0.004)          # never below the known latency
+        off.add(t_remote, t_remote + true + delay)
+    assert abs(off.offset_s - true) < 0.001
+    # the remote clock restarts (a controller reboot): the estimate follows, not the old window
+    for k in range(50):
+        t_remote = 0.5 + 0.04 * k
+        off.add(t_remote, t_remote + true + 400.0 + 0.020)
+    assert off.resets == 1
+    assert abs(off.offset_s - (true + 400.0)) < 1e-6
+
+
+def test_pose_history_interpolates_and_refuses_gaps():
+    h = PoseHistory(max_gap_s=0.01)
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    for k in range(10):
+        h.add(0.004 * k, pose_matrix(np.array([8.0 * 0.004 * k, 0.0, 0.0]), q))
+    T = h.at(0.010)
+    assert T is not None and abs(T[0, 3] - 0.080) < 1e-9
+    assert h.at(-0.001) is None and h.at(0.5) is None        # outside: no pose, no guess
+    h.add(0.2, pose_matrix(np.array([0.0, 0.0, 0.0]), q))   # a 164 ms hole in the feedback
+    assert h.at(0.1) is None
+
+
+# --------------------------------------------------------------------------- the frame stream
+
+
+def test_frame_stream_carries_frames_with_their_camera_time():
+    server = FrameStreamServer("127.0.0.1", 0)
+    try:
+        cam = StreamCamera(f"tcp://127.0.0.1:{server.address[1]}", connect_timeout_s=5.0)
+        deadline = time.monotonic() + 5.0
+        while not server.connected and time.monotonic() < deadline:
+            time.sleep(0.01)
+        img = (np.arange(48 * 64 * 3) % 251).astype(np.uint8).reshape(48, 64, 3)
+        mono16 = (np.arange(48 * 64) * 7 % 65000).astype(np.uint16).reshape(48, 64)
+        assert server.send(7, 1_234_567_890_123, img)
+        assert server.send(8, 1_234_607_890_123, mono16)
+        f1, f2 = cam.get(5.0), cam.get(5.0)
+        assert f1 is not None and f2 is not None
+        assert f1.index == 7 and f1.t_exp_s == pytest.approx(1234.567890123)
+        np.testing.assert_array_equal(f1.image, img)
+        assert f2.image.dtype == np.uint16
+        np.testing.assert_array_equal(f2.image, mono16)
+        assert f2.t_arrival_s >= f1.t_arrival_s
+        cam.close()
+    finally:
+        server.close()
+
+
+def test_frame_stream_refuses_a_foreign_protocol():
+    srv = socket.create_server(("127.0.0.1", 0))
+    port = srv.getsockname()[1]
+    cam = StreamCamera(f"tcp://127.0.0.1:{port}", connect_timeout_s=5.0)
+    conn, _ = srv.accept()
+    conn.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n" + b"\0" * 64)
+    deadline = time.monotonic() + 5.0
+    while cam.error is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert cam.error is not None and "not a torchseam frame stream" in cam.error
+    assert cam.get(0.05) is None
+    cam.close()
+    conn.close()
+    srv.close()
+    with pytest.raises(FrameStreamError, match="tcp://HOST:PORT"):
+        StreamCamera("camera:0")
+
+
+# --------------------------------------------------------------------------- the cell
+
+
+def _torchseam(*args: str, cwd: Path, **kw) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen([sys.executable, "-m", "torchseam", *args], cwd=cwd, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
+
+
+def _virtual(tmp: Path, *extra: str) -> subprocess.Popen:
+    return _torchseam("virtual-cell", "--part", str(PART), "--segments", "a", "--length-mm",
+                      "20", "--camera-latency-ms", "20", "--clock-offset-s", "3600",
+                      "--out", "V", "--write-cell", "V/cell.yaml", *extra, cwd=tmp)
+
+
+def _weld(tmp: Path) -> subprocess.Popen:
+    return _torchseam("weld", "--cell", "V/cell.yaml", "--part", str(PART), "--segments", "a",
+                      "--length-mm", "20", "--out", "W", cwd=tmp)
+
+
+def _finish(p: subprocess.Popen, timeout: float = 150.0) -> tuple[int, str]:
+    try:
+        out, _ = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        out, _ = p.communicate()
+        raise AssertionError(f"{p.args[3]} did not end within {timeout} s:\n{out[-3000:]}"
+                             ) from None
+    return p.returncode, out
+
+
+@pytest.mark.slow
+def test_weld_a_virtual_cell_in_separate_processes(tmp_path):
+    """As the README runs it: the virtual cell in the background, the weld started right
+    after (it waits for the cell file); the truth lives only in the virtual cell."""
+    vc = _virtual(tmp_path)
+    try:
+        weld = _weld(tmp_path)
+        rc, out = _finish(weld)
+        vrc, vout = _finish(vc, 60.0)
+    finally:
+        vc.kill()
+    assert vrc == 0, vout[-3000:]
+    w = json.loads((tmp_path / "W" / "summary.json").read_text())
+    s = json.loads((tmp_path / "V" / "summary.json").read_text())
+    assert w["interrupted"] is False
+    # the controller's clock is 3600 s ahead of this PC's: the weld found it
+    assert abs(w["clocks"]["controller_offset_s"] + 3600.0) < 0.01
+    # the weld's word and the truth agree: exit 0 only with the segment welded to its end
+    truth_done = s["segments"]["a"]["outcome"] == "done"
+    if rc == 0:
+        assert w["segments_welded"] == ["a"] and w["segments_incomplete"] == [], out[-3000:]
+        assert truth_done and s["segments"]["a"]["welded_mm"] > 19.0, s["segments"]
+    else:
+        assert rc == 1, out[-3000:]
+        assert w["segments_incomplete"][0]["segment"] == "a"
+        assert w["segments_incomplete"][0]["reason"], w["segments_incomplete"]
+    # the truth of what the robot did
+    assert s["seam_rmse_mm"] <= 0.1 and s["seam_max_mm"] <= 0.3, s
+    assert s["poses_welded"] > 5, s
+    assert s["axis_within_1deg"] >= 0.9 * s["poses_welded"] and s["axis_max_deg"] <= 2.0, s
+    assert s["unsafe_poses_sent"] == 0, s["unsafe_reasons"]
+    assert s["arc_on_while_still_s"] <= 0.2
+    assert s["arc_on_off_seam_s"] == 0.0
+
+
+@pytest.mark.slow
+def test_weld_killed_mid_segment_the_controller_stops_the_robot(tmp_path):
+    """kill -9 of the weld: no reply reaches the controller any more; it stops the robot and
+    the arc within its communication timeout and the summary says so."""
+    vc = _virtual(tmp_path, "--comm-timeout-s", "0.5")
+    try:
+        weld = _torchseam("weld", "--cell", "V/cell.yaml", "--part", str(PART), "--segments",
+                          "a", "--length-mm", "60", "--out", "W", cwd=tmp_path)
+        deadline = time.monotonic() + 120.0
+        assert weld.stdout is not None
+        for line in weld.stdout:   # until the torch is welding
+            if "mm, tracking" in line and not line.split(":")[-1].strip().startswith("0.0"):
+                break
+            assert time.monotonic() < deadline, "the weld never started welding"
+        weld.send_signal(signal.SIGKILL)
+        weld.wait(10)
+        vrc, vout = _finish(vc, 60.0)
+    finally:
+        vc.kill()
+    assert (tmp_path / "V" / "summary.json").exists(), vout[-3000:]
+    s = json.loads((tmp_path / "V" / "summary.json").read_text())
+    assert s["segments"]["a"]["outcome"] == "timeout", vout[-2000:]
+    assert s["robot_stopped_after_comm_loss_s"] is not None
+    assert s["robot_stopped_after_comm_loss_s"] <= 0.5 + 0.05
+    assert any("communication timeout" in e for e in s["events"])
+    assert s["segments_incomplete"] and s["segments_incomplete"][0]["segment"] == "a"
+    assert s["unsafe_poses_sent"] == 0
+    assert s["arc_on_while_still_s"] <= 0.2
