@@ -7,7 +7,10 @@
     DIR/meta.json            optional: calibration, noise level, per-frame 3D truth (simulator)
 
 A real recording needs only the frames and ``labels.csv`` (or only frames, for ``track``).
-Every problem is reported with the folder, the file and the row or frame it concerns.
+Every problem is reported with the folder, the file and the row or frame it concerns. Frames
+are read through :mod:`torchseam.core.imageio`: a name that is not a regular file (a FIFO, a
+socket) is refused without being opened, and an image is sized from its header and refused
+above the pixel limit before it is decoded.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import cv2
 import numpy as np
 
 from torchseam.core.errors import DatasetError, FrameError
+from torchseam.core.imageio import image_size, read_image, regular_file
 
 FRAME_RE = re.compile(r"^(\d+)\.png$")
 LABEL_HEADER = ["frame", "u", "v"]
@@ -94,13 +98,12 @@ def check_frame(img: Any, size: tuple[int, int] | None = None, name: str = "fram
 
 def read_frame(path: str | os.PathLike[str], size: tuple[int, int] | None = None) -> np.ndarray:
     """Read one frame from disk (colour or mono, 8 or 16 bit), validated and brought to 8 bits
-    (see :func:`check_frame`)."""
+    (see :func:`check_frame`). The file is read by :func:`torchseam.core.imageio.read_image`:
+    anything but a regular file is refused without being opened, and an image whose header
+    declares more than :func:`~torchseam.core.imageio.max_frame_pixels` pixels without being
+    decoded (:class:`FrameError` naming the file)."""
     p = Path(path)
-    if not p.is_file():
-        raise FrameError(f"{p}: no such file")
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise FrameError(f"{p}: cannot be decoded as an image")
+    img = read_image(p, cv2.IMREAD_UNCHANGED)
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[..., :3]
     return check_frame(img, size, str(p))
@@ -161,6 +164,7 @@ class Dataset:
         if not labels:
             pass
         elif lp.exists():
+            _regular(lp)
             uv, unimaged = _read_labels(lp, frames, _image_size(paths))
             if len(unimaged):  # a gap in the frames, not an error; never silent
                 shown = (", ".join(str(int(f)) for f in unimaged[:10])
@@ -173,6 +177,7 @@ class Dataset:
         meta = None
         mp = root / "meta.json"
         if mp.exists():
+            _regular(mp)
             try:
                 meta = json.loads(mp.read_text())
             except (OSError, ValueError) as e:
@@ -206,27 +211,25 @@ class Dataset:
         return ~np.isnan(self.labels[:, 0])
 
 
-def _png_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) from a PNG file's header (its first 24 bytes), None when the file is not
-    a readable PNG."""
+def _regular(path: Path) -> None:
+    """Refuse ``labels.csv`` / ``meta.json`` that are not regular files before opening them
+    (a FIFO would block the read forever)."""
     try:
-        with path.open("rb") as fh:
-            head = fh.read(24)
-    except OSError:
-        return None
-    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-        return None
-    w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-    return (w, h) if w > 0 and h > 0 else None
+        regular_file(path)
+    except FrameError as e:
+        raise DatasetError(str(e)) from None
 
 
 def _image_size(paths: list[Path]) -> tuple[int, int] | None:
-    """The frames' size (width, height): that of the first frame with a readable PNG header
-    (the reader marks a frame of another size as unreadable)."""
+    """The frames' size (width, height): that of the first frame whose header can be read
+    (:func:`torchseam.core.imageio.image_size`: a FIFO or other non-regular file is passed
+    over without being opened, as is a frame above the pixel limit; the reader marks a frame
+    of another size as unreadable)."""
     for p in paths:
-        size = _png_size(p)
-        if size is not None:
-            return size
+        try:
+            return image_size(p)
+        except FrameError:
+            continue
     return None
 
 

@@ -26,7 +26,9 @@ if TYPE_CHECKING:  # imported when the command runs: the parser (--help) needs n
 
 MISSING = "missing"  # track.csv status of a frame number the folder has no image for
 #: track.csv status of a frame that cannot be decoded or is not the size of the folder's
-#: first frame (the tracker skips it and goes on with the next one)
+#: first frame (the tracker skips it and goes on with the next one); a name that is not a
+#: regular file (a FIFO: never opened) or an image above the pixel limit (never decoded) too
+#: (:mod:`torchseam.core.imageio`)
 UNREADABLE = "unreadable"
 #: unreadable frames named one by one on stderr; the rest are counted
 WARN_FRAMES = 10
@@ -73,7 +75,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Track the weld feature point through FRAMES_DIR (frames in file-name "
                     "order; labels.csv is not read) and write frame,u,v,status per frame "
                     "number as it goes (status tracked, coasting, lost; unreadable for a frame "
-                    "that cannot be decoded or is not the size of the first one, which the "
+                    "that cannot be decoded, is not the size of the first one, is not a "
+                    "regular file (a FIFO: never opened) or declares more pixels than the "
+                    "limit (2**25, $TORCHSEAM_MAX_FRAME_PIXELS: never decoded), which the "
                     "tracker skips; missing for a number the folder has no image for).")
     _common(p)
     p.add_argument("--out", type=out_file_arg, default=Path("track.csv"),
@@ -84,7 +88,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Track FRAMES_DIR and compare with its labels.csv: RMSE, max error, "
                     "% frames > 5 px, % lost (> 15 px or no point), ms per frame (frame -> "
                     "point; the tracker's learning between frames, as the live loop runs it, "
-                    "is not counted). A frame that cannot be read counts as lost.")
+                    "is not counted). A frame that cannot be read (as for track) counts as "
+                    "lost.")
     _common(e)
     e.set_defaults(func=run_eval)
 

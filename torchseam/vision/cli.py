@@ -25,8 +25,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "Frames may be colour or mono, 8 or 16 bit, of any size (the camera's "
                     "size matters for 3D, not for finding the corner). A file that cannot be "
                     "read is one error line on stderr and skipped; the others are still "
-                    "detected. Exit code 0 when a point was found, 1 when none was, 2 when a "
-                    "file could not be read.")
+                    "detected: not a regular file (a FIFO, never opened), not an image, or "
+                    "an image whose header declares more pixels than the limit (2**25, "
+                    "$TORCHSEAM_MAX_FRAME_PIXELS; never decoded). Exit code 0 when a point "
+                    "was found, 1 when none was, 2 when a file could not be read.")
     p.add_argument("frames", nargs="+", type=Path, metavar="FRAME",
                    help="image files (PNG, JPEG, TIFF, ...)")
     p.add_argument("--overlay", type=out_dir_arg, metavar="DIR",

@@ -25,6 +25,8 @@ from torchseam.core.calibration import (
     DetectSettings,
 )
 from torchseam.core.config import CameraConfig
+from torchseam.core.errors import FrameError
+from torchseam.core.imageio import read_image as read_image_file
 
 __all__ = ["IMAGE_SUFFIXES", "board_pose", "check_count", "check_motion", "check_sizes",
            "detect_all", "detect_board", "list_images", "read_image", "rms", "rt_matrix",
@@ -40,10 +42,14 @@ def rms(x: np.ndarray) -> float:
 
 
 def read_image(path: Path) -> np.ndarray:
-    """An image file as uint8 BGR; an unreadable one is a :class:`CalibrationError` naming it."""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise CalibrationError(f"{path}: cannot be read as an image")
+    """An image file as uint8 BGR; an unreadable one is a :class:`CalibrationError` naming it:
+    not a regular file (a FIFO, refused without being opened), a header that declares more
+    pixels than :func:`~torchseam.core.imageio.max_frame_pixels` (refused before decoding),
+    or a file OpenCV cannot decode (:func:`torchseam.core.imageio.read_image`)."""
+    try:
+        img = read_image_file(path, cv2.IMREAD_COLOR)
+    except FrameError as e:
+        raise CalibrationError(str(e)) from None
     return img
 
 
