@@ -58,7 +58,7 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
     ("train", "torchseam.fit.cli", "fit the EAKF-STC parameters on labelled sequences"),
     ("train-live", "torchseam.fit.live_cli",
      "fit the live tracker (EAKF-STC and the fusion) end to end on full sequences"),
-    ("calibrate", "torchseam.geometry.calib_cli",
+    ("calibrate", "torchseam.live.calibrate_cli",
      "calibrate camera, laser plane, hand-eye or TCP from a folder"),
     ("ring", "torchseam.live.ring_cli",
      "locate and plan the whole ring in open loop; error table and plots"),

@@ -45,7 +45,9 @@ KINDS = {
 }
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
+    """Add ``calibrate`` and its kinds; returns the kinds' sub-parsers (the live stage adds
+    ``latency``, which needs the cell's camera and controller, there)."""
     p = sub.add_parser(
         "calibrate", help="calibrate camera, laser plane, hand-eye or TCP from a folder",
         description=__doc__.split("\n", 2)[2].replace("``", ""),
@@ -88,6 +90,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="calibration settings (default configs/calibration.yaml)")
     s.add_argument("--overwrite", action="store_true", help="replace a set already in DIR")
     s.set_defaults(func=run_simulate)
+    return kinds
 
 
 # --------------------------------------------------------------------------- commands

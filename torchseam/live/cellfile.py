@@ -16,7 +16,8 @@ one for the virtual cell; for a real cell copy it and edit it)::
       port: 6510
       controller_host: 127.0.0.1     # datagrams from any other address are dropped
       controller_port: 6511
-      cycle_ms: 4.0                  # the EGM cycle: the fed-back pose is this old on arrival
+      cycle_ms: 4.0                  # the EGM cycle
+      feedback_delay_ms: 4.0         # the least age of a fed-back pose on arrival
       rapid_data: true               # RobotWare >= 6.10: arc and segment state over EGM
 
 :func:`load_weld_cell` validates it (one line naming the file and the field on a bad value).
@@ -63,6 +64,8 @@ class ControllerLink(EgmNetwork):
     (``controller:`` of a cell file)."""
 
     cycle_ms: float = _f(default=4.0, lo=1.0, hi=100.0)
+    # the least time from a pose's measurement (feedBack.time) to its datagram's arrival
+    feedback_delay_ms: float = _f(default=4.0, lo=0.0, hi=100.0)
     rapid_data: bool = _f(default=True)
 
 

@@ -138,6 +138,28 @@ class PoseHistory:
                 return None
             return self._t[-1], self._T[-1].copy()
 
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every pose held: times (N,) and poses (N, 4, 4)."""
+        with self._lock:
+            return np.fromiter(self._t, float, len(self._t)), np.array(list(self._T)).reshape(
+                -1, 4, 4)
+
+    def positions_at(self, t_pc: np.ndarray) -> np.ndarray:
+        """(M, 3) positions at times ``t_pc`` (M,), linear between the poses around each;
+        NaN outside the history or inside a gap over ``max_gap_s`` (vectorised :meth:`at`)."""
+        t, T = self.snapshot()
+        q = np.asarray(t_pc, float)
+        out = np.full((len(q), 3), np.nan)
+        if len(t) < 2:
+            return out
+        i = np.clip(np.searchsorted(t, q, side="right"), 1, len(t) - 1)
+        t0, t1 = t[i - 1], t[i]
+        ok = (q >= t[0]) & (q <= t[-1]) & (t1 - t0 <= self.max_gap_s)
+        w = np.where(t1 > t0, (q - t0) / np.where(t1 > t0, t1 - t0, 1.0), 0.0)[:, None]
+        P = (1 - w) * T[i - 1, :3, 3] + w * T[i, :3, 3]
+        out[ok] = P[ok]
+        return out
+
     def at(self, t_pc: float) -> np.ndarray | None:
         """The pose (4, 4) at ``t_pc``: interpolated between the fed-back poses around it
         (position linear, orientation slerp), or None when there is none on one side or the

@@ -165,6 +165,7 @@ class VirtualController:
         self._restart_at = float("nan")
         self._restarted: set[int] = set()
         self._k = 0
+        self._last_cycle_t = time.monotonic()
         self.ended = threading.Event()
         self._lock = threading.Lock()
         if "packet-loss" in faults:
@@ -177,7 +178,8 @@ class VirtualController:
 
         def build(q, T, q_plan, T_plan, running, compute_s):   # noqa: ANN001
             msg = base_build(q, T, q_plan, T_plan, running, compute_s)
-            measured["t"] = time.monotonic()   # the pose was measured at this cycle's start
+            # the fed-back pose is the one the previous cycle recorded (the ring's time of it)
+            measured["t"] = self._last_cycle_t
             with self._lock:
                 data = rd.RapidData(arc_on=self.arc, segment=self._segment_number(),
                                     phase=self.phase, n_segments=self.n_segments)
@@ -253,6 +255,7 @@ class VirtualController:
                 self.log.arc_off_after_stall_s.append(round(now - mark, 4))
         write_pose(self.ring, self._k, now, self.job_i, arc, guided_since, T)
         self._k += 1
+        self._last_cycle_t = now
         if self.phase == rd.RapidPhase.ENDED and now - self.t_phase > 1.0:
             self.ended.set()
 
@@ -483,8 +486,10 @@ def camera_main(spec: CameraSpec, ring: Any, port_out: Any, stop: Any, marks: An
             due = t_exp + spec.latency_s
             if time.monotonic() > due + 0.002:
                 sent_late += 1
+                marks[1] = float(sent_late)
             _sleep_until(due)
-            server.send(index, int((t_exp - cam_t0) * 1e9), frame)
+            if server.send(index, int((t_exp - cam_t0) * 1e9), frame):
+                marks[2] += 1.0
     finally:
         server.close()
 
@@ -517,7 +522,8 @@ def _sleep_until(t: float) -> None:
 
 def summarise(log: ProgramLog, jobs: list[SegmentJob], scenes: list[Any], gate_for: Any,
               angles: list[tuple[float, float]], max_step_mm: float, t_start: float,
-              info: dict[str, Any]) -> dict[str, Any]:
+              info: dict[str, Any], frames_sent: float = 0, frames_late: float = 0
+              ) -> dict[str, Any]:
     """The truth of the run (see the module docstring)."""
     from torchseam.core.transforms import pose_matrix
     from torchseam.live.ring import torch_axis_errors
@@ -606,6 +612,7 @@ def summarise(log: ProgramLog, jobs: list[SegmentJob], scenes: list[Any], gate_f
         "segments_incomplete": incomplete,
         "events": list(log.events),
         "arc_off_after_camera_stall_s": list(log.arc_off_after_stall_s),
+        "camera_frames_sent": int(frames_sent), "camera_frames_late": int(frames_late),
         "robot_stopped_after_comm_loss_s": (None if math.isnan(log.stopped_after_timeout_s)
                                             else round(log.stopped_after_timeout_s, 3)),
         "controller": {"cycles": len(cyc)},
@@ -668,11 +675,16 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
         angles.append((float(seg.angles[0]), float(seg.angles[1])))
         gates.append(ReachGate(parts.robot, cell=cell, part=plan.part,
                                part_pose_mm=scene.T_B_Tnom))
+    if args.program == "latency":
+        # RAPID's latency routine: one guided motion at the first segment's start, as long as
+        # the sensor moves the robot (torchseam calibrate latency), nothing welded
+        jobs = [dataclasses.replace(jobs[0], length_mm=0.0)]
+        scenes, angles, gates = scenes[:1], angles[:1], gates[:1]
     ctx = mp.get_context("spawn")
     ring = _shared_ring(ctx)
     stop = ctx.Event()
     port_rx, port_tx = ctx.Pipe(duplex=False)
-    marks = ctx.Array("d", [float("nan")], lock=False)
+    marks = ctx.Array("d", [float("nan"), 0.0, 0.0], lock=False)  # stall due, late, sent
     spec = CameraSpec(cell, plan.part, noise, level, args.seed, None,
                       tuple(j.rotation_deg for j in jobs), tuple(_fault_at_s(j) for j in jobs),
                       args.camera_latency_ms / 1e3, tuple(args.fault), 0)
@@ -685,7 +697,7 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
     sensor_port = free_udp_port()
     comm_timeout = args.comm_timeout_s
     max_seg_s = max((j.approach_mm + j.length_mm) / cell.process.weld_speed_mm_s for j in jobs
-                    ) * 4 + 30.0
+                    ) * 4 + 60.0
     vc = VirtualController(cell, parts.egm, parts.robot, jobs, ring,
                            ("127.0.0.1", sensor_port), clock_offset_s=args.clock_offset_s,
                            comm_timeout_s=comm_timeout, arc_hold_ms=args.arc_hold_ms,
@@ -699,7 +711,10 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
                           latency_ms=float(args.camera_latency_ms)),
         controller=ControllerLink(host="127.0.0.1", port=sensor_port,
                                   controller_host="127.0.0.1", controller_port=vc.address[1],
-                                  cycle_ms=vc.ctrl.period * 1e3, rapid_data=True))
+                                  cycle_ms=vc.ctrl.period * 1e3,
+                                  # a pose is recorded at one cycle's end and leaves at the
+                                  # tick after next: two cycles old at the least
+                                  feedback_delay_ms=2 * vc.ctrl.period * 1e3, rapid_data=True))
     stopping = {"sig": 0}
 
     def on_signal(signum: int, _frame: Any) -> None:
@@ -730,7 +745,7 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
         cam.join(timeout=5.0)
         if cam.is_alive():
             cam.terminate()
-    info = {"part": str(args.part), "segments_asked": args.segments,
+    info = {"program": args.program, "part": str(args.part), "segments_asked": args.segments,
             "length_mm": args.length_mm, "noise": level, "seed": args.seed,
             "faults": list(args.fault), "camera_latency_ms": args.camera_latency_ms,
             "clock_offset_s": args.clock_offset_s, "comm_timeout_s": comm_timeout,
@@ -738,7 +753,7 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
     # the step a pose may make: the link's limit for the IPI step (torchseam weld's link)
     max_step = max(parts.egm.safety.max_step_mm, 1.25 * cell.process.step_mm)
     summary = summarise(vc.log, jobs, scenes, lambda i: gates[i], angles, max_step,
-                        vc.t_start, info)
+                        vc.t_start, info, frames_sent=marks[2], frames_late=marks[1])
     write_json_atomic(out / "summary.json", summary)
     s = summary
     print(f"virtual cell: seam RMSE {s['seam_rmse_mm']:.3f} mm, max {s['seam_max_mm']:.3f} mm, "

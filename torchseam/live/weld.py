@@ -66,6 +66,7 @@ class ControllerView:
     """
 
     cycle_s: float
+    delay_s: float = 0.0
     offset: ClockOffset = field(init=False)
     poses: PoseHistory = field(init=False)
     rapid: rd.RapidData | None = None
@@ -75,8 +76,8 @@ class ControllerView:
     _resets: int = 0
 
     def __post_init__(self) -> None:
-        self.offset = ClockOffset(known_delay_s=self.cycle_s, window=1000)
-        self.poses = PoseHistory(maxlen=1500, max_gap_s=max(0.02, 5 * self.cycle_s))
+        self.offset = ClockOffset(known_delay_s=self.delay_s, window=1000)
+        self.poses = PoseHistory(maxlen=5000, max_gap_s=max(0.02, 5 * self.cycle_s))
 
     def on_robot(self, robot: Any, at: float) -> bool:
         """The link's hook: one accepted ``EgmRobot`` arrived at ``at`` (PC clock)."""
@@ -179,13 +180,15 @@ class WeldRunner:
         self.progress = progress
         self.connect_timeout_s, self.wait_rapid_s = connect_timeout_s, wait_rapid_s
         self.res = WeldResult()
-        self.view = ControllerView(cycle_s=cell.controller.cycle_ms / 1e3)
+        self.view = ControllerView(cycle_s=cell.controller.cycle_ms / 1e3,
+                                   delay_s=cell.controller.feedback_delay_ms / 1e3)
         self.reply = SensorReply()
         self.tool_inv = invert(self.calib.tool.matrix())
         self.period_s = 1.0 / self.calib.process.frame_rate_hz
         self.stall_s = cell.camera.stall_frames * self.period_s
         self.cam_offset = ClockOffset(known_delay_s=cell.camera.latency_ms / 1e3, window=250)
         self._signal = 0
+        self.cam: Any = None      # the StreamCamera, once open
 
     # ------------------------------------------------------------------ set-up
 
@@ -209,7 +212,9 @@ class WeldRunner:
 
     # ------------------------------------------------------------------ the run
 
-    def run(self) -> WeldResult:
+    def open(self) -> None:
+        """Listen for the controller, connect to the camera, wait for the controller's first
+        datagrams (and RAPID's data with them)."""
         from torchseam.live.framestream import StreamCamera
         from torchseam.robot.egm import EgmLink
 
@@ -219,11 +224,28 @@ class WeldRunner:
         self.progress(f"weld: EGM listening on {cfg.network.host}:{cfg.network.port} for the "
                       f"controller at {cfg.network.controller_host}:"
                       f"{cfg.network.controller_port}; camera {self.cell.camera.source}")
-        cam = None
+        self.cam = StreamCamera(self.cell.camera.source, connect_timeout_s=self.connect_timeout_s)
+        self._wait_controller()
+
+    def close(self) -> None:
+        """Arc off towards RAPID, the figures kept, the camera and the link closed."""
+        self.reply.set(False, self.reply.segment, self.reply.state)
+        time.sleep(0.05)           # the arc-off reaches the controller
+        self.res.link = _link_figures(self.link)
+        self.res.clocks = {
+            "controller_offset_s": self.view.offset.offset_s,
+            "controller_clock_resets": self.view.offset.resets,
+            "camera_offset_s": self.cam_offset.offset_s,
+            "camera_latency_ms": self.cell.camera.latency_ms}
+        if self.cam is not None:
+            self.res.frames_dropped += self.cam.dropped
+            self.cam.close()
+        self.link.stop()
+
+    def run(self) -> WeldResult:
+        """Weld the asked segments (see the module docstring)."""
         try:
-            cam = StreamCamera(self.cell.camera.source, connect_timeout_s=self.connect_timeout_s)
-            self.cam = cam
-            self._wait_controller()
+            self.open()
             todo = [s for s in self.report.plan.segments if s.name in self.segments]
             for seg in todo:
                 self._check_signal()
@@ -232,18 +254,8 @@ class WeldRunner:
             self.res.interrupted = str(e)
             self._abort_current("interrupted by " + str(e))
         finally:
-            self.reply.set(False, self.reply.segment, self.reply.state)
-            time.sleep(0.05)           # the arc-off reaches the controller
-            self.res.link = _link_figures(self.link)
-            self.res.clocks = {
-                "controller_offset_s": self.view.offset.offset_s,
-                "controller_clock_resets": self.view.offset.resets,
-                "camera_offset_s": self.cam_offset.offset_s,
-                "camera_latency_ms": self.cell.camera.latency_ms}
-            if cam is not None:
-                self.res.frames_dropped += cam.dropped
-                cam.close()
-            self.link.stop()
+            if hasattr(self, "link"):
+                self.close()
         return self.res
 
     def _abort_current(self, why: str) -> None:

@@ -1,0 +1,95 @@
+"""``torchseam calibrate``: the geometry stage's kinds (camera, laser, handeye, tcp, simulate)
+and ``latency``, which needs the cell's camera and controller (the live stage)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import signal
+import sys
+from pathlib import Path
+
+from torchseam.core.errors import TorchseamError
+from torchseam.geometry import calib_cli
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a number") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a number > 0")
+    return v
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    kinds = calib_cli.register(sub)
+    q = kinds.add_parser(
+        "latency", help="the camera's latency against the controller's feedback",
+        description="Measure the camera's latency (exposure -> arrival at this PC) against the "
+                    "controller's fed-back motion and write it into the cell file "
+                    "(camera.latency_ms): RAPID hands a motion over to EGM (its latency "
+                    "routine; `torchseam virtual-cell --program latency`), the sensor moves "
+                    "up and down along the torch axis over the part, and the stripe's motion "
+                    "in the image is matched to the fed-back motion.")
+    q.add_argument("--cell", type=Path, required=True, help="the cell file to measure and update")
+    q.add_argument("--duration", type=_positive, default=10.0, metavar="S",
+                   help="how long the sensor moves (default 10 s)")
+    q.add_argument("--amplitude-mm", type=_positive, default=2.0,
+                   help="up and down by this much (default 2 mm)")
+    q.add_argument("--period-s", type=_positive, default=2.0,
+                   help="one up-and-down in this long (default 2 s)")
+    q.add_argument("--dry-run", action="store_true",
+                   help="measure and print, leave the cell file as it is")
+    q.set_defaults(func=run_latency)
+
+
+def run_latency(args: argparse.Namespace) -> int:
+    import cv2
+    import torch
+
+    from torchseam.core.report import format_table
+    from torchseam.live.cellfile import load_weld_cell, save_weld_cell
+    from torchseam.live.latency import measure_latency
+    from torchseam.live.parts import load_live_parts
+    from torchseam.live.weld import WeldRunner
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    if not args.cell.exists():
+        raise TorchseamError(f"{args.cell}: no such cell file")
+    cell = load_weld_cell(args.cell)
+    if 2 * math.pi * args.amplitude_mm / args.period_s > cell.calibration.process.weld_speed_mm_s:
+        raise TorchseamError("--amplitude-mm / --period-s: the sine's top speed "
+                             f"{2 * math.pi * args.amplitude_mm / args.period_s:.1f} mm/s is "
+                             "above the weld speed (the controller's guided speed)")
+    runner = WeldRunner(cell, None, load_live_parts(), "", None,
+                        progress=lambda m: print(m, flush=True))
+    old = {s: signal.signal(s, runner.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        runner.open()
+        res = measure_latency(runner, args.duration, args.amplitude_mm, args.period_s)
+    finally:
+        if hasattr(runner, "link"):
+            runner.close()
+        for s, h in old.items():
+            signal.signal(s, h)
+    print(format_table(["figure", "value", "unit"], [
+        ["camera latency (exposure -> arrival)", f"{res.latency_ms:.2f}", "ms"],
+        ["in the cell file before", f"{cell.camera.latency_ms:.2f}", "ms"],
+        ["fit: median absolute residual", f"{res.residual_px:.3f}", "px"],
+        ["stripe motion per mm of height", f"{res.px_per_mm:.2f}", "px/mm"],
+        ["frames", res.frames, ""]]))
+    if abs(res.px_per_mm) < 1.0:
+        print("torchseam calibrate latency: error: the stripe hardly moved with the sensor "
+              f"({res.px_per_mm:.2f} px/mm): is the stripe on the part?", file=sys.stderr)
+        return 1
+    if not args.dry_run:
+        new = dataclasses.replace(cell, camera=dataclasses.replace(
+            cell.camera, latency_ms=round(float(res.latency_ms), 2)))
+        save_weld_cell(new, args.cell, header="# camera.latency_ms measured by torchseam "
+                                              "calibrate latency\n")
+        print(f"camera.latency_ms = {res.latency_ms:.2f} written to {args.cell}")
+    return 0
