@@ -160,6 +160,18 @@ class PoseHistory:
         out[ok] = P[ok]
         return out
 
+    def nearest(self, t_pc: float, within_s: float) -> np.ndarray | None:
+        """The held pose nearest to ``t_pc`` if it is at most ``within_s`` away, else None."""
+        with self._lock:
+            n = len(self._t)
+            if n == 0:
+                return None
+            ts = np.fromiter(self._t, float, n)
+            i = int(np.argmin(np.abs(ts - t_pc)))
+            if abs(ts[i] - t_pc) > within_s:
+                return None
+            return self._T[i].copy()
+
     def at(self, t_pc: float) -> np.ndarray | None:
         """The pose (4, 4) at ``t_pc``: interpolated between the fed-back poses around it
         (position linear, orientation slerp), or None when there is none on one side or the

@@ -297,13 +297,7 @@ class VirtualController:
         elif self.phase == P.TAKEN_BACK:
             self.arc = False
             if now - self.t_phase >= 0.3:
-                if not math.isnan(self._restart_at):
-                    self._restart_at = float("nan")   # back to the same segment
-                    self._set(P.GUIDED, now)
-                    self.log.last_reply_t = now
-                    self._event(now, "EGM restarted: the segment goes on from where the "
-                                     "robot stands")
-                elif self.log.outcome.get(self._segment_number()) == "timeout":
+                if self.log.outcome.get(self._segment_number()) == "timeout":
                     self._end(now)
                 else:
                     self._next_segment(now)
@@ -311,6 +305,12 @@ class VirtualController:
     def _guided(self, now: float, s: Any, fresh: bool) -> None:
         rd, P = self.rd, self.rd.RapidPhase
         job = self.jobs[self.job_i]
+        if not math.isnan(self._restart_at):
+            if now - self._restart_at < RESTART_SILENCE_S + 0.2:
+                self.arc = False                 # restarting: nothing sent, nothing heard
+                self.log.last_reply_t = now
+                return
+            self._restart_at = float("nan")
         since = self.log.last_reply_t
         if now - since > self.comm_timeout_s:
             self.arc = False
@@ -340,23 +340,21 @@ class VirtualController:
                              "RAPID takes back")
             self._set(P.TAKEN_BACK, now)
             return
-        if ("controller-restart" in self.faults and math.isnan(self._restart_at)
-                and now - self.guided_since > _fault_at_s(job)
+        if ("controller-restart" in self.faults and now - self.guided_since > _fault_at_s(job)
                 and job.number not in self._restarted):
             self._restarted.add(job.number)
             self._restart(now)
 
     def _restart(self, now: float) -> None:
         """EGM restarts: silent for RESTART_SILENCE_S (robot stopped, arc off), then a new
-        sequence; RAPID goes on with the same segment from where the robot stands."""
+        sequence (numbers from 1, the clock going on); RAPID's segment goes on, guided, from
+        where the robot stands."""
         self.arc = False
         self._stop_robot()
         self._restart_at = now
         self._event(now, "controller-restart: EGM silent, a new sequence follows")
         self.ctrl.inject("silence", int(RESTART_SILENCE_S / self.ctrl.period))
         self.ctrl._messages._seqno = 0
-        self._set(self.rd.RapidPhase.TAKEN_BACK, now)
-        self.t_phase = now + RESTART_SILENCE_S
 
     def _set(self, phase: Any, now: float) -> None:
         self.phase, self.t_phase = phase, now

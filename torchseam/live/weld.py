@@ -77,7 +77,9 @@ class ControllerView:
 
     def __post_init__(self) -> None:
         self.offset = ClockOffset(known_delay_s=self.delay_s, window=1000)
-        self.poses = PoseHistory(maxlen=5000, max_gap_s=max(0.02, 5 * self.cycle_s))
+        # a few lost datagrams in a row leave a gap the smooth motion spans; a longer one (the
+        # controller silent) leaves the frames in it without a pose
+        self.poses = PoseHistory(maxlen=5000, max_gap_s=max(0.05, 12 * self.cycle_s))
 
     def on_robot(self, robot: Any, at: float) -> bool:
         """The link's hook: one accepted ``EgmRobot`` arrived at ``at`` (PC clock)."""
@@ -108,22 +110,31 @@ class ControllerView:
 
 @dataclass
 class SensorReply:
-    """What the weld says to RAPID in every reply (the link's thread writes it)."""
+    """What the weld says to RAPID in every reply (the link's thread writes it).
+
+    The arc request is a lease: the weld's loop renews it with every frame it handles, and a
+    request older than ``lease_s`` goes out as False. A weld whose loop stalls (starved of the
+    CPU, stuck) while the link's thread still answers does not keep the arc burning over a
+    torch the link is holding still."""
 
     arc_request: bool = False
     segment: int = 0
     state: rd.SensorState = rd.SensorState.WAIT
     heartbeat: int = 0
+    lease_s: float = 0.06
+    _since: float = 0.0
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def set(self, arc_request: bool, segment: int, state: rd.SensorState) -> None:
         with self._lock:
             self.arc_request, self.segment, self.state = arc_request, segment, state
+            self._since = time.monotonic()
 
     def on_reply(self, msg: Any) -> None:
         with self._lock:
             self.heartbeat = rd.next_heartbeat(self.heartbeat)
-            rd.write_sensor_data(msg, rd.SensorData(self.arc_request, self.segment, self.state,
+            arc = self.arc_request and time.monotonic() - self._since <= self.lease_s
+            rd.write_sensor_data(msg, rd.SensorData(arc, self.segment, self.state,
                                                     self.heartbeat))
 
 
@@ -182,7 +193,8 @@ class WeldRunner:
         self.res = WeldResult()
         self.view = ControllerView(cycle_s=cell.controller.cycle_ms / 1e3,
                                    delay_s=cell.controller.feedback_delay_ms / 1e3)
-        self.reply = SensorReply()
+        self.period_s = 1.0 / cell.calibration.process.frame_rate_hz
+        self.reply = SensorReply(lease_s=2.5 * self.period_s)
         self.tool_inv = invert(self.calib.tool.matrix())
         self.period_s = 1.0 / self.calib.process.frame_rate_hz
         self.stall_s = cell.camera.stall_frames * self.period_s
@@ -442,7 +454,7 @@ class WeldRunner:
         if newest is None:
             return False
         t, T = newest
-        T0 = self.view.poses.at(t - 0.1)
+        T0 = self.view.poses.nearest(t - 0.1, 0.03)
         if T0 is None:
             return False
         v = float(np.linalg.norm(T[:3, 3] - T0[:3, 3])) / 0.1
