@@ -193,3 +193,40 @@ def test_weld_killed_mid_segment_the_controller_stops_the_robot(tmp_path):
     assert s["segments_incomplete"] and s["segments_incomplete"][0]["segment"] == "a"
     assert s["unsafe_poses_sent"] == 0
     assert s["arc_on_while_still_s"] <= 0.2
+
+
+@pytest.mark.slow
+def test_weld_interrupted_holds_reports_and_keeps_the_old_report(tmp_path):
+    """SIGINT mid-segment: arc off, the segment aborted towards RAPID, summary.json marked
+    interrupted, exit 130; the report of an earlier run in --out is moved aside, not left
+    posing as this run's."""
+    old = tmp_path / "W"
+    old.mkdir()
+    (old / "summary.json").write_text('{"segments_welded": ["a"], "old": true}')
+    vc = _virtual(tmp_path)
+    try:
+        weld = _torchseam("weld", "--cell", "V/cell.yaml", "--part", str(PART), "--segments",
+                          "a", "--length-mm", "60", "--out", "W", cwd=tmp_path)
+        deadline = time.monotonic() + 120.0
+        assert weld.stdout is not None
+        lines = []
+        for line in weld.stdout:
+            lines.append(line)
+            if "mm, tracking" in line and not line.split(":")[-1].strip().startswith("0.0"):
+                break
+            assert time.monotonic() < deadline, "the weld never started welding"
+        weld.send_signal(signal.SIGINT)
+        rc, out = _finish(weld, 60.0)
+        vrc, vout = _finish(vc, 60.0)
+    finally:
+        vc.kill()
+    assert rc == 130, "".join(lines) + out
+    w = json.loads((tmp_path / "W" / "summary.json").read_text())
+    assert w["interrupted"] == "SIGINT"
+    assert w["segments_welded"] == [] and w["segments_incomplete"][0]["segment"] == "a"
+    assert not (tmp_path / "W" / "RUNNING").exists()
+    moved = json.loads((tmp_path / "W.previous-1" / "summary.json").read_text())
+    assert moved["old"] is True
+    s = json.loads((tmp_path / "V" / "summary.json").read_text())
+    assert s["segments"]["a"]["outcome"] == "abort", vout[-2000:]
+    assert s["unsafe_poses_sent"] == 0 and s["arc_on_while_still_s"] <= 0.2

@@ -201,6 +201,7 @@ class WeldRunner:
         self.cam_offset = ClockOffset(known_delay_s=cell.camera.latency_ms / 1e3, window=250)
         self._signal = 0
         self.cam: Any = None      # the StreamCamera, once open
+        self._partial: SegmentOutcome | None = None   # the segment a signal interrupted
 
     # ------------------------------------------------------------------ set-up
 
@@ -264,6 +265,8 @@ class WeldRunner:
                 self.res.segments.append(self._segment(seg))
         except Interrupted as e:
             self.res.interrupted = str(e)
+            if self._partial is not None:
+                self.res.segments.append(self._partial)
             self._abort_current("interrupted by " + str(e))
         finally:
             if hasattr(self, "link"):
@@ -432,6 +435,11 @@ class WeldRunner:
                     self.progress(f"weld: segment {seg.name}: "
                                   f"{max(0.0, travelled - geo.approach_mm):5.1f} / "
                                   f"{geo.length_mm:.1f} mm, {loop.state.value}")
+        except Interrupted as e:
+            out.reason = (f"interrupted by {e} after {max(0.0, travelled - geo.approach_mm):.1f}"
+                          f" of {geo.length_mm:.1f} mm")
+            self._partial = out
+            raise
         finally:
             out.travelled_mm = max(0.0, travelled - geo.approach_mm)
             out.unwelded_mm = arc_out_mm
