@@ -26,10 +26,49 @@ SEGMENT_LETTERS = "abcdef"
 
 @dataclass(frozen=True)
 class ServerSettings:
+    """The web server (``server:``). The connection settings keep a path open for the
+    operator whatever else connects (see ``torchseam.console.server.ConnectionGuard``); they
+    have defaults, so a console.yaml written before them still loads."""
+
     port: int = _f(lo=0, hi=65535)
     max_clients: int = _f(lo=1)
     send_timeout_s: float = _f(lo=0.0, lo_open=True)
     heartbeat_s: float = _f(lo=0.0, lo_open=True)
+    #: connections open at once, all clients together (fewer when the descriptor limit
+    #: leaves less room: see ``fd_reserve``)
+    max_connections: int = _f(lo=8, hi=1_000_000, default=256)
+    #: connections open at once from one address (loopback is one address for every program
+    #: on the PC, the operator's browser included)
+    max_connections_per_client: int = _f(lo=2, hi=1_000_000, default=64)
+    #: a connection with no request being answered for this long is closed: one that sends
+    #: nothing, sends its request's header too slowly, or sits idle between requests
+    idle_timeout_s: float = _f(lo=0.0, lo_open=True, hi=3600.0, default=10.0)
+    #: longest a request may take to be answered once its header is in (its body included);
+    #: the WebSocket stream is not bounded by it
+    request_timeout_s: float = _f(lo=0.0, lo_open=True, hi=3600.0, default=10.0)
+    #: pending connections the kernel queues for the server (listen backlog)
+    backlog: int = _f(lo=1, hi=65535, default=512)
+    #: file descriptors kept free for the rest of the process (the weld, its files, OpenCV)
+    fd_reserve: int = _f(lo=0, hi=1_000_000, default=64)
+    #: longest request line / header line accepted (aiohttp); longer is a 400
+    max_line_size: int = _f(lo=256, hi=1 << 20, default=8190)
+    max_field_size: int = _f(lo=256, hi=1 << 20, default=8190)
+    #: malformed requests logged per minute (one line each); the rest are counted, and the
+    #: count is given in the next line logged
+    bad_requests_logged_per_min: int = _f(lo=0, hi=1_000_000, default=10)
+    #: the page's CSP allows ``eval`` ('unsafe-eval'): the page needs none, but browser
+    #: automation (Playwright's ``wait_for_function``, the console's browser test) evaluates
+    #: its predicates inside the page; injected scripts and handlers are refused either way
+    page_allows_eval: bool = _f(default=True)
+
+    def _check(self) -> None:
+        if self.max_connections_per_client > self.max_connections:
+            raise ValueError(f"max_connections_per_client ({self.max_connections_per_client}) "
+                             f"above max_connections ({self.max_connections})")
+        if self.max_clients >= self.max_connections_per_client:
+            raise ValueError(f"max_clients ({self.max_clients}) must be below "
+                             f"max_connections_per_client ({self.max_connections_per_client}): "
+                             "each page's stream holds a connection, and a page needs more")
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,15 @@ token (``secrets.token_urlsafe``, printed with the address at start: ``/?token=.
 ``X-Torchseam-Token`` header, or for the WebSocket in the ``token`` query parameter (a browser
 cannot set a WebSocket's headers). Refusals are 403 ``{"ok": false, "error": "..."}``.
 
+The operator keeps a path in (:class:`ConnectionGuard`, ``server:`` settings): connections are
+capped per client address and in all, within the file descriptors the process may open, the
+oldest idle one making way for a new one; idle and slow-header connections are closed after
+``idle_timeout_s``, a request's answer is bounded by ``request_timeout_s``; a malformed request
+is one log line, rate-limited (:class:`BadRequestLog`). Every response carries
+``X-Frame-Options: DENY``, ``X-Content-Type-Options: nosniff``, ``Referrer-Policy:
+no-referrer`` and a Content-Security-Policy with ``frame-ancestors 'none'``; the page's allows
+exactly its own inline code, by hash (:func:`page_csp`).
+
 Nothing here runs on the weld thread. One publisher task encodes the newest frame (on a worker
 thread: OpenCV releases the GIL) and wakes each client's sender; a sender sends what is new
 since its own cursor, so a slow client skips frames and merges updates instead of queueing
@@ -33,25 +42,32 @@ them (its backlog is one cursor, never a growing queue), and a client that takes
 from __future__ import annotations
 
 import asyncio
+import base64
 import concurrent.futures
+import functools
+import hashlib
 import hmac
 import ipaddress
 import json
+import logging
 import math
+import os
 import secrets
 import threading
 import time
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from html.parser import HTMLParser
 from importlib import resources
 from typing import Any
 from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
-from aiohttp import WSMsgType, web
+from aiohttp import WSMsgType, http_exceptions, web
 
-from torchseam.console.config import ConsoleConfig, ParamError, WeldParams
+from torchseam.console.config import ConsoleConfig, ParamError, ServerSettings, WeldParams
 from torchseam.console.session import Cursor, LatestFrame, WeldSession, num
 from torchseam.core.overlay import put_label
 
@@ -257,6 +273,338 @@ class _Client:
     sent: int = 0
 
 
+# --------------------------------------------------------------------------- operator's path
+
+#: Headers on every response (the page's CSP is built from the page: :func:`page_csp`).
+SECURITY_HEADERS = {"X-Frame-Options": "DENY", "X-Content-Type-Options": "nosniff",
+                    "Referrer-Policy": "no-referrer"}
+#: The Content-Security-Policy of every response but the page (JSON, JPEG, errors): nothing
+#: may run, load or frame it.
+CSP_STRICT = "default-src 'none'; frame-ancestors 'none'; base-uri 'none'; form-action 'none'"
+
+
+class _InlineCode(HTMLParser):
+    """The page's inline code: ``<script>`` / ``<style>`` bodies, event-handler and ``style``
+    attributes (attribute values as the browser hashes them: entities decoded)."""
+
+    def __init__(self) -> None:
+        super().__init__(convert_charrefs=True)
+        self.scripts: list[str] = []
+        self.styles: list[str] = []
+        self.handlers: list[str] = []
+        self.style_attrs: list[str] = []
+        self.external: list[str] = []
+        self._open: str | None = None
+        self._text: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        for name, value in attrs:
+            if value is None:
+                continue
+            if name == "style":
+                self.style_attrs.append(value)
+            elif name.startswith("on"):
+                self.handlers.append(value)
+            elif name == "src" and tag == "script":
+                self.external.append(value)
+        if tag in ("script", "style"):
+            self._open, self._text = tag, []
+
+    def handle_data(self, data: str) -> None:
+        if self._open is not None:
+            self._text.append(data)
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag == self._open:
+            (self.scripts if tag == "script" else self.styles).append("".join(self._text))
+            self._open = None
+
+
+def _sha256(text: str) -> str:
+    return "'sha256-" + base64.b64encode(hashlib.sha256(text.encode()).digest()).decode() + "'"
+
+
+def _sources(code: list[str], attrs: list[str]) -> str:
+    """A source list allowing exactly ``code`` (inline elements) and ``attrs`` (attributes,
+    which CSP allows by hash only with ``'unsafe-hashes'``), or ``'none'``."""
+    out = sorted({_sha256(c) for c in code})
+    if attrs:
+        out += ["'unsafe-hashes'", *sorted({_sha256(a) for a in attrs})]
+    return " ".join(out) or "'none'"
+
+
+def page_csp(html: str, allow_eval: bool = False) -> str:
+    """The page's Content-Security-Policy: its own inline script and style by SHA-256 hash
+    (and its event-handler and ``style`` attributes, ``'unsafe-hashes'``), images from itself
+    and ``blob:`` (the camera frame), fetch and WebSocket to itself, nothing else; no
+    framing (``frame-ancestors 'none'``), no ``<base>``, no form posts. An injected script
+    or handler has another hash and does not run. ``allow_eval``: ``'unsafe-eval'`` too
+    (``server.page_allows_eval``: for browser automation that evaluates in the page)."""
+    found = _InlineCode()
+    found.feed(html)
+    found.close()
+    if found.external:
+        raise ValueError(f"the page loads scripts ({found.external[0]!r}): it must be "
+                         "self-contained")
+    return "; ".join([
+        "default-src 'none'",
+        f"script-src {_sources(found.scripts, found.handlers)}"
+        + (" 'unsafe-eval'" if allow_eval else ""),
+        f"style-src {_sources(found.styles, found.style_attrs)}",
+        "img-src 'self' blob:", "connect-src 'self'", "base-uri 'none'",
+        "form-action 'none'", "frame-ancestors 'none'"])
+
+
+def _secure(headers: Any) -> None:
+    """The security headers onto a response's headers (the page's own CSP kept)."""
+    headers.setdefault("Content-Security-Policy", CSP_STRICT)
+    for k, v in SECURITY_HEADERS.items():
+        headers.setdefault(k, v)
+
+
+class _SecureRequest(web.Request):
+    """A request whose responses carry :data:`SECURITY_HEADERS`, aiohttp's own included (the
+    400 for a request it cannot parse goes to no middleware and no signal)."""
+
+    async def _prepare_hook(self, response: web.StreamResponse) -> None:
+        await super()._prepare_hook(response)
+        _secure(response.headers)
+
+
+@dataclass(eq=False)
+class _Conn:
+    transport: Any
+    peer: str
+    idle_since: float
+    busy: int = 0
+
+
+def _peer(transport: Any) -> str:
+    name = transport.get_extra_info("peername") if transport is not None else None
+    return str(name[0]) if isinstance(name, tuple) and name else str(name)
+
+
+class ConnectionGuard:
+    """Keeps a path open to the console for its operator, whatever else connects.
+
+    aiohttp accepts every connection and keeps it as long as the peer likes; 1 100 idle ones
+    exhausted a 1 024-descriptor process and the operator's ``stop`` timed out (issue 36).
+    The guard sees every connection open and close (:meth:`attach`) and every request start
+    and end (the ``busy`` / ``idle`` calls of the server's middleware), and keeps:
+
+    * at most ``max_connections_per_client`` per address and :attr:`limit` in all
+      (``server.max_connections``, less when the descriptor limit leaves less room: see
+      :meth:`plan`). A new connection past either cap closes the *oldest idle* one (no request
+      being answered: it sent nothing, or half a header, or sits between requests), of that
+      address first: the newest connection, the operator's request, is served. Only when every
+      one is answering a request is the new one closed instead;
+    * no connection idle longer than ``idle_timeout_s`` (:meth:`sweep`): one that never sends
+      a request, sends its header byte by byte, or idles between requests.
+
+    Closing is ``abort()``: at once, whatever the peer has not read.
+    """
+
+    def __init__(self, settings: ServerSettings, clock: Callable[[], float] = time.monotonic
+                 ) -> None:
+        self.settings = settings
+        self.clock = clock
+        self.limit = settings.max_connections
+        self.backlog = settings.backlog
+        self._conns: OrderedDict[Any, _Conn] = OrderedDict()   # least recently active first
+        self._per_peer: Counter[str] = Counter()
+        self.evicted = self.refused = self.timed_out = 0
+        self.most = 0   # most connections open at once
+
+    def plan(self, soft: int | None = None, in_use: int | None = None) -> str | None:
+        """Fit :attr:`limit` and :attr:`backlog` to the descriptors this process may still
+        open: ``RLIMIT_NOFILE`` less those open now and ``fd_reserve``; the event loop accepts
+        up to a backlog's worth in one go before the guard sees them, so the backlog is kept
+        within a quarter of that room and the connections within the rest. Returns a note when
+        the limit is below ``max_connections`` (None otherwise). ``soft`` / ``in_use``: the
+        descriptor limit and the descriptors open (default: this process's)."""
+        s = self.settings
+        if soft is None:
+            try:
+                import resource
+
+                soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+                if soft == resource.RLIM_INFINITY:
+                    return None
+            except (ImportError, OSError, ValueError):
+                return None
+        if soft <= 0:
+            return None
+        if in_use is None:
+            try:
+                in_use = len(os.listdir("/proc/self/fd"))
+            except OSError:
+                in_use = 32
+        room = max(0, soft - in_use - s.fd_reserve)
+        self.backlog = max(8, min(s.backlog, room // 4))
+        self.limit = max(8, min(s.max_connections, room - self.backlog))
+        if self.limit < s.max_connections:
+            return (f"connections capped at {self.limit} (not server.max_connections "
+                    f"{s.max_connections}): {soft} file descriptors allowed, {in_use} open, "
+                    f"{s.fd_reserve} kept free, {self.backlog} for accepting")
+        return None
+
+    def attach(self, server: web.Server) -> None:
+        """Follow ``server``'s connections (its ``connection_made`` / ``connection_lost``,
+        which every aiohttp request handler calls on its manager)."""
+        made, lost = server.connection_made, server.connection_lost
+
+        def on_made(handler: Any, transport: Any) -> None:
+            made(handler, transport)
+            self.opened(handler, transport)
+
+        def on_lost(handler: Any, exc: BaseException | None = None) -> None:
+            self.closed(handler)
+            lost(handler, exc)
+
+        setattr(server, "connection_made", on_made)  # noqa: B010 - an instance's hook
+        setattr(server, "connection_lost", on_lost)  # noqa: B010
+
+    def __len__(self) -> int:
+        return len(self._conns)
+
+    def per_client(self, peer: str) -> int:
+        return self._per_peer.get(peer, 0)
+
+    def opened(self, handler: Any, transport: Any) -> None:
+        peer = _peer(transport)
+        full = ((self._per_peer[peer] >= self.settings.max_connections_per_client
+                 and not self._evict(peer))
+                or (len(self._conns) >= self.limit and not self._evict(None)))
+        if full:   # every connection is answering a request: this one waits its turn outside
+            self.refused += 1
+            transport.abort()
+            return
+        self._conns[handler] = _Conn(transport, peer, self.clock())
+        self._per_peer[peer] += 1
+        self.most = max(self.most, len(self._conns))
+
+    def _drop(self, handler: Any) -> _Conn | None:
+        c = self._conns.pop(handler, None)
+        if c is not None:
+            self._per_peer[c.peer] -= 1
+            if self._per_peer[c.peer] <= 0:
+                del self._per_peer[c.peer]
+        return c
+
+    def _evict(self, peer: str | None) -> bool:
+        """Close the oldest idle connection (of ``peer``; None: of anyone); False if none."""
+        for h, c in self._conns.items():
+            if c.busy == 0 and (peer is None or c.peer == peer):
+                self._drop(h)
+                self.evicted += 1
+                c.transport.abort()
+                return True
+        return False
+
+    def closed(self, handler: Any) -> None:
+        self._drop(handler)
+
+    def busy(self, handler: Any) -> None:
+        """A request on ``handler``'s connection is being answered."""
+        c = self._conns.get(handler)
+        if c is not None:
+            c.busy += 1
+
+    def idle(self, handler: Any) -> None:
+        """A request on ``handler``'s connection has been answered."""
+        c = self._conns.get(handler)
+        if c is not None:
+            c.busy = max(0, c.busy - 1)
+            if not c.busy:
+                c.idle_since = self.clock()
+                self._conns.move_to_end(handler)
+
+    def sweep(self) -> int:
+        """Close the connections idle longer than ``idle_timeout_s``; how many."""
+        cutoff = self.clock() - self.settings.idle_timeout_s
+        stale = [h for h, c in self._conns.items() if not c.busy and c.idle_since < cutoff]
+        for h in stale:
+            c = self._drop(h)
+            if c is not None:
+                c.transport.abort()
+        self.timed_out += len(stale)
+        return len(stale)
+
+
+def _clip(text: object, n: int = 160) -> str:
+    """``text`` on one line, control characters escaped, at most ``n`` characters (a log line
+    quoting what a client sent)."""
+    one = " ".join(str(text).split())
+    one = "".join(c if c.isprintable() else ascii(c)[1:-1] for c in one)
+    return one if len(one) <= n else one[:n - 3] + "..."
+
+
+class BadRequestLog(logging.Filter):
+    """One line per malformed request, at most ``per_min`` a minute (aiohttp logs each with
+    an 11-line traceback: 16 MB of log in 10 s from one client, issue 36).
+
+    Installed on aiohttp's server logger and asyncio's (:meth:`install`): a record of a
+    request aiohttp could not parse (``HttpProcessingError``: a bad request line, header,
+    method, a line too long) becomes ``console: malformed request from ADDR answered 400
+    (BadStatusLine: ...)``, without the traceback; asyncio's "socket.accept() out of system
+    resource" becomes one line too. Past ``per_min`` in a minute they are counted, not
+    logged, and the next line logged says how many were left out. Anything else passes as
+    it is."""
+
+    LOGGERS = ("aiohttp.server", "asyncio")
+
+    def __init__(self, per_min: int, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__()
+        self.per_min = per_min
+        self.clock = clock
+        self.logged = self.suppressed = 0
+        self._window, self._in_window, self._untold = -math.inf, 0, 0
+
+    def line(self, record: logging.LogRecord) -> str | None:
+        """The one line for ``record``, or None when it is not one this filter shortens."""
+        exc = record.exc_info[1] if record.exc_info else None
+        if record.name == "aiohttp.server" and isinstance(exc, http_exceptions.HttpProcessingError):
+            args = record.args if isinstance(record.args, tuple) else ()
+            who = _clip(args[0], 60) if args else "a client"
+            return (f"console: malformed request from {who} answered 400 "
+                    f"({type(exc).__name__}: {_clip(exc.message)})")
+        msg = str(record.msg)
+        if record.name == "asyncio" and msg.startswith("socket.accept() out of system"):
+            why = _clip(exc, 80) if exc is not None else "out of system resource"
+            return (f"console: a connection could not be accepted ({why}); accepting again "
+                    "in 1 s")
+        return None
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        text = self.line(record)
+        if text is None:
+            return True
+        now = self.clock()
+        if now - self._window >= 60.0:
+            self._window, self._in_window = now, 0
+        if self._in_window >= self.per_min:
+            self.suppressed += 1
+            self._untold += 1
+            return False
+        self._in_window += 1
+        self.logged += 1
+        if self._untold:
+            text += f" ({self._untold} more since the last line, not logged)"
+            self._untold = 0
+        record.msg, record.args = text, ()
+        record.exc_info = record.exc_text = record.stack_info = None
+        record.levelno, record.levelname = logging.WARNING, "WARNING"
+        return True
+
+    def install(self) -> None:
+        for name in self.LOGGERS:
+            logging.getLogger(name).addFilter(self)
+
+    def remove(self) -> None:
+        for name in self.LOGGERS:
+            logging.getLogger(name).removeFilter(self)
+
+
 class ConsoleServer:
     """HTTP + WebSocket front of a :class:`WeldSession`.
 
@@ -308,9 +656,36 @@ class ConsoleServer:
         self._frame_done: asyncio.Event | None = None
         self._want_frame = False
         self.address: tuple[str, int] | None = None
+        #: the page and its Content-Security-Policy (its inline code by hash), read once
+        self.page_html = resources.files("torchseam.console").joinpath(
+            "static/console.html").read_text()
+        self.page_csp = page_csp(self.page_html, cfg.server.page_allows_eval)
+        #: connection caps and idle timeout: the operator's path (:class:`ConnectionGuard`)
+        self.guard = ConnectionGuard(cfg.server)
+        #: malformed requests as one line each, rate-limited (:class:`BadRequestLog`)
+        self.bad_request_log = BadRequestLog(cfg.server.bad_requests_logged_per_min)
+        self._sweeper: asyncio.Task | None = None
 
     # ------------------------------------------------------------------ app
     def app(self) -> web.Application:
+        timeout = self.cfg.server.request_timeout_s
+
+        @web.middleware
+        async def answering(request: web.Request, handler: Any) -> web.StreamResponse:
+            """Mark the connection busy while its request is answered (an idle one may be
+            closed to make room), and bound the answer's time (the stream excepted)."""
+            conn = request.protocol
+            self.guard.busy(conn)
+            try:
+                if request.path == "/ws":
+                    return await handler(request)
+                return await asyncio.wait_for(handler(request), timeout)
+            except asyncio.TimeoutError:
+                return _error(408, f"console: no answer within {timeout:g} s (the request "
+                                   "body came too slowly; server.request_timeout_s)")
+            finally:
+                self.guard.idle(conn)
+
         @web.middleware
         async def guard(request: web.Request, handler: Any) -> web.StreamResponse:
             refused = self.refusal(request)
@@ -318,7 +693,11 @@ class ConsoleServer:
                 return _error(403, refused)
             return await handler(request)
 
-        app = web.Application(client_max_size=MAX_BODY, middlewares=[guard])
+        async def secure(request: web.Request, response: web.StreamResponse) -> None:
+            _secure(response.headers)
+
+        app = web.Application(client_max_size=MAX_BODY, middlewares=[answering, guard])
+        app.on_response_prepare.append(secure)
         app.router.add_get("/", self._page)
         app.router.add_get("/api/auth", self._auth)
         app.router.add_get("/ws", self._ws)
@@ -333,13 +712,40 @@ class ConsoleServer:
         """Serve on ``host:port`` (port 0: any free port) from the running event loop."""
         self._loop = asyncio.get_running_loop()
         self.bind_host = host
-        self._runner = web.AppRunner(self.app(), access_log=None)
+        s = self.cfg.server
+        app = self.app()
+        # keepalive_timeout: aiohttp closes a connection idle that long (from its opening
+        # too); the guard's sweep does the same whatever the aiohttp version
+        self._runner = web.AppRunner(app, access_log=None, keepalive_timeout=s.idle_timeout_s,
+                                     max_line_size=s.max_line_size,
+                                     max_field_size=s.max_field_size)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, host, port)
-        await site.start()
+        server = self._runner.server
+        assert server is not None
+        note = self.guard.plan()
+        if note is not None:
+            self.session.log(note, level="warn")
+        self.guard.attach(server)
+        # every request a _SecureRequest: aiohttp's own 400s get the security headers too
+        server.request_factory = functools.partial(app._make_request, _cls=_SecureRequest)
+        self.bad_request_log.install()
+        site = web.TCPSite(self._runner, host, port, backlog=self.guard.backlog)
+        try:
+            await site.start()
+        except BaseException:
+            self.bad_request_log.remove()
+            raise
         self.address = tuple(self._runner.addresses[0][:2])  # the port, ephemeral or not
         self._publisher = asyncio.create_task(self._publish())
+        self._sweeper = asyncio.create_task(self._sweep())
         return self.address
+
+    async def _sweep(self) -> None:
+        """Close idle connections (:meth:`ConnectionGuard.sweep`) a few times per timeout."""
+        period = min(1.0, self.cfg.server.idle_timeout_s / 4)
+        while True:
+            await asyncio.sleep(period)
+            self.guard.sweep()
 
     def url(self) -> str:
         """The page's address with the token (what the CLI prints), once serving: on the
@@ -421,6 +827,9 @@ class ConsoleServer:
         self.session.frame_done = None
         if self._publisher is not None:
             self._publisher.cancel()
+        if self._sweeper is not None:
+            self._sweeper.cancel()
+        self.bad_request_log.remove()
         for c in list(self.clients):
             await c.ws.close()
         if self._runner is not None:
@@ -632,9 +1041,9 @@ class ConsoleServer:
 
     # ------------------------------------------------------------------ HTTP
     async def _page(self, request: web.Request) -> web.Response:
-        html = resources.files("torchseam.console").joinpath("static/console.html").read_text()
-        return web.Response(text=html, content_type="text/html",
-                            headers={"Cache-Control": "no-store"})
+        return web.Response(text=self.page_html, content_type="text/html",
+                            headers={"Cache-Control": "no-store",
+                                     "Content-Security-Policy": self.page_csp})
 
     async def _auth(self, request: web.Request) -> web.Response:
         return web.json_response({"ok": True})  # the guard has checked the token
