@@ -8,7 +8,8 @@ one for the virtual cell; for a real cell copy it and edit it)::
       camera: {...}       # laser plane, hand-eye, tool (the torch's TCP), process
       ...
     camera:
-      source: tcp://127.0.0.1:7000   # the frame stream (torchseam.live.framestream)
+      source: tcp://127.0.0.1:7000   # the frame stream (torchseam.live.framestream), or
+                                     # aravis://DEVICE: a GenICam camera (torchseam.live.genicam)
       latency_ms: 20.0               # exposure -> arrival at the PC (torchseam calibrate latency)
       stall_frames: 1.5              # no frame for this many periods: hold, arc off
     controller:           # the EGM link (configs/egm.yaml's network section)
@@ -36,16 +37,19 @@ from torchseam.core.config import config_field as _f
 from torchseam.robot.egm.config import EgmNetwork
 
 
-def _tcp_url(v: object) -> object:
-    """``camera.source`` must be a ``tcp://HOST:PORT`` frame stream."""
+def _camera_url(v: object) -> object:
+    """``camera.source``: a ``tcp://HOST:PORT`` frame stream or an ``aravis://DEVICE``
+    GenICam camera."""
     from torchseam.live.framestream import FrameStreamError, parse_url
 
     if not isinstance(v, str):
-        raise ValueError(f"expected tcp://HOST:PORT, got {v!r}")
+        raise ValueError(f"expected tcp://HOST:PORT or aravis://DEVICE, got {v!r}")
+    if v.startswith("aravis://"):
+        return v
     try:
         parse_url(v)
     except FrameStreamError:
-        raise ValueError(f"expected tcp://HOST:PORT, got {v!r}") from None
+        raise ValueError(f"expected tcp://HOST:PORT or aravis://DEVICE, got {v!r}") from None
     return v
 
 
@@ -53,7 +57,7 @@ def _tcp_url(v: object) -> object:
 class CameraLink:
     """How the weld reads the camera (``camera:`` of a cell file)."""
 
-    source: str = _f(convert=_tcp_url)
+    source: str = _f(convert=_camera_url)
     latency_ms: float = _f(lo=0.0, hi=1000.0)
     stall_frames: float = _f(default=1.5, lo=1.0, hi=50.0)
 

@@ -237,7 +237,15 @@ class WeldRunner:
         self.progress(f"weld: EGM listening on {cfg.network.host}:{cfg.network.port} for the "
                       f"controller at {cfg.network.controller_host}:"
                       f"{cfg.network.controller_port}; camera {self.cell.camera.source}")
-        self.cam = StreamCamera(self.cell.camera.source, connect_timeout_s=self.connect_timeout_s)
+        src = self.cell.camera.source
+        if src.startswith("aravis://"):
+            from torchseam.live.genicam import AravisCamera
+
+            cam = self.calib.camera
+            self.cam = AravisCamera(src, frame_rate_hz=self.calib.process.frame_rate_hz,
+                                    size=(cam.width, cam.height))
+        else:
+            self.cam = StreamCamera(src, connect_timeout_s=self.connect_timeout_s)
         self._wait_controller()
 
     def close(self) -> None:
