@@ -11,8 +11,11 @@ interpolated at the frame's exposure time, so both remote times are brought onto
   cell file; the controller's one EGM cycle from the pose's measurement to its datagram). The
   smallest ``arrival - stamp`` over a sliding window, less the known delay, is the offset:
   a message held up on its way (a busy PC, a late frame) only makes its own difference
-  larger, never the estimate wrong. A remote clock that jumps (a controller restart, a camera
-  reset) shows as differences that no longer fit the window: the estimator starts again.
+  larger, never the estimate wrong. Where the remote stamp itself can come late (a controller
+  whose cycle ran late stamps a pose that then leaves early), a low quantile of the window
+  (``quantile``) replaces the minimum: a few such outliers do not move it. A remote clock
+  that jumps (a controller restart, a camera reset) shows as differences that no longer fit
+  the window: the estimator starts again.
 * :class:`PoseHistory` keeps the fed-back torch poses with their PC times and interpolates
   one at any time between two of them. A time with no fed-back pose on both sides within
   ``max_gap_s`` gives None: no pose, so no measurement for that frame (never a guess).
@@ -46,11 +49,15 @@ class ClockOffset:
         100.001
     """
 
-    def __init__(self, known_delay_s: float = 0.0, window: int = 500, jump_s: float = 0.5
-                 ) -> None:
+    def __init__(self, known_delay_s: float = 0.0, window: int = 500, jump_s: float = 0.5,
+                 quantile: float = 0.0) -> None:
         if not math.isfinite(known_delay_s) or known_delay_s < 0:
             raise ValueError(f"known_delay_s must be a finite delay >= 0, got {known_delay_s}")
+        if not 0.0 <= quantile < 0.5:
+            raise ValueError(f"quantile must be in [0, 0.5), got {quantile}")
         self.known_delay_s = float(known_delay_s)
+        self.quantile = float(quantile)
+        self._q_value: float | None = None
         self.jump_s = float(jump_s)
         self._diffs: collections.deque[float] = collections.deque(maxlen=max(1, int(window)))
         self._min: float | None = None
@@ -70,6 +77,7 @@ class ClockOffset:
                 # messages all far above the minimum): the old window describes another clock
                 self._diffs.clear()
                 self._min = m = None
+                self._q_value = None
                 self.resets += 1
             full = len(self._diffs) == self._diffs.maxlen
             dropped = self._diffs[0] if full else None
@@ -78,6 +86,9 @@ class ClockOffset:
                 self._min = d
             elif dropped is not None and dropped <= m:
                 self._min = min(self._diffs)
+            if self.quantile > 0.0 and (len(self._diffs) < 50 or len(self._diffs) % 25 == 0):
+                self._q_value = float(np.quantile(np.fromiter(self._diffs, float),
+                                                  self.quantile))
 
     @property
     def ready(self) -> bool:
@@ -87,7 +98,7 @@ class ClockOffset:
     @property
     def offset_s(self) -> float:
         """``pc - remote`` (s); NaN before the first message."""
-        m = self._min
+        m = self._min if self.quantile == 0.0 or self._q_value is None else self._q_value
         return float("nan") if m is None else m - self.known_delay_s
 
     def to_pc(self, remote_s: float) -> float:

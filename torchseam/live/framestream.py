@@ -19,8 +19,8 @@ pixels)::
     bits       u8       8 or 16
     payload    u32      width * height * channels * bits / 8 bytes of row-major pixels follow
 
-The reader stamps each frame's arrival on the PC's monotonic clock as its last byte is read; the
-exposure time stays on the camera's clock (:class:`~torchseam.live.clocks.ClockOffset` relates
+The reader stamps each frame's arrival on the PC's monotonic clock as its header is read (the
+pixels follow at the link's speed); the exposure time stays on the camera's clock (:class:`~torchseam.live.clocks.ClockOffset` relates
 the two). A message that breaks the format (magic, version, sizes above ``max_pixels``) closes
 the connection with one line naming the source and the field: a camera that speaks something
 else is never decoded as frames.
@@ -60,7 +60,7 @@ class StampedFrame:
         image: (H, W, 3) uint8 BGR or (H, W) uint8 / uint16 mono.
         index: the camera's frame number.
         t_exp_s: start of the exposure, s on the camera's clock.
-        t_arrival_s: when its last byte arrived, s on the PC's monotonic clock.
+        t_arrival_s: when its header arrived, s on the PC's monotonic clock.
     """
 
     image: np.ndarray
@@ -262,12 +262,12 @@ class StreamCamera:
                 head = self._header()
                 if head is None:
                     return
+                arrived = time.monotonic()   # its header is here: the frame arrives
                 index, t_ns, w, h, c, bits = head
                 n = w * h * c * bits // 8
                 self._sock.settimeout(5.0)   # a frame's pixels come together
                 buf = _read_exact(self._sock, n)
                 self._sock.settimeout(0.5)
-                arrived = time.monotonic()
                 dtype = np.uint8 if bits == 8 else np.uint16
                 img = np.frombuffer(buf, dtype).reshape((h, w, c) if c == 3 else (h, w))
                 self.received += 1

@@ -76,7 +76,9 @@ class ControllerView:
     _resets: int = 0
 
     def __post_init__(self) -> None:
-        self.offset = ClockOffset(known_delay_s=self.delay_s, window=1000)
+        # 2nd percentile: a cycle that ran late stamps a pose that leaves early (a shorter
+        # delay than the controller's least): a few of those must not move the offset
+        self.offset = ClockOffset(known_delay_s=self.delay_s, window=1000, quantile=0.02)
         # a few lost datagrams in a row leave a gap the smooth motion spans; a longer one (the
         # controller silent) leaves the frames in it without a pose
         self.poses = PoseHistory(maxlen=5000, max_gap_s=max(0.05, 12 * self.cycle_s))
