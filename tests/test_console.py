@@ -560,7 +560,9 @@ def test_page_runs_and_watches_a_simulated_weld(chromium, cfg, tmp_path):
     try:
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=str(chromium), headless=True)
-            page = browser.new_page(viewport={"width": 1440, "height": 1000})
+            # (wait_for_function evaluates in the page: the console's policy forbids eval)
+            page = browser.new_context(bypass_csp=True,
+                                       viewport={"width": 1440, "height": 1000}).new_page()
             page.set_default_timeout(30_000)
             # without the token the page watches nothing and says why
             page.goto(url)

@@ -59,7 +59,7 @@ class ServerSettings:
     #: the page's CSP allows ``eval`` ('unsafe-eval'): the page needs none, but browser
     #: automation (Playwright's ``wait_for_function``, the console's browser test) evaluates
     #: its predicates inside the page; injected scripts and handlers are refused either way
-    page_allows_eval: bool = _f(default=True)
+    page_allows_eval: bool = _f(default=False)
 
     def _check(self) -> None:
         if self.max_connections_per_client > self.max_connections:
