@@ -178,7 +178,7 @@ def run_weld_cmd(args: argparse.Namespace) -> int:
     from torchseam.core.report import format_table, prepare_out_dir, write_json_atomic
     from torchseam.live.cellfile import load_weld_cell
     from torchseam.live.parts import load_live_parts
-    from torchseam.live.weld import WeldRunner, exit_code, weld_summary
+    from torchseam.live.weld import WeldRunner, exit_code, weld_summary, write_weld_files
     from torchseam.plan.preflight import preflight
 
     torch.set_num_threads(1)
@@ -216,7 +216,8 @@ def run_weld_cmd(args: argparse.Namespace) -> int:
             "model": str(args.model) if args.model else "models/live_tracker.safetensors",
             "wall_s": round(time.monotonic() - t0, 2)}
     summary = weld_summary(res, info)
-    write_json_atomic(out / "summary.json", summary)
+    write_weld_files(res, out)
+    write_json_atomic(out / "summary.json", summary)     # last: the run's word
     (out / "RUNNING").unlink(missing_ok=True)
     sm = summary
     lat = ("n/a" if sm["latency_p50_ms"] is None

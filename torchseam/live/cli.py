@@ -4,10 +4,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import signal
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from torchseam.core.cliargs import (
     MAX_SEED,
@@ -19,7 +23,7 @@ from torchseam.core.cliargs import (
 )
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
-from torchseam.core.report import format_table
+from torchseam.core.report import ReportError, format_table
 from torchseam.live.names import FAULTS
 from torchseam.track.names import TRACKERS
 
@@ -36,17 +40,25 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "live loop tracks (EAKF-STC), locates, plans and guides the simulated IRB "
                     "1410 over EGM. Prints the plan and a summary table and writes plots, a "
                     "video, summary.json, messages.txt and poses.csv (every pose sent, as "
-                    "`torchseam robot check` reads them) into --out. Exit code 1 when a segment "
-                    "was not welded to its end (summary.json: segments_incomplete, with the "
-                    "reason); 2 when the robot cannot weld the part (the pre-flight table names "
-                    "the segment and the reason; nothing moves) or on bad input.")
+                    "`torchseam robot check` reads them) into --out, a folder of the run's own "
+                    "(an earlier run's report there is moved aside to OUT.previous-N, said on "
+                    "stderr; a RUNNING file marks the run until summary.json, written last, is "
+                    "there). Exit code 1 when a segment was not welded: its end not reached, "
+                    "or more than 0.5 mm of its seam passed with the arc out (summary.json: "
+                    "segments_incomplete with the reason, unwelded_mm, arc_gaps); 2 when the "
+                    "robot cannot weld the part (the pre-flight table names the segment and "
+                    "the reason; nothing moves) or on bad input; 3 when the report could not "
+                    "be written (a full disk, a permission: one line names the file); 130 / "
+                    "143 on SIGINT / SIGTERM (the weld stops at the next frame, the report of "
+                    "what was done is written, summary.json marked interrupted).")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml; "
                                              "others in configs/parts/)")
     p.add_argument("--noise", default="heavy", help="arc-noise level: name or 0..1 (default heavy)")
     p.add_argument("--seed", type=seed_arg, default=0,
                    help=f"random seed of the simulation, 0 .. {MAX_SEED} (default 0)")
     p.add_argument("--out", type=out_dir_arg, default=Path("demo_out"),
-                   help="report folder (default demo_out)")
+                   help="report folder (default demo_out; an earlier run's report there is "
+                        "moved aside to OUT.previous-N)")
     p.add_argument("--no-video", action="store_true", help="skip the MP4")
     p.add_argument("--fault", action="append", default=[], metavar="FAULT",
                    help=f"inject a fault mid-segment ({', '.join(FAULTS)}); repeat or "
@@ -201,10 +213,55 @@ MAX_START_OFFSET_MM = 100.0
 MAX_START_ANGLE_DEG = 45.0
 
 
+#: ``torchseam demo``'s exit codes: every segment welded; a segment not welded (its end not
+#: reached, or a gap in its bead); bad input or a part the robot cannot weld; the report could
+#: not be written (a full disk, a permission); SIGINT / SIGTERM (128 + the signal's number)
+EXIT_OK, EXIT_INCOMPLETE, EXIT_BAD_INPUT, EXIT_REPORT = 0, 1, 2, 3
+EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
+
+
 def demo_exit_code(summary: dict) -> int:
-    """``torchseam demo``'s exit code: 1 when a segment was not welded to its end
-    (``summary["segments_incomplete"]``), else 0."""
-    return 1 if summary.get("segments_incomplete") else 0
+    """``torchseam demo``'s exit code from its summary: 130 / 143 when a signal interrupted it
+    (``summary["interrupted"]``), else 1 when a segment was not welded
+    (``summary["segments_incomplete"]``: its end not reached, or a gap in its bead), else
+    0."""
+    if summary.get("interrupted"):
+        return EXIT_SIGNAL.get(summary["interrupted"], EXIT_INCOMPLETE)
+    return EXIT_INCOMPLETE if summary.get("segments_incomplete") else EXIT_OK
+
+
+class _SignalStop:
+    """SIGINT / SIGTERM while the demo runs: the first stops the weld at the next frame
+    (``control.stop``; the report of what was done is then written, marked interrupted); a
+    second of the same run quits at once (SIGINT: KeyboardInterrupt, SIGTERM: exit 143),
+    leaving the folder with its RUNNING marker and no summary.json."""
+
+    def __init__(self, control: Any) -> None:
+        self.control = control
+        self.signal: str | None = None
+
+    def on_signal(self, signum: int, _frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if self.signal is not None:
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            raise SystemExit(EXIT_SIGNAL.get(name, 128 + signum))
+        self.signal = name
+        self.control.stop(name)
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[None]:
+        old = {s: signal.signal(s, self.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+
+def _report_failed(e: ReportError) -> int:
+    print(f"torchseam demo: error: {e}", file=sys.stderr)
+    return EXIT_REPORT
 
 
 def _expected_frames(cell, part, plan, args: argparse.Namespace) -> int:
@@ -242,7 +299,8 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
-    from torchseam.live.demo import run_demo, write_report
+    from torchseam.core.report import prepare_out_dir, write_run_marker
+    from torchseam.live.demo import DemoControl, run_demo, write_report
     from torchseam.live.parts import load_live_parts
 
     torch.set_num_threads(1)
@@ -269,35 +327,64 @@ def run(args: argparse.Namespace) -> int:
     if not report.ok:
         print(f"torchseam demo: error: {PlanRefused(report).summary_line()}", file=sys.stderr)
         return 2
-    args.out.mkdir(parents=True, exist_ok=True)
-    video = None
-    if not args.no_video:
-        size = (cell.camera.width // 2, cell.camera.height // 2)  # half size keeps it small
-        video = cv2.VideoWriter(str(args.out / "weld.mp4"), cv2.VideoWriter.fourcc(*"mp4v"),
-                                cell.process.frame_rate_hz, size)
-        if not video.isOpened():
-            raise TorchseamError(f"{args.out / 'weld.mp4'}: OpenCV cannot write MP4 here "
-                                 "(use --no-video)")
-    t0 = time.perf_counter()
-    bar = tqdm(desc="weld", unit="frame", total=_expected_frames(cell, part, parts.plan, args),
-               mininterval=0.5)
-    try:
-        res = run_demo(cell, part, noise, level, args.seed, faults, args.segments,
-                       args.tracker, video, progress=bar.update, length_mm=args.length_mm,
-                       model_path=args.model, report=report,
-                       start_offset_mm=args.start_offset_mm, start_angle_deg=args.start_angle_deg,
-                       parts=parts)
-    finally:
-        bar.close()
-        if video is not None:
-            video.release()
-    files = write_report(res, args.out)
+    # the run's own folder (an earlier report moved aside), marked RUNNING until its
+    # summary.json is written
+    control = DemoControl()
+    stop = _SignalStop(control)
+    with stop.installed():
+        try:
+            out = prepare_out_dir(args.out, "torchseam demo")
+            write_run_marker(out, "torchseam demo")
+        except ReportError as e:
+            return _report_failed(e)
+        video = None
+        if not args.no_video:
+            size = (cell.camera.width // 2, cell.camera.height // 2)  # half size: small
+            video = cv2.VideoWriter(str(out / "weld.mp4"), cv2.VideoWriter.fourcc(*"mp4v"),
+                                    cell.process.frame_rate_hz, size)
+            if not video.isOpened():
+                raise TorchseamError(f"{out / 'weld.mp4'}: OpenCV cannot write MP4 here "
+                                     "(use --no-video)")
+        t0 = time.perf_counter()
+        bar = tqdm(desc="weld", unit="frame",
+                   total=_expected_frames(cell, part, parts.plan, args), mininterval=0.5)
+        try:
+            res = run_demo(cell, part, noise, level, args.seed, faults, args.segments,
+                           args.tracker, video, progress=bar.update, length_mm=args.length_mm,
+                           control=control, model_path=args.model, report=report,
+                           start_offset_mm=args.start_offset_mm,
+                           start_angle_deg=args.start_angle_deg, parts=parts)
+        finally:
+            bar.close()
+            if video is not None:
+                video.release()
+        res.summary.update(interrupted=stop.signal, noise=args.noise)
+        try:
+            files: list[Path] = write_report(res, out)
+            failed = None
+        except ReportError as e:
+            files, failed = [], e
+    _print_demo(res, args, report.part_name, level, faults, time.perf_counter() - t0, out,
+                files if failed is None else None, video is not None)
+    if failed is not None:
+        return _report_failed(failed)
+    if stop.signal is not None:
+        print(f"torchseam demo: interrupted by {stop.signal}: the weld stopped at "
+              f"t={res.frames[-1].t_s if res.frames else 0.0:.2f} s; report "
+              f"{out / 'summary.json'} (interrupted)", file=sys.stderr)
+    return demo_exit_code(res.summary)
+
+
+def _print_demo(res: Any, args: argparse.Namespace, part_name: str, level: float,
+                faults: tuple[str, ...], wall_s: float, out: Path, files: list[Path] | None,
+                video: bool) -> None:
+    """The demo's summary on stdout (``files``: the report written; None: it was not)."""
     s = res.summary
-    print(f"\nclosed-loop weld of {report.part_name}: {len(args.segments)} segment(s), noise "
+    print(f"\nclosed-loop weld of {part_name}: {len(args.segments)} segment(s), noise "
           f"{level:g}, seed {args.seed}, tracker {args.tracker}"
           + (f" (model {args.model})" if args.model is not None else "")
           + (f", faults {', '.join(faults)}" if faults else "")
-          + f" ({time.perf_counter() - t0:.0f} s)")
+          + f" ({wall_s:.0f} s)")
     print(format_table(
         ["figure", "value", "unit"],
         [["torch path vs true seam, RMSE", s["seam_rmse_mm"], "mm"],
@@ -323,16 +410,19 @@ def run(args: argparse.Namespace) -> int:
         print("holds: " + ", ".join(f"{k} {v}" for k, v in s["hold_reasons"].items()))
     print("latency per stage (p50 / p99 ms): " + ", ".join(
         f"{k} {a:.2f}/{b:.2f}" for k, (a, b) in res.latency.items()))
+    if any(g["arc_out_t_s"] is not None for g in s["arc_gaps"]):  # (not the strike alone)
+        print("seam passed with the arc out (unwelded): " + ", ".join(
+            f"segment {k} {v:.2f} mm" for k, v in s["unwelded_mm"].items()))
     for m in res.messages[:12]:
         print("  " + m)
     if len(res.messages) > 12:
-        print(f"  ... {len(res.messages) - 12} more in {args.out / 'messages.txt'}")
-    print(f"report: {', '.join(str(f) for f in files)}"
-          + (f", {args.out / 'weld.mp4'}" if video is not None else ""))
+        print(f"  ... {len(res.messages) - 12} more in {out / 'messages.txt'}")
+    if files is not None:
+        print(f"report: {', '.join(str(f) for f in files)}"
+              + (f", {out / 'weld.mp4'}" if video else ""))
     for srch in s.get("search", []):
         print(f"segment {srch['segment']}: " + (
             f"seam found by the search in {srch['time_s']:.2f} s" if srch["found"]
             else srch["reason"]))
     for seg in s["segments_incomplete"]:
         print(f"segment {seg['segment']} NOT completed: {seg['reason']}")
-    return demo_exit_code(s)

@@ -21,12 +21,22 @@ The simulated arc follows the loop: it burns from the end of the approach on whi
 lets it (:attr:`~torchseam.live.loop.LiveLoop.arc_ok`: off while the loop holds or resumes). A
 segment whose end the torch did not reach is reported in ``summary["segments_incomplete"]``
 with the reason (``torchseam demo`` then exits with 1).
+
+No silent gap in the bead: the loop does not go back after an arc interruption (it re-strikes
+where the torch is when it resumes), so the simulated cell counts the seam the torch passed with
+the arc out past the approach, per segment (``summary["unwelded_mm"]``, each stretch in
+``summary["arc_gaps"]`` with where it lies along the segment and when and why the arc went
+out). A segment with more than :data:`MAX_GAP_MM` unwelded is not welded: it goes into
+``segments_incomplete`` with the gap as its reason, even when the torch reached its end.
+
+``summary.json`` names the run: ``part``, ``seed``, ``noise_level``, ``length_mm``,
+``segments``, ``tracker``, ``model``, ``faults`` (asked) and ``faults_injected`` (each fault's
+segment and time window). :func:`write_report` writes it last and atomically.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import queue
 import threading
 from collections.abc import Callable, Mapping
@@ -41,6 +51,7 @@ import torch
 from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
 from torchseam.core.errors import TorchseamError
 from torchseam.core.overlay import put_label
+from torchseam.core.report import RUN_MARKER, report_file, write_json_atomic
 from torchseam.core.transforms import apply, invert, quat_to_matrix
 from torchseam.live.loop import (
     Command,
@@ -82,6 +93,12 @@ POSES_CSV_HEADER = "t,x,y,z,q1,q2,q3,q4"  # poses.csv: what ``torchseam robot ch
 # does not move); poses.csv counts this much time for each, so that its time stamps are ones
 # a robot can keep (the return is a joint move of tens of degrees)
 TRANSFER_S = 5.0
+#: seam passed with the arc out past the approach, per segment, above which the segment is not
+#: welded (a gap in the bead). Not zero: the simulated arc strikes on the first frame past the
+#: approach's end, up to one frame's travel (0.32 mm at 8 mm/s and 25 frames/s) after the
+#: segment's start, which a real strike at the programmed start does not leave. The same
+#: tolerance as ``torchseam weld`` (:data:`torchseam.live.weld.MAX_GAP_MM`).
+MAX_GAP_MM = 0.5
 
 
 @dataclass
@@ -123,9 +140,11 @@ class DemoControl:
     """Operator control of a running :func:`run_demo`, safe to use from another thread.
 
     ``hold()`` pauses the weld at the next frame (the simulated cell waits with the loop: no
-    new target, no motion) until ``resume()``; ``stop()`` ends it (the result holds what was
-    welded so far, ``summary["stopped"]`` is True). ``parked`` says when a hold has taken
-    effect: the weld has finished the frame in hand and waits.
+    new target, no motion) until ``resume()``; ``stop()`` ends it at the next frame (the
+    result holds what was welded so far, ``summary["stopped"]`` is True; ``by`` names who
+    stopped it in the segments' reasons, e.g. ``"SIGINT"`` from a signal handler, which may
+    call it: it only sets events). ``parked`` says when a hold has taken effect: the weld has
+    finished the frame in hand and waits.
     """
 
     def __init__(self) -> None:
@@ -133,6 +152,7 @@ class DemoControl:
         self._run.set()
         self._stop = threading.Event()
         self._parked = threading.Event()
+        self.stopped_by = "the operator"
 
     def hold(self) -> None:
         self._run.clear()
@@ -140,7 +160,9 @@ class DemoControl:
     def resume(self) -> None:
         self._run.set()
 
-    def stop(self) -> None:
+    def stop(self, by: str | None = None) -> None:
+        if by and not self._stop.is_set():
+            self.stopped_by = by
         self._stop.set()
         self._run.set()
 
@@ -193,6 +215,14 @@ class DemoResult:
     report: PlanReport | None = None     # the weld plan followed and its pre-flight
     # per segment started off the seam (start_offset_mm/start_angle_deg): the search for it
     searches: list[dict] = field(default_factory=list)
+    # per segment welded: seam passed past the approach, and of it with the arc out (mm)
+    passed_mm: dict[str, float] = field(default_factory=dict)
+    unwelded_mm: dict[str, float] = field(default_factory=dict)
+    # each stretch of seam passed with the arc out: segment, from_mm / to_mm along it,
+    # length_mm, arc_out_t_s (None: before the arc first struck), cause
+    arc_gaps: list[dict] = field(default_factory=list)
+    # each fault as injected: segment, fault, from_t_s, to_t_s, frames
+    faults_injected: list[dict] = field(default_factory=list)
 
 
 class PlanRefused(TorchseamError):
@@ -300,7 +330,7 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                egm=_demo_egm_config(cell, live, parts.egm), length_mm=length_mm,
                start_offset_mm=start_offset_mm, start_angle_deg=start_angle_deg, parts=parts,
                observer=observer, control=control, progress=progress, writer=writer,
-               res=DemoResult(part=weld_plan.part, report=report))
+               res=DemoResult(part=weld_plan.part, report=report), _segments=segments)
     try:
         for seg in weld_plan.segments:
             if seg.name in segments:
@@ -381,10 +411,15 @@ class _Run:
     progress: Callable[[int], object] | None
     writer: _VideoThread | None
     res: DemoResult
+    _segments: str = "abcdef"
     clock: SimClock = field(default_factory=SimClock)
     latency: dict[str, list[float]] = field(default_factory=dict)
     unsafe: int = 0
     stopped: bool = False
+
+    @property
+    def stopped_by(self) -> str:
+        return self.control.stopped_by if self.control is not None else "the operator"
 
     @property
     def dt(self) -> float:
@@ -393,9 +428,10 @@ class _Run:
     def segment(self, seg: SegmentPlan) -> None:
         """Weld one segment (or record why it was not) and add up its figures."""
         res = self.res
-        if self.stopped:
+        if self.stopped or (self.control is not None and self.control.stopped):
+            self.stopped = True
             res.incomplete.append({"segment": seg.name,
-                                   "reason": "not welded: stopped by the operator"})
+                                   "reason": f"not welded: stopped by {self.stopped_by}"})
             return
         scene = Scene(self.part, seg.rotation_deg)  # the part as planned, turned for seg
         res.part_poses[seg.name] = scene.T_B_Tnom
@@ -505,7 +541,38 @@ class _Run:
             res.summary["search_frames"] = sum(f.state in ("search", "approach")
                                                for f in res.frames)
         res.summary["plan"] = self.weld_plan.to_dict()
+        res.summary.update(self._identity())
         return res
+
+    def _identity(self) -> dict:
+        """What was welded and how: the part, the seed, the noise, the length, the tracker and
+        its model, every fault asked and where it was injected."""
+        rep = self.res.report
+        return {
+            "part": rep.part_name if rep is not None else None,
+            "seed": int(self.seed), "noise_level": float(self.level),
+            "segments": "".join(s.name for s in self.weld_plan.segments
+                                if s.name in self._segments),
+            "length_mm": self.length_mm, "tracker": self.tracker,
+            "model": _model_used(self.tracker, self.model_path),
+            "start_offset_mm": self.start_offset_mm, "start_angle_deg": self.start_angle_deg,
+            "faults": list(self.faults), "faults_injected": list(self.res.faults_injected),
+            "max_gap_mm": MAX_GAP_MM,
+        }
+
+
+def _model_used(tracker: str, model_path: str | Path | None) -> str | None:
+    """The model file the tracker read (None: a tracker without a fitted model)."""
+    from torchseam.track import model_file
+
+    if model_path is not None:
+        return str(model_path)
+    if tracker == "anchored":
+        return str(model_file.DEFAULT_MODEL)
+    if tracker == "eakf-stc":
+        return (str(model_file.EAKF_STC_MODEL) if model_file.EAKF_STC_MODEL.is_file()
+                else "built-in EAKF-STC defaults")
+    return None
 
 
 def _add_counts(total: dict[str, int], counts: Mapping[str, int]) -> None:
@@ -544,6 +611,12 @@ class _SegmentWeld:
         self.search_failed = ""
         self.start_p, self.start_along = T0[:3, 3], 0.0
         self.first, self.last_msg = True, ""
+        # the seam passed with the arc out past the approach (see _passed)
+        self.gaps: list[dict] = []
+        self.gap: dict | None = None          # the stretch being passed with the arc out
+        self.arc_out: tuple[float, str] | None = None  # when and why the arc last went out
+        self.passed_mm = 0.0
+        self.injected: dict[str, list[float]] = {}   # fault -> [from_t_s, to_t_s, frames]
 
     def weld(self) -> None:
         run, seg = self.run, self.seg
@@ -554,14 +627,68 @@ class _SegmentWeld:
                              self.link, run.weld_plan.plan_config(seg, run.plan), run.live,
                              tipm, run.parts.ecal, nominal=self.nominal)
         completed, travelled = self._frames()
-        if not completed:
-            why = self.search_failed or _incomplete_reason(
-                self.loop, run.stopped, travelled, self.approach, self.seg_len, self.n_max)
+        self.gap = None
+        gap_why = self._gap_reason()
+        if not completed or gap_why:
+            why = self.search_failed or (
+                _incomplete_reason(self.loop, run.stopped, travelled, self.approach,
+                                   self.seg_len, self.n_max, run.stopped_by)
+                if not completed else "")
+            why = "; ".join(w for w in (gap_why, why) if w)
             run.res.incomplete.append({"segment": seg.name, "reason": why})
             run.res.messages.append(f"[{seg.name} t={run.clock.t:.2f}s] segment incomplete: "
                                     f"{why}")
+        self._record_gaps()
         self.loop.finish()
         self.simcell.close()
+
+    def _passed(self, a: float, b: float, arc: bool) -> None:
+        """The torch moved from ``a`` to ``b`` mm along its path (from the segment's approach
+        start) with the arc ``arc``: the part of it past the approach and within the segment
+        is seam welded, or passed with the arc out (a gap, kept in ``self.gaps``)."""
+        lo, hi = max(a, self.approach), min(b, self.approach + self.seg_len)
+        if hi <= lo:
+            return
+        self.passed_mm += hi - lo
+        if arc:
+            self.gap = None
+            return
+        if self.gap is None:
+            t_out, cause = self.arc_out if self.arc_out is not None else (None, "")
+            self.gap = {"segment": self.seg.name, "from_mm": lo - self.approach,
+                        "to_mm": hi - self.approach, "arc_out_t_s": t_out,
+                        "cause": cause or "before the arc first struck"}
+            self.gaps.append(self.gap)
+        self.gap["to_mm"] = hi - self.approach
+
+    def _gap_reason(self) -> str:
+        """Why the segment is not welded for its gaps ('' when they are within MAX_GAP_MM)."""
+        total = sum(g["to_mm"] - g["from_mm"] for g in self.gaps)
+        if total <= MAX_GAP_MM:
+            return ""
+        parts = []
+        for g in self.gaps:
+            n = g["to_mm"] - g["from_mm"]
+            where = f"{n:.1f} mm from {g['from_mm']:.1f} mm into the segment"
+            parts.append(where + (" before the arc first struck" if g["arc_out_t_s"] is None
+                                  else f" after the arc went out at t={g['arc_out_t_s']:.2f} s "
+                                       f"({g['cause']})"))
+        return (f"{total:.1f} mm of seam unwelded (more than {MAX_GAP_MM:g} mm): "
+                + ", ".join(parts))
+
+    def _record_gaps(self) -> None:
+        res, name = self.run.res, self.seg.name
+        res.passed_mm[name] = round(self.passed_mm, 3)
+        res.unwelded_mm[name] = round(sum(g["to_mm"] - g["from_mm"] for g in self.gaps), 3)
+        for g in self.gaps:
+            res.arc_gaps.append({**g, "from_mm": round(g["from_mm"], 3),
+                                 "to_mm": round(g["to_mm"], 3),
+                                 "length_mm": round(g["to_mm"] - g["from_mm"], 3),
+                                 "arc_out_t_s": None if g["arc_out_t_s"] is None
+                                 else round(g["arc_out_t_s"], 3)})
+        for f, (t0, t1, n) in self.injected.items():
+            res.faults_injected.append({"segment": name, "fault": f, "from_t_s": round(t0, 3),
+                                        "to_t_s": round(t1, 3), "frames": int(n)})
 
     def _search(self, scfg: SearchConfig) -> None:
         """Search for the seam from the start pose; when found the weld starts where it was
@@ -599,12 +726,15 @@ class _SegmentWeld:
         for k in range(self.n_max):
             if run.control is not None and run.control.checkpoint():
                 run.stopped = True
-                res.messages.append(f"[{self.seg.name} t={run.clock.t:.2f}s] stopped by the "
-                                    "operator")
+                res.messages.append(f"[{self.seg.name} t={run.clock.t:.2f}s] stopped by "
+                                    f"{run.stopped_by}")
                 break
             T_B_W = self.simcell.tcp_pose()
+            before = travelled
             travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
             prev = T_B_W[:3, 3]
+            # (the torch moved since the last frame with the arc as it was set there)
+            self._passed(before, travelled, arc_was)
             if travelled >= self.approach + self.seg_len:
                 return True, travelled
             # the arc burns past the approach while the loop lets it (off in a hold)
@@ -613,6 +743,10 @@ class _SegmentWeld:
             if weld_zone and not arc_on:
                 res.arc_off_s += run.dt
                 res.arc_interruptions += int(arc_was)
+                if arc_was:
+                    cause = (f"{loop.state.value}: {loop.hold_key}" if loop.hold_key
+                             else loop.state.value)
+                    self.arc_out = (run.clock.t, cause)
             arc_was = arc_on
             self._frame(k, T_B_W, arc_on)
         return False, travelled
@@ -629,6 +763,9 @@ class _SegmentWeld:
         """Render frame ``k`` where the robot is, hand it to the loop, record it, move on."""
         run, res, seg, clock = self.run, self.run.res, self.seg.name, self.run.clock
         active = self._active_faults(k)
+        for f in active:
+            w = self.injected.setdefault(f, [clock.t, clock.t, 0])
+            w[1], w[2] = clock.t, w[2] + 1
         frame, truth = self.renderer.render(T_B_W, clock.t, arc_on=arc_on,
                                             laser_on="laser-off" not in active,
                                             force_flash="arc-flash" in active)
@@ -855,10 +992,11 @@ def _place_seen(s: SeamSearch, p_seen: np.ndarray | None, nominal: np.ndarray,
 
 
 def _incomplete_reason(loop: LiveLoop, stopped: bool, travelled: float, approach: float,
-                       seg_len: float, n_max: int) -> str:
+                       seg_len: float, n_max: int, stopped_by: str = "the operator") -> str:
     """Why a segment's end was not reached, in words."""
     if stopped:
-        return "stopped by the operator"
+        done = max(0.0, travelled - approach)
+        return f"stopped by {stopped_by} after {done:.1f} of {seg_len:.1f} mm"
     done = max(0.0, travelled - approach)
     where = f"{done:.1f} of {seg_len:.1f} mm welded in {n_max} frames"
     if loop.state == LoopState.HOLD:
@@ -1008,6 +1146,11 @@ def _summary(res: DemoResult, unsafe: int) -> dict:
         "loop_refused": dict(res.loop_refused),
         "arc_off_s": round(float(res.arc_off_s), 3),
         "arc_interruptions": int(res.arc_interruptions),
+        # seam passed past the approach per segment, and of it with the arc out (a segment
+        # above MAX_GAP_MM is in segments_incomplete); each such stretch in arc_gaps
+        "passed_mm": dict(res.passed_mm),
+        "unwelded_mm": dict(res.unwelded_mm),
+        "arc_gaps": list(res.arc_gaps),
         "segments_incomplete": list(res.incomplete),
     }
 
@@ -1041,45 +1184,63 @@ def _overlay(frame, truth, loc, rep, seg) -> np.ndarray:
 
 
 def write_report(res: DemoResult, out: Path) -> list[Path]:
-    """Plots and summary.json into ``out``."""
+    """Plots, messages.txt, the pose CSVs and, last, summary.json (atomically: a reader sees
+    the whole file or none) into ``out``, which should be the run's own folder (``torchseam
+    demo`` makes a new one with :func:`~torchseam.core.report.prepare_out_dir`); a ``RUNNING``
+    marker there (:data:`~torchseam.core.report.RUN_MARKER`) is removed once summary.json is
+    written. Returns the files written.
+
+    Raises:
+        ReportError: a file could not be written (a full disk, a permission): the message
+            names the file and the error. summary.json is then not written (the marker
+            stays).
+    """
     from torchseam.live.plots import quaternion_plot, seam_3d_plot, series_plot
 
-    out.mkdir(parents=True, exist_ok=True)
-    files = []
+    with report_file(out):
+        out.mkdir(parents=True, exist_ok=True)
+    files: list[Path] = []
     fr = res.frames
     # segment boundaries and the arc-off approach marked on every per-frame plot
     segs, arc = [f.seg for f in fr], [f.arc_on for f in fr]
     err_uv = np.array([f.uv - f.uv_true for f in fr]).reshape(-1, 2)  # none: a search failed
-    files.append(series_plot({"u error": err_uv[:, 0], "v error": err_uv[:, 1]}, "px",
-                             out / "uv_error.png", segments=segs, arc_on=arc))
+    with report_file(out / "uv_error.png") as path:
+        files.append(series_plot({"u error": err_uv[:, 0], "v error": err_uv[:, 1]}, "px",
+                                 path, segments=segs, arc_on=arc))
     err_p = np.array([f.p - f.p_true for f in fr]).reshape(-1, 3)
-    files.append(series_plot({"x": err_p[:, 0], "y": err_p[:, 1], "z": err_p[:, 2]},
-                             "located 3D error (mm)", out / "xyz_error.png", segments=segs,
-                             arc_on=arc))
-    files.append(series_plot({"torch to true seam": np.array([f.torch_err_mm for f in fr])},
-                             "mm", out / "torch_error.png", segments=segs, arc_on=arc))
+    with report_file(out / "xyz_error.png") as path:
+        files.append(series_plot({"x": err_p[:, 0], "y": err_p[:, 1], "z": err_p[:, 2]},
+                                 "located 3D error (mm)", path, segments=segs, arc_on=arc))
+    with report_file(out / "torch_error.png") as path:
+        files.append(series_plot(
+            {"torch to true seam": np.array([f.torch_err_mm for f in fr])}, "mm", path,
+            segments=segs, arc_on=arc))
     # a command's time is its frame's: the poses sent with the arc off are the approach
     arc_at = {(f.seg, round(f.t_s, 6)): f.arc_on for f in fr}
     names = list(res.quats)
     appr = {n: np.array([not arc_at.get((s, round(t, 6)), True)
                          for s, _p, _q, _seen, t in res.sent if s == n], bool) for n in names}
     if res.quats:  # (none: no segment started, e.g. a start pose the gate refused)
-        files.append(quaternion_plot(list(res.quats.items()), out / "quaternions.png",
-                                     approach=appr))
+        with report_file(out / "quaternions.png") as path:
+            files.append(quaternion_plot(list(res.quats.items()), path, approach=appr))
     paths = {k: v for k, v in res.paths.items() if v}
     tracked = paths.get("tracked", [])
     approach = ({"tracked": [appr[n] for n in names]}
                 if len(tracked) == len(names)
                 and all(len(a) == len(p) for a, p in zip(appr.values(), tracked, strict=True))
                 else None)
-    files.append(seam_3d_plot(paths, out / "seam_3d.png",
-                              segment_names=names if len(tracked) == len(names) else None,
-                              approach=approach))
-    (out / "summary.json").write_text(json.dumps(res.summary, indent=1))
-    files.append(out / "summary.json")
-    (out / "messages.txt").write_text("\n".join(res.messages) + "\n")
-    files.append(out / "messages.txt")
+    with report_file(out / "seam_3d.png") as path:
+        files.append(seam_3d_plot(paths, path,
+                                  segment_names=names if len(tracked) == len(names) else None,
+                                  approach=approach))
+    with report_file(out / "messages.txt") as path:
+        path.write_text("\n".join(res.messages) + "\n")
+        files.append(path)
     files += write_poses_csv(res, out / "poses.csv")
+    # last: what the run was and how it ended; until it is there, RUNNING says it is not
+    files.append(write_json_atomic(out / "summary.json", res.summary))
+    with report_file(out / RUN_MARKER) as path:
+        path.unlink(missing_ok=True)
     return files
 
 
@@ -1101,19 +1262,22 @@ def write_poses_csv(res: DemoResult, path: Path) -> list[Path]:
     t = np.array([c[4] + TRANSFER_S * segs.index(c[0]) for c in res.sent])
     P = np.array([c[1] for c in res.sent]).reshape(-1, 3)
     Q = np.array([c[2] for c in res.sent]).reshape(-1, 4)
-    files = [write_pose_csv(path, P, Q, t)]
+    with report_file(path):
+        files = [write_pose_csv(path, P, Q, t)]
     for name in segs:
         rows = [c for c in res.sent if c[0] == name]
-        files.append(write_pose_csv(path.with_name(f"poses_{name}.csv"),
-                                    np.array([c[1] for c in rows]),
-                                    np.array([c[2] for c in rows]),
-                                    np.array([c[4] for c in rows])))
+        with report_file(path.with_name(f"poses_{name}.csv")) as seg_path:
+            files.append(write_pose_csv(seg_path,
+                                        np.array([c[1] for c in rows]),
+                                        np.array([c[2] for c in rows]),
+                                        np.array([c[4] for c in rows])))
         T = res.part_poses.get(name)
         if res.part is not None and T is not None:
             q = matrix_to_quat(T[:3, :3])
             turned = dc.replace(res.part, placement=Pose(
                 tuple(float(v) for v in T[:3, 3]),
                 tuple(float(v) for v in q / np.linalg.norm(q))))
-            save_config(turned, path.with_name(f"part_{name}.yaml"))
-            files.append(path.with_name(f"part_{name}.yaml"))
+            with report_file(path.with_name(f"part_{name}.yaml")) as part_path:
+                save_config(turned, part_path)
+            files.append(part_path)
     return files

@@ -20,10 +20,10 @@ pixels)::
     payload    u32      width * height * channels * bits / 8 bytes of row-major pixels follow
 
 The reader stamps each frame's arrival on the PC's monotonic clock as its header is read (the
-pixels follow at the link's speed); the exposure time stays on the camera's clock (:class:`~torchseam.live.clocks.ClockOffset` relates
-the two). A message that breaks the format (magic, version, sizes above ``max_pixels``) closes
-the connection with one line naming the source and the field: a camera that speaks something
-else is never decoded as frames.
+pixels follow at the link's speed); the exposure time stays on the camera's clock
+(:class:`~torchseam.live.clocks.ClockOffset` relates the two). A message that breaks the
+format (magic, version, sizes above ``max_pixels``) closes the connection with one line naming
+the source and the field: a camera that speaks something else is never decoded as frames.
 """
 
 from __future__ import annotations

@@ -142,13 +142,18 @@ class SeamLocator:
         0.8-1.2 degrees): they are taken when both agree with ECAL's arms within
         ``tipm_agreement_deg`` (never for ECAL's occluded-arm fallback), placed ``r_max_px``
         out so that they vote as full-length arms in the look-ahead buffer."""
-        assert arms.p_tangent is not None  # called for a found pair of arms (arms.ok)
         if lent is None or arms.fallback:
-            return arms.p_tangent
+            return self._ecal_tangents(arms, local)
         ecal = np.stack([np.cos(arms.angles), np.sin(arms.angles)], axis=1)
         if np.min(np.sum(ecal * lent, axis=1)) < self._agree_cos:
-            return arms.p_tangent
+            return self._ecal_tangents(arms, local)
         return local + self.ecal.cfg.r_max_px * lent
+
+    def _ecal_tangents(self, arms: EcalResult, local: np.ndarray) -> np.ndarray:
+        """ECAL's own tangent points (made only now: most frames take the tracker's)."""
+        p_tangent = self.ecal.tangents(arms, local)
+        assert p_tangent is not None  # called for a found pair of arms (arms.ok)
+        return p_tangent
 
     def step(self, frame: np.ndarray, T_B_F: np.ndarray) -> Location:
         """Locate the seam in ``frame`` taken with the flange at ``T_B_F`` (4, 4) mm."""
@@ -170,7 +175,7 @@ class SeamLocator:
                             {"track": (t1 - t0) * 1e3})
         red, mask, (x0, y0) = self._stripe(frame, uv, res.stripe)
         local = uv - (x0, y0)
-        arms = self.ecal(mask, local, red, self.prev_angles)
+        arms = self.ecal(mask, local, red, self.prev_angles, tangents=False)
         t2 = time.perf_counter()
         pix = [uv]
         if arms.ok:

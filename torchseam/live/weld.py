@@ -161,6 +161,8 @@ class WeldResult:
     holds: Counter[str] = field(default_factory=Counter)
     latency_ms: list[float] = field(default_factory=list)
     interrupted: str = ""
+    # every pose the link accepted: (segment, t PC s, p (3,), q (4,))
+    poses: list[tuple[str, float, np.ndarray, np.ndarray]] = field(default_factory=list)
     link: dict[str, Any] = field(default_factory=dict)
     clocks: dict[str, Any] = field(default_factory=dict)
 
@@ -433,6 +435,9 @@ class WeldRunner:
                         "passed with the arc out (unwelded)")
                     break
                 rep = loop.on_frame(f.image, T_B_W @ self.tool_inv, T_B_W, t_exp)
+                if rep.command is not None and rep.command.ok:
+                    c = rep.command
+                    self.res.poses.append((seg.name, c.t_s, c.p.copy(), c.q.copy()))
                 moving = self._moving()
                 self.reply.set(bool(travelled >= geo.approach_mm and loop.arc_ok and moving),
                                number, rd.SensorState.TRACKING)
@@ -559,6 +564,27 @@ def weld_summary(res: WeldResult, info: dict[str, Any]) -> dict[str, Any]:
         "interrupted": res.interrupted or False,
         "messages": res.messages[-200:],
     }
+
+
+def write_weld_files(res: WeldResult, out: Path) -> list[Path]:
+    """``poses.csv`` (every pose the link accepted: ``t,x,y,z,q1,q2,q3,q4``, t from the weld's
+    first pose, the torch tip in the base; what ``torchseam robot check`` reads), one
+    ``poses_<s>.csv`` per segment, and ``messages.txt``."""
+    from torchseam.core.poses_csv import write_pose_csv
+
+    files = []
+    if res.poses:
+        t0 = res.poses[0][1]
+        P = np.array([p for _, _, p, _ in res.poses])
+        Q = np.array([q for _, _, _, q in res.poses])
+        t = np.array([t - t0 for _, t, _, _ in res.poses])
+        files.append(write_pose_csv(out / "poses.csv", P, Q, t))
+        for name in dict.fromkeys(s for s, *_ in res.poses):
+            k = np.array([s == name for s, *_ in res.poses])
+            files.append(write_pose_csv(out / f"poses_{name}.csv", P[k], Q[k], t[k]))
+    (out / "messages.txt").write_text("\n".join(res.messages) + "\n")
+    files.append(out / "messages.txt")
+    return files
 
 
 def exit_code(res: WeldResult) -> int:
