@@ -80,6 +80,9 @@ class EcalResult:
         fallback: one arm point came from the previous frame's direction.
         rejected: crossings rejected on the circles tried (spatter, other blobs).
         reason: why not ``ok``.
+        circles: ``(radii (n,), angles (n, 2))`` of the clean circles ``p_tangent`` is made
+            from (a found pair of arms; None otherwise). With ``Ecal(..., tangents=False)``
+            ``p_tangent`` is left None and :meth:`Ecal.tangents` makes it when asked.
     """
 
     ok: bool
@@ -90,6 +93,7 @@ class EcalResult:
     fallback: bool = False
     rejected: int = 0
     reason: str = ""
+    circles: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class Ecal:
@@ -114,6 +118,7 @@ class Ecal:
         self.ring_radii = np.ascontiguousarray(np.arange(cfg.r_max_px, 0.0, -RADIAL_STEP_PX)[::-1])
         self._ru = self.ring_radii[:, None] * np.cos(self._theta)
         self._rv = self.ring_radii[:, None] * np.sin(self._theta)
+        self._fu, self._fv = np.empty_like(self._ru), np.empty_like(self._rv)  # polar's work
         self.circles = self.ring_radii[np.unique(np.argmin(np.abs(
             self.ring_radii[:, None] - np.arange(cfg.r_min_px, cfg.r_max_px + 1e-9,
                                                  cfg.r_step_px)[None]), axis=0))]
@@ -128,15 +133,26 @@ class Ecal:
         crossing (a column), which is what the connectivity test walks along.
         """
         h, w = mask.shape
-        iu = np.rint(uv[0] + self._ru).astype(np.intp)
-        iv = np.rint(uv[1] + self._rv).astype(np.intp)
         r = self.cfg.r_max_px + 1
         inside = None
-        if not (r <= uv[0] < w - r and r <= uv[1] < h - r):  # near the border: clip, mark
+        if r <= uv[0] < w - r and r <= uv[1] < h - r:
+            # one flat gather per image (2-D fancy indexing costs more); the pixel index
+            # v * w + u formed in float64 (exact: whole numbers far below 2^53) and cast once
+            fu, fv = self._fu, self._fv
+            np.add(self._ru, uv[0], out=fu)
+            np.rint(fu, out=fu)
+            np.add(self._rv, uv[1], out=fv)
+            np.rint(fv, out=fv)
+            fv *= w
+            fv += fu
+            flat = fv.astype(np.intp)
+        else:  # near the border: clip, mark
+            iu = np.rint(uv[0] + self._ru).astype(np.intp)
+            iv = np.rint(uv[1] + self._rv).astype(np.intp)
             inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
             iu *= inside
             iv *= inside
-        flat = iv * w + iu  # one flat gather per image (2-D fancy indexing costs more)
+            flat = iv * w + iu
         on = mask.reshape(-1)[flat] > 0
         val = intensity.reshape(-1)[flat].astype(float) if intensity is not None else None
         if inside is not None:
@@ -170,7 +186,7 @@ class Ecal:
         return out
 
     def __call__(self, mask: np.ndarray, uv: np.ndarray, intensity: np.ndarray | None = None,
-                 prev_angles: np.ndarray | None = None) -> EcalResult:
+                 prev_angles: np.ndarray | None = None, tangents: bool = True) -> EcalResult:
         """Arm points around feature pixel ``uv`` (2,) on the stripe ``mask`` (H, W) uint8.
 
         Args:
@@ -179,6 +195,8 @@ class Ecal:
             intensity: optional (H, W) grey/red image for sub-pixel arm centres.
             prev_angles: (2,) arm directions of the previous frame (rad), for choosing among
                 several candidates and for the occluded-arm fallback.
+            tangents: make ``p_tangent`` now (False: when asked, :meth:`tangents`; the live
+                locator needs it only where the tracker lends no arm directions).
         """
         if mask.ndim != 2:
             raise ValueError(f"mask: expected (H, W), got {mask.shape}")
@@ -218,8 +236,9 @@ class Ecal:
                               rejected=rejected_total)
             kept.append(best)
         if best is not None:
-            best.p_tangent = _tangent_points(uv, np.array(radii), np.array(arm_angles),
-                                             best.radius, self.cfg.min_extrapolation_circles)
+            best.circles = (np.array(radii), np.array(arm_angles))
+            if tangents:
+                self.tangents(best, uv)
             return best
         if single is not None and prev_angles is not None:
             r, a, p = single
@@ -234,6 +253,16 @@ class Ecal:
         why = "one arm only (occluded) and no previous arm directions" if single else (
             "no arm crossings around the feature point")
         return EcalResult(False, nan2, np.full(2, np.nan), reason=why)
+
+
+    def tangents(self, res: EcalResult, uv: np.ndarray) -> np.ndarray | None:
+        """``res.p_tangent`` (made from ``res.circles`` and kept, if not made yet) of a result
+        of this ECAL around ``uv`` (the feature point it was called with)."""
+        if res.p_tangent is None and res.circles is not None:
+            radii, arm_angles = res.circles
+            res.p_tangent = _tangent_points(np.asarray(uv, dtype=float), radii, arm_angles,
+                                            res.radius, self.cfg.min_extrapolation_circles)
+        return res.p_tangent
 
 
 _NO_VAL = np.zeros((0, 0))  # no grey levels: the kernel weighs every sample alike
@@ -251,12 +280,17 @@ def _tangent_points(uv: np.ndarray, radii: np.ndarray, angles: np.ndarray, r_ref
     radii of a short span.
     """
     out = np.empty((2, 2))
+    unwrapped = np.unwrap(angles, axis=0)  # each arm's column on its own, in one call
+    fit = len(radii) >= min_circles
+    if fit:
+        r_mean = radii.mean()
+        rc = radii - r_mean
+        rr = rc @ rc
     for i in range(2):
-        a = np.unwrap(angles[:, i])
-        if len(radii) >= min_circles:
+        a = np.ascontiguousarray(unwrapped[:, i])
+        if fit:
             # intercept of the least-squares line a(r) (closed form: polyfit costs 10x more)
-            rc = radii - radii.mean()
-            a0 = a.mean() - (rc @ a) / (rc @ rc) * radii.mean()
+            a0 = a.mean() - (rc @ a) / rr * r_mean
         else:
             a0 = float(np.mean(a))
         out[i] = uv + r_ref * np.array([np.cos(a0), np.sin(a0)])
