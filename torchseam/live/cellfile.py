@@ -11,7 +11,7 @@ one for the virtual cell; for a real cell copy it and edit it)::
       source: tcp://127.0.0.1:7000   # the frame stream (torchseam.live.framestream), or
                                      # aravis://DEVICE: a GenICam camera (torchseam.live.genicam)
       latency_ms: 20.0               # exposure -> arrival at the PC (torchseam calibrate latency)
-      stall_frames: 1.5              # no frame for this many periods: hold, arc off
+      stall_frames: 2.0              # no frame for this many periods: hold, arc off
     controller:           # the EGM link (configs/egm.yaml's network section)
       host: 127.0.0.1                # where the weld listens (the UdpUc device's remote address)
       port: 6510
@@ -59,7 +59,7 @@ class CameraLink:
 
     source: str = _f(convert=_camera_url)
     latency_ms: float = _f(lo=0.0, hi=1000.0)
-    stall_frames: float = _f(default=1.5, lo=1.0, hi=50.0)
+    stall_frames: float = _f(default=2.0, lo=1.0, hi=50.0)
 
 
 @dataclass(frozen=True)

@@ -368,7 +368,7 @@ def run(args: argparse.Namespace) -> int:
                 files if failed is None else None, video is not None)
     if failed is not None:
         return _report_failed(failed)
-    if stop.signal is not None:
+    if res.summary["interrupted"]:  # (a signal while the report was written: it is whole)
         print(f"torchseam demo: interrupted by {stop.signal}: the weld stopped at "
               f"t={res.frames[-1].t_s if res.frames else 0.0:.2f} s; report "
               f"{out / 'summary.json'} (interrupted)", file=sys.stderr)

@@ -330,7 +330,8 @@ def run_demo(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                egm=_demo_egm_config(cell, live, parts.egm), length_mm=length_mm,
                start_offset_mm=start_offset_mm, start_angle_deg=start_angle_deg, parts=parts,
                observer=observer, control=control, progress=progress, writer=writer,
-               res=DemoResult(part=weld_plan.part, report=report), _segments=segments)
+               res=DemoResult(part=weld_plan.part, report=report),
+               segments_asked=segments)
     try:
         for seg in weld_plan.segments:
             if seg.name in segments:
@@ -411,7 +412,7 @@ class _Run:
     progress: Callable[[int], object] | None
     writer: _VideoThread | None
     res: DemoResult
-    _segments: str = "abcdef"
+    segments_asked: str = "abcdef"  # the segments asked for
     clock: SimClock = field(default_factory=SimClock)
     latency: dict[str, list[float]] = field(default_factory=dict)
     unsafe: int = 0
@@ -552,7 +553,7 @@ class _Run:
             "part": rep.part_name if rep is not None else None,
             "seed": int(self.seed), "noise_level": float(self.level),
             "segments": "".join(s.name for s in self.weld_plan.segments
-                                if s.name in self._segments),
+                                if s.name in self.segments_asked),
             "length_mm": self.length_mm, "tracker": self.tracker,
             "model": _model_used(self.tracker, self.model_path),
             "start_offset_mm": self.start_offset_mm, "start_angle_deg": self.start_angle_deg,

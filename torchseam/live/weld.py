@@ -53,6 +53,32 @@ MAX_GAP_MM = 0.5
 
 
 @dataclass
+class ArcGapMeter:
+    """The seam passed with the arc out, from every fed-back pose (the link's thread, 250 Hz):
+    the path the torch tip travelled since the segment's hand-over, and of it, past
+    ``zone_mm`` (the approach's end), the length passed while the arc was not asked for.
+    What the weld reports as unwelded (a restrike behind the arc-out point would need the
+    torch to go back: the weld says how much instead)."""
+
+    path_mm: float = 0.0
+    gap_mm: float = 0.0
+    zone_mm: float = float("inf")
+    _p: np.ndarray | None = None
+
+    def reset(self, zone_mm: float) -> None:
+        self.path_mm, self.gap_mm, self.zone_mm, self._p = 0.0, 0.0, zone_mm, None
+
+    def add(self, p: np.ndarray, arc: bool) -> None:
+        if self._p is not None:
+            d = float(np.linalg.norm(p - self._p))
+            before = self.path_mm
+            self.path_mm += d
+            if not arc and self.path_mm > self.zone_mm:
+                self.gap_mm += min(d, self.path_mm - max(before, self.zone_mm))
+        self._p = p
+
+
+@dataclass
 class ControllerView:
     """What the weld knows of the controller, kept up to date by the EGM link's thread.
 
@@ -73,6 +99,8 @@ class ControllerView:
     motions: int = 0
     datagrams: int = 0
     without_rapid: int = 0
+    gap: ArcGapMeter = field(default_factory=ArcGapMeter)
+    arc_now: Any = None          # () -> bool: the arc request the replies carry now
     _resets: int = 0
 
     def __post_init__(self) -> None:
@@ -96,8 +124,9 @@ class ControllerView:
         q = np.array([c.orient.u0, c.orient.u1, c.orient.u2, c.orient.u3])
         n = float(np.linalg.norm(q))
         if n > 0:
-            self.poses.add(self.offset.to_pc(t_fb),
-                           pose_matrix(np.array([c.pos.x, c.pos.y, c.pos.z]), q / n))
+            p = np.array([c.pos.x, c.pos.y, c.pos.z])
+            self.poses.add(self.offset.to_pc(t_fb), pose_matrix(p, q / n))
+            self.gap.add(p, bool(self.arc_now()) if self.arc_now is not None else False)
         data = rd.read_rapid_data(robot)
         if data is None:
             self.without_rapid += 1
@@ -132,10 +161,14 @@ class SensorReply:
             self.arc_request, self.segment, self.state = arc_request, segment, state
             self._since = time.monotonic()
 
+    def effective(self) -> bool:
+        """The arc request the next reply carries (False once the lease ran out)."""
+        return self.arc_request and time.monotonic() - self._since <= self.lease_s
+
     def on_reply(self, msg: Any) -> None:
         with self._lock:
             self.heartbeat = rd.next_heartbeat(self.heartbeat)
-            arc = self.arc_request and time.monotonic() - self._since <= self.lease_s
+            arc = self.effective()
             rd.write_sensor_data(msg, rd.SensorData(arc, self.segment, self.state,
                                                     self.heartbeat))
 
@@ -199,6 +232,7 @@ class WeldRunner:
                                    delay_s=cell.controller.feedback_delay_ms / 1e3)
         self.period_s = 1.0 / cell.calibration.process.frame_rate_hz
         self.reply = SensorReply(lease_s=2.5 * self.period_s)
+        self.view.arc_now = self.reply.effective
         self.tool_inv = invert(self.calib.tool.matrix())
         self.period_s = 1.0 / self.calib.process.frame_rate_hz
         self.stall_s = cell.camera.stall_frames * self.period_s
@@ -356,10 +390,11 @@ class WeldRunner:
                         self.link, self.report.plan.plan_config(seg, self.parts.plan),
                         self.parts.live, tipm, self.parts.ecal, nominal=geo.nominal)
         self.reply.set(False, number, rd.SensorState.TRACKING)
+        self.view.gap.reset(geo.approach_mm)
         self.progress(f"weld: segment {seg.name}: EGM guides ({geo.length_mm:.1f} mm after a "
                       f"{geo.approach_mm:.0f} mm approach)")
         out = SegmentOutcome(seg.name, False, "")
-        started, travelled, prev, arc_out_mm = False, 0.0, None, 0.0
+        started, travelled, prev = False, 0.0, None
         stalled_since: float | None = None
         motions = self.view.motions
         t_handover = last_print = time.monotonic()
@@ -426,9 +461,13 @@ class WeldRunner:
                 step = float(np.linalg.norm(T_B_W[:3, 3] - prev))
                 travelled += step
                 prev = T_B_W[:3, 3]
-                if travelled >= geo.approach_mm and not self.reply.arc_request:
-                    arc_out_mm += step          # past the approach with the arc out: a gap
-                if travelled >= geo.approach_mm + geo.length_mm:
+                # where the torch is now: the frame's pose is the latency and the frame's
+                # handling old (the arc strikes, and the segment ends, where the torch is)
+                newest = self.view.poses.newest
+                along = travelled + (0.0 if newest is None else float(
+                    np.linalg.norm(newest[1][:3, 3] - T_B_W[:3, 3])))
+                if along >= geo.approach_mm + geo.length_mm:
+                    arc_out_mm = self.view.gap.gap_mm
                     out.welded = arc_out_mm <= MAX_GAP_MM
                     out.reason = "" if out.welded else (
                         f"the torch reached the end with {arc_out_mm:.1f} mm of the seam "
@@ -439,7 +478,10 @@ class WeldRunner:
                     c = rep.command
                     self.res.poses.append((seg.name, c.t_s, c.p.copy(), c.q.copy()))
                 moving = self._moving()
-                self.reply.set(bool(travelled >= geo.approach_mm and loop.arc_ok and moving),
+                # the arc strikes a frame's travel early: decided once a frame, it is then
+                # burning when the torch passes the approach's end
+                strike = along + self.calib.process.weld_speed_mm_s * self.period_s
+                self.reply.set(bool(strike >= geo.approach_mm and loop.arc_ok and moving),
                                number, rd.SensorState.TRACKING)
                 if rep.message and (not self.res.messages
                                     or not self.res.messages[-1].endswith(rep.message)):
@@ -457,7 +499,7 @@ class WeldRunner:
             raise
         finally:
             out.travelled_mm = max(0.0, travelled - geo.approach_mm)
-            out.unwelded_mm = arc_out_mm
+            out.unwelded_mm = self.view.gap.gap_mm
             self.res.latency_ms += list(loop.stats.timings_ms.get("frame->command", []))
             for k, n in loop.stats.hold_reasons.items():
                 self.res.holds[k] += n
