@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import sys
-from collections.abc import Sequence
+import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,35 @@ from torchseam.core.errors import TorchseamError
 
 class ReportError(TorchseamError):
     """A report cannot be written (its folder, a full disk, a permission)."""
+
+
+#: the file that says a report folder's run has not finished: written when the run starts,
+#: removed once its summary.json is written (a folder holding it and no summary.json is a run
+#: that was killed, or whose report could not be written)
+RUN_MARKER = "RUNNING"
+
+
+@contextlib.contextmanager
+def report_file(path: Path) -> Iterator[Path]:
+    """Write ``path`` in the block: an :class:`OSError` there (a full disk, a permission)
+    becomes a :class:`ReportError` naming ``path`` and the error, one line."""
+    try:
+        yield Path(path)
+    except OSError as e:
+        raise ReportError(f"{path}: cannot write the report ({e.strerror or e})") from None
+
+
+def write_run_marker(out: Path, command: str) -> Path:
+    """The :data:`RUN_MARKER` of a run that starts writing into ``out``: when, which process,
+    and that summary.json comes at the end. A :class:`ReportError` when it cannot be written."""
+    path = Path(out) / RUN_MARKER
+    with report_file(path):
+        path.write_text(
+            f"{command}: running since {time.strftime('%Y-%m-%d %H:%M:%S %z')}, pid "
+            f"{os.getpid()}. summary.json is written when the run ends and this file is then "
+            "removed; a folder with this file and no summary.json holds a run that did not "
+            "finish (killed, or its report could not be written).\n")
+    return path
 
 
 def format_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
@@ -74,6 +105,8 @@ def write_json_atomic(path: Path, data: object) -> Path:
         tmp.write_text(json.dumps(clean(data), indent=1))
         os.replace(tmp, path)
     except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)  # no half-written file left behind
         raise ReportError(f"{path}: cannot write the report ({e.strerror or e})") from None
     return path
 
