@@ -230,3 +230,77 @@ def test_weld_interrupted_holds_reports_and_keeps_the_old_report(tmp_path):
     s = json.loads((tmp_path / "V" / "summary.json").read_text())
     assert s["segments"]["a"]["outcome"] == "abort", vout[-2000:]
     assert s["unsafe_poses_sent"] == 0 and s["arc_on_while_still_s"] <= 0.2
+
+
+# --------------------------------------------------------------------------- pieces
+
+
+def test_fit_latency_recovers_the_shift_through_late_frames():
+    """The stripe's rows against a fed-back sine: the shift found is the latency, and frames
+    delivered late (arrival stamps only) would bias it, so the fit uses exposure times put on
+    the PC's clock at the least delay (as measure_latency does)."""
+    from torchseam.live.latency import fit_latency
+
+    rng = np.random.default_rng(1)
+    L = 0.0273
+    t_exp = 100.0 + np.arange(250) * 0.04
+    h = lambda t: 2.0 * np.sin(2 * np.pi * 0.5 * (t - 100.0))  # noqa: E731
+    rows = 240.0 + 7.9 * h(t_exp) + rng.normal(0, 0.05, len(t_exp))
+    late = rng.random(len(t_exp)) < 0.4
+    arrival = t_exp + L + np.where(late, rng.uniform(0.002, 0.03, len(t_exp)), 0.0)
+    t_cam = t_exp - 5000.0                                   # the camera's own clock
+    base = t_cam + np.min(arrival - t_cam)
+    res = fit_latency(base, rows, h)
+    assert abs(res.latency_ms - L * 1e3) < 0.5
+    assert abs(res.px_per_mm - 7.9) < 0.1
+
+
+def test_arc_gap_meter_counts_the_seam_passed_with_the_arc_out():
+    from torchseam.live.weld import ArcGapMeter
+
+    m = ArcGapMeter()
+    m.reset(zone_mm=10.0)
+    for k in range(200):                                     # 0.1 mm a step, 20 mm
+        x = 0.1 * k
+        arc = x >= 10.2 and not (14.0 <= x < 15.0)           # strikes 0.2 late, out 1 mm
+        m.add(np.array([x, 0.0, 0.0]), arc)
+    assert m.path_mm == pytest.approx(19.9)
+    assert m.gap_mm == pytest.approx(1.2, abs=0.11)
+
+
+def test_the_arc_request_is_a_lease():
+    """A weld loop that stops renewing the request (stuck, starved) stops asking for the arc
+    within the lease, though the link's thread keeps answering."""
+    from torchseam.live.weld import SensorReply
+    from torchseam.robot.egm import rapid_data as rd
+    from torchseam.robot.egm.messages import EgmSensor
+
+    r = SensorReply(lease_s=0.05)
+    r.set(True, 1, rd.SensorState.TRACKING)
+    msg = EgmSensor()
+    r.on_reply(msg)
+    assert rd.read_sensor_data(msg).arc_request is True
+    time.sleep(0.08)
+    msg = EgmSensor()
+    r.on_reply(msg)
+    data = rd.read_sensor_data(msg)
+    assert data.arc_request is False and data.state == rd.SensorState.TRACKING
+
+
+@pytest.mark.slow
+def test_weld_a_controller_on_the_older_schema(tmp_path):
+    """No RAPID data channel (RobotWare before 6.10): the weld says so, guides the segment
+    from the robot standing at its programmed start, holds at its end; RAPID's arc."""
+    vc = _virtual(tmp_path, "--rapid-data", "off")
+    try:
+        rc, out = _finish(_weld(tmp_path))
+        vrc, vout = _finish(vc, 60.0)
+    finally:
+        vc.kill()
+    assert rc == 0, out[-3000:]
+    assert "older schema" in out and "stay with RAPID" in out
+    s = json.loads((tmp_path / "V" / "summary.json").read_text())
+    assert s["segments"]["a"]["outcome"] == "done", vout[-2000:]
+    assert s["seam_rmse_mm"] <= 0.1 and s["unsafe_poses_sent"] == 0
+    w = json.loads((tmp_path / "W" / "summary.json").read_text())
+    assert w["unwelded_mm"]["a"] is None          # the arc was RAPID's: the weld cannot say

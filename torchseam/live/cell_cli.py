@@ -132,6 +132,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--fault", type=_faults, action="extend", default=[], metavar="FAULT",
                    help=f"inject a fault mid-segment ({', '.join(VIRTUAL_FAULTS)}); "
                         "comma-separate or repeat")
+    v.add_argument("--rapid-data", choices=("on", "off"), default="on",
+                   help="off: a controller on the older EGM schema (RobotWare before 6.10): no "
+                        "RAPID data channel; RAPID switches the arc itself and takes back when "
+                        "EGM converged (default on)")
     v.add_argument("--program", choices=("weld", "latency"), default="weld",
                    help="RAPID's program: the weld's segments, or the latency calibration's "
                         "motion over segment a's start (`torchseam calibrate latency`)")

@@ -131,7 +131,8 @@ class VirtualController:
                  ring: Any, sensor_address: tuple[str, int], *, clock_offset_s: float,
                  comm_timeout_s: float, arc_hold_ms: float, transfer_s: float,
                  faults: tuple[str, ...], seed: int, max_segment_s: float,
-                 wait_sensor_s: float, n_segments: int = 6, marks: Any = None) -> None:
+                 wait_sensor_s: float, n_segments: int = 6, marks: Any = None,
+                 rapid_data: bool = True) -> None:
         from torchseam.robot.egm import rapid_data as rd
         from torchseam.robot.sim_controller import SimController
 
@@ -143,6 +144,13 @@ class VirtualController:
         self.tool_inv = invert(cell.tool.matrix())
         self.jobs, self.ring = jobs, ring
         self.n_segments = n_segments
+        # False: a controller on the older EGM schema (RobotWare before 6.10): no RAPID data
+        # either way; RAPID runs the arc itself (on after the approach, off when EGM
+        # converged: the torch stood still) and takes back when EGM converged
+        self.rapid_data = rapid_data
+        self._path_mm = 0.0              # the torch's path since the hand-over (old schema)
+        self._still_since = float("nan")
+        self._T_prev: np.ndarray | None = None
         self.marks = marks              # shared with the camera: [stall start (delivery time)]
         self._stall_seen = float("nan")
         self.offset = float(clock_offset_s)
@@ -180,10 +188,11 @@ class VirtualController:
             msg = base_build(q, T, q_plan, T_plan, running, compute_s)
             # the fed-back pose is the one the previous cycle recorded (the ring's time of it)
             measured["t"] = self._last_cycle_t
-            with self._lock:
-                data = rd.RapidData(arc_on=self.arc, segment=self._segment_number(),
-                                    phase=self.phase, n_segments=self.n_segments)
-            rd.write_rapid_data(msg, data)
+            if self.rapid_data:
+                with self._lock:
+                    data = rd.RapidData(arc_on=self.arc, segment=self._segment_number(),
+                                        phase=self.phase, n_segments=self.n_segments)
+                rd.write_rapid_data(msg, data)
             return msg
 
         def stamp(msg) -> bytes:   # noqa: ANN001
@@ -222,6 +231,10 @@ class VirtualController:
             # reply in flight from before the hand-over (a hold on where the robot was) is not
             guided = (self.phase == rd.RapidPhase.GUIDED and data is not None
                       and data.segment == seg and data.state == rd.SensorState.TRACKING)
+            if not self.rapid_data:
+                # no handshake: RAPID's EGMRunPose ramps in for its first 0.5 s (a reply in
+                # flight from before the hand-over is not applied)
+                guided = self.phase == rd.RapidPhase.GUIDED and now - self.t_phase > 0.5
             arc = self.arc
         if guided:
             base_apply(msg)
@@ -271,7 +284,7 @@ class VirtualController:
         s = self.sensor
         fresh = s is not None and now - self.hb_t <= self.arc_hold_s
         if self.phase == P.IDLE:
-            if fresh:
+            if fresh or (not self.rapid_data and now - self.log.last_reply_t < 0.1):
                 self._next_segment(now)
             elif now - self.t_phase > self.wait_sensor_s:
                 self._event(now, f"no sensor answered within {self.wait_sensor_s:g} s: "
@@ -322,6 +335,9 @@ class VirtualController:
                              "ended")
             self._set(P.TAKEN_BACK, now)
             return
+        if not self.rapid_data:
+            self._old_schema(now, job)
+            return
         mine = s is not None and s.segment == job.number
         self.arc = bool(fresh and mine and s.arc_request)
         if mine and s.state in (rd.SensorState.DONE, rd.SensorState.ABORT):
@@ -344,6 +360,33 @@ class VirtualController:
                 and job.number not in self._restarted):
             self._restarted.add(job.number)
             self._restart(now)
+
+    def _old_schema(self, now: float, job: SegmentJob) -> None:
+        """RAPID without the data channel: its own arc (a distance trigger at the approach's
+        end) and EGM's convergence (the torch stood still for a second) end the segment."""
+        T = self.ctrl.tcp_pose()
+        if self._T_prev is not None:
+            d = float(np.linalg.norm(T[:3, 3] - self._T_prev[:3, 3]))
+            self._path_mm += d
+            if d / self.ctrl.period < STILL_MM_S:
+                if math.isnan(self._still_since):
+                    self._still_since = now
+            else:
+                self._still_since = float("nan")
+        self._T_prev = T
+        welding = self._path_mm >= job.approach_mm
+        converged = (welding and not math.isnan(self._still_since)
+                     and now - self._still_since > 1.0)
+        self.arc = welding and not converged and math.isnan(self._still_since)
+        if converged or now - self.t_phase > self.max_segment_s:
+            self.arc = False
+            self._stop_robot()
+            self.log.outcome[job.number] = "done" if converged else "overtime"
+            self._event(now, f"segment {job.name}: EGM converged (the torch stood still): "
+                             "RAPID takes back" if converged else
+                        f"segment {job.name}: no end after {self.max_segment_s:.0f} s")
+            self._set(self.rd.RapidPhase.TAKEN_BACK, now)
+            self._path_mm, self._T_prev, self._still_since = 0.0, None, float("nan")
 
     def _restart(self, now: float) -> None:
         """EGM restarts: silent for RESTART_SILENCE_S (robot stopped, arc off), then a new
@@ -701,7 +744,8 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
                            comm_timeout_s=comm_timeout, arc_hold_ms=args.arc_hold_ms,
                            transfer_s=1.0, faults=tuple(args.fault), seed=args.seed,
                            max_segment_s=max_seg_s, wait_sensor_s=args.wait_sensor_s,
-                           n_segments=len(plan.segments), marks=marks)
+                           n_segments=len(plan.segments), marks=marks,
+                           rapid_data=args.rapid_data == "on")
     # the robot waits at the first segment's start pose's neighbourhood: its home
     weld_cell = WeldCell(
         calibration=cell,
@@ -712,7 +756,8 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
                                   cycle_ms=vc.ctrl.period * 1e3,
                                   # a pose is recorded at one cycle's end and leaves at the
                                   # tick after next: two cycles old at the least
-                                  feedback_delay_ms=2 * vc.ctrl.period * 1e3, rapid_data=True))
+                                  feedback_delay_ms=2 * vc.ctrl.period * 1e3,
+                                  rapid_data=args.rapid_data == "on"))
     stopping = {"sig": 0}
 
     def on_signal(signum: int, _frame: Any) -> None:
@@ -747,6 +792,7 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
             "length_mm": args.length_mm, "noise": level, "seed": args.seed,
             "faults": list(args.fault), "camera_latency_ms": args.camera_latency_ms,
             "clock_offset_s": args.clock_offset_s, "comm_timeout_s": comm_timeout,
+            "rapid_data": args.rapid_data,
             "interrupted": bool(stopping["sig"])}
     # the step a pose may make: the link's limit for the IPI step (torchseam weld's link)
     max_step = max(parts.egm.safety.max_step_mm, 1.25 * cell.process.step_mm)

@@ -50,6 +50,9 @@ EXIT_OK, EXIT_INCOMPLETE, EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 2, 1
 #: seam passed with the arc out (after the approach) above this is an unwelded gap: the segment
 #: is not welded (the strike at the approach's end and frame timing leave a few tenths)
 MAX_GAP_MM = 0.5
+#: the older schema: how long the weld holds the torch at a segment's end for RAPID's EGM to
+#: converge and take back (RAPID's convergence condition: the torch still for about a second)
+CONVERGE_WAIT_S = 2.5
 
 
 @dataclass
@@ -100,6 +103,9 @@ class ControllerView:
     datagrams: int = 0
     without_rapid: int = 0
     gap: ArcGapMeter = field(default_factory=ArcGapMeter)
+    # the older schema: the weld decides that a guided motion started (the robot stands at a
+    # segment's start); the next datagram then starts a new session of the link
+    new_motion_pending: bool = False
     arc_now: Any = None          # () -> bool: the arc request the replies carry now
     _resets: int = 0
 
@@ -134,6 +140,8 @@ class ControllerView:
         new = (data is not None and data.phase == rd.RapidPhase.GUIDED
                and (prev is None or prev.phase != rd.RapidPhase.GUIDED
                     or prev.segment != data.segment))
+        if self.new_motion_pending:
+            self.new_motion_pending, new = False, True
         if new:
             self.motions += 1
         return new
@@ -240,6 +248,7 @@ class WeldRunner:
         self._signal = 0
         self.cam: Any = None      # the StreamCamera, once open
         self._partial: SegmentOutcome | None = None   # the segment a signal interrupted
+        self.old_schema = False   # the controller's EGM carries no RAPID data
 
     # ------------------------------------------------------------------ set-up
 
@@ -345,19 +354,25 @@ class WeldRunner:
                     f"{self.connect_timeout_s:g} s (is RAPID's EGM set up towards "
                     f"{self.cell.controller.host}:{self.cell.controller.port}?)")
             time.sleep(0.02)
-        if self.view.rapid is None:
-            raise TorchseamError(
-                "the controller's EgmRobot carries no RAPIDfromRobot: its EGM is of the older "
-                "schema (RobotWare before 6.10): the arc and the segment sequence stay with "
-                "RAPID, and this weld needs them (run RAPID's own sequence, or update the "
-                "controller)")
+        self.old_schema = self.view.rapid is None
+        if self.old_schema:
+            msg = ("the controller's EGM is of the older schema (no RAPIDfromRobot: RobotWare "
+                   "before 6.10): the arc and the segment sequence stay with RAPID; this weld "
+                   "guides each segment from when the robot stands at its programmed start "
+                   "and holds the torch at its end (RAPID takes back when EGM converged); "
+                   "what was welded is RAPID's to say")
+            self.res.messages.append(msg)
+            self.progress("weld: " + msg)
         self.progress(f"weld: controller connected (clock offset "
-                      f"{self.view.offset.offset_s:+.3f} s to this PC), RAPID data channel on")
+                      f"{self.view.offset.offset_s:+.3f} s to this PC), RAPID data channel "
+                      + ("off" if self.old_schema else "on"))
 
     def _wait_guided(self, number: int, name: str) -> str:
         """Wait until RAPID hands segment ``number`` over to EGM; '' or why it did not."""
         deadline = time.monotonic() + self.wait_rapid_s
         self.reply.set(False, 0, rd.SensorState.WAIT)
+        if self.old_schema:
+            return self._wait_at_start(number, name, deadline)
         while True:
             self._check_signal()
             r = self.view.rapid
@@ -371,6 +386,45 @@ class WeldRunner:
             if time.monotonic() > deadline:
                 return f"RAPID did not hand segment {name} over within {self.wait_rapid_s:g} s"
             time.sleep(0.005)
+
+    def _wait_at_start(self, number: int, name: str, deadline: float) -> str:
+        """The older schema: until the robot stands (0.2 s) within 2 mm and 2 degrees of the
+        segment's programmed start; then a new session of the link on it."""
+        seg = next(s for s in self.report.plan.segments if s.index + 1 == number)
+        geo = self.report.plan.geometry(seg)
+        s0 = float(geo.s_at(np.array([seg.phi_start]))[0])
+        approach = self.calib.process.look_ahead_mm + self.parts.plan.approach_mm
+        T0 = self.report.plan.nominal_tcp(seg, np.array([s0 - approach]))[0]
+        while True:
+            self._check_signal()
+            newest = self.view.poses.newest
+            if newest is not None:
+                t, T = newest
+                T_old = self.view.poses.nearest(t - 0.2, 0.03)
+                near = (np.linalg.norm(T[:3, 3] - T0[:3, 3]) < 2.0 and np.degrees(np.arccos(
+                    np.clip((np.trace(T[:3, :3].T @ T0[:3, :3]) - 1) / 2, -1, 1))) < 2.0)
+                still = T_old is not None and np.linalg.norm(T[:3, 3] - T_old[:3, 3]) < 0.05
+                if near and still:
+                    self.view.new_motion_pending = True
+                    time.sleep(0.05)
+                    return ""
+            if time.monotonic() > deadline:
+                return (f"the robot did not stand at segment {name}'s programmed start within "
+                        f"{self.wait_rapid_s:g} s")
+            time.sleep(0.01)
+
+    def _guided(self, number: int) -> str:
+        """'' while RAPID lets the weld guide segment ``number``, else what RAPID says (its
+        phase). The older schema: always '' (RAPID takes back by EGM's convergence, when the
+        weld holds the torch at the end)."""
+        if self.old_schema:
+            return ""
+        r = self.view.rapid
+        if r is None:
+            return "no data"
+        if r.phase != rd.RapidPhase.GUIDED or r.segment != number:
+            return r.phase.name
+        return ""
 
     def _segment(self, seg: Any) -> SegmentOutcome:  # noqa: C901 - the per-frame loop
         from torchseam.robot.reach import ReachGate
@@ -401,10 +455,9 @@ class WeldRunner:
         try:
             while True:
                 self._check_signal()
-                r = self.view.rapid
-                if r is None or r.phase != rd.RapidPhase.GUIDED or r.segment != number:
-                    out.reason = ("RAPID took the segment back "
-                                  f"({'no data' if r is None else r.phase.name}) after "
+                phase = self._guided(number)
+                if phase:
+                    out.reason = (f"RAPID took the segment back ({phase}) after "
                                   f"{max(0.0, travelled - geo.approach_mm):.1f} of "
                                   f"{geo.length_mm:.1f} mm")
                     break
@@ -468,7 +521,8 @@ class WeldRunner:
                     np.linalg.norm(newest[1][:3, 3] - T_B_W[:3, 3])))
                 if along >= geo.approach_mm + geo.length_mm:
                     arc_out_mm = self.view.gap.gap_mm
-                    out.welded = arc_out_mm <= MAX_GAP_MM
+                    # (the older schema: the arc is RAPID's, the weld guided to the end)
+                    out.welded = self.old_schema or arc_out_mm <= MAX_GAP_MM
                     out.reason = "" if out.welded else (
                         f"the torch reached the end with {arc_out_mm:.1f} mm of the seam "
                         "passed with the arc out (unwelded)")
@@ -499,7 +553,7 @@ class WeldRunner:
             raise
         finally:
             out.travelled_mm = max(0.0, travelled - geo.approach_mm)
-            out.unwelded_mm = self.view.gap.gap_mm
+            out.unwelded_mm = float("nan") if self.old_schema else self.view.gap.gap_mm
             self.res.latency_ms += list(loop.stats.timings_ms.get("frame->command", []))
             for k, n in loop.stats.hold_reasons.items():
                 self.res.holds[k] += n
@@ -507,7 +561,13 @@ class WeldRunner:
         state = rd.SensorState.DONE if out.welded else rd.SensorState.ABORT
         self.reply.set(False, number, state)
         self._hold_here()
-        self._wait_taken_back(number)
+        if self.old_schema:
+            # no word from RAPID: hold the torch until EGM has converged and RAPID took back
+            end = time.monotonic() + CONVERGE_WAIT_S
+            while time.monotonic() < end and not self._signal:
+                time.sleep(0.02)
+        else:
+            self._wait_taken_back(number)
         self.progress(f"weld: segment {seg.name}: " + (
             f"welded ({out.travelled_mm:.1f} mm)" if out.welded else f"NOT welded: {out.reason}"))
         return out
