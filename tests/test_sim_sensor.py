@@ -113,3 +113,57 @@ def test_laser_off_frames_have_no_stripe(cell, part, noise):
     (on, t_on), (off, t_off) = out[0], out[1]
     assert t_on.visible and not t_off.visible and not t_off.laser_on
     assert on[..., 2].max() > 200 and off[..., 2].max() < 60
+
+
+def test_compiled_finish_pass_is_numpys_to_the_bit():
+    """The renderer's last pass (background, read noise times sigma, clip, uint8) compiled in
+    one pass gives the numpy passes' pixels exactly (float32, same order of operations)."""
+    from torchseam.core.kernels import load_kernels
+
+    k = load_kernels("torchseam.sim")
+    rng = np.random.default_rng(4)
+    h, w = 61, 83
+    for trial in range(30):
+        light = (rng.random((h, w, 3), dtype=np.float32) * rng.choice([5, 300, 900])
+                 - rng.choice([0, 20])).astype(np.float32)
+        bg = rng.random((h, w, 3), dtype=np.float32) * 6
+        field = rng.standard_normal((h + 16, w + 16, 3), dtype=np.float32)
+        dy, dx = (int(x) for x in rng.integers(0, 16, 2))
+        sigma = float(rng.uniform(0.5, 12.0)) if trial % 2 else float(np.hypot(3.0, 1.7))
+        img = light.copy()
+        img += bg
+        tmp = np.empty_like(img)
+        np.multiply(field[dy:dy + h, dx:dx + w], sigma, out=tmp)
+        img += tmp
+        ref = np.clip(img, 0, 255, out=img).astype(np.uint8)
+        out = np.empty((h, w, 3), np.uint8)
+        k.finish_frame(light.reshape(h, -1), bg.reshape(h, -1), field.reshape(h + 16, -1), dy,
+                       dx * 3, np.float32(sigma), out.reshape(h, -1))
+        np.testing.assert_array_equal(out, ref)
+
+
+def test_roots_refined_in_lockstep_are_each_brackets_own():
+    """The sensor's arm points: two roots refined together (one call of the function per
+    round) are the roots each search finds alone, to the bit; a bracket without a sign change
+    stops narrowing on its own."""
+    from torchseam.sim.sensor import _refine_root, _refine_roots
+
+    def f(x):
+        return np.sin(3.0 * x) - 0.2 * x
+
+    brackets = [(0.9, 1.2), (-0.4, 0.3), (2.0, 2.1)]  # the last holds no root
+    together = _refine_roots(f, brackets)
+    alone = []
+    for lo, hi in brackets:  # the search as it was written for one bracket
+        for _ in range(4):
+            x = np.linspace(lo, hi, 33)
+            y = f(x)
+            kk = np.nonzero(np.sign(y[1:]) != np.sign(y[:-1]))[0]
+            if len(kk) == 0:
+                break
+            lo, hi = x[kk[0]], x[kk[0] + 1]
+        ylo, yhi = f(np.array([lo, hi]))
+        alone.append(float(lo - ylo * (hi - lo) / (yhi - ylo)) if yhi != ylo else float(lo))
+    assert together == alone
+    assert [_refine_root(f, *b) for b in brackets] == alone
+    assert abs(f(np.array([together[0]]))[0]) < 1e-12

@@ -134,11 +134,22 @@ class LaserSensor:
         n_T = R @ self.n_C
         d_T = self.d_C + n_T @ c
 
+        try:
+            seam_T = self._seam_in_plane(joint, n_T, d_T, c, phi_hint)
+        except ValueError:  # the sensor looks off the seam altogether
+            seam_T = np.full(3, np.nan)
+        seam_ok = bool(np.all(np.isfinite(seam_T)))
+
         # Visibility from the camera: the first surface along the line of sight is the point.
+        # The seam point's own line of sight goes in the same ray cast (one call instead of
+        # two: the joint casts each ray on its own, so the numbers are those of two calls).
         los = P - c
         dist = np.linalg.norm(los, axis=1)
-        t_cam, _ = joint.raycast(c, los / dist[:, None])
-        seen = t_cam >= dist - 1e-3
+        rays = los / dist[:, None]
+        if seam_ok:
+            rays = np.concatenate([rays, ((seam_T - c) / np.linalg.norm(seam_T - c))[None]])
+        t_cam, _ = joint.raycast(c, rays)
+        seen = t_cam[:len(P)] >= dist - 1e-3
         X_C = (P - c) @ R  # {T} -> {C}
         seen &= X_C[:, 2] > 1.0
 
@@ -147,14 +158,10 @@ class LaserSensor:
         inc = np.abs(np.einsum("ij,ij->i", normals, dirs[hit]))
         bright = 0.35 + 0.65 * inc
 
-        try:
-            seam_T = self._seam_in_plane(joint, n_T, d_T, c, phi_hint)
-        except ValueError:  # the sensor looks off the seam altogether
-            seam_T = np.full(3, np.nan)
         seam_C = (seam_T - c) @ R
-        if np.all(np.isfinite(seam_T)):
+        if seam_ok:
             seam_uv = self.project(seam_C[None])[0]
-            t_seam, _ = joint.raycast(c, (seam_T - c) / np.linalg.norm(seam_T - c))
+            t_seam = t_cam[len(P):]
             # The seam lies on both surfaces: its line of sight may graze one of them.
             visible = bool(t_seam[0] >= np.linalg.norm(seam_T - c) - 0.05
                            and self.in_image(seam_uv) and seam_C[2] > 1.0)
@@ -212,16 +219,21 @@ class LaserSensor:
         seam: bracketed between fan samples, then solved for the fan angle."""
         out = np.full((2, 3), np.nan)
         dist = np.linalg.norm(P - seam, axis=1) - ARM_DISTANCE_MM
+        arms, brackets = [], []
         for j, sid in enumerate((2, 1)):
             k = np.nonzero((surf[:-1] == sid) & (surf[1:] == sid)
                            & (np.sign(dist[:-1]) != np.sign(dist[1:])))[0]
             if len(k) == 0:
                 continue
             k = k[np.argmin(np.abs(P[k] - seam).sum(axis=1))]
-            ang = _refine_root(
-                lambda a: np.linalg.norm(lit(a) - seam, axis=1) - ARM_DISTANCE_MM,
-                psi[k], psi[k + 1])
-            out[j] = lit(np.array([ang]))[0]
+            arms.append(j)
+            brackets.append((psi[k], psi[k + 1]))
+        if arms:
+            # both arms' roots in lockstep: one ray cast per round for the two (each ray is
+            # cast on its own, so each root is the one a search of its own finds)
+            ang = _refine_roots(
+                lambda a: np.linalg.norm(lit(a) - seam, axis=1) - ARM_DISTANCE_MM, brackets)
+            out[arms] = lit(np.array(ang))
         return out
 
     # ---------------------------------------------------------------- rendering
@@ -423,15 +435,36 @@ _SEAM_GRIDS: weakref.WeakKeyDictionary[Joint, np.ndarray] = weakref.WeakKeyDicti
 def _refine_root(f, lo: float, hi: float, n: int = 33, rounds: int = 4) -> float:
     """Root of a vectorised ``f`` bracketed in [lo, hi]: ``rounds`` of n-way subdivision, then
     linear interpolation (about 1e-12 of the bracket; one vector call per round)."""
+    return _refine_roots(f, [(lo, hi)], n, rounds)[0]
+
+
+def _refine_roots(f, brackets: list[tuple[float, float]], n: int = 33, rounds: int = 4
+                  ) -> list[float]:
+    """:func:`_refine_root` for several brackets at once, in lockstep: each round evaluates
+    ``f`` once on the subdivisions of every bracket still being narrowed (an element-wise
+    ``f``, so each root is the one its own search finds, to the bit), the final interpolation
+    once on every bracket's ends."""
+    br = [(lo, hi) for lo, hi in brackets]
+    active = list(range(len(br)))
     for _ in range(rounds):
-        x = np.linspace(lo, hi, n)
-        y = f(x)
-        k = np.nonzero(np.sign(y[1:]) != np.sign(y[:-1]))[0]
-        if len(k) == 0:
+        if not active:
             break
-        lo, hi = x[k[0]], x[k[0] + 1]
-    ylo, yhi = f(np.array([lo, hi]))
-    return float(lo - ylo * (hi - lo) / (yhi - ylo)) if yhi != ylo else float(lo)
+        xs = [np.linspace(*br[i], n) for i in active]
+        y = f(np.concatenate(xs))
+        still = []
+        for m, i in enumerate(active):
+            ym, x = y[m * n:(m + 1) * n], xs[m]
+            k = np.nonzero(np.sign(ym[1:]) != np.sign(ym[:-1]))[0]
+            if len(k):
+                br[i] = (x[k[0]], x[k[0] + 1])
+                still.append(i)
+        active = still
+    ends = f(np.array([v for b in br for v in b]))
+    out = []
+    for i, (lo, hi) in enumerate(br):
+        ylo, yhi = ends[2 * i], ends[2 * i + 1]
+        out.append(float(lo - ylo * (hi - lo) / (yhi - ylo)) if yhi != ylo else float(lo))
+    return out
 
 
 def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int

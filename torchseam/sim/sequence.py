@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from torchseam.core.config import AppearanceFamily, CellConfig, NoiseConfig, PartConfig
+from torchseam.core.kernels import load_kernels
 from torchseam.core.transforms import apply, invert, rotation_about
 from torchseam.sim.noise import ARC_BGR, SPATTER_BGR, STRIPE_BGR, ArcNoise, NoiseFlags
 from torchseam.sim.scene import Scene
@@ -101,8 +102,19 @@ class SensorRenderer:
         self.background = _background(self.rng, w, h)
         self.read_noise = [self.rng.standard_normal((h + 16, w + 16, 3), dtype=np.float32)
                            for _ in range(4)]
-        self._tmp = np.empty((h, w, 3), np.float32)
+        self._bufs: dict[tuple[str, int], np.ndarray] = {}
+        self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
         self.k = 0
+
+    def _buf(self, name: str, channels: int, zero: bool = False) -> np.ndarray:
+        """A reused float32 (H, W, channels) plane of this renderer (``zero``: all zeros)."""
+        key = (name, channels)
+        buf = self._bufs.get(key)
+        if buf is None:
+            w, h = self.size
+            buf = self._bufs[key] = (np.zeros if zero else np.empty)((h, w, channels),
+                                                                      np.float32)
+        return buf
 
     def render(self, T_B_W: np.ndarray, t_s: float, arc_on: bool = True, laser_on: bool = True,
                phi_hint: float | None = None, force_flash: bool = False
@@ -143,19 +155,28 @@ class SensorRenderer:
             if layers.haze is not None and look.haze.absorb > 0:
                 stripe *= 1.0 - look.haze.absorb * haze
             chans.append(haze)
-        # colour mixing of stripe, arc glare, spatter (and fume) light in one pass
-        img: np.ndarray = cv2.transform(cv2.merge(chans), self.mix)
-        img += self.background
-        if self._camera_on:
-            img = self._camera(img, layers.rows)
+        # colour mixing of stripe, arc glare, spatter (and fume) light in one pass, into
+        # reused planes (frame-sized temporaries cost page faults on every frame)
+        img: np.ndarray = cv2.transform(cv2.merge(chans, self._buf("merged", len(chans))),
+                                        self.mix, self._buf("light", 3))
         dy, dx = rng.integers(0, 16, 2)
         sigma = src.sensor_sigma() if arc_on else self.sigma_clean
         if look.read_noise > 0:   # independent extra noise: adds in quadrature
             sigma = float(np.hypot(sigma, look.read_noise))
-        # sigma * noise into a reused buffer, then added: the same numbers, no temporaries
-        np.multiply(self.read_noise[self.k % 4][dy:dy + h, dx:dx + w], sigma, out=self._tmp)
-        img += self._tmp
-        frame = np.clip(img, 0, 255, out=img).astype(np.uint8)
+        frame = np.empty((h, w, 3), np.uint8)
+        if self._camera_on:
+            img += self.background
+            img = self._camera(img, layers.rows)
+            # the background is in the light already: add nothing more
+            background = self._buf("zero", 3, zero=True)
+        else:
+            background = self.background
+        # light + background + sigma * read noise, clipped and cast: one compiled pass, the
+        # numbers of numpy's passes to the bit (torchseam.sim._kernels.finish_frame)
+        noise = self.read_noise[self.k % 4]
+        self._k.finish_frame(np.ascontiguousarray(img).reshape(h, -1),
+                             background.reshape(h, -1), noise.reshape(len(noise), -1),
+                             int(dy), int(dx) * 3, np.float32(sigma), frame.reshape(h, -1))
         truth = FrameTruth(
             index=self.k, t_s=t_s, uv=view.seam_uv, visible=view.visible and laser_on,
             laser_on=laser_on, arc_on=arc_on, seam_B=apply(T_B_T, view.seam_T),
