@@ -560,3 +560,60 @@ def test_arm_fit_rms_counts_every_point_in_its_window():
     # the fit placed over the points it kept: that spread is the corner's noise as a measurement
     assert tipm.corner(streak).inlier_rms_px < 0.1
     assert tipm.corner(clean).inlier_rms_px == pytest.approx(tipm.corner(clean).rms_px)
+
+
+def _opencv_stripe_mask(tipm, frame):
+    """:meth:`Tipm.stripe_mask` through its OpenCV calls (the path taken without the compiled
+    ridge): red response, saturation counts, ``cv2.blur`` ridge, ``cv2.calcHist`` /
+    ``cv2.reduce`` statistics."""
+    t = Tipm(tipm.cfg)
+    t._mean_of = None
+    return t.stripe_mask(frame)
+
+
+def test_compiled_ridge_gives_the_opencv_planes_to_the_bit(cell, part, noise):
+    """The compiled ridge, its saturation counts and statistics (one pass) against the OpenCV
+    calls they replace: clean and heavy-arc frames, colour and mono, the tracker's window and
+    its clipped windows at the border, small windows (fewer rows than the ridge filter: its
+    reflected border), flashes that saturate, random images."""
+    tipm = load_tipm()
+    frames = [f for f, _ in simulate(cell, part, noise, SequenceSpec(n_frames=30, level=1.0,
+                                                                     seed=11))][::3]
+    frames += [frames[0][..., 2].copy(), cv2.cvtColor(frames[1], cv2.COLOR_BGR2GRAY)]
+    rng = np.random.default_rng(5)
+    frames += [rng.integers(0, 256, (37, 53, 3), dtype=np.uint8),
+               rng.integers(0, 256, (9, 40), dtype=np.uint8),
+               np.full((30, 30, 3), 255, np.uint8), np.full((30, 30), 252, np.uint8)]
+    seen = set()
+    for img in frames:
+        h, w = img.shape[:2]
+        for y0, x0, y1, x1 in ((0, 0, h, w), (h // 3, w // 3, h // 3 + 221, w // 3 + 221),
+                               (0, w - 80, 100, w), (h - 5, 0, h, 60), (2, 3, 9, 30)):
+            roi = np.ascontiguousarray(img[y0:y1, x0:x1])
+            if roi.size == 0:
+                continue
+            red, mask, why = tipm.stripe_mask(roi)
+            ref_red, ref_mask, ref_why = _opencv_stripe_mask(tipm, roi)
+            assert why == ref_why
+            np.testing.assert_array_equal(red, ref_red)
+            np.testing.assert_array_equal(mask, ref_mask)
+            seen.add(why.split(" (")[0])
+    assert {"", "frame saturated by arc light", "no stripe found"} <= seen
+
+
+def test_threshold_statistics_count_as_opencv_does():
+    """The compiled histogram and column maxima give :meth:`Tipm._threshold` the level that
+    ``cv2.calcHist``, ``cv2.reduce`` and ``np.median`` gave."""
+    tipm = load_tipm()
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        h, w = (int(x) for x in rng.integers(1, 120, 2))
+        ridge = rng.integers(0, int(rng.integers(1, 256)) + 1, (h, w)).astype(np.uint8)
+        hist = cv2.calcHist([ridge], [0], None, [256], [0, 256]).ravel()
+        cdf = np.cumsum(hist)
+        noise_level = tipm.cfg.noise_k * max(float(np.searchsorted(cdf, 0.9 * cdf[-1])), 1.0)
+        colmax = cv2.reduce(ridge, 0, cv2.REDUCE_MAX).ravel()
+        strong = colmax[colmax > noise_level]
+        level = float(np.median(strong)) if len(strong) else 0.0
+        ref = max(tipm.cfg.min_red, noise_level, tipm.cfg.rel_threshold * level)
+        assert tipm._threshold(ridge) == ref

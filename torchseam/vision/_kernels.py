@@ -43,6 +43,114 @@ def border_columns(mask, reach):  # pragma: no cover - compiled
     return cut
 
 
+@numba.njit("i8(i8, i8)", cache=True, nogil=True)
+def reflect101(p, n):  # pragma: no cover - compiled
+    """OpenCV's BORDER_REFLECT_101 index of row ``p`` in ``n`` rows (cv2.borderInterpolate)."""
+    if n == 1:
+        return 0
+    while p < 0 or p >= n:
+        p = -p if p < 0 else 2 * n - 2 - p
+    return p
+
+
+@numba.njit("void(u1[:, ::1], i8[::1], u1[::1])", cache=True, nogil=True)
+def ridge_stats(ridge, hist, colmax):  # pragma: no cover - compiled
+    """The statistics :meth:`Tipm._threshold` reads off a ridge (H, W) uint8, in one pass:
+    the histogram of its values (``hist`` (256,), what ``cv2.calcHist`` counts) and each
+    column's maximum (``colmax`` (W,), ``cv2.reduce(..., REDUCE_MAX)``)."""
+    h, w = ridge.shape
+    part = np.zeros((4, 256), np.int64)  # four partial histograms: no chain of increments
+    colmax[:] = 0
+    for r in range(h):
+        row = ridge[r]
+        for c in range(w):
+            colmax[c] = max(colmax[c], row[c])
+        c = 0
+        while c + 4 <= w:
+            part[0, row[c]] += 1
+            part[1, row[c + 1]] += 1
+            part[2, row[c + 2]] += 1
+            part[3, row[c + 3]] += 1
+            c += 4
+        while c < w:
+            part[0, row[c]] += 1
+            c += 1
+    for v in range(256):
+        hist[v] = part[0, v] + part[1, v] + part[2, v] + part[3, v]
+
+
+@numba.njit(cache=True, nogil=True)
+def _box_ridge(red, ksize, mean_of, ridge):  # pragma: no cover - compiled
+    """``ridge = red - mean_of[sum of red over ksize rows]``, saturating, the rows outside the
+    image reflected (reflect-101): ``cv2.subtract(red, cv2.blur(red, (1, ksize)))`` with
+    ``mean_of`` its rounding of a sum to the mean (a table: no division per pixel). The
+    running column sums are uint16 (``ksize`` <= 257) and every step is unsigned, which
+    lets the compiler vectorise the rows (signed index arithmetic made this 10x slower)."""
+    h, w = red.shape
+    half = ksize // 2
+    acc = np.zeros(w, np.uint16)
+    for j in range(-half, half + 1):
+        row = red[reflect101(j, h)]
+        for c in range(w):
+            acc[c] += row[c]
+    for r in range(h):
+        row = red[r]
+        out = ridge[r]
+        for c in range(w):
+            m = mean_of[np.uint64(acc[c])]
+            out[c] = max(row[c], m) - m
+        if r + 1 < h:
+            add = red[reflect101(r + 1 + half, h)]
+            sub = red[reflect101(r - half, h)]
+            for c in range(w):
+                acc[c] = acc[c] + add[c] - sub[c]
+
+
+@numba.njit("Tuple((i8, i8))(u1[:, :, ::1], i8, u1[::1], u1[:, ::1], u1[:, ::1], i8[::1], "
+            "u1[::1])", cache=True, nogil=True)
+def colour_ridge(frame, ksize, mean_of, red, ridge, hist, colmax):  # pragma: no cover
+    """:meth:`Tipm.stripe_mask`'s planes of a BGR frame (H, W, 3) uint8 in one pass:
+    ``red = R - max(G, B)`` (saturating), ``ridge = red - box(red)`` (saturating; ``box`` the
+    mean over ``ksize`` rows, odd, OpenCV's ``blur`` with its reflect-101 border:
+    :func:`_box_ridge`), the ridge's histogram and column maxima (:func:`ridge_stats`).
+    Returns the pixels with R >= 250 (an arc flash that clips red) and with G >= 250 (white
+    arc light)."""
+    h, w = red.shape
+    n_clip = 0
+    n_sat = 0
+    for r in range(h):
+        px = frame[r].ravel()  # B, G, R interleaved
+        out = red[r]
+        for c in range(w):
+            m = max(px[3 * c + 1], px[3 * c])
+            out[c] = max(px[3 * c + 2], m) - m
+        for c in range(w):
+            n_clip += px[3 * c + 2] >= 250
+            n_sat += px[3 * c + 1] >= 250
+    _box_ridge(red, ksize, mean_of, ridge)
+    ridge_stats(ridge, hist, colmax)
+    return n_clip, n_sat
+
+
+@numba.njit("i8(u1[:, ::1], i8, u1[::1], u1[:, ::1], u1[:, ::1], i8[::1], u1[::1])",
+            cache=True, nogil=True)
+def mono_ridge(frame, ksize, mean_of, red, ridge, hist, colmax):  # pragma: no cover
+    """:func:`colour_ridge` of a mono frame (H, W) uint8: its response is the intensity
+    itself (copied into ``red``); returns the pixels >= 250."""
+    h, w = red.shape
+    n_sat = 0
+    for r in range(h):
+        px = frame[r]
+        out = red[r]
+        for c in range(w):
+            out[c] = px[c]
+        for c in range(w):
+            n_sat += px[c] >= 250
+    _box_ridge(red, ksize, mean_of, ridge)
+    ridge_stats(ridge, hist, colmax)
+    return n_sat
+
+
 MAD_SIGMA = 1.4826  # sigma of a normal distribution per unit of its median absolute deviation
 MAX_RUNS = 8  # runs of masked rows kept per column (more join the last one)
 
@@ -112,18 +220,20 @@ def stripe_path(cen, weight, n_run, usable, step, step_cost):  # pragma: no cove
 
 
 @numba.njit(cache=True, nogil=True)
-def column_runs(response, mask, reach):  # pragma: no cover - compiled
+def column_runs(response, mask, reach, box):  # pragma: no cover - compiled
     """Each column's runs of masked rows: ``(cen (W, R), weight (W, R), n_run (W,), usable
     (W,))``, their ``response``-weighed centroid row and summed response (up to
     :data:`MAX_RUNS` a column, more join the last), and the columns that hold a run with
-    response and do not come within ``reach`` of the top or bottom row."""
+    response and do not come within ``reach`` of the top or bottom row. ``box`` (x0, y0, x1,
+    y1), end-exclusive, holds every masked pixel (outside it nothing is counted: the same
+    runs as a walk over the whole mask, without the empty rows and columns)."""
     h, w = mask.shape
     n_run = np.zeros(w, np.int64)
     s0 = np.zeros((w, MAX_RUNS))
     s1 = np.zeros((w, MAX_RUNS))
     inside = np.zeros(w, np.bool_)
-    for r in range(h):
-        for c in range(w):
+    for r in range(box[1], box[3]):
+        for c in range(box[0], box[2]):
             if mask[r, c]:
                 if not inside[c]:
                     inside[c] = True
@@ -146,17 +256,18 @@ def column_runs(response, mask, reach):  # pragma: no cover - compiled
     return cen, s0, n_run, usable
 
 
-@numba.njit("f8[:, ::1](u1[:, ::1], u1[:, ::1], f8, i8, i8, f8, f8)", cache=True,
+@numba.njit("f8[:, ::1](u1[:, ::1], u1[:, ::1], f8, i8, i8, f8, f8, i8[::1])", cache=True,
             nogil=True)
-def centre_line(response, mask, half, passes, reach, step, step_cost):  # pragma: no cover
-    """Sub-pixel centre line (N, 2) (u, v) of :meth:`Tipm.centre`.
+def centre_line(response, mask, half, passes, reach, step, step_cost, box):  # pragma: no cover
+    """Sub-pixel centre line (N, 2) (u, v) of :meth:`Tipm.centre` (``box`` (x0, y0, x1, y1),
+    end-exclusive: where the mask has pixels, :func:`column_runs`).
 
     Per column the runs of masked rows (:func:`column_runs`); the stripe is the run on the
     :func:`stripe_path` (``step``, ``step_cost``), columns off it give no point. That centre
     is then moved ``passes`` times to the centroid of the response within ``half`` rows of
     it over a band of rows around it (mask or not)."""
     h, w = mask.shape
-    cen, s0, n_run, usable = column_runs(response, mask, reach)
+    cen, s0, n_run, usable = column_runs(response, mask, reach, box)
     choice = stripe_path(cen, s0, n_run, usable, step, step_cost)
     n = 0
     for c in range(w):

@@ -243,6 +243,13 @@ class Tipm:
         k = 2 * self.cfg.dilate_px + 1
         self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
         self._ws: dict[tuple, np.ndarray] = {}  # reused frame-sized planes (see _plane)
+        self._stat_bufs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # see _stats
+        # cv2.blur's mean of a sum of ridge_px uint8 values (an odd count: the nearest
+        # integer, never a tie), as a table for the compiled ridge (_stripe_mask_fused)
+        k = int(cfg.ridge_px)
+        self._mean_of: np.ndarray | None = (
+            ((2 * np.arange(255 * k + 1) + k) // (2 * k)).astype(np.uint8)
+            if k % 2 and 255 * k < 2**16 else None)
         self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
 
     def _plane(self, name: str, shape: tuple[int, int]) -> np.ndarray:
@@ -271,6 +278,9 @@ class Tipm:
         cfg = self.cfg
         hw = frame.shape[:2]
         planes = [self._plane(c, hw) for c in "bgr"]
+        if self._mean_of is not None and frame.dtype == np.uint8 and frame.flags.c_contiguous and (
+                frame.ndim == 2 or frame.shape[2] == 3):
+            return self._stripe_mask_fused(frame, planes)
         red, g = red_response(frame, with_green=True, out=planes)
         # OpenCV takes a scalar src2; its stubs allow arrays only
         if frame.ndim == 3:
@@ -291,12 +301,46 @@ class Tipm:
         mask, why = self._mask(ridge, planes[2])
         return ridge, mask, why
 
-    def _mask(self, ridge: np.ndarray, work: np.ndarray) -> tuple[np.ndarray, str]:
+    def _stripe_mask_fused(self, frame: np.ndarray, planes: list[np.ndarray]
+                           ) -> tuple[np.ndarray, np.ndarray, str]:
+        """:meth:`stripe_mask` of a uint8 frame with the red response, the saturation counts,
+        the ridge and its statistics in one compiled pass (:func:`~torchseam.vision._kernels.
+        colour_ridge`: the numbers of the OpenCV calls, to the bit; these were ~60 % of TIPM's
+        time on the tracker's window)."""
+        cfg = self.cfg
+        assert self._mean_of is not None  # the caller checked
+        red, ridge = planes[0], planes[1]
+        hist, colmax = self._stats(frame.shape[1])
+        if frame.ndim == 3:
+            n_clip, n_sat = self._k.colour_ridge(frame, int(cfg.ridge_px), self._mean_of, red,
+                                                 ridge, hist, colmax)
+            if n_clip > cfg.max_red_clipped_fraction * red.size:
+                return red, np.zeros_like(red), SATURATED
+        else:
+            n_sat = self._k.mono_ridge(frame, int(cfg.ridge_px), self._mean_of, red, ridge,
+                                       hist, colmax)
+        if n_sat > cfg.max_saturated_fraction * red.size:
+            return red, np.zeros_like(red), SATURATED
+        mask, why = self._mask(ridge, planes[2], (hist, colmax))
+        return ridge, mask, why
+
+    def _stats(self, width: int) -> tuple[np.ndarray, np.ndarray]:
+        """Reused (256,) int64 histogram and (width,) uint8 column-maximum buffers."""
+        bufs = self._stat_bufs.get(width)
+        if bufs is None:
+            if len(self._stat_bufs) > 64:
+                self._stat_bufs.clear()
+            bufs = self._stat_bufs[width] = (np.zeros(256, np.int64), np.zeros(width, np.uint8))
+        return bufs
+
+    def _mask(self, ridge: np.ndarray, work: np.ndarray,
+              stats: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, str]:
         """The stripe mask (H, W) uint8 of a ridge (H, W) uint8: thresholded (the frame's own
         level, :meth:`_threshold`), blobs under ``min_area`` dropped, dilated; and the failure
-        reason. ``work``: a reused plane of the ridge's size for the binary image."""
+        reason. ``work``: a reused plane of the ridge's size for the binary image; ``stats``:
+        the ridge's histogram and column maxima when they are known (else counted here)."""
         cfg = self.cfg
-        thr = self._threshold(ridge)
+        thr = self._threshold(ridge, stats)
         _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY, dst=work)
         bx, by, bw, bh = cv2.boundingRect(binary)
         if bw == 0:
@@ -307,9 +351,9 @@ class Tipm:
         h, w = binary.shape
         roi = (slice(max(by - d, 0), min(by + bh + d, h)),
                slice(max(bx - d, 0), min(bx + bw + d, w)))
-        n, lab, stats, _ = cv2.connectedComponentsWithStats(binary[roi], connectivity=8,
+        n, lab, blobs, _ = cv2.connectedComponentsWithStats(binary[roi], connectivity=8,
                                                             ltype=cv2.CV_16U)
-        keep = np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= cfg.min_area)[0] + 1
+        keep = np.nonzero(blobs[1:, cv2.CC_STAT_AREA] >= cfg.min_area)[0] + 1
         mask = np.zeros_like(binary)
         if len(keep) == 0:
             return mask, "no stripe found (only small blobs)"
@@ -324,7 +368,8 @@ class Tipm:
         mask[roi] = cv2.dilate(box, self._kernel)
         return mask, ""
 
-    def _threshold(self, ridge: np.ndarray) -> float:
+    def _threshold(self, ridge: np.ndarray,
+                   stats: tuple[np.ndarray, np.ndarray] | None = None) -> float:
         """The stripe threshold of one frame's ridge (H, W) uint8, from the frame's own
         statistics rather than absolute grey levels (a faint stripe under room light and a
         lit stripe behind a band-pass filter differ by 10x in level): the largest of
@@ -337,12 +382,21 @@ class Tipm:
         - ``min_red``.
         """
         cfg = self.cfg
-        hist = cv2.calcHist([ridge], [0], None, [256], [0, 256]).ravel()
+        if stats is None:  # one compiled pass (cv2.calcHist and cv2.reduce took ~0.13 ms)
+            ridge = np.ascontiguousarray(ridge, dtype=np.uint8)
+            stats = self._stats(ridge.shape[1])
+            self._k.ridge_stats(ridge, *stats)
+        counts, colmax = stats
+        # float32 counts, as cv2.calcHist gives them (the same cumulative sums to the bit)
+        hist = counts.astype(np.float32)
         cdf = np.cumsum(hist)
         noise = cfg.noise_k * max(float(np.searchsorted(cdf, 0.9 * cdf[-1])), 1.0)
-        colmax = cv2.reduce(ridge, 0, cv2.REDUCE_MAX).ravel()
-        strong = colmax[colmax > noise]
-        level = float(np.median(strong)) if len(strong) else 0.0
+        strong = np.sort(colmax[colmax > noise])
+        # np.median's value (the middle one, or the mean of the middle two in float64: exact
+        # for these integers) without its overhead
+        n = len(strong)
+        level = (0.0 if not n else float(strong[n // 2]) if n % 2
+                 else (float(strong[n // 2 - 1]) + float(strong[n // 2])) / 2.0)
         return max(cfg.min_red, noise, cfg.rel_threshold * level)
 
     def mask_around(self, frame: np.ndarray, uv: np.ndarray, radius: int
@@ -395,9 +449,11 @@ class Tipm:
             pts = np.stack([u[order], v[order]], axis=1).astype(float)
             return pts[~self._k.border_columns(mask, reach)[u[order]]]
         response = np.ascontiguousarray(response, dtype=np.uint8)
+        x, y, bw, bh = cv2.boundingRect(mask)  # the runs are counted in there only
         pts = self._k.centre_line(response, mask, float(self.cfg.centre_half_px),
                                   int(self.cfg.centre_passes), reach, float(self.cfg.path_step_px),
-                                  float(self.cfg.path_step_cost))
+                                  float(self.cfg.path_step_cost),
+                                  np.array([x, y, x + bw, y + bh], np.int64))
         if len(pts):
             half = int(self.cfg.centre_half_px)
             mid = two_lobe_centres(self._k.cross_sections(response, pts, half),
