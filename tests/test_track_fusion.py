@@ -473,3 +473,27 @@ def test_anchor_config_names_a_bad_field(tmp_path):
     bad.write_text(text.replace("max_rms_px: 0.3", "max_rms_px: -1"))
     with pytest.raises(ConfigError, match="max_rms_px"):
         load_anchor_config(bad)
+
+
+def test_glare_level_counts_the_median_np_partition_selects():
+    """The glare level counted in one compiled pass (a histogram of the box's red response) is
+    the element ``np.partition`` of the response selects: colour and mono boxes, clipped at
+    the frame's border, even and odd pixel counts."""
+    from torchseam.track.live import glare_level
+    from torchseam.vision.tipm import red_response
+
+    rng = np.random.default_rng(8)
+    for k in range(400):
+        h, w = (int(x) for x in rng.integers(3, 90, 2))
+        shape = (h, w, 3) if k % 2 else (h, w)
+        frame = rng.integers(0, int(rng.choice([8, 60, 256])), shape).astype(np.uint8)
+        uv = rng.uniform(-20.0, 110.0, 2)
+        half = int(rng.integers(1, 35))
+        u, v = int(round(float(uv[0]))), int(round(float(uv[1])))
+        box = frame[max(v - half, 0):max(v + half + 1, 0), max(u - half, 0):max(u + half + 1, 0)]
+        if box.size == 0:
+            ref = 0.0
+        else:
+            red = red_response(np.ascontiguousarray(box)).ravel()
+            ref = float(np.partition(red, len(red) // 2)[len(red) // 2])
+        assert glare_level(frame, uv, half) == ref

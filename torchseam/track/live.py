@@ -51,6 +51,7 @@ from torch import Tensor, nn
 from torchseam.core import kalman
 from torchseam.core.config import CONFIG_DIR, config_field, load_config
 from torchseam.core.errors import TorchseamError
+from torchseam.core.kernels import load_kernels
 from torchseam.track import model_file
 from torchseam.track.base import Fix, Tracker, TrackResult
 from torchseam.track.fusion import EAKFSTC, FusionState, TrackStatus
@@ -179,8 +180,14 @@ def glare_level(frame: np.ndarray, uv: np.ndarray, half_px: int) -> float:
                 max(u - half_px, 0):max(u + half_px + 1, 0)]
     if box.size == 0:
         return 0.0
+    rank = box.shape[0] * box.shape[1] // 2
+    if box.dtype == np.uint8 and (box.ndim == 2 or box.shape[2] == 3):
+        # counted in one compiled pass over the box (the numbers of np.partition below)
+        k = load_kernels(__package__)
+        return float(k.colour_median_red(box, rank) if box.ndim == 3
+                     else k.mono_median(box, rank))
     red = red_response(np.ascontiguousarray(box)).ravel()
-    return float(np.partition(red, len(red) // 2)[len(red) // 2])  # half of np.median's cost
+    return float(np.partition(red, rank)[rank])
 
 
 def arm_directions(res: TipmResult) -> np.ndarray:
