@@ -304,3 +304,54 @@ def test_weld_a_controller_on_the_older_schema(tmp_path):
     assert s["seam_rmse_mm"] <= 0.1 and s["unsafe_poses_sent"] == 0
     w = json.loads((tmp_path / "W" / "summary.json").read_text())
     assert w["unwelded_mm"]["a"] is None          # the arc was RAPID's: the weld cannot say
+
+
+@pytest.mark.slow
+def test_the_console_drives_a_cell_through_its_interfaces(tmp_path):
+    """`torchseam console --cell`: the page's start runs the same weld as `torchseam weld`
+    against the virtual cell (frames and EGM over loopback); the truth stays in the cell."""
+    import re
+    import urllib.request
+
+    vc = _virtual(tmp_path)
+    con = None
+    try:
+        deadline = time.monotonic() + 90
+        while not (tmp_path / "V" / "cell.yaml").exists():
+            assert time.monotonic() < deadline, "no cell file"
+            time.sleep(0.2)
+        con = _torchseam("console", "--cell", "V/cell.yaml", "--part", str(PART), "--port", "0",
+                         cwd=tmp_path)
+        assert con.stdout is not None
+        base = tok = ""
+        for line in con.stdout:
+            m = re.search(r"(http://\S+)/\?token=(\S+)", line)
+            if m:
+                base, tok = m.group(1), m.group(2)
+                break
+        assert base, "the console printed no address"
+
+        def call(path: str, data: dict | None = None) -> dict:
+            req = urllib.request.Request(
+                base + path, data=None if data is None else json.dumps(data).encode(),
+                method="GET" if data is None else "POST",
+                headers={"X-Torchseam-Token": tok, "Content-Type": "application/json"})
+            return json.loads(urllib.request.urlopen(req, timeout=10).read())
+
+        assert call("/api/start", {"segments": "a", "length_mm": 20})["ok"]
+        texts: list[str] = []
+        while time.monotonic() < deadline + 60:
+            texts = [m["text"] for m in call("/api/state")["messages"]]
+            if any(t.startswith("weld finished") or "failed" in t for t in texts):
+                break
+            time.sleep(0.5)
+        assert any(t.startswith("weld finished") for t in texts), texts
+        vrc, vout = _finish(vc, 60.0)
+    finally:
+        if con is not None:
+            con.terminate()
+            con.wait(10)
+        vc.kill()
+    s = json.loads((tmp_path / "V" / "summary.json").read_text())
+    assert s["segments"]["a"]["outcome"] == "done", vout[-2000:]
+    assert s["seam_rmse_mm"] <= 0.1 and s["unsafe_poses_sent"] == 0

@@ -44,6 +44,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "controller; the page's tracker, step, look-ahead and speed apply, "
                         "its noise, seed, faults, segments and "
                         "length do not (a folder named sim: ./sim)")
+    p.add_argument("--cell", type=Path, default=None, metavar="FILE",
+                   help="weld this cell through its interfaces (a cell file, as `torchseam "
+                        "weld --cell`: its camera stream, its controller's EGM and RAPID), "
+                        "closed loop; the page's segments, length and tracker apply, its "
+                        "noise, seed and faults do not")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
     p.add_argument("--noise", default="heavy",
                    help="initial arc-noise level on the page: a name from configs/noise.yaml "
@@ -77,7 +82,9 @@ def run(args: argparse.Namespace) -> int:
     defaults = {"noise": args.noise, "segments": args.segments, "length_mm": args.length_mm}
     cell, noise, parts = load_cell(), load_noise(), load_live_parts()
     try:
-        if args.source == "sim":
+        if args.cell is not None:
+            console = _cell_console(args, cfg, noise, parts, defaults)
+        elif args.source == "sim":
             console = simulated_console(cfg, cell, load_part(args.part), noise, parts,
                                         defaults=defaults)
         else:   # a folder or video: open_source's errors name the path
@@ -87,6 +94,28 @@ def run(args: argparse.Namespace) -> int:
     console.allowed_hosts = tuple(args.allow_host)
     asyncio.run(_serve(console, args.host, port, loopback=is_loopback(args.host)))
     return 0
+
+
+def _cell_console(args: argparse.Namespace, cfg, noise, parts, defaults):
+    """The console on a cell file: its pre-flight first (a part the robot cannot weld is
+    refused here, with the table, as ``torchseam weld`` refuses it)."""
+    from torchseam.console.cell import cell_console
+    from torchseam.core.config import load_part
+    from torchseam.live.cellfile import load_weld_cell
+    from torchseam.plan.preflight import preflight
+
+    if args.source != "sim":
+        raise TorchseamError("--cell and --source: give one (a cell brings its own camera)")
+    cell = load_weld_cell(args.cell)
+    part = load_part(args.part)
+    name = str(args.part or "configs/parts/t_joint.yaml")
+    report = preflight(cell.calibration, part, config=parts.plan, robot=parts.robot,
+                       part_name=name)
+    if not report.ok:
+        print(report.text(), file=sys.stderr)
+        raise TorchseamError(f"the robot cannot weld {name}: pre-flight refused segment(s) "
+                             f"{', '.join(report.refused)}; nothing moved")
+    return cell_console(cfg, cell, part, report, noise, parts, name, defaults=defaults)
 
 
 async def _serve(console, host: str, port: int, loopback: bool = True) -> None:

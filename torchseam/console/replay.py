@@ -23,7 +23,7 @@ from torchseam.console.server import ConsoleServer
 from torchseam.console.sim import make_console
 from torchseam.core.config import CellConfig, NoiseConfig
 from torchseam.core.errors import FrameError
-from torchseam.live.demo import DemoControl, DemoEvent
+from torchseam.live.events import DemoControl, DemoEvent
 from torchseam.live.parts import LiveParts
 from torchseam.live.replay import ReplayResult, run_replay
 from torchseam.live.sources import CameraSource, FolderSource, open_source

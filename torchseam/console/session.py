@@ -25,7 +25,7 @@ import numpy as np
 
 from torchseam.console.config import ConsoleConfig, WeldParams
 from torchseam.core.errors import TorchseamError
-from torchseam.live.demo import DemoControl, DemoEvent
+from torchseam.live.events import DemoControl, DemoEvent
 from torchseam.robot.egm import set_realtime_priority
 
 

@@ -9,7 +9,8 @@ from torchseam.console.config import SEGMENT_LETTERS, ConsoleConfig, WeldParams,
 from torchseam.console.server import ConsoleServer
 from torchseam.console.session import WeldFn, WeldSession
 from torchseam.core.config import CellConfig, NoiseConfig, PartConfig
-from torchseam.live.demo import DemoControl, DemoEvent, DemoResult, run_demo
+from torchseam.live.demo import DemoResult, run_demo
+from torchseam.live.events import DemoControl, DemoEvent
 from torchseam.live.names import FAULTS
 from torchseam.live.parts import LiveParts
 from torchseam.track.peers import TRACKERS

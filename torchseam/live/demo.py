@@ -53,12 +53,14 @@ from torchseam.core.errors import TorchseamError
 from torchseam.core.overlay import put_label
 from torchseam.core.report import RUN_MARKER, report_file, write_json_atomic
 from torchseam.core.transforms import apply, invert, quat_to_matrix
+from torchseam.live.events import DemoControl as DemoControl  # (re-exported)
+from torchseam.live.events import DemoEvent as DemoEvent
+from torchseam.live.events import FrameRecord as FrameRecord
 from torchseam.live.loop import (
     Command,
     LiveConfig,
     LiveLoop,
     LoopState,
-    PoseSink,
     StepReport,
     egm_config_for,
 )
@@ -99,93 +101,6 @@ TRANSFER_S = 5.0
 #: segment's start, which a real strike at the programmed start does not leave. The same
 #: tolerance as ``torchseam weld`` (:data:`torchseam.live.weld.MAX_GAP_MM`).
 MAX_GAP_MM = 0.5
-
-
-@dataclass
-class FrameRecord:
-    seg: str
-    t_s: float
-    arc_on: bool
-    uv: np.ndarray
-    uv_true: np.ndarray
-    status: int
-    state: str
-    p: np.ndarray
-    p_true: np.ndarray
-    torch_err_mm: float
-    fault: str
-
-
-@dataclass
-class DemoEvent:
-    """What an observer of :func:`run_demo` sees once per frame (the console, say).
-
-    ``frame`` is the BGR camera frame (H, W, 3) uint8 (the loop's input, do not modify);
-    ``report`` is ``None`` on the start frame; ``loop`` / ``link`` are the live objects of the
-    running segment, to read state and statistics from (not to drive): ``link`` is where the
-    loop sends its poses (the demo's :class:`~torchseam.robot.egm.EgmLink`, a replay's sink).
-    """
-
-    seg: str
-    k: int
-    frame: np.ndarray
-    record: FrameRecord
-    report: StepReport | None
-    T_B_W: np.ndarray
-    loop: LiveLoop
-    link: PoseSink
-
-
-class DemoControl:
-    """Operator control of a running :func:`run_demo`, safe to use from another thread.
-
-    ``hold()`` pauses the weld at the next frame (the simulated cell waits with the loop: no
-    new target, no motion) until ``resume()``; ``stop()`` ends it at the next frame (the
-    result holds what was welded so far, ``summary["stopped"]`` is True; ``by`` names who
-    stopped it in the segments' reasons, e.g. ``"SIGINT"`` from a signal handler, which may
-    call it: it only sets events). ``parked`` says when a hold has taken effect: the weld has
-    finished the frame in hand and waits.
-    """
-
-    def __init__(self) -> None:
-        self._run = threading.Event()
-        self._run.set()
-        self._stop = threading.Event()
-        self._parked = threading.Event()
-        self.stopped_by = "the operator"
-
-    def hold(self) -> None:
-        self._run.clear()
-
-    def resume(self) -> None:
-        self._run.set()
-
-    def stop(self, by: str | None = None) -> None:
-        if by and not self._stop.is_set():
-            self.stopped_by = by
-        self._stop.set()
-        self._run.set()
-
-    @property
-    def held(self) -> bool:
-        return not self._run.is_set()
-
-    @property
-    def stopped(self) -> bool:
-        return self._stop.is_set()
-
-    @property
-    def parked(self) -> bool:
-        """The weld is waiting at a held checkpoint (no frame in hand)."""
-        return self._parked.is_set()
-
-    def checkpoint(self) -> bool:
-        """Block while held; True when the weld must stop."""
-        if not self._run.is_set():
-            self._parked.set()
-            self._run.wait()
-            self._parked.clear()
-        return self._stop.is_set()
 
 
 @dataclass

@@ -106,7 +106,14 @@ class SeamLocator:
         if len(self._seen) < 2:
             return None
         p_b = self._seen[-1]
-        for p_a in reversed(self._seen):
+        # the newest point at least EXPECT_SPAN_MM from p_b: the distances to all of them at
+        # once, then the exact test (a norm each, as it always was) on those that may pass,
+        # newest first (one or two; a norm per point back cost ~0.04 ms a frame at 25 Hz)
+        seen = np.array(self._seen)
+        d = seen - p_b
+        near = np.sqrt(np.einsum("ij,ij->i", d, d)) < EXPECT_SPAN_MM * (1.0 - 1e-9)
+        for i in np.flatnonzero(~near)[::-1]:
+            p_a = self._seen[int(i)]
             if np.linalg.norm(p_b - p_a) >= EXPECT_SPAN_MM:
                 return self.tri.expect(p_a, p_b, T_B_F)
         return None

@@ -22,7 +22,7 @@ import numpy as np
 from torchseam.core.config import CellConfig
 from torchseam.core.errors import TorchseamError
 from torchseam.core.transforms import invert, quat_to_matrix
-from torchseam.live.demo import DemoControl, DemoEvent, FrameRecord
+from torchseam.live.events import DemoControl, DemoEvent, FrameRecord
 from torchseam.live.loop import Command, LiveLoop, LoopState, PoseSink, RecordingSink
 from torchseam.live.parts import LiveParts
 from torchseam.track.fusion import TrackStatus

@@ -41,6 +41,7 @@ from torchseam.core.errors import TorchseamError
 from torchseam.core.transforms import invert, pose_matrix
 from torchseam.live.cellfile import WeldCell
 from torchseam.live.clocks import ClockOffset, PoseHistory
+from torchseam.live.events import DemoControl, DemoEvent, FrameRecord
 from torchseam.live.loop import LiveLoop, egm_config_for
 from torchseam.live.parts import LiveParts
 from torchseam.robot.egm import rapid_data as rd
@@ -223,16 +224,23 @@ class WeldRunner:
         length_mm: weld only this much of each segment (None: all of it).
         tracker: the tracker name (default the live tracker).
         progress: ``progress(text)`` for the terminal.
+        observer: called with a :class:`~torchseam.live.events.DemoEvent` per frame (the
+            console; the record's truth fields are NaN: a cell has no truth).
+        control: the operator's hold / resume / stop (:class:`~torchseam.live.events.DemoControl`):
+            a hold holds the robot where it stands with the arc out until resumed; a stop
+            aborts the segment towards RAPID and ends the weld.
     """
 
     def __init__(self, cell: WeldCell, plan_report: Any, parts: LiveParts, segments: str,
                  length_mm: float | None, tracker: str = "anchored",
                  model_path: Any = None, progress: Any = print,
-                 connect_timeout_s: float = 60.0, wait_rapid_s: float = 60.0) -> None:
+                 connect_timeout_s: float = 60.0, wait_rapid_s: float = 60.0,
+                 observer: Any = None, control: DemoControl | None = None) -> None:
         self.cell, self.report, self.parts = cell, plan_report, parts
         self.calib = cell.calibration
         self.segments, self.length_mm = segments, length_mm
         self.tracker, self.model_path = tracker, model_path
+        self.observer, self.control = observer, control
         self.progress = progress
         self.connect_timeout_s, self.wait_rapid_s = connect_timeout_s, wait_rapid_s
         self.res = WeldResult()
@@ -455,6 +463,15 @@ class WeldRunner:
         try:
             while True:
                 self._check_signal()
+                if self.control is not None and (self.control.held or self.control.stopped):
+                    if self.control.held:
+                        self.reply.set(False, number, rd.SensorState.TRACKING)
+                        self._hold_here()
+                        self.res.messages.append(f"segment {seg.name}: held by the operator: "
+                                                 "arc off, robot held")
+                    if self.control.checkpoint():
+                        out.reason = f"stopped by {self.control.stopped_by}"
+                        break
                 phase = self._guided(number)
                 if phase:
                     out.reason = (f"RAPID took the segment back ({phase}) after "
@@ -531,6 +548,9 @@ class WeldRunner:
                 if rep.command is not None and rep.command.ok:
                     c = rep.command
                     self.res.poses.append((seg.name, c.t_s, c.p.copy(), c.q.copy()))
+                if self.observer is not None:
+                    self.observer(self._event(seg.name, out.frames, f.image, rep, T_B_W, t_exp,
+                                              loop))
                 moving = self._moving()
                 # the arc strikes a frame's travel early: decided once a frame, it is then
                 # burning when the torch passes the approach's end
@@ -571,6 +591,20 @@ class WeldRunner:
         self.progress(f"weld: segment {seg.name}: " + (
             f"welded ({out.travelled_mm:.1f} mm)" if out.welded else f"NOT welded: {out.reason}"))
         return out
+
+    def _event(self, seg: str, k: int, image: np.ndarray, rep: Any, T_B_W: np.ndarray,
+               t_s: float, loop: LiveLoop) -> DemoEvent:
+        """The observer's view of one frame (no truth: NaN where the demo has it)."""
+        loc = rep.location
+        nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
+        from torchseam.track.fusion import TrackStatus
+
+        rec = FrameRecord(seg, t_s, self.reply.effective(),
+                          loc.uv if loc is not None else nan2, nan2,
+                          int(loc.status) if loc is not None else int(TrackStatus.LOST),
+                          rep.state.value, loc.p if loc is not None else nan3, nan3,
+                          float("nan"), "")
+        return DemoEvent(seg, k, image, rec, rep, T_B_W, loop, self.link)
 
     def _moving(self) -> bool:
         """The torch moved at least a fifth of the weld speed over the last 0.1 s (the arc is
