@@ -96,10 +96,9 @@ POSES_CSV_HEADER = "t,x,y,z,q1,q2,q3,q4"  # poses.csv: what ``torchseam robot ch
 # a robot can keep (the return is a joint move of tens of degrees)
 TRANSFER_S = 5.0
 #: seam passed with the arc out past the approach, per segment, above which the segment is not
-#: welded (a gap in the bead). Not zero: the simulated arc strikes on the first frame past the
-#: approach's end, up to one frame's travel (0.32 mm at 8 mm/s and 25 frames/s) after the
-#: segment's start, which a real strike at the programmed start does not leave. The same
-#: tolerance as ``torchseam weld`` (:data:`torchseam.live.weld.MAX_GAP_MM`).
+#: welded (a gap in the bead). Not zero: the simulated cell decides the arc once a frame, so a
+#: stretch passed with the arc out is known to within a frame's travel (0.32 mm at 8 mm/s and
+#: 25 frames/s). The same tolerance as ``torchseam weld`` (:data:`torchseam.live.weld.MAX_GAP_MM`).
 MAX_GAP_MM = 0.5
 
 
@@ -521,6 +520,7 @@ class _SegmentWeld:
         self.nominal = scene.nominal_tcp(s0 - approach + np.arange(
             0.0, approach + seg_len + 10.0, 0.5))[:, :3, 3]
         self.n_max = int((approach + seg_len) / (proc.weld_speed_mm_s * dt) * 1.6) + 50
+        self.frame_mm = proc.weld_speed_mm_s * dt   # the torch's travel in a frame
         self.fault_at = int((approach + 0.5 * seg_len) / (proc.weld_speed_mm_s * dt))
         self.commands: list[Command] = []  # every pose handed to the link (the loop keeps few)
         self.welding: list[bool] = []      # the arc was on when it was handed over
@@ -595,7 +595,7 @@ class _SegmentWeld:
     def _record_gaps(self) -> None:
         res, name = self.run.res, self.seg.name
         res.passed_mm[name] = round(self.passed_mm, 3)
-        res.unwelded_mm[name] = round(sum(g["to_mm"] - g["from_mm"] for g in self.gaps), 3)
+        res.unwelded_mm[name] = round(float(sum(g["to_mm"] - g["from_mm"] for g in self.gaps)), 3)
         for g in self.gaps:
             res.arc_gaps.append({**g, "from_mm": round(g["from_mm"], 3),
                                  "to_mm": round(g["to_mm"], 3),
@@ -653,9 +653,11 @@ class _SegmentWeld:
             self._passed(before, travelled, arc_was)
             if travelled >= self.approach + self.seg_len:
                 return True, travelled
-            # the arc burns past the approach while the loop lets it (off in a hold)
+            # the arc burns past the approach while the loop lets it (off in a hold); it
+            # strikes a frame's travel early (decided once a frame, it then burns until the
+            # next: struck later, the frame's travel past the segment's start is unwelded)
             weld_zone = travelled >= self.approach
-            arc_on = weld_zone and loop.arc_ok
+            arc_on = travelled + self.frame_mm >= self.approach and loop.arc_ok
             if weld_zone and not arc_on:
                 res.arc_off_s += run.dt
                 res.arc_interruptions += int(arc_was)

@@ -303,6 +303,12 @@ class WeldRunner:
             self.cam = StreamCamera(src, connect_timeout_s=self.connect_timeout_s)
         self._wait_controller()
 
+    def warm(self) -> None:
+        """Compile (or load from numba's cache) TIPM's kernels now, on a blank frame of the
+        camera's size: not while EGM guides."""
+        cam = self.calib.camera
+        self.parts.tipm(np.zeros((cam.height, cam.width, 3), np.uint8))
+
     def close(self) -> None:
         """Arc off towards RAPID, the figures kept, the camera and the link closed."""
         self.reply.set(False, self.reply.segment, self.reply.state)
@@ -321,6 +327,7 @@ class WeldRunner:
     def run(self) -> WeldResult:
         """Weld the asked segments (see the module docstring)."""
         try:
+            self.warm()
             self.open()
             todo = [s for s in self.report.plan.segments if s.name in self.segments]
             for seg in todo:
@@ -439,18 +446,21 @@ class WeldRunner:
         from torchseam.track.peers import make_tracker
 
         number = seg.index + 1
-        why = self._wait_guided(number, seg.name)
-        if why:
-            self.progress(f"weld: segment {seg.name}: {why}")
-            return SegmentOutcome(seg.name, False, why)
+        # everything the segment needs is built (and its kernels warm) before RAPID hands
+        # over: once EGM guides, the link must answer every 4 ms and EGM's timeout runs
         geo = segment_geometry(self.report.plan, seg, self.calib, self.parts.plan,
                                self.length_mm)
-        self.link.gate = ReachGate(self.parts.robot, cell=self.calib, part=self.report.plan.part,
-                                   part_pose_mm=geo.part_pose)
+        gate = ReachGate(self.parts.robot, cell=self.calib, part=self.report.plan.part,
+                         part_pose_mm=geo.part_pose)
         tipm = self.parts.tipm
         loop = LiveLoop(self.calib, make_tracker(self.tracker, tipm, model_path=self.model_path),
                         self.link, self.report.plan.plan_config(seg, self.parts.plan),
                         self.parts.live, tipm, self.parts.ecal, nominal=geo.nominal)
+        why = self._wait_guided(number, seg.name)
+        if why:
+            self.progress(f"weld: segment {seg.name}: {why}")
+            return SegmentOutcome(seg.name, False, why)
+        self.link.gate = gate
         self.reply.set(False, number, rd.SensorState.TRACKING)
         self.view.gap.reset(geo.approach_mm)
         self.progress(f"weld: segment {seg.name}: EGM guides ({geo.length_mm:.1f} mm after a "
