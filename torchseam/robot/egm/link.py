@@ -1,4 +1,5 @@
-"""Sensor side of ABB Externally Guided Motion (EGM) over UDP, with the safety of issues 6 and 25.
+"""Sensor side of ABB Externally Guided Motion (EGM) over UDP, with the safety of issues 6, 25
+and 36.
 
 The controller sends an ``EgmRobot`` every cycle (4 ms at 250 Hz) to the sensor's address; the
 link answers every valid one, to its sender, with the latest accepted command:
@@ -56,18 +57,54 @@ very first datagram of a link starts its first session.
 When the controller falls silent for longer than ``safety.watchdog_ms`` the link logs it, and
 answers its first ``EgmRobot`` afterwards with a hold (``controller_silence``).
 
+Whose datagrams: the controller's address is ``network.controller_host`` and
+``network.controller_port`` (0: the port of the first valid sender from that host, locked
+onto). Anything else is a foreign sender, dropped by its address before it is parsed. A
+controller that restarted on a new source port of its host (RobotWare opened its socket again)
+is taken back as a new session, never from one datagram
+(:class:`~torchseam.robot.egm.policy.PortTracker`): datagrams from another port of the
+controller's host are looked at (parsed) only once the session has been silent for
+``link.session_silence_ms``; the new port is believed after ``link.session_confirm``
+consistent datagrams (sequence numbers and clocks advancing, no clock the old session showed);
+the first ``session_confirm - 1`` are dropped as ``unconfirmed_port``, the confirming one is
+answered with a hold (``new_session``) on its start pose and the move is logged once
+(``EgmStats.controller_moves``). Another host is never taken; nor another port while the
+controller talks on its own.
+
+The controller first, whatever else arrives (issue 36: 50 000 datagrams from another local
+port in a second, read one by one before each answer, cost the controller 6-8 % of its replies
+and 78-96 of its datagrams, dropped by the kernel from the full shared queue). On Linux the
+controller gets a socket of its own as soon as its port is known: bound to the link's address
+beside the shared, unconnected socket (SO_REUSEADDR on both for that moment, cleared again so
+that no other socket can bind the address) and ``connect()``ed to the controller's host and
+port, which makes the kernel queue the controller's datagrams there and everything else on the
+shared socket. :meth:`EgmLink.serve_once` reads the controller's socket first and answers its
+newest valid ``EgmRobot`` at once; only a call with nothing of the controller's to answer reads
+the shared socket, at most ``EgmLink.OTHER_BUDGET`` datagrams, and after a call that used the
+whole budget it leaves the shared socket alone for ``EgmLink.OTHER_PAUSE_S``: a flood costs
+the link a bounded share of its time, delays a controller datagram by one bounded read at
+most, and cannot fill the controller's queue (the kernel drops the rest of the flood from the
+shared one). A restarted controller's datagrams arrive on the shared socket until its new port
+is believed; the controller's socket is then re-connected there. Where the platform does not
+give the controller a socket of its own, it shares the one socket with every other sender (read
+``EgmLink.CONTROLLER_BUDGET`` datagrams at a time, no pause).
+
 Datagrams that are oversized, empty, unparseable, of the wrong type (``header.mtype`` not
 ``DATA``), missing a required field, non-finite, without ``header.seqno``, without
 ``feedBack.time`` (RobotWare before 6.07, which mixes radians and degrees: refused), from a
-foreign sender, or refused by the sequence policy are counted by reason and dropped; they never
-raise out of the loop. The first of each reason is logged as a warning, the rest at debug level.
-Every datagram the link reads lands in exactly one counter: ``received`` or one ``dropped``
-reason. Datagrams the kernel dropped because the socket's receive buffer was full (Linux
-``SO_RXQ_OVFL``) are counted in ``EgmStats.kernel_dropped``.
+foreign sender, or refused by the sequence or port policy are counted by reason and dropped;
+they never raise out of the loop. The first of each reason is logged as a warning, the rest at
+debug level. Every datagram the link reads lands in exactly one counter: ``received`` or one
+``dropped`` reason. Datagrams the kernel dropped because a socket's receive buffer was full
+(Linux ``SO_RXQ_OVFL``) are counted per socket: ``EgmStats.kernel_dropped_controller`` (the
+controller's own; each drop logged as a warning) and ``kernel_dropped_other`` (the shared one;
+the first logged), their sum in ``kernel_dropped``. An ICMP port unreachable reported on the
+controller's socket (a reply reached a port the controller left) is counted in
+``controller_unreachable``, not as a datagram.
 
 The link holds the state (the stored measurement, the last reply, the session's flags) and the
-transport (the socket, the serving thread, the counters); each decision above is a function of
-:mod:`torchseam.robot.egm.policy` that it calls with plain values.
+transport (the sockets, the serving thread, the counters); each decision above is a function
+or tracker of :mod:`torchseam.robot.egm.policy` that it calls with plain values.
 
 Binding: ``network.host`` (loopback by default); a non-loopback address is logged as a warning.
 ``link.rt_priority`` asks for SCHED_FIFO for the serving thread. Keep the link out of a process
@@ -106,7 +143,9 @@ from torchseam.robot.egm.policy import (
     NEW_SESSION,
     U32,
     Gate,
+    PortTracker,
     Pose,
+    SeqDecision,
     SequenceTracker,
     Verdict,
     check_age,
@@ -134,6 +173,10 @@ TIMESPEC = struct.Struct("@qq")
 _SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40) if sys.platform == "linux" else None
 _U32_STRUCT = struct.Struct("@I")
 _ANC_BYTES = socket.CMSG_SPACE(TIMESPEC.size) + socket.CMSG_SPACE(_U32_STRUCT.size) + 64
+# Linux hands a datagram to the socket bound to its address that matches it best: one
+# connect()ed to its sender's address and port beats an unconnected one. The controller gets
+# such a socket of its own (two sockets bound to one address need SO_REUSEADDR on both)
+_OWN_CONTROLLER_SOCKET = sys.platform == "linux"
 # what a drop reason means, for the first warning of each
 _DROP_DETAIL = {
     "no_feedback_time": "EgmRobot without feedBack.time: RobotWare before 6.07 (which mixes "
@@ -151,6 +194,11 @@ _DROP_DETAIL = {
     "unconfirmed_session": "behind the newest with a clock outside the session's: a restart "
                            "is believed only after consistent successors while the session "
                            "is silent",
+    "foreign_sender": "not the controller's address and port (dropped unread); another port "
+                      "of the controller's host is looked at only once the session is silent",
+    "unconfirmed_port": "from another port of the controller's host while the session is "
+                        "silent: a controller that restarted there is believed after "
+                        "link.session_confirm consistent datagrams",
 }
 
 
@@ -167,6 +215,18 @@ class _Measurement:
     quat: np.ndarray | None    # pose: unit quaternion (w, x, y, z)
     measured_at: float         # clock seconds
     arrived_at: float          # clock seconds
+
+
+@dataclass
+class _Batch:
+    """What one read of a socket found: the newest accepted ``EgmRobot`` (with its sender and
+    kernel receive time, ns), the receive time of the first accepted one, and whether the read
+    stopped at its budget (more may be queued)."""
+
+    sock: socket.socket
+    newest: tuple[Any, tuple[Any, ...], int] | None = None
+    first_rx_ns: int = 0
+    full: bool = False
 
 
 class EgmLink:
@@ -195,6 +255,17 @@ class EgmLink:
     (port 0 in the config binds an ephemeral port).
     """
 
+    #: datagrams read from the controller's own socket per :meth:`serve_once`
+    CONTROLLER_BUDGET = 64
+    #: datagrams read from the shared socket (every other sender) per :meth:`serve_once` ...
+    OTHER_BUDGET = 32
+    #: ... and after a call that used all of it (more were queued), the shared socket is left
+    #: alone this long (s): a flood costs the link at most OTHER_BUDGET datagrams per pause
+    #: (each dropped by its address, unparsed); the kernel drops the rest
+    OTHER_PAUSE_S = 0.001
+    #: other ports of the controller's host followed at once as a possible restart
+    MAX_PORT_CANDIDATES = 4
+
     def __init__(self, config: EgmConfig, *, gate: Gate | None = None,
                  clock: Callable[[], float] = time.monotonic, bind: bool = True,
                  on_robot: Callable[[Any, float], bool] | None = None,
@@ -221,6 +292,12 @@ class EgmLink:
             reorder_window=lk.reorder_window, max_gap=lk.max_gap,
             min_period_s=lk.min_period_ms / 1e3, confirm=lk.session_confirm,
             silence_s=lk.session_silence_ms / 1e3)
+        # a controller back on another port of its host (issue 36)
+        self._ports = PortTracker(
+            reorder_window=lk.reorder_window, max_gap=lk.max_gap,
+            min_period_s=lk.min_period_ms / 1e3, confirm=lk.session_confirm,
+            silence_s=lk.session_silence_ms / 1e3, max_candidates=self.MAX_PORT_CANDIDATES)
+        self._host_memo: dict[str, bool] = {}  # sender host -> is the controller's host
         self._last_rx_time: float | None = None   # clock s of the last valid EgmRobot
         self._controller_silent = False
         self._resync = False       # the next reply holds: the controller was silent
@@ -235,10 +312,19 @@ class EgmLink:
         self._session_pose: Pose | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._sock: socket.socket | None = None
+        # the shared socket: bound, unconnected; every sender but the controller (and the
+        # controller too until it has a socket of its own)
+        self._shared: socket.socket | None = None
+        # the controller's own socket: bound to the same address, connect()ed to the
+        # controller's host and port, so the kernel queues only its datagrams there
+        self._ctrl: socket.socket | None = None
+        self._other_paused_until = 0.0  # time.monotonic(): the shared socket rests until then
+        self._kernel_seen = {"controller": 0, "other": 0}  # SO_RXQ_OVFL per socket
         self.realtime = False  # whether the serving thread got its real-time priority
         if bind:
-            self._sock = self._open_socket()
+            self._shared = self._open_socket()
+            if self._peer_port is not None:
+                self._connect_controller(self._peer_port)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -246,27 +332,70 @@ class EgmLink:
         net = self.config.network
         sock = open_udp((net.host, net.port), "the EGM sensor",
                         " (another EGM sensor running?)")
-        if _SO_RXQ_OVFL is not None:
-            try:
-                sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
-            except OSError:
-                log.info("EGM: this kernel does not report receive-buffer drops (SO_RXQ_OVFL)")
+        _ask_drop_counter(sock)
         if not net.is_loopback:
             log.warning("EGM sensor bound to %s:%d, not loopback: reachable from the network",
                         net.host, net.port)
         return sock
 
+    def _connect_controller(self, port: int) -> None:
+        """Give the controller at ``network.controller_host:port`` a socket of its own (or
+        point the one it has at its new port): bound to the link's address with SO_REUSEADDR
+        and connected to the controller, so the kernel delivers its datagrams there, in a
+        receive buffer no other sender can fill. The shared socket allows the second bind for
+        this moment only: with SO_REUSEADDR cleared again on both, no other socket can bind
+        the link's address. Where it fails (another platform), the controller shares the
+        socket with every other sender, as before."""
+        shared = self._shared
+        if shared is None or not _OWN_CONTROLLER_SOCKET:
+            return
+        peer = (self.config.network.controller_host, port)
+        if self._ctrl is not None:
+            try:
+                self._ctrl.connect(peer)
+                return
+            except OSError as e:
+                log.warning("EGM: cannot point the controller's socket at %s:%d (%s): it shares "
+                            "the link's socket from now on", *peer, e)
+                self._ctrl.close()
+                self._ctrl = None
+                return
+        ctrl = None
+        try:
+            shared.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                host, bound = shared.getsockname()[:2]
+                ctrl = open_udp((host, bound), "the EGM controller's socket", reuse=True)
+            finally:
+                shared.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
+            ctrl.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
+            _ask_drop_counter(ctrl)
+            ctrl.connect(peer)
+        except (OSError, EgmError) as e:
+            if ctrl is not None:
+                ctrl.close()
+            log.warning("EGM: no socket of its own for the controller %s:%d (%s): it shares the "
+                        "link's socket with every other sender", *peer, e)
+            return
+        self._ctrl = ctrl
+
+    @property
+    def _sock(self) -> socket.socket | None:
+        """The socket the controller's datagrams arrive on: its own once it has one, else the
+        shared one (None: made with ``bind=False``, or stopped)."""
+        return self._ctrl if self._ctrl is not None else self._shared
+
     @property
     def address(self) -> tuple[str, int]:
         """``(host, port)`` the sensor listens on."""
-        if self._sock is None:
+        if self._shared is None:
             raise EgmError("the link was made with bind=False and has no socket")
-        host, port = self._sock.getsockname()[:2]
+        host, port = self._shared.getsockname()[:2]
         return host, port
 
     def start(self) -> EgmLink:
         """Serve in a background thread until :meth:`stop`."""
-        if self._sock is None:
+        if self._shared is None:
             raise EgmError("the link was made with bind=False and has no socket")
         if self._thread is None:
             self._stop.clear()
@@ -281,9 +410,10 @@ class EgmLink:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
-        if self._sock is not None:
-            self._sock.close()
-            self._sock = None
+        for sock in (self._ctrl, self._shared):
+            if sock is not None:
+                sock.close()
+        self._ctrl = self._shared = None
 
     def __enter__(self) -> EgmLink:
         return self.start()
@@ -300,51 +430,106 @@ class EgmLink:
             self.serve_once(poll_s)
 
     def serve_once(self, timeout_s: float) -> int:
-        """Wait up to ``timeout_s`` for datagrams, handle all queued ones, answer the newest
-        valid ``EgmRobot``. Returns the number of replies sent (0 or 1)."""
-        sock = self._sock
-        if sock is None:
+        """Wait up to ``timeout_s`` for datagrams and answer the controller's newest valid
+        ``EgmRobot``. Returns the number of replies sent (0 or 1).
+
+        The controller's own socket is read first (up to ``CONTROLLER_BUDGET`` datagrams) and
+        its newest valid ``EgmRobot`` answered at once; only a call that has nothing of the
+        controller's to answer reads the shared socket, ``OTHER_BUDGET`` datagrams at most
+        (dropping every sender but the controller by its address, unparsed); when that budget
+        was used up, the shared socket rests for ``OTHER_PAUSE_S``. A flood thus delays a
+        controller datagram by one bounded drain at most, and cannot fill its queue."""
+        shared, ctrl = self._shared, self._ctrl
+        if shared is None:
             return 0
+        watch = [ctrl] if ctrl is not None else []
+        rest = self._other_paused_until - time.monotonic() if ctrl is not None else 0.0
+        if rest > 0.0:
+            timeout_s = min(timeout_s, rest)
+        else:
+            watch.append(shared)
         try:
-            ready, _, _ = select.select([sock], [], [], timeout_s)
+            ready, _, _ = select.select(watch, [], [], timeout_s)
         except (OSError, ValueError):  # closed under us by stop()
             return 0
         if not ready:
             self._check_silence(self._clock())
             return 0
         woke_ns, cpu0_ns = time.time_ns(), time.thread_time_ns()
-        newest: tuple[Any, tuple[Any, ...], int] | None = None
-        first_rx_ns = 0
-        while True:
+        if ctrl is not None and ctrl in ready:
+            batch = self._read(ctrl, self.CONTROLLER_BUDGET, "controller")
+            if batch.newest is not None:
+                return self._reply(batch, woke_ns, cpu0_ns)
+        if shared in ready:
+            budget = self.OTHER_BUDGET if ctrl is not None else self.CONTROLLER_BUDGET
+            batch = self._read(shared, budget, "other")
+            if batch.full and self._ctrl is not None:
+                self._other_paused_until = time.monotonic() + self.OTHER_PAUSE_S
+            if batch.newest is not None:
+                return self._reply(batch, woke_ns, cpu0_ns)
+        return 0
+
+    def _read(self, sock: socket.socket, budget: int, which: str) -> _Batch:
+        """Read up to ``budget`` queued datagrams from ``sock`` (``which``: ``controller`` or
+        ``other``, for the kernel's drop counter); every one lands in one counter."""
+        batch = _Batch(sock)
+        last_anc: list[tuple[int, int, bytes]] | None = None
+        now = self._clock()
+        n = 0
+        while n < budget:
             try:
                 data, anc, flags, sender = sock.recvmsg(self._max_bytes + 1, _ANC_BYTES)
             except (BlockingIOError, InterruptedError):
                 break
-            except OSError as e:  # e.g. ICMP port unreachable surfacing as ECONNREFUSED
+            except ConnectionRefusedError:
+                # a connected socket reports the ICMP port unreachable of an earlier reply: the
+                # controller's port is closed (it stopped, or restarted on another port)
+                n += 1
+                self._unreachable(which)
+                continue
+            except OSError as e:  # e.g. closed under us by stop()
                 self._drop(f"socket_error_{e.errno}", sender=None)
                 break
-            rx_ns = rx_time_ns(anc)
-            self._kernel_drops(anc)
+            n += 1
+            last_anc = anc
             if flags & socket.MSG_TRUNC:
                 self._drop("oversized", sender)
                 continue
+            if self._admitted_port(sender, now) is None:
+                self._drop("foreign_sender", sender)  # by its address, before any parsing
+                continue
+            rx_ns = rx_time_ns(anc)
             # its arrival on the link's clock: the kernel's receive time, not when it was read
             # (datagrams read in one batch after a stall arrived a period apart)
             at = self._clock() - max(0, time.time_ns() - rx_ns) / 1e9
             robot = self._accept(data, sender, at)
             if robot is not None:
-                if newest is not None:
+                if batch.newest is not None:
                     with self._lock:
                         self._stats.superseded += 1
                 else:
-                    first_rx_ns = rx_ns
-                newest = (robot, sender, rx_ns)
-        if newest is None:
-            return 0
-        robot, sender, rx_ns = newest
+                    batch.first_rx_ns = rx_ns
+                batch.newest = (robot, sender, rx_ns)
+        batch.full = n >= budget
+        if last_anc is not None:  # the counter is cumulative: the newest datagram's is enough
+            self._kernel_drops(last_anc, which)
+        return batch
+
+    def _reply(self, batch: _Batch, woke_ns: int, cpu0_ns: int) -> int:
+        """Answer the newest ``EgmRobot`` of ``batch`` through the socket it came in on."""
+        assert batch.newest is not None
+        robot, sender, rx_ns = batch.newest
         reply = self._answer(robot)
+        sock = batch.sock
         try:
-            sock.sendto(reply, sender)
+            if sock is self._ctrl:
+                try:
+                    sock.send(reply)  # connected: to the controller
+                except ConnectionRefusedError:  # an earlier ICMP error, reported now: again
+                    self._unreachable("controller")
+                    sock.send(reply)
+            else:
+                sock.sendto(reply, sender)
         except OSError as e:
             with self._lock:
                 self._stats.send_errors += 1
@@ -352,12 +537,20 @@ class EgmLink:
             return 0
         tx_ns, cpu_ns = time.time_ns(), time.thread_time_ns() - cpu0_ns
         self._count_sent((tx_ns - rx_ns) / 1e6)
-        if (tx_ns - first_rx_ns) / 1e6 > self.config.link.late_reply_ms:
-            entry = LateReply(first_rx_ns, rx_ns, (woke_ns - first_rx_ns) / 1e6,
+        if (tx_ns - batch.first_rx_ns) / 1e6 > self.config.link.late_reply_ms:
+            entry = LateReply(batch.first_rx_ns, rx_ns, (woke_ns - batch.first_rx_ns) / 1e6,
                               (tx_ns - woke_ns) / 1e6, cpu_ns / 1e6)
             with self._lock:
                 self._stats.late_log.append(entry)
         return 1
+
+    def _unreachable(self, which: str) -> None:
+        with self._lock:
+            self._stats.controller_unreachable += 1
+            first = self._stats.controller_unreachable == 1
+        log.log(logging.WARNING if first else logging.DEBUG,
+                "EGM: the controller's port refused a reply (ICMP port unreachable on the %s "
+                "socket): it stopped or moved", which)
 
     # ------------------------------------------------------------------ measurements
 
@@ -480,26 +673,126 @@ class EgmLink:
                 "EGM dropped a datagram from %s: %s%s", sender, reason,
                 f" ({detail})" if detail else "")
 
-    def _kernel_drops(self, ancdata: list[tuple[int, int, bytes]]) -> None:
-        """Take the socket's drop counter (SO_RXQ_OVFL) from a datagram's ancillary data."""
+    def _kernel_drops(self, ancdata: list[tuple[int, int, bytes]],
+                      which: str = "controller") -> None:
+        """Take a socket's drop counter (SO_RXQ_OVFL) from a datagram's ancillary data:
+        ``which`` socket, ``controller`` (its own) or ``other`` (the shared one)."""
         n = _rx_overflow(ancdata)
         if n is None:
             return
         with self._lock:
-            before = self._stats.kernel_dropped
+            before = self._kernel_seen[which]
             if n <= before:
                 return
-            self._stats.kernel_dropped = n
-        log.warning("EGM: the kernel dropped %d datagram(s) on the link's socket (receive "
-                    "buffer full; %d in all): the link did not read fast enough", n - before, n)
+            self._kernel_seen[which] = n
+            self._stats.kernel_dropped += n - before
+            if which == "controller":
+                self._stats.kernel_dropped_controller += n - before
+            else:
+                self._stats.kernel_dropped_other += n - before
+        if which == "controller" or self._ctrl is None:
+            log.warning("EGM: the kernel dropped %d datagram(s) on the link's socket (receive "
+                        "buffer full; %d in all): the link did not read fast enough", n - before,
+                        n)
+        else:  # a flood from other senders: said once, then at debug level
+            log.log(logging.WARNING if before == 0 else logging.DEBUG,
+                    "EGM: the kernel dropped %d datagram(s) from other senders than the "
+                    "controller (%d in all): the link reads them at a bounded rate; the "
+                    "controller's own socket is not affected", n - before, n)
+
+    def _sender_port(self, sender: Any) -> int | None:
+        """The port of ``sender`` when it sends from ``network.controller_host``, else None. The
+        host's verdict is remembered by its text: a flood from one address costs a look-up."""
+        try:
+            host, port = sender[0], sender[1]
+        except (TypeError, IndexError, KeyError):
+            return None
+        ok = self._host_memo.get(host) if isinstance(host, str) else None
+        if ok is None:
+            ok = controller_port(sender, self.config.network.controller_host, None) is not None
+            if isinstance(host, str):
+                if len(self._host_memo) >= 256:  # bounded: many hosts cost a parse each
+                    self._host_memo.clear()
+                self._host_memo[host] = ok
+        if not ok or not isinstance(port, int):
+            return None
+        return port
+
+    def _admitted_port(self, sender: Any, at: float) -> int | None:
+        """The port of ``sender`` when a datagram from it may be parsed at ``at`` (link clock):
+        the controller's address and port (any port before the link locked onto one), or
+        another port of the controller's host once the session has been silent long enough
+        to be looking for a restarted controller (:class:`~.policy.PortTracker`); None: foreign,
+        dropped unread."""
+        port = self._sender_port(sender)
+        if port is None or self._peer_port is None or port == self._peer_port:
+            return port
+        return port if self._ports.admits(self._tracker, at) else None
 
     def _accept(self, data: bytes, sender: tuple[Any, ...], at: float | None = None) -> Any | None:
         """Validate one datagram; the ``EgmRobot`` to answer, or None (dropped and counted).
         ``at``: its arrival on the link's clock (default: now)."""
-        port = controller_port(sender, self.config.network.controller_host, self._peer_port)
+        now = self._clock()
+        t = now if at is None else at
+        port = self._admitted_port(sender, t)
         if port is None:
             self._drop("foreign_sender", sender)
             return None
+        moved = self._peer_port is not None and port != self._peer_port
+        parsed = self._parse(data, sender)
+        if parsed is None:
+            return None
+        robot, clock_us, fb_pose = parsed
+        seq = robot.header.seqno
+        decision: SeqDecision
+        if moved:  # another port of the controller's host, the session silent
+            decision = self._ports.decide(self._tracker, port, seq, clock_us, t)
+        else:
+            decision = self._tracker.decide(seq, clock_us, t)
+        if decision.action == DROP:
+            self._drop(decision.reason, sender)
+            return None
+        if moved:
+            self._move_controller(port, sender, seq, t)
+        else:
+            self._ports.clear()  # the session speaks: nobody else is the controller
+        if self._on_robot is not None and self._on_robot(robot, t):
+            # a new guided motion: nothing from the previous one is a reference any more
+            with self._lock:
+                self._stats.sessions += 1
+            self._session_pose = fb_pose
+            self._sent_vec = self._sent_quat = None
+            self._meas = None
+            self._new_session = True
+        elif decision.action == NEW_SESSION:
+            self._start_session(decision.reason, fb_pose, seq)
+        elif decision.reason == "jump":
+            with self._lock:
+                self._stats.jumps += 1
+            log.warning("EGM controller seqno jumped ahead to %d: believed after %d consistent "
+                        "datagrams and a silent session", seq,
+                        self.config.link.session_confirm)
+        elif decision.missing:
+            with self._lock:
+                self._stats.robot_missing += decision.missing
+        if self._peer_port is None:
+            self._peer_port = port
+            log.info("EGM session locked onto controller %s:%d", sender[0], port)
+            self._connect_controller(port)
+        self._check_silence(now)
+        if self._controller_silent:
+            log.info("EGM controller is back after %.0f ms: holding for one cycle",
+                     (now - (self._last_rx_time or now)) * 1e3)
+            self._resync = True
+            self._controller_silent = False
+        self._last_rx_time = now
+        with self._lock:
+            self._stats.received += 1
+        return robot
+
+    def _parse(self, data: bytes, sender: Any) -> tuple[Any, int, Pose | None] | None:
+        """The ``EgmRobot`` in ``data``, its controller clock (us) and, in pose mode, its
+        fed-back pose; None when a check fails (dropped and counted)."""
         robot, reason = parse_robot(data, self._max_bytes)
         if robot is None:
             self._drop(reason, sender)
@@ -517,43 +810,21 @@ class EgmLink:
             if fb_pose is None:
                 self._drop(reason, sender)
                 return None
-        now = self._clock()
-        decision = self._tracker.decide(robot.header.seqno, clock_us, now if at is None else at)
-        if decision.action == DROP:
-            self._drop(decision.reason, sender)
-            return None
-        if self._on_robot is not None and self._on_robot(robot, now if at is None else at):
-            # a new guided motion: nothing from the previous one is a reference any more
-            with self._lock:
-                self._stats.sessions += 1
-            self._session_pose = fb_pose
-            self._sent_vec = self._sent_quat = None
-            self._meas = None
-            self._new_session = True
-        elif decision.action == NEW_SESSION:
-            self._start_session(decision.reason, fb_pose, robot.header.seqno)
-        elif decision.reason == "jump":
-            with self._lock:
-                self._stats.jumps += 1
-            log.warning("EGM controller seqno jumped ahead to %d: believed after %d consistent "
-                        "datagrams and a silent session", robot.header.seqno,
-                        self.config.link.session_confirm)
-        elif decision.missing:
-            with self._lock:
-                self._stats.robot_missing += decision.missing
-        if self._peer_port is None:
-            self._peer_port = port
-            log.info("EGM session locked onto controller %s:%d", sender[0], port)
-        self._check_silence(now)
-        if self._controller_silent:
-            log.info("EGM controller is back after %.0f ms: holding for one cycle",
-                     (now - (self._last_rx_time or now)) * 1e3)
-            self._resync = True
-            self._controller_silent = False
-        self._last_rx_time = now
+        return robot, clock_us, fb_pose
+
+    def _move_controller(self, port: int, sender: Any, seq: int, at: float) -> None:
+        """The controller, silent on its port, came back on ``port`` (confirmed by the port
+        tracker): its stream is the session's from now on, its socket points there."""
+        old, silent_ms = self._peer_port, (at - self._tracker.last_at) * 1e3
+        self._tracker = self._ports.confirmed(port)
+        self._peer_port = port
+        self._connect_controller(port)
         with self._lock:
-            self._stats.received += 1
-        return robot
+            self._stats.controller_moves += 1
+        log.warning("EGM controller moved from port %s to %s:%d (silent %.0f ms on its port, "
+                    "then %d consistent datagrams from the new one): new session at seqno %d; "
+                    "the first reply holds on its start pose", old, sender[0], port, silent_ms,
+                    self.config.link.session_confirm, seq)
 
     def _start_session(self, why: str, fb_pose: Pose | None, seq: int) -> None:
         """A controller session starts: the last command is no reference any more; the
@@ -563,11 +834,13 @@ class EgmLink:
         self._session_pose = fb_pose
         if why == "first":
             return
+        self._sent_vec = self._sent_quat = None
+        self._new_session = True
+        if why == "new_port":  # said by _move_controller
+            return
         log.warning("EGM controller restarted (seqno and feedBack.time both restarted, "
                     "consistently, after a silence): new session at seqno %d; the first reply "
                     "holds on its start pose", seq)
-        self._sent_vec = self._sent_quat = None
-        self._new_session = True
 
     def _check_silence(self, now: float) -> None:
         """Flag (once) a controller that stopped sending for longer than the watchdog."""
@@ -701,10 +974,13 @@ class EgmLink:
         return self._watchdog_holding
 
 
-def open_udp(address: tuple[str, int], what: str, in_use_hint: str = "") -> socket.socket:
+def open_udp(address: tuple[str, int], what: str, in_use_hint: str = "", *,
+             reuse: bool = False) -> socket.socket:
     """A non-blocking UDP socket bound to ``address`` (IPv4 or IPv6 by the host), with kernel
     receive time stamps where the kernel gives them (else user-space receive times are used).
     Both ends of the EGM link open theirs with it, so both time a datagram the same way.
+    ``reuse``: set SO_REUSEADDR before binding (a second socket on an address whose socket
+    allows it).
 
     Raises:
         EgmError: the address cannot be bound: ``cannot bind WHAT to HOST:PORT: why`` (with
@@ -717,6 +993,8 @@ def open_udp(address: tuple[str, int], what: str, in_use_hint: str = "") -> sock
         v6 = False
     sock = socket.socket(socket.AF_INET6 if v6 else socket.AF_INET, socket.SOCK_DGRAM)
     try:
+        if reuse:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind(address)
     except OSError as e:
         sock.close()
@@ -729,6 +1007,16 @@ def open_udp(address: tuple[str, int], what: str, in_use_hint: str = "") -> sock
         except OSError:
             pass  # fall back to user-space receive times
     return sock
+
+
+def _ask_drop_counter(sock: socket.socket) -> None:
+    """Ask the kernel for the socket's drop counter on each datagram (Linux SO_RXQ_OVFL)."""
+    if _SO_RXQ_OVFL is None:
+        return
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
+    except OSError:
+        log.info("EGM: this kernel does not report receive-buffer drops (SO_RXQ_OVFL)")
 
 
 def set_realtime_priority(priority: int, what: str) -> bool:

@@ -31,6 +31,9 @@ policy therefore trusts a datagram's *content* only as far as the link's own sta
 
 - :func:`controller_port`: a datagram from anything but the controller's address (and, once
   locked, its port) is foreign.
+- :class:`PortTracker`: a controller that restarted on a new source port of its host is
+  believed, as a new session, only after ``confirm`` consistent datagrams, each after the
+  session fell silent for ``silence_s``, none with a clock the session has shown.
 - :class:`SequenceTracker` follows the controller's stream by ``header.seqno`` and the
   controller's clock ``feedBack.time``, and tells the link for each datagram whether it
   continues the session (``accept``), starts a new one (``new_session``), or is dropped, with
@@ -182,6 +185,11 @@ class SequenceTracker:
             return self.min_period_s
         return max(self.min_period_s, statistics.median(self._periods))
 
+    def shown_clock(self, clock_us: int) -> bool:
+        """Whether ``clock_us`` lies in the span of controller clocks this session has shown: a
+        datagram with it belongs to this session (sent again, when it is not the newest)."""
+        return self.seq is not None and self._clock_lo <= clock_us <= self._clock_hi
+
     def expected_ahead(self, at: float) -> float:
         """How far ahead of the newest the controller's seqno should be at time ``at``: the
         median over the recent accepted datagrams of their seqno plus the periods since."""
@@ -260,6 +268,86 @@ class SequenceTracker:
         self._start(seq, clock_us, at)
         self._clock_lo, self._clock_hi = clock_lo, clock_hi
         return SeqDecision(ACCEPT, "jump")
+
+
+class PortTracker:
+    """Decides whether the controller came back on another source port of its host.
+
+    A controller that restarts (RobotWare opens its UDP socket again) may send from a new
+    source port; until then the link takes the controller's datagrams from one port only. A
+    stream from another port of the controller's host is followed here, each port by a
+    :class:`SequenceTracker` of its own, and believed as the controller (``new_session``,
+    reason ``new_port``) only when
+
+    - the session has been silent for ``silence_s`` before each of its datagrams (a live
+      controller keeps its port: while the session talks, nothing from another port is even
+      parsed, see :meth:`admits`);
+    - ``confirm`` of its datagrams were consistent (accepted in order by its tracker:
+      sequence numbers and clocks advancing);
+    - none of them carries a controller clock the session has shown (``replayed``: an old
+      datagram of the session sent again from another port).
+
+    Until then each is dropped as ``unconfirmed_port`` (or its tracker's own reason). At most
+    ``max_candidates`` ports are followed at once (the stalest is forgotten). Datagrams from
+    any other host never come here: they are foreign.
+    """
+
+    def __init__(self, *, reorder_window: int, max_gap: int, min_period_s: float, confirm: int,
+                 silence_s: float, max_candidates: int = 4) -> None:
+        self._make = lambda: SequenceTracker(
+            reorder_window=reorder_window, max_gap=max_gap, min_period_s=min_period_s,
+            confirm=confirm, silence_s=silence_s)
+        self._make()  # refuses settings that would trust one datagram
+        self.confirm = int(confirm)
+        self.silence_s = float(silence_s)
+        self.max_candidates = max(1, int(max_candidates))
+        # port -> (its stream's tracker, consistent datagrams so far)
+        self._ports: dict[int, list[Any]] = {}
+
+    def admits(self, session: SequenceTracker, at: float) -> bool:
+        """May a datagram from another port of the controller's host arriving at ``at`` be
+        looked at (parsed) at all? Only once a session exists and has been silent for
+        ``silence_s``: a controller that talks on is not elsewhere."""
+        return session.started and at - session.last_at >= self.silence_s
+
+    def decide(self, session: SequenceTracker, port: int, seq: int, clock_us: int,
+               at: float) -> SeqDecision:
+        """Decide on one datagram from ``port`` (the session's stream is ``session``);
+        ``new_session`` / ``new_port``: take :meth:`confirmed` as the session's tracker."""
+        if not self.admits(session, at):
+            return SeqDecision(DROP, "unconfirmed_port")
+        if session.shown_clock(clock_us):
+            return SeqDecision(DROP, "replayed")
+        entry = self._ports.get(port)
+        if entry is None:
+            if len(self._ports) >= self.max_candidates:
+                stalest = min(self._ports, key=lambda p: self._ports[p][0].last_at)
+                del self._ports[stalest]
+            entry = self._ports[port] = [self._make(), 0]
+        tracker, _ = entry
+        d = tracker.decide(seq, clock_us, at)
+        if d.action == DROP:
+            return d
+        entry[1] = 1 if d.action == NEW_SESSION else entry[1] + 1  # a restart counts afresh
+        if entry[1] < self.confirm:
+            return SeqDecision(DROP, "unconfirmed_port")
+        return SeqDecision(NEW_SESSION, "new_port")
+
+    def confirmed(self, port: int) -> SequenceTracker:
+        """The tracker of ``port``'s stream, confirmed: the session's from now on (every other
+        candidate is forgotten)."""
+        tracker = self._ports[port][0]
+        self._ports.clear()
+        return tracker
+
+    def clear(self) -> None:
+        """The session spoke again: whatever claimed to be it elsewhere was not."""
+        self._ports.clear()
+
+    @property
+    def ports(self) -> list[int]:
+        """The ports followed now."""
+        return list(self._ports)
 
 
 # --------------------------------------------------------------------------- datagram fields
@@ -494,7 +582,7 @@ def correction_command(offset: np.ndarray | None, measured_at: float, now: float
 
 __all__ = ["ACCEPT", "ACCEPTED", "DROP", "HOLD_NEW_SESSION", "HOLD_NO_MEASUREMENT",
            "HOLD_REFUSED", "HOLD_SILENCE", "HOLD_WATCHDOG", "NEW_SESSION", "QUAT_TOL", "Gate",
-           "Pose", "SeqDecision", "SequenceTracker", "Verdict", "check_age",
+           "Pose", "PortTracker", "SeqDecision", "SequenceTracker", "Verdict", "check_age",
            "check_correction_step", "check_gate", "check_measurement", "check_pose_step",
            "controller_port", "controller_silent", "correction_command", "feedback_clock_us",
            "feedback_pose", "hold_cause", "hold_pose", "pose_command", "quat_angle_deg",

@@ -50,9 +50,20 @@ class EgmStats:
             that the session accepted at once; a confirmed far jump is not counted).
         sessions: controller sessions started (the first datagram, then confirmed restarts).
         jumps: far jumps ahead in ``header.seqno`` believed after confirmation.
-        kernel_dropped: datagrams the kernel dropped on the link's socket because its receive
+        kernel_dropped: datagrams the kernel dropped on the link's sockets because a receive
             buffer was full (Linux ``SO_RXQ_OVFL``; cumulative, as the last datagram read
-            reported it; 0 where the kernel does not report it).
+            reported it; 0 where the kernel does not report it): the sum of the two below.
+        kernel_dropped_controller: ... on the controller's own socket (connected to its
+            address and port; only its datagrams arrive there). Not 0: the link did not read
+            the controller's datagrams fast enough.
+        kernel_dropped_other: ... on the link's shared socket, where every other sender's
+            datagrams arrive (a flood fills it; read at a bounded rate) and, until the
+            controller has a socket of its own (its port not yet known, or a platform without
+            it), the controller's too.
+        controller_unreachable: ICMP port-unreachable errors on the controller's socket: a
+            reply reached a port the controller no longer listens on (it stopped or moved).
+        controller_moves: times the controller was taken back on a new source port of its
+            host (a restart believed after confirmation; also counted in ``sessions``).
         watchdog_trips: times the watchdog started holding (measurements stopped).
         controller_silences: times the controller stopped sending for longer than
             ``safety.watchdog_ms``; the first reply after one is a hold.
@@ -75,6 +86,10 @@ class EgmStats:
     sessions: int = 0
     jumps: int = 0
     kernel_dropped: int = 0
+    kernel_dropped_controller: int = 0
+    kernel_dropped_other: int = 0
+    controller_unreachable: int = 0
+    controller_moves: int = 0
     watchdog_trips: int = 0
     controller_silences: int = 0
     send_errors: int = 0
@@ -98,6 +113,10 @@ class EgmStats:
                 "superseded": self.superseded, "robot_missing": self.robot_missing,
                 "sessions": self.sessions, "jumps": self.jumps,
                 "kernel_dropped": self.kernel_dropped,
+                "kernel_dropped_controller": self.kernel_dropped_controller,
+                "kernel_dropped_other": self.kernel_dropped_other,
+                "controller_unreachable": self.controller_unreachable,
+                "controller_moves": self.controller_moves,
                 "watchdog_trips": self.watchdog_trips,
                 "controller_silences": self.controller_silences, "send_errors": self.send_errors,
                 "latency_ms": self.latency_summary()}
