@@ -238,3 +238,19 @@ def test_learning_between_frames_gives_the_same_track(heavy):
     # and the track is a real one: near the truth on this heavy sequence
     err = np.linalg.norm(np.array([r[0] for r in runs[1]]) - truth[1:], axis=1)
     assert np.median(err) < 2.0
+
+
+def test_the_twins_transforms_are_scipy_ffts() -> None:
+    """The twin calls pocketfft without scipy.fft's dispatch: the same spectra and responses
+    as scipy.fft.rfft2 / irfft2, to the bit."""
+    import scipy.fft
+
+    from torchseam.track.lite import _irfft2, _rfft2
+
+    rng = np.random.default_rng(2)
+    for scale in (1e-3, 1.0, 1e4):
+        x = rng.normal(size=(64, 64)) * scale
+        X = scipy.fft.rfft2(x)
+        np.testing.assert_array_equal(_rfft2(x), X)
+        Y = X * (rng.normal(size=X.shape) + 1j * rng.normal(size=X.shape))
+        np.testing.assert_array_equal(_irfft2(Y, (64, 64)), scipy.fft.irfft2(Y, s=(64, 64)))
