@@ -116,17 +116,22 @@ def colour_ridge(frame, ksize, mean_of, red, ridge, hist, colmax):  # pragma: no
     Returns the pixels with R >= 250 (an arc flash that clips red) and with G >= 250 (white
     arc light)."""
     h, w = red.shape
-    n_clip = 0
-    n_sat = 0
+    clip = np.zeros(w, np.int32)  # per-column counts (summed at the end: the loop vectorises)
+    sat = np.zeros(w, np.int32)
     for r in range(h):
         px = frame[r].ravel()  # B, G, R interleaved
         out = red[r]
         for c in range(w):
-            m = max(px[3 * c + 1], px[3 * c])
-            out[c] = max(px[3 * c + 2], m) - m
-        for c in range(w):
-            n_clip += px[3 * c + 2] >= 250
-            n_sat += px[3 * c + 1] >= 250
+            x, g = px[3 * c + 2], px[3 * c + 1]
+            m = max(g, px[3 * c])
+            out[c] = max(x, m) - m
+            clip[c] += x >= 250
+            sat[c] += g >= 250
+    n_clip = 0
+    n_sat = 0
+    for c in range(w):
+        n_clip += clip[c]
+        n_sat += sat[c]
     _box_ridge(red, ksize, mean_of, ridge)
     ridge_stats(ridge, hist, colmax)
     return n_clip, n_sat

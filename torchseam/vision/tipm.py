@@ -122,11 +122,17 @@ def two_lobe_centres(prof: np.ndarray, first_row: np.ndarray, rule: LobeRule) ->
     if np.shape(first_row) != (len(prof),):
         raise InputError(f"first_row: expected shape ({len(prof)},), one row per cross-section, "
                          f"got {np.shape(first_row)}")
-    prof = np.ascontiguousarray(prof, dtype=np.float64)
+    return _lobe_centres(np.ascontiguousarray(prof, dtype=np.float64), first_row, rule,
+                         load_kernels(__package__))
+
+
+def _lobe_centres(prof: np.ndarray, first_row: np.ndarray, rule: LobeRule, k) -> np.ndarray:
+    """:func:`two_lobe_centres` of checked arguments (``prof`` (N, K) float64, C order; ``k``
+    TIPM's kernels): what :meth:`Tipm.centre` calls on every frame."""
     out = np.full(len(prof), np.nan)
     if prof.shape[1] < 3 or not len(prof):
         return out
-    ridges = load_kernels(__package__).two_ridges(prof, float(rule.ridge), float(rule.dip))
+    ridges = k.two_ridges(prof, float(rule.ridge), float(rule.dip))
     two = np.isfinite(ridges[:, 0])
     if two.sum() < max(1, rule.columns * len(prof)):
         return out
@@ -251,6 +257,7 @@ class Tipm:
             ((2 * np.arange(255 * k + 1) + k) // (2 * k)).astype(np.uint8)
             if k % 2 and 255 * k < 2**16 else None)
         self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
+        self._lobes = cfg.lobes  # (a property that builds a LobeRule each time)
 
     def _plane(self, name: str, shape: tuple[int, int]) -> np.ndarray:
         """A reused uint8 work plane: fresh frame-sized arrays cost page faults on every frame,
@@ -456,8 +463,8 @@ class Tipm:
                                   np.array([x, y, x + bw, y + bh], np.int64))
         if len(pts):
             half = int(self.cfg.centre_half_px)
-            mid = two_lobe_centres(self._k.cross_sections(response, pts, half),
-                                   np.rint(pts[:, 1]) - half, self.cfg.lobes)
+            mid = _lobe_centres(self._k.cross_sections(response, pts, half),
+                                np.rint(pts[:, 1]) - half, self._lobes, self._k)
             pts[:, 1] = np.where(np.isfinite(mid), mid, pts[:, 1])
         return pts
 
