@@ -167,3 +167,37 @@ def test_roots_refined_in_lockstep_are_each_brackets_own():
     assert together == alone
     assert [_refine_root(f, *b) for b in brackets] == alone
     assert abs(f(np.array([together[0]]))[0]) < 1e-12
+
+
+def test_compiled_splat_sums_as_bincount_does():
+    """The stripe's bilinear splat, compiled: the four corners' np.bincount sums, to the bit
+    (points in and off the image, dense and sparse)."""
+    from torchseam.sim.sensor import _splat
+
+    rng = np.random.default_rng(6)
+    h, w = 70, 90
+    for trial in range(60):
+        n = int(rng.integers(1, 3000))
+        pts = rng.uniform(-4, 95, (n, 2)) if trial % 2 else rng.normal(40, 3, (n, 2))
+        weight = rng.random(n) * float(rng.choice([0.01, 1.0, 100.0]))
+        img, box = _splat(pts, weight, w, h)
+        inside = (pts[:, 0] > -1) & (pts[:, 0] < w) & (pts[:, 1] > -1) & (pts[:, 1] < h)
+        p, wt = pts[inside], weight[inside]
+        ref = np.zeros((h, w), np.float32)
+        if len(p):
+            x0, y0 = np.floor(p[:, 0]).astype(int), np.floor(p[:, 1]).astype(int)
+            fx, fy = p[:, 0] - x0, p[:, 1] - y0
+            bx, by = x0.min(), y0.min()
+            bw, bh = x0.max() - bx + 2, y0.max() - by + 2
+            acc = np.zeros(bw * bh)
+            for dx, dy, c in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
+                              (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+                acc += np.bincount((y0 - by + dy) * bw + (x0 - bx + dx), weights=wt * c,
+                                   minlength=acc.size)
+            acc = acc.reshape(bh, bw)
+            sx, sy, ex, ey = max(0, -bx), max(0, -by), min(bw, w - bx), min(bh, h - by)
+            ref[by + sy:by + ey, bx + sx:bx + ex] = acc[sy:ey, sx:ex]
+            assert box == (int(bx + sx), int(by + sy), int(bx + ex), int(by + ey))
+        else:
+            assert box is None
+        np.testing.assert_array_equal(img, ref)

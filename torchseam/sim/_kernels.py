@@ -34,3 +34,26 @@ def finish_frame(light, background, noise, row, col, sigma, out):  # pragma: no 
         for j in range(n):
             v = (a_row[j] + b_row[j]) + n_row[col + j] * sigma
             o_row[j] = np.uint8(min(max(v, lo), hi))
+
+
+@numba.njit("f8[::1](i8[::1], i8[::1], f8[::1], f8[::1], f8[::1], i8, i8)", cache=True,
+            nogil=True)
+def splat_box(x0, y0, fx, fy, weight, bw, bh):  # pragma: no cover - compiled
+    """Bilinear splat of points into a (bh, bw) box, flat: the point at pixel ``(x0, y0)``
+    (box coordinates) plus ``(fx, fy)`` adds ``weight`` times its four bilinear weights to
+    that pixel and its right, lower and lower-right neighbours. The sums of ``np.bincount``
+    with weights, one corner after the other (each corner's sums in the points' order, then
+    added to the box in the order (0, 0), (1, 0), (0, 1), (1, 1)): the same numbers."""
+    n = bw * bh
+    acc = np.zeros(n)
+    part = np.empty(n)
+    for k in range(4):
+        dx, dy = k % 2, k // 2
+        part[:] = 0.0
+        for i in range(len(x0)):
+            wx = fx[i] if dx else 1 - fx[i]
+            wy = fy[i] if dy else 1 - fy[i]
+            part[(y0[i] + dy) * bw + x0[i] + dx] += weight[i] * (wx * wy)
+        for j in range(n):
+            acc[j] += part[j]
+    return acc

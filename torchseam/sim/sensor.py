@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from torchseam.core.config import CellConfig, StripeLook
+from torchseam.core.kernels import load_kernels
 from torchseam.core.part import Joint
 from torchseam.core.transforms import apply, invert
 
@@ -106,6 +107,7 @@ class LaserSensor:
         self._grain_field = cv2.resize(grain.astype(np.float32), (w + 32, h + 32))
         self._grains: dict[float, np.ndarray] = {}
         self._glint_rays: np.ndarray | None = None
+        load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
 
     # ---------------------------------------------------------------- projection
     def project(self, X_C: np.ndarray) -> np.ndarray:
@@ -486,12 +488,12 @@ def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int
     # accumulate in the bounding box only (with a one-pixel border for the +1 neighbours)
     bx, by = x0.min(), y0.min()
     bw, bh = x0.max() - bx + 2, y0.max() - by + 2
-    acc = np.zeros(bw * bh)
-    for dx, dy, wt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
-                       (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        acc += np.bincount((y0 - by + dy) * bw + (x0 - bx + dx), weights=weight * wt,
-                           minlength=acc.size)
-    acc = acc.reshape(bh, bw)
+    # the four corners' np.bincount sums, compiled (torchseam.sim._kernels.splat_box: the
+    # same numbers, a fifth of the time)
+    c = np.ascontiguousarray
+    acc = load_kernels(__package__).splat_box(
+        c(x0 - bx, dtype=np.int64), c(y0 - by, dtype=np.int64), c(fx, dtype=np.float64),
+        c(fy, dtype=np.float64), c(weight, dtype=np.float64), int(bw), int(bh)).reshape(bh, bw)
     # drop what falls outside the image (the box may start at -1)
     sx, sy = max(0, -bx), max(0, -by)
     ex, ey = min(bw, w - bx), min(bh, h - by)
