@@ -257,6 +257,7 @@ class WeldRunner:
         self.cam: Any = None      # the StreamCamera, once open
         self._partial: SegmentOutcome | None = None   # the segment a signal interrupted
         self.old_schema = False   # the controller's EGM carries no RAPID data
+        self._raise_on_signal = False   # True while blocked in set-up (no loop checks a flag)
 
     # ------------------------------------------------------------------ set-up
 
@@ -273,6 +274,8 @@ class WeldRunner:
 
     def on_signal(self, signum: int, _frame: Any) -> None:
         self._signal = signum
+        if self._raise_on_signal:   # blocked in a connect or a compile: leave it now
+            raise Interrupted(signal.Signals(signum).name)
 
     def _check_signal(self) -> None:
         if self._signal:
@@ -327,13 +330,16 @@ class WeldRunner:
     def run(self) -> WeldResult:
         """Weld the asked segments (see the module docstring)."""
         try:
+            self._raise_on_signal = True
             self.warm()
             self.open()
+            self._raise_on_signal = False
             todo = [s for s in self.report.plan.segments if s.name in self.segments]
             for seg in todo:
                 self._check_signal()
                 self.res.segments.append(self._segment(seg))
         except Interrupted as e:
+            self._raise_on_signal = False
             self.res.interrupted = str(e)
             if self._partial is not None:
                 self.res.segments.append(self._partial)
@@ -345,6 +351,10 @@ class WeldRunner:
 
     def _abort_current(self, why: str) -> None:
         """Tell RAPID the segment in hand is aborted, arc off, robot held where it stands."""
+        if why:
+            self.res.messages.append(why)
+        if not hasattr(self, "link"):
+            return          # interrupted before the link was open: nothing to tell
         self.reply.set(False, self.reply.segment, rd.SensorState.ABORT
                        if self.reply.segment else rd.SensorState.WAIT)
         self._hold_here()
@@ -354,8 +364,6 @@ class WeldRunner:
             if r is None or r.phase != rd.RapidPhase.GUIDED:
                 break
             time.sleep(0.01)
-        if why:
-            self.res.messages.append(why)
 
     def _wait_controller(self) -> None:
         """Until the controller's datagrams arrive; says whether RAPID's data comes with them."""
