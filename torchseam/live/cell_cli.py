@@ -212,6 +212,14 @@ def run_weld_cmd(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     try:
         res = runner.run()
+    except TorchseamError as e:
+        # the cell could not be reached, or broke its protocol: the report says so too
+        write_json_atomic(out / "summary.json", {
+            "part": str(args.part), "cell": str(args.cell), "segments": args.segments,
+            "segments_welded": [], "error": str(e),
+            "segments_incomplete": [{"segment": n, "reason": str(e)} for n in args.segments]})
+        (out / "RUNNING").unlink(missing_ok=True)
+        raise
     finally:
         for s, h in old.items():
             signal.signal(s, h)
