@@ -70,7 +70,13 @@ def test_input_faults_hold_and_recover(cell, part, noise, fault, why):
 def test_link_faults_do_not_move_the_robot_off_the_seam(cell, part, noise, fault):
     res = _run(cell, part, noise, (fault,))
     s = res.summary
-    assert s["unsafe_poses_sent"] == 0 and s["segments_incomplete"] == []
+    assert s["unsafe_poses_sent"] == 0
+    # the robot stood still, then resumed with the arc out for a while: seam passed unwelded
+    # above MAX_GAP_MM makes the segment not welded
+    from torchseam.live.demo import MAX_GAP_MM
+
+    assert ([d["segment"] for d in s["segments_incomplete"]]
+            == (["a"] if s["unwelded_mm"]["a"] > MAX_GAP_MM else []))
     if fault == "packet-loss":  # lost cycles in bursts, all segment long: ridden through
         assert s["holds"] == 0 and all(f.fault == "packet-loss" for f in res.frames)
         assert res.frames[-1].state == "tracking"
