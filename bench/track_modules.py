@@ -7,6 +7,11 @@ together on ``--threads`` threads (default 2), frames/s = B * steps / wall time.
 machine the batched rows are repeated on the GPU (synchronised timing).
 
     python bench/track_modules.py [--steps 1000] [--batch 64] [--threads 2]
+
+The batched rows run the module with the paper's defaults and the shipped fit (what
+``torchseam train-live`` and the batched evaluation step): pin them to one core with
+``taskset -c 1`` and ``--threads 1`` for the one-core figure (two threads on one core only
+contend; unpinned, a busy second core stalls torch's threads).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import torch
 from torchseam.sim.vstripe import v_stripe_sequence
 from torchseam.track.eakf import EAKF
 from torchseam.track.fusion import EAKFSTC
+from torchseam.track.live import fitted_eakf_stc
 from torchseam.track.stc import STC
 
 H, W = 492, 656
@@ -78,10 +84,10 @@ def single_stream(steps: int) -> list[tuple[str, float, float, float, float]]:
     return rows
 
 
-def batched(batch: int, steps: int, threads: int, device: str) -> float:
+def batched(batch: int, steps: int, threads: int, device: str, fitted: bool = False) -> float:
     torch.set_num_threads(threads)
     frames, uv0 = _frames(8, batch, device)
-    trk = EAKFSTC().to(device)
+    trk = (fitted_eakf_stc() if fitted else EAKFSTC()).to(device)
     with torch.inference_mode():
         trk.init(frames[0], uv0)
         for t in range(1, 11):
@@ -111,13 +117,16 @@ def main() -> None:
           f"{'cpu p99 ms':>11}")
     for name, w50, w99, c50, c99 in single_stream(args.steps):
         print(f"{name:<10} {w50:>12.3f} {w99:>12.3f} {c50:>11.3f} {c99:>11.3f}")
-    print(f"\nbatched EAKF-STC, {args.batch_steps} steps")
-    print(f"{'device':<8} {'B':>5} {'threads':>8} {'frames/s':>10}")
+    print(f"\nbatched EAKF-STC, {args.batch_steps} steps (module: the paper's defaults, or "
+          "the shipped fit, models/live_tracker.safetensors, with its STC extensions)")
+    print(f"{'device':<8} {'module':<8} {'B':>5} {'threads':>8} {'frames/s':>10}")
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     for dev in devices:
         for b in ([args.batch] if dev == "cpu" else [args.batch, 1024]):
-            fps = batched(b, args.batch_steps, args.threads, dev)
-            print(f"{dev:<8} {b:>5} {args.threads:>8} {fps:>10.0f}")
+            for fitted in (False, True):
+                fps = batched(b, args.batch_steps, args.threads, dev, fitted)
+                name = "fitted" if fitted else "default"
+                print(f"{dev:<8} {name:<8} {b:>5} {args.threads:>8} {fps:>10.0f}")
 
 
 if __name__ == "__main__":

@@ -338,3 +338,18 @@ def test_regularised_and_anchored_stc_is_structural_and_fittable() -> None:
     assert stc.log_reg.grad is not None and torch.isfinite(stc.log_reg.grad)
     assert stc.logit_anchor.grad is not None and torch.isfinite(stc.logit_anchor.grad)
     assert float(stc.log_reg.grad.abs()) > 0 and float(stc.logit_anchor.grad.abs()) > 0
+
+
+def test_block_maxima_are_amaxs_with_and_without_a_gradient():
+    """The 2x2-block maxima of the peak analysis: the values of the strided amax (ties
+    included) in inference, amax itself (its gradient) when a gradient is carried."""
+    from torchseam.track.stc import _block_max
+
+    torch.manual_seed(3)
+    for dtype in (torch.float32, torch.float64):
+        r = torch.randn(6, 64, 64, dtype=dtype).clamp_max(1.2)  # ties at the clamp
+        assert torch.equal(_block_max(r), r.reshape(6, 32, 2, 32, 2).amax(dim=(2, 4)))
+    x = torch.tensor([[[1.0, 1.0], [1.0, 0.0]]], requires_grad=True)
+    _block_max(x).sum().backward()
+    assert x.grad is not None
+    assert torch.allclose(x.grad, torch.tensor([[[1.0, 1.0], [1.0, 0.0]]]) / 3)

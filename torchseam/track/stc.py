@@ -432,6 +432,20 @@ def stc_response(H_f: Tensor, prior_f: Tensor, size: Sequence[int]) -> Tensor:
 
 # --------------------------------------------------------------------------- peaks
 
+def _block_max(x: Tensor) -> Tensor:
+    """(B, H/2, W/2) maxima of the 2x2 blocks of (B, H, W) ``x`` (H, W even).
+
+    Without a gradient to carry, the maximum of the even and odd columns, then of the even and
+    odd rows: the values of ``x.reshape(B, H/2, 2, W/2, 2).amax(dim=(2, 4))``, whose strided
+    reduction took ~8x the time (1.4 ms of a B = 64 step). With one, ``amax`` itself (it splits
+    the gradient evenly among tied maxima, two ``maximum`` calls would not)."""
+    B, h, w = x.shape
+    if x.requires_grad:
+        return x.reshape(B, h // 2, 2, w // 2, 2).amax(dim=(2, 4))
+    c = torch.maximum(x[:, :, 0::2], x[:, :, 1::2])
+    return torch.maximum(c[:, 0::2], c[:, 1::2])
+
+
 def _interior_local_max(x: Tensor) -> Tensor:
     """(B, H-2, W-2) values of x's interior where they are 3x3 local maxima, -inf elsewhere
     (separable running maximum without padding: cheaper than max_pool2d)."""
@@ -527,7 +541,7 @@ def _analyse(response: Tensor, mode: str, temperature: float | Tensor, exclude: 
     psr = height / torch.sqrt(var_s.clamp_min(tiny))
     # competing peaks: local maxima of the 2x2-block maxima (a quarter of the map), outside the
     # peak area (blocks within ceil(exclude / 2) blocks of the peak's block, circularly)
-    blocks = response if bh == h else response.reshape(B, bh, 2, bw, 2).amax(dim=(2, 4))
+    blocks = response if bh == h else _block_max(response)
     cand = _interior_local_max(blocks).reshape(B, (bh - 2) * (bw - 2))
     cand = torch.cat([cand, cand.new_full((B, 1), -torch.inf)], dim=1)  # + a dummy slot
     cand = cand.scatter(1, barea_t.index_select(0, idx), -torch.inf)
