@@ -13,6 +13,10 @@ from pathlib import Path
 from torchseam.core.errors import TorchseamError
 from torchseam.geometry import calib_cli
 
+#: a fit whose median residual is above this (px) is not believed: the stripe's rows do not
+#: follow the fed-back motion (a clean fit leaves about 0.1 px, the centre line's noise)
+MAX_RESIDUAL_PX = 1.0
+
 
 def _positive(text: str) -> float:
     try:
@@ -82,6 +86,12 @@ def run_latency(args: argparse.Namespace) -> int:
         ["fit: median absolute residual", f"{res.residual_px:.3f}", "px"],
         ["stripe motion per mm of height", f"{res.px_per_mm:.2f}", "px/mm"],
         ["frames", res.frames, ""]]))
+    if res.residual_px > MAX_RESIDUAL_PX:
+        print("torchseam calibrate latency: error: the fit does not hold (median residual "
+              f"{res.residual_px:.2f} px > {MAX_RESIDUAL_PX:g}): the stripe did not follow the "
+              "sensor's motion (frames lost, the robot held, the stripe off the part); the cell "
+              "file is left as it is: run it again", file=sys.stderr)
+        return 1
     if abs(res.px_per_mm) < 1.0:
         print("torchseam calibrate latency: error: the stripe hardly moved with the sensor "
               f"({res.px_per_mm:.2f} px/mm): is the stripe on the part?", file=sys.stderr)

@@ -174,6 +174,7 @@ class VirtualController:
         self._restarted: set[int] = set()
         self._k = 0
         self._last_cycle_t = time.monotonic()
+        self._tick_t = 0.0
         self.ended = threading.Event()
         self._lock = threading.Lock()
         if "packet-loss" in faults:
@@ -206,6 +207,14 @@ class VirtualController:
         def apply(msg) -> None:   # noqa: ANN001
             self._sensor_reply(msg, base_apply)
 
+        base_send = ctrl._send
+
+        def send(data: bytes) -> Any:
+            # the cycle's tick: the arm's step computed next is its pose one period later
+            self._tick_t = time.monotonic()
+            return base_send(data)
+
+        ctrl._send = send                   # type: ignore[method-assign]
         ctrl._messages.build = build        # type: ignore[method-assign]
         ctrl._messages.stamp = stamp        # type: ignore[method-assign]
         ctrl._apply_reply = apply           # type: ignore[method-assign]
@@ -260,15 +269,18 @@ class VirtualController:
             self._program(now)
             seg, arc, guided_since = self._segment_number(), self.arc, self.guided_since
         T = ctrl.tcp_pose()
-        self.log.cycles.append(_Cycle(now, T, arc, seg))
+        # the pose the step just computed is the arm's at the end of the step: a period after
+        # this cycle's tick (the ring and the fed-back time say so, whenever this thread ran)
+        t_pose = self._tick_t + ctrl.period if self._tick_t else now
+        self.log.cycles.append(_Cycle(t_pose, T, arc, seg))
         if self.marks is not None:
             mark = float(self.marks[0])
             if math.isfinite(mark) and mark != self._stall_seen and now >= mark and not arc:
                 self._stall_seen = mark
                 self.log.arc_off_after_stall_s.append(round(now - mark, 4))
-        write_pose(self.ring, self._k, now, self.job_i, arc, guided_since, T)
+        write_pose(self.ring, self._k, t_pose, self.job_i, arc, guided_since, T)
         self._k += 1
-        self._last_cycle_t = now
+        self._last_cycle_t = t_pose
         if self.phase == rd.RapidPhase.ENDED and now - self.t_phase > 1.0:
             self.ended.set()
 
@@ -754,9 +766,9 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
         controller=ControllerLink(host="127.0.0.1", port=sensor_port,
                                   controller_host="127.0.0.1", controller_port=vc.address[1],
                                   cycle_ms=vc.ctrl.period * 1e3,
-                                  # a pose is recorded at one cycle's end and leaves at the
-                                  # tick after next: two cycles old at the least
-                                  feedback_delay_ms=2 * vc.ctrl.period * 1e3,
+                                  # a pose is the arm's at the end of one cycle's step and
+                                  # leaves at the next tick: a cycle old at the least
+                                  feedback_delay_ms=vc.ctrl.period * 1e3,
                                   rapid_data=args.rapid_data == "on"))
     stopping = {"sig": 0}
 
