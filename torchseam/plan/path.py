@@ -210,6 +210,11 @@ class LookAheadBuffer:
         self.smooth_mm = smooth_mm
         self.outlier_mm = outlier_mm  # PlanConfig.outlier_mm in the live loop and the ring run
         self.dropped = 0  # points pushed out by a full buffer (reported, never silent)
+        # changes with every point pushed, merged or dropped and every flag a fit turns: an
+        # answer read off the points (where they are, which are flagged, when they were seen)
+        # that was worked out at one version holds at the same version (LiveLoop caches its
+        # hole bridging and seen times by it). Edit ``points`` directly only between uses.
+        self.version = 0
         self.flagged = 0  # points flagged as off the seam so far (reported, never silent)
         # next_command worked out ahead by prepare(): (cp, step, result, fitted points (n, 3),
         # distance from cp to the nearest point then)
@@ -232,6 +237,7 @@ class LookAheadBuffer:
             # the point may enter a fit the prepared command rests on, or become the point
             # nearest cp (which decides where the search starts)
             self._ready = None
+        self.version += 1
         if self.points and np.linalg.norm(p - self.points[-1].p) < MERGE_MM:
             last = self.points[-1]
             n = last.n + 1
@@ -306,6 +312,7 @@ class LookAheadBuffer:
                 loc.judged_mm, loc.residual_mm = float(xi), float(ri)
                 if (ri > self.outlier_mm) != loc.flagged:
                     loc.flagged = not loc.flagged
+                    self.version += 1
                     self.flagged += 1 if loc.flagged else -1
         # where along the seam point k is: its own position, smoothed by the inliers' order
         # of arrival (noise along the seam moves a point along the curve, not off it; the
@@ -421,6 +428,7 @@ class LookAheadBuffer:
             behind += 1
         for _ in range(behind):
             self.points.popleft()
+        self.version += behind
         P, j = P[behind:], j - behind
         dist = np.linalg.norm(P - cp, axis=1)
         # from the point nearest cp on (it is itself a target when cp is a step or more away,
