@@ -1,4 +1,4 @@
-"""ABB EGM message classes: the wire schema of shared/ROBOT.md, round trips, and agreement with
+"""ABB EGM message classes: the wire schema of ABB's egm.proto, round trips, and agreement with
 the shipped egm.proto compiled by protoc."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from torchseam.robot.egm import parse_robot, parse_sensor
 
 PROTO = Path(m.__file__).with_name("egm.proto")
 
-# shared/ROBOT.md's field table, transcribed independently of egm.messages.SCHEMA:
+# ABB's egm.proto field table, transcribed independently of egm.messages.SCHEMA:
 # message -> [(field, number, type, label)]; label o(ptional) / r(equired) / * (repeated).
 ROBOT_MD = {
     "EgmHeader": [("seqno", 1, "uint32", "o"), ("tm", 2, "uint32", "o"),
@@ -109,7 +109,7 @@ def _fill(msg, k: int = 0):
 
 
 def test_schema_matches_robot_md_field_table():
-    """ROBOT.md's table, plus the newer schema's optional fields as published."""
+    """ABB's field table (RobotWare 6), plus the newer schema's optional fields as published."""
     assert set(m.MESSAGE_NAMES) == set(SCHEMA_TABLE)
     for name, fields in SCHEMA_TABLE.items():
         desc = m.CLASSES[name].DESCRIPTOR

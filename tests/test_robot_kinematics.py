@@ -47,7 +47,7 @@ def random_joints(robot, n, seed=0):
 
 # --------------------------------------------------------------------------- independent refs
 
-# Standard DH table of shared/ROBOT.md (ARTE robots/ABB/IRB1410/parameters.m): d, a, alpha, offset.
+# Standard DH table of the IRB 1410 (ARTE robots/ABB/IRB1410/parameters.m): d, a, alpha, offset.
 DH = [(475.0, 150.0, -90, 0), (0.0, 600.0, 0, -90), (0.0, 120.0, -90, 0),
       (720.0, 0.0, 90, 0), (0.0, 0.0, -90, 0), (85.0, 0.0, 0, 180)]
 
@@ -113,7 +113,8 @@ def test_all_axes_zero_hand_computed(robot):
 
 
 def test_reach_is_1444_mm(robot):
-    """ROBOT.md: 0.15 + 0.6 sin 70 + sqrt(0.72^2 + 0.12^2) = 1.444 m, the wrist centre's furthest
+    """The datasheet's reach: 0.15 + 0.6 sin 70 + sqrt(0.72^2 + 0.12^2) = 1.444 m, the wrist
+    centre's furthest
     horizontal distance from axis 1 (axis 2 at +70, forearm's wrist line horizontal)."""
     expected = 150 + 600 * math.sin(math.radians(70)) + math.hypot(720, 120)
     a2, a3 = torch.meshgrid(torch.linspace(-70, 70, 29, dtype=F64),
@@ -257,7 +258,7 @@ def test_coupling_is_the_half_metre_effect(robot):
         off = (right - wrong).norm().item()
         assert off == pytest.approx(2 * r.item() * abs(math.sin(math.radians(a2) / 2)), abs=1e-6)
         if abs(a2) == 35.0:
-            assert off > 450.0  # the "off by up to 0.5 m" of ROBOT.md
+            assert off > 450.0  # off by up to 0.5 m without the coupling
 
 
 def test_pose_helpers_round_trip_in_abb_order():

@@ -2,7 +2,7 @@
 the parsers that turn one datagram into a validated message (:func:`parse_robot`,
 :func:`parse_sensor`: size, type, required fields, finite values) without ever raising.
 
-The schema lives in one table below, written from the field table in ``shared/ROBOT.md`` plus
+The schema lives in one table below, written from ABB's egm.proto (sensor interface V1.1) plus
 the newer schema's optional fields (``RAPIDtoRobot`` / ``RAPIDfromRobot``, the data channel
 between the sensor and the RAPID program, and ``moveIndex``, ``CollisionInfo``; the proto file
 names the published file they come from); the readable ``egm.proto`` next to this file says the
