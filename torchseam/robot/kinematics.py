@@ -517,7 +517,8 @@ class IRB1410:
         # early_stopping_no_improvement="all" can drop every goal (measured: 0 of 100 solved):
         # off. A goal stops once a start converged (warm starts take ~3 iterations, not
         # max_iterations). pk's own limit enforcement (10 clamped refinements) is off:
-        # select_nearest turns axes by 360 and the axis ranges (incl. the coupled axis 3) are judged afterwards anyway.
+        # select_nearest turns axes by 360 and the axis ranges (incl. the coupled axis 3) are
+        # judged afterwards anyway.
         common = dict(pos_tolerance=cfg.position_tol_mm / 1000.0,
                       rot_tolerance=math.radians(cfg.orientation_tol_deg),
                       max_iterations=cfg.max_iterations, early_stopping_no_improvement=None,
