@@ -355,3 +355,49 @@ def test_the_console_drives_a_cell_through_its_interfaces(tmp_path):
     s = json.loads((tmp_path / "V" / "summary.json").read_text())
     assert s["segments"]["a"]["outcome"] == "done", vout[-2000:]
     assert s["seam_rmse_mm"] <= 0.1 and s["unsafe_poses_sent"] == 0
+
+
+def test_an_opencv_camera_stamps_frames_as_it_reads_them(tmp_path):
+    """camera:N and stream URLs go through OpenCV: no exposure time, so each frame is stamped
+    when read (the weld puts its exposure the cell file's latency earlier). A video file
+    stands in for the device here."""
+    import cv2
+
+    from torchseam.live.cameras import OpenCVCamera
+
+    path = tmp_path / "cam.avi"
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 25.0, (160, 120))
+    for k in range(12):
+        vw.write(np.full((120, 160, 3), 10 * k, np.uint8))
+    vw.release()
+    cam = OpenCVCamera(str(path), size=(160, 120))
+    frames = [cam.get(2.0) for _ in range(3)]
+    cam.close()
+    assert all(f is not None for f in frames)
+    assert [f.image.shape for f in frames] == [(120, 160, 3)] * 3
+    assert all(f.t_exp_s == f.t_arrival_s for f in frames)
+    assert [f.index for f in frames] == sorted({f.index for f in frames})
+
+
+def test_the_cell_file_names_its_camera(tmp_path):
+    import yaml
+
+    from torchseam.core.config import ConfigError, load_cell, to_dict
+    from torchseam.live.cellfile import (
+        CameraLink,
+        ControllerLink,
+        WeldCell,
+        load_weld_cell,
+        save_weld_cell,
+    )
+
+    cell = WeldCell(load_cell(), CameraLink(source="camera:0", latency_ms=30.0),
+                    ControllerLink(host="127.0.0.1", port=6510, controller_host="127.0.0.1",
+                                   controller_port=6511))
+    save_weld_cell(cell, tmp_path / "cell.yaml")
+    assert load_weld_cell(tmp_path / "cell.yaml").camera.source == "camera:0"
+    data = to_dict(cell)
+    data["camera"]["source"] = "/dev/video0"
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"bad.yaml: camera.source: expected tcp://HOST:PORT"):
+        load_weld_cell(tmp_path / "bad.yaml")

@@ -9,7 +9,8 @@ one for the virtual cell; for a real cell copy it and edit it)::
       ...
     camera:
       source: tcp://127.0.0.1:7000   # the frame stream (torchseam.live.framestream), or
-                                     # aravis://DEVICE: a GenICam camera (torchseam.live.genicam)
+                                     # aravis://DEVICE (GenICam), camera:N or a stream URL
+                                     # (OpenCV): torchseam.live.cameras
       latency_ms: 20.0               # exposure -> arrival at the PC (torchseam calibrate latency)
       stall_frames: 2.0              # no frame for this many periods: hold, arc off
     controller:           # the EGM link (configs/egm.yaml's network section)
@@ -38,18 +39,19 @@ from torchseam.robot.egm.config import EgmNetwork
 
 
 def _camera_url(v: object) -> object:
-    """``camera.source``: a ``tcp://HOST:PORT`` frame stream or an ``aravis://DEVICE``
-    GenICam camera."""
+    """``camera.source``: a ``tcp://HOST:PORT`` frame stream, an ``aravis://DEVICE`` GenICam
+    camera, or ``camera:N`` / a stream URL for OpenCV (:mod:`torchseam.live.cameras`)."""
+    from torchseam.live.cameras import is_camera_source
     from torchseam.live.framestream import FrameStreamError, parse_url
 
-    if not isinstance(v, str):
-        raise ValueError(f"expected tcp://HOST:PORT or aravis://DEVICE, got {v!r}")
-    if v.startswith("aravis://"):
-        return v
-    try:
-        parse_url(v)
-    except FrameStreamError:
-        raise ValueError(f"expected tcp://HOST:PORT or aravis://DEVICE, got {v!r}") from None
+    what = "tcp://HOST:PORT, aravis://DEVICE, camera:N or a stream URL"
+    if not isinstance(v, str) or not is_camera_source(v):
+        raise ValueError(f"expected {what}, got {v!r}")
+    if v.startswith("tcp://"):
+        try:
+            parse_url(v)
+        except FrameStreamError:
+            raise ValueError(f"expected {what}, got {v!r}") from None
     return v
 
 

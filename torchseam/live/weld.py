@@ -286,7 +286,6 @@ class WeldRunner:
     def open(self) -> None:
         """Listen for the controller, connect to the camera, wait for the controller's first
         datagrams (and RAPID's data with them)."""
-        from torchseam.live.framestream import StreamCamera
         from torchseam.robot.egm import EgmLink
 
         cfg = self._egm_config()
@@ -295,15 +294,11 @@ class WeldRunner:
         self.progress(f"weld: EGM listening on {cfg.network.host}:{cfg.network.port} for the "
                       f"controller at {cfg.network.controller_host}:"
                       f"{cfg.network.controller_port}; camera {self.cell.camera.source}")
-        src = self.cell.camera.source
-        if src.startswith("aravis://"):
-            from torchseam.live.genicam import AravisCamera
+        from torchseam.live.cameras import open_camera
 
-            cam = self.calib.camera
-            self.cam = AravisCamera(src, frame_rate_hz=self.calib.process.frame_rate_hz,
-                                    size=(cam.width, cam.height))
-        else:
-            self.cam = StreamCamera(src, connect_timeout_s=self.connect_timeout_s)
+        cam = self.calib.camera
+        self.cam = open_camera(self.cell.camera.source, (cam.width, cam.height),
+                               self.calib.process.frame_rate_hz, self.connect_timeout_s)
         self._wait_controller()
 
     def warm(self) -> None:

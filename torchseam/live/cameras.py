@@ -1,0 +1,107 @@
+"""The weld's camera input, by the cell file's ``camera.source``:
+
+* ``tcp://HOST:PORT``: a frame stream (:class:`~torchseam.live.framestream.StreamCamera`): the
+  exposure time on the camera's clock with every frame (the virtual cell's camera, a driver of
+  your own);
+* ``aravis://DEVICE``: a GenICam camera, GigE Vision or USB3 Vision, through Aravis
+  (:class:`~torchseam.live.genicam.AravisCamera`): the camera's own frame ids and time stamps;
+* ``camera:N`` or a stream URL (``rtsp://``, ``http://``): a camera OpenCV opens
+  (:class:`OpenCVCamera`). It gives no exposure time: each frame is stamped when it is read,
+  and its exposure is taken ``camera.latency_ms`` before that (``torchseam calibrate latency``
+  measures it for such a camera too).
+
+Each yields :class:`~torchseam.live.framestream.StampedFrame` through ``get(timeout_s)``, with
+``dropped``, ``received``, ``error`` and ``close()``.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from typing import Any
+
+from torchseam.live.framestream import FrameStreamError, StampedFrame, StreamCamera
+
+OPENCV_PREFIXES = ("camera:", "rtsp://", "http://", "https://")
+
+
+def is_camera_source(text: str) -> bool:
+    """Whether ``text`` names a camera input this module opens."""
+    return text.startswith(("tcp://", "aravis://", *OPENCV_PREFIXES))
+
+
+class OpenCVCamera:
+    """A camera OpenCV opens, read on a thread into a bounded queue (oldest dropped), each
+    frame stamped on the PC's monotonic clock as it is read (exposure and arrival alike: the
+    weld's clock offset then puts the exposure ``camera.latency_ms`` earlier)."""
+
+    def __init__(self, source: str, size: tuple[int, int] | None = None,
+                 fps: float | None = None, maxsize: int = 2) -> None:
+        from torchseam.core.errors import FrameError
+        from torchseam.live.sources import CameraSource
+
+        dev: int | str = source
+        if source.startswith("camera:"):
+            try:
+                dev = int(source.split(":", 1)[1])
+            except ValueError:
+                raise FrameStreamError(f"camera source {source!r}: expected camera:N") from None
+        try:
+            self._src = CameraSource(dev, size=size, fps=fps)
+        except FrameError as e:
+            raise FrameStreamError(str(e)) from None
+        self.url = source
+        self._q: queue.Queue[StampedFrame] = queue.Queue(maxsize)
+        self.dropped = self.received = 0
+        self.error: str | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, name="opencv-read", daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        try:
+            for f in self._src:
+                if self._stop.is_set():
+                    return
+                t = time.monotonic()
+                self.received += 1
+                sf = StampedFrame(f.image, f.index, t, t)
+                while True:
+                    try:
+                        self._q.put_nowait(sf)
+                        break
+                    except queue.Full:
+                        try:
+                            self._q.get_nowait()
+                            self.dropped += 1
+                        except queue.Empty:
+                            pass
+        except Exception as e:  # noqa: BLE001 - the weld reads the reason
+            self.error = f"camera source {self.url}: {e}"
+
+    def get(self, timeout_s: float) -> StampedFrame | None:
+        try:
+            return self._q.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self._src.close()
+
+
+def open_camera(source: str, size: tuple[int, int], fps: float,
+                connect_timeout_s: float = 30.0) -> Any:
+    """The camera input for ``source`` (see the module); FrameStreamError naming it."""
+    if source.startswith("tcp://"):
+        return StreamCamera(source, connect_timeout_s=connect_timeout_s)
+    if source.startswith("aravis://"):
+        from torchseam.live.genicam import AravisCamera
+
+        return AravisCamera(source, frame_rate_hz=fps, size=size)
+    if source.startswith(OPENCV_PREFIXES):
+        return OpenCVCamera(source, size=size, fps=fps)
+    raise FrameStreamError(f"camera source {source!r}: expected tcp://HOST:PORT, "
+                           "aravis://DEVICE, camera:N or a stream URL")
