@@ -48,7 +48,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="weld this cell through its interfaces (a cell file, as `torchseam "
                         "weld --cell`: its camera stream, its controller's EGM and RAPID), "
                         "closed loop; the page's segments, length and tracker apply, its "
-                        "noise, seed and faults do not")
+                        "noise, seed and faults do not (default: none, the simulated cell or "
+                        "--source)")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
     p.add_argument("--noise", default="heavy",
                    help="initial arc-noise level on the page: a name from configs/noise.yaml "
