@@ -9,7 +9,9 @@ any work starts (``argparse.ArgumentTypeError``: one line, exit code 2 through
 from __future__ import annotations
 
 import argparse
+import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
 
@@ -41,6 +43,28 @@ def seed_arg(text: str) -> int:
     if not 0 <= seed <= MAX_SEED:
         raise argparse.ArgumentTypeError(f"{text} is out of range: use 0 .. {MAX_SEED}")
     return seed
+
+
+def number_arg(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+               what: str = "a number") -> Callable[[str], float]:
+    """An argument type for a finite number in ``[lo, hi]`` (``lo_open``: above ``lo``), whose
+    refusal names ``what`` the option takes: ``number_arg(0, lo_open=True, what="a length in
+    mm")``."""
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected {what}") from None
+        ok = math.isfinite(v) and (lo is None or (v > lo if lo_open else v >= lo)) and (
+            hi is None or v <= hi)
+        if not ok:
+            rng = (f"> {lo:g}" if lo_open else f">= {lo:g}") if lo is not None else ""
+            rng = f"{lo:g} .. {hi:g}" if lo is not None and hi is not None and not lo_open \
+                else (rng + (f" and <= {hi:g}" if hi is not None else "")).strip()
+            raise argparse.ArgumentTypeError(f"{text!r}: expected {what}, {rng}")
+        return v
+
+    return parse
 
 
 def threads_arg(text: str) -> int:

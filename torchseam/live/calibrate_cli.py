@@ -10,6 +10,7 @@ import signal
 import sys
 from pathlib import Path
 
+from torchseam.core.cliargs import number_arg
 from torchseam.core.errors import TorchseamError
 from torchseam.geometry import calib_cli
 
@@ -18,14 +19,7 @@ from torchseam.geometry import calib_cli
 MAX_RESIDUAL_PX = 1.0
 
 
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a number") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a number > 0")
-    return v
+_positive = number_arg(0.0, lo_open=True)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

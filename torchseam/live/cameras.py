@@ -16,12 +16,16 @@ Each yields :class:`~torchseam.live.framestream.StampedFrame` through ``get(time
 
 from __future__ import annotations
 
-import queue
 import threading
 import time
 from typing import Any
 
-from torchseam.live.framestream import FrameStreamError, StampedFrame, StreamCamera
+from torchseam.live.framestream import (
+    FrameStreamError,
+    NewestFrames,
+    StampedFrame,
+    StreamCamera,
+)
 
 OPENCV_PREFIXES = ("camera:", "rtsp://", "http://", "https://")
 
@@ -52,8 +56,8 @@ class OpenCVCamera:
         except FrameError as e:
             raise FrameStreamError(str(e)) from None
         self.url = source
-        self._q: queue.Queue[StampedFrame] = queue.Queue(maxsize)
-        self.dropped = self.received = 0
+        self._frames = NewestFrames(maxsize)
+        self.received = 0
         self.error: str | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._read, name="opencv-read", daemon=True)
@@ -66,25 +70,16 @@ class OpenCVCamera:
                     return
                 t = time.monotonic()
                 self.received += 1
-                sf = StampedFrame(f.image, f.index, t, t)
-                while True:
-                    try:
-                        self._q.put_nowait(sf)
-                        break
-                    except queue.Full:
-                        try:
-                            self._q.get_nowait()
-                            self.dropped += 1
-                        except queue.Empty:
-                            pass
+                self._frames.put(StampedFrame(f.image, f.index, t, t))
         except Exception as e:  # noqa: BLE001 - the weld reads the reason
             self.error = f"camera source {self.url}: {e}"
 
+    @property
+    def dropped(self) -> int:
+        return self._frames.dropped
+
     def get(self, timeout_s: float) -> StampedFrame | None:
-        try:
-            return self._q.get(timeout=timeout_s)
-        except queue.Empty:
-            return None
+        return self._frames.get(timeout_s)
 
     def close(self) -> None:
         self._stop.set()

@@ -12,6 +12,7 @@ from pathlib import Path
 from torchseam.core.cliargs import (
     MAX_SEED,
     model_arg,
+    number_arg,
     out_dir_arg,
     out_file_arg,
     seed_arg,
@@ -24,34 +25,9 @@ from torchseam.track.names import TRACKERS
 VIRTUAL_FAULTS = ("camera-stall", "camera-drop", "packet-loss", "controller-restart")
 
 
-def _length(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a length in mm") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a length > 0 mm")
-    return v
-
-
-def _ms(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected milliseconds") from None
-    if not (math.isfinite(v) and 0 <= v <= 1000):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected 0 .. 1000 ms")
-    return v
-
-
-def _offset(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected seconds") from None
-    if not (math.isfinite(v) and abs(v) <= 1e9):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected seconds within +-1e9")
-    return v
+_length = number_arg(0.0, lo_open=True, what="a length in mm")
+_ms = number_arg(0.0, 1000.0, what="milliseconds")
+_offset = number_arg(-1e9, 1e9, what="seconds")
 
 
 def _faults(text: str) -> list[str]:

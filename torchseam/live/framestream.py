@@ -69,6 +69,38 @@ class StampedFrame:
     t_arrival_s: float
 
 
+class NewestFrames:
+    """A bounded queue of frames that drops the *oldest* when full (counted in
+    :attr:`dropped`): a reader thread puts, the weld gets the newest, memory stays bounded.
+    Every camera input of the weld keeps its frames in one."""
+
+    def __init__(self, maxsize: int = 2) -> None:
+        self._q: queue.Queue[StampedFrame] = queue.Queue(maxsize)
+        self.dropped = 0
+
+    def put(self, f: StampedFrame) -> None:
+        while True:
+            try:
+                self._q.put_nowait(f)
+                return
+            except queue.Full:
+                try:
+                    self._q.get_nowait()
+                    self.dropped += 1
+                except queue.Empty:
+                    pass
+
+    def get(self, timeout_s: float) -> StampedFrame | None:
+        """The next frame, or None when none came within ``timeout_s``."""
+        try:
+            return self._q.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+
+    def empty(self) -> bool:
+        return self._q.empty()
+
+
 def parse_url(url: str) -> tuple[str, int]:
     """``tcp://HOST:PORT`` -> (host, port); a FrameStreamError naming the URL otherwise."""
     u = urlsplit(url)
@@ -209,8 +241,7 @@ class StreamCamera:
         self.url = url
         self.host, self.port = parse_url(url)
         self.max_pixels = max_pixels
-        self._q: queue.Queue[StampedFrame] = queue.Queue(maxsize)
-        self.dropped = 0         # frames the weld did not take in time (oldest dropped)
+        self._frames = NewestFrames(maxsize)
         self.received = 0
         self.error: str | None = None
         self._stop = threading.Event()
@@ -271,38 +302,28 @@ class StreamCamera:
                 dtype = np.uint8 if bits == 8 else np.uint16
                 img = np.frombuffer(buf, dtype).reshape((h, w, c) if c == 3 else (h, w))
                 self.received += 1
-                self._put(StampedFrame(img, int(index), t_ns / 1e9, arrived))
+                self._frames.put(StampedFrame(img, int(index), t_ns / 1e9, arrived))
         except (ConnectionError, OSError, FrameStreamError) as e:
             if not self._stop.is_set():
                 self.error = str(e) if isinstance(e, FrameStreamError) else (
                     f"camera source {self.url}: {e}")
 
-    def _put(self, f: StampedFrame) -> None:
-        while True:
-            try:
-                self._q.put_nowait(f)
-                return
-            except queue.Full:
-                try:
-                    self._q.get_nowait()
-                    self.dropped += 1
-                except queue.Empty:
-                    pass
+    @property
+    def dropped(self) -> int:
+        """Frames the weld did not take in time (the oldest dropped)."""
+        return self._frames.dropped
 
     def get(self, timeout_s: float) -> StampedFrame | None:
         """The next frame, or None when none came within ``timeout_s`` (or the stream ended:
         :attr:`error` says why)."""
-        try:
-            return self._q.get(timeout=timeout_s)
-        except queue.Empty:
-            return None
+        return self._frames.get(timeout_s)
 
     @property
     def alive(self) -> bool:
         return self._thread.is_alive()
 
     def __iter__(self) -> Iterator[StampedFrame]:
-        while self.alive or not self._q.empty():
+        while self.alive or not self._frames.empty():
             f = self.get(0.5)
             if f is not None:
                 yield f

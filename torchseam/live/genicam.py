@@ -17,7 +17,6 @@ and skipped, the gap shows in the frame ids.
 
 from __future__ import annotations
 
-import queue
 import threading
 import time
 from typing import Any
@@ -25,7 +24,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from torchseam.live.framestream import FrameStreamError, StampedFrame
+from torchseam.live.framestream import FrameStreamError, NewestFrames, StampedFrame
 
 N_BUFFERS = 8
 
@@ -104,8 +103,7 @@ class AravisCamera:
         for _ in range(N_BUFFERS):
             self._stream.push_buffer(Aravis.Buffer.new_allocate(payload))
         self._ok = Aravis.BufferStatus.SUCCESS
-        self._q: queue.Queue[StampedFrame] = queue.Queue(maxsize)
-        self.dropped = 0
+        self._frames = NewestFrames(maxsize)
         self.received = 0
         self.incomplete = 0
         self.error: str | None = None
@@ -133,24 +131,16 @@ class AravisCamera:
                 finally:
                     self._stream.push_buffer(buf)
                 self.received += 1
-                while True:
-                    try:
-                        self._q.put_nowait(f)
-                        break
-                    except queue.Full:
-                        try:
-                            self._q.get_nowait()
-                            self.dropped += 1
-                        except queue.Empty:
-                            pass
+                self._frames.put(f)
         except Exception as e:  # noqa: BLE001 - the weld reads the reason
             self.error = f"camera source {self.url}: {e}"
 
+    @property
+    def dropped(self) -> int:
+        return self._frames.dropped
+
     def get(self, timeout_s: float) -> StampedFrame | None:
-        try:
-            return self._q.get(timeout=timeout_s)
-        except queue.Empty:
-            return None
+        return self._frames.get(timeout_s)
 
     @property
     def alive(self) -> bool:
