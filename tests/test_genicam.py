@@ -52,7 +52,9 @@ def test_aravis_camera_gives_frames_with_the_cameras_own_time(fake_camera):
     assert np.all(np.diff(ids) >= 1)                     # the camera's own frame numbers
     t_exp = np.array([f.t_exp_s for f in frames])
     dt = np.diff(t_exp) / np.diff(ids)
-    assert np.allclose(dt, 0.04, atol=0.004)            # its clock ticks at the frame rate
+    # its clock ticks at the frame rate (the fake camera's software timer jitters by a few ms
+    # on a busy machine; its median does not)
+    assert abs(np.median(dt) - 0.04) < 0.001 and np.all(np.abs(dt - 0.04) < 0.01), dt
     t_arr = np.array([f.t_arrival_s for f in frames])
     assert np.all(np.diff(t_arr) > 0)
     # its clock related to this PC's as the weld does it, a plausible latency apart
