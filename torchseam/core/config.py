@@ -717,8 +717,24 @@ def load_cell(path: str | os.PathLike[str] | None = None) -> CellConfig:
 
 
 def load_part(path: str | os.PathLike[str] | None = None) -> PartConfig:
-    """A part configuration (default ``configs/parts/t_joint.yaml``, the deviated T joint)."""
-    return load_config(PartConfig, path or CONFIG_DIR / "parts" / "t_joint.yaml")
+    """A part configuration (default ``configs/parts/t_joint.yaml``, the deviated T joint).
+
+    A relative ``configs/...`` path that is not there (a command run outside the checkout, as
+    the manual writes it: ``--part configs/parts/y_joint_75.yaml``) is the config folder in
+    use's file of that name (the shipped configs, or ``--config-dir``)."""
+    if path is None:
+        return load_config(PartConfig, CONFIG_DIR / "parts" / "t_joint.yaml")
+    return load_config(PartConfig, shipped_config(path))
+
+
+def shipped_config(path: str | os.PathLike[str]) -> Path:
+    """``path``, or, when it is a relative ``configs/...`` path that does not exist here, the
+    config folder in use's file of that name (when that exists)."""
+    p = Path(path)
+    if p.exists() or p.is_absolute() or not p.parts or p.parts[0] != "configs":
+        return p
+    alt = CONFIG_DIR.joinpath(*p.parts[1:])
+    return alt if alt.exists() else p
 
 
 def load_noise(path: str | os.PathLike[str] | None = None) -> NoiseConfig:
