@@ -14,7 +14,8 @@ Per image axis (u shown, v identical; t is the frame interval):
   (``H Gamma = 0``, so the equivalent noise is white and independent of n(k))
 - eq. 23-24 the u and v blocks stacked block-diagonally: state (8,) = [u block, v block],
   measurement (4,) = [u, du, v, dv]
-- eq. 25-26 the standard Kalman update with H*, R, then prediction with Phi, Gamma Q Gamma^T.
+- eq. 26 then eq. 25: the standard Kalman update with H*, R, then the prediction with Phi,
+  Gamma Q Gamma^T (the paper's eq. 25 is the prediction, eq. 26 the update).
 
 The one-frame delay: Z*(k) needs Z(k+1), so the update for step k runs when frame k+1 arrives,
 then the state is propagated one step. After frame k+1 the filter holds X(k+1|k) = Phi X(k|k),
@@ -177,7 +178,7 @@ class EAKFInnovation:
 
     Attributes:
         Z_new: (B, 2, 2) Z(k+1) = [position, displacement] per axis.
-        nu: (B, 2, 2) innovation ``Z*(k) - H* X(k|k-1)`` (eq. 25).
+        nu: (B, 2, 2) innovation ``Z*(k) - H* X(k|k-1)`` (eq. 26).
         PHt: (B, 2, 4, 2) ``P H*^T``.
         HPHt: (B, 2, 2, 2) ``H* P H*^T``.
         S: (B, 2, 2, 2) innovation covariance with the new frame's scale at 1 (the gate's).
@@ -269,7 +270,7 @@ def eakf_innovation(state: EAKFState, m: EAKFMatrices, z: Tensor,
         dzv = as_float(dz, state.x)
     Z_new = torch.stack([z, dzv], dim=-1)  # Z(k+1), (B, 2, 2)
     Zs = Z_new - m.psi * state.Z  # eq. 21: Z*(k) = Z(k+1) - Psi Z(k)
-    nu = Zs - (m.H_star @ state.x[..., None])[..., 0]  # eq. 25
+    nu = Zs - (m.H_star @ state.x[..., None])[..., 0]  # eq. 26
     PHt = state.P @ m.H_star.transpose(-1, -2)
     HPHt = m.H_star @ PHt
     if dz is None:  # the gate's S: this frame trusted (s = 1), the displacement as bad as z(k)
@@ -284,7 +285,7 @@ def eakf_innovation(state: EAKFState, m: EAKFMatrices, z: Tensor,
 
 def eakf_update(state: EAKFState, m: EAKFMatrices, inn: EAKFInnovation,
                 r_scale: Tensor | None = None, keep: Tensor | None = None) -> EAKFState:
-    """Delayed update of step k (eq. 25-26) with Z*(k), then prediction to frame k+1.
+    """Delayed update of step k (eq. 26) with Z*(k), then prediction to frame k+1 (eq. 25).
 
     Args:
         state: state after frame k.
@@ -316,11 +317,11 @@ def eakf_update(state: EAKFState, m: EAKFMatrices, inn: EAKFInnovation,
     else:  # displacement z(k+1) - z(k) is as bad as the worse of the two
         s_new = torch.stack([sc, torch.maximum(sc, state.s_ref)], -1)
     R_eff = m.R * (s_new + m.psi**2 * (state.s - 1.0))  # (B, 2, 2) diagonal of R_eff
-    S = inn.HPHt + torch.diag_embed(R_eff)  # eq. 25
+    S = inn.HPHt + torch.diag_embed(R_eff)  # eq. 26
     K = inn.PHt @ _inv2(S)  # (B, 2, 4, 2)
-    x_post = state.x + (K @ inn.nu[..., None])[..., 0]  # eq. 25
+    x_post = state.x + (K @ inn.nu[..., None])[..., 0]  # eq. 26
     P_post = state.P - K @ inn.PHt.transpose(-1, -2)  # (I - K H*) P, K optimal
-    x = (m.Phi @ x_post[..., None])[..., 0]  # eq. 26
+    x = (m.Phi @ x_post[..., None])[..., 0]  # eq. 25
     P = m.Phi @ P_post @ m.Phi.transpose(-1, -2) + m.GQG
     P = 0.5 * (P + P.transpose(-1, -2))
     Z_keep, s_keep = inn.Z_new, s_new
