@@ -447,6 +447,12 @@ class VirtualController:
         self._thread.start()
 
     def stop(self) -> None:
+        """End the cycle thread, then close the controller's socket (in that order: a cycle
+        still sending on a closed socket would log a send error)."""
+        self.ctrl._stop.set()
+        thread = getattr(self, "_thread", None)
+        if thread is not None:
+            thread.join(timeout=5.0)
         self.ctrl.stop()
 
 
