@@ -76,6 +76,8 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
      "a simulated IRC5 and laser camera in their own processes"),
     ("console", "torchseam.console.cli",
      "operator console: a local web page to run and watch the weld"),
+    ("config", "torchseam.config_show",
+     "show every setting's effective value and where it came from"),
 )
 #: Stage modules that add sub-commands, in the order ``--help`` lists them.
 COMMAND_MODULES = tuple(dict.fromkeys(module for _, module, _ in COMMANDS))
