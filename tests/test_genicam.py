@@ -62,7 +62,8 @@ def test_aravis_camera_gives_frames_with_the_cameras_own_time(fake_camera):
     for f in frames:
         off.add(f.t_exp_s, f.t_arrival_s)
     lat = t_arr - np.array([off.to_pc(t) for t in t_exp])
-    assert np.all(lat >= -1e-9) and np.all(lat < 0.1)
+    # (times near 1.8e9 s carry ~2e-7 s of float64 rounding)
+    assert np.all(lat >= -1e-6) and np.all(lat < 0.1), lat
 
 
 def test_aravis_url_that_names_no_camera_is_one_clear_error():
