@@ -1,7 +1,8 @@
 """Trackers compared on simulated sequences: appearance families x frame variants x noise levels.
 
 Usage: python bench/tracking.py [--families sim,wide,thin,smoke] [--variants colour,mono,columns]
-                                [--levels clean,strike,heavy,beyond] [--sequences 3] [--frames 300]
+                                [--levels clean,strike,heavy,extreme,beyond,shallow]
+                                [--sequences 3] [--frames 300]
                                 [--first-seed 1000] [--trackers ...] [--batch 64]
 
 Every tracker starts on frame 0 (arc off) by TIPM and is scored over the arc frames against the
@@ -11,7 +12,12 @@ and the single-stream time per frame (frame in memory -> point) p50/p99 on one t
 tracker's work between frames (``idle()``, run by the live loop once the frame's command is
 out) timed apart. Level ``beyond``: heavy arc plus glare hiding the corner for 30 and 60
 frames (:func:`torchseam.sim.variants.glare_over_corner`), with the error while hidden and the
-frames to re-acquire after each stretch reported apart.
+frames to re-acquire after each stretch reported apart. Level ``extreme``: the arc at 1.5 x
+``heavy`` (``configs/noise.yaml``). Level ``shallow``: heavy arc plus a stretch where the
+stripe's arms turn to 3-10 degrees from collinear for 110 frames (ramped in and out over 15)
+under strong glare and spatter on the corner (:func:`torchseam.sim.variants.shallow_corner`):
+its flat part is scored apart like a hidden stretch, with ``@100`` the largest error after 100
+frames of it.
 
 Held out: the appearance families (``configs/noise.yaml``) are structurally different renderings
 of the same scene. The column ``fit on`` says where the tracker's fitted parameters
@@ -42,8 +48,8 @@ import torch
 from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
 from torchseam.core.report import error_stats, format_table, percentiles_ms
 from torchseam.fit import model_io
-from torchseam.sim.sequence import SequenceSpec, simulate_labelled
-from torchseam.sim.variants import HIDE, hide_corner, rotate90, to_mono
+from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.sim.variants import HIDE, SHALLOW, hide_corner, rotate90, shallow_corner, to_mono
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import TRACKERS, fitted_eakf_stc, make_tracker, run_tracker
 from torchseam.vision.tipm import load_tipm, red_response
@@ -56,6 +62,8 @@ TUNED_ON = ("sim", "glint")
 
 
 BEYOND = "beyond"  # heavy arc plus glare over the corner for tens of frames
+SHALLOW_LEVEL = "shallow"  # heavy arc plus a long shallow-kink stretch, glare on the corner
+LATE = 100  # the shallow stretch's error is reported apart after this many frames of it
 TRACKED = int(TrackStatus.TRACKED)
 
 
@@ -68,6 +76,19 @@ def reacquire_frames(err: np.ndarray, status: np.ndarray, hidden: np.ndarray) ->
         ok = (status[e0:] == TRACKED) & (err[e0:] < 2.0)
         worst = max(worst, int(np.argmax(ok)) if ok.any() else len(ok))
     return worst
+
+
+def sequence(cell, part, noise, spec: SequenceSpec
+             ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+    """A simulated sequence in memory: frames, (N, 2) labels, (N,) arc on, and (N, 2, 2) the
+    points on the two arms (for the shallow-kink level)."""
+    frames, labels, arc, arms = [], [], [], []
+    for img, truth in simulate(cell, part, noise, spec):
+        frames.append(img)
+        labels.append(truth.uv)
+        arc.append(truth.arc_on)
+        arms.append(truth.arm_uv)
+    return frames, np.array(labels, float), np.array(arc, bool), np.array(arms, float)
 
 
 def fitted_on(path: Path | None = None) -> tuple[str, ...]:
@@ -138,9 +159,9 @@ def main() -> None:
     levels = args.levels.split(",")
     for name in levels:
         try:
-            noise.level("heavy" if name == BEYOND else name)
+            noise.level("heavy" if name in (BEYOND, SHALLOW_LEVEL) else name)
         except ValueError as e:
-            ap.error(f"--levels: {e} (or {BEYOND})")
+            ap.error(f"--levels: {e} (or {BEYOND}, {SHALLOW_LEVEL})")
     if args.model is not None and not args.model.is_file():
         ap.error(f"--model {args.model}: no such file")
     fit = fitted_on(args.model)
@@ -151,16 +172,19 @@ def main() -> None:
     grey_bank: list[tuple[np.ndarray, np.ndarray]] = []  # for the batch run
     for fam in families:
         for name in levels:
-            level = noise.level("heavy" if name == BEYOND else name)
-            cell_rows = {(v, t): ([], [], [], [], [], [], []) for v in variants
+            level = noise.level("heavy" if name in (BEYOND, SHALLOW_LEVEL) else name)
+            cell_rows = {(v, t): ([], [], [], [], [], [], [], []) for v in variants
                          for t in trackers}
             for s in range(args.sequences):
                 spec = SequenceSpec(n_frames=args.frames, level=level,
                                     seed=args.first_seed + s, family=fam)
-                frames0, labels0, arc = simulate_labelled(cell, part, noise, spec)
+                frames0, labels0, arc, arms0 = sequence(cell, part, noise, spec)
                 hidden = np.zeros(len(frames0), bool)
                 if name == BEYOND:
                     frames0, hidden = hide_corner(frames0, labels0)
+                elif name == SHALLOW_LEVEL:
+                    frames0, _, hidden = shallow_corner(frames0, labels0, arms0, spec.seed)
+                late = hidden & (np.cumsum(hidden) > LATE)  # one stretch at most
                 if fam == families[0] and name == levels[-1]:
                     grey_bank.append((np.stack([red_response(f) for f in frames0]),
                                       labels0[0]))
@@ -175,12 +199,13 @@ def main() -> None:
                             response="auto")
                         e = np.linalg.norm(uv - labels, axis=1)
                         keep = arc if arc.any() else np.arange(len(e)) > 0
-                        err, stat, secs, idle, seeds, coast, reacq = cell_rows[(v, t)]
+                        err, stat, secs, idle, seeds, coast, reacq, late_err = cell_rows[(v, t)]
                         seen = keep & ~hidden  # the corner in sight
                         err.append(e[seen])
                         stat.append(st[seen])
                         if hidden.any():
                             coast.append(float(np.max(e[hidden])))
+                            late_err.append(float(np.max(e[late])) if late.any() else np.nan)
                             reacq.append(reacquire_frames(e, st, hidden))
                             # while hidden: 'tracked' there is false whatever the error
                             err.append(np.where(st[hidden] == TRACKED, np.inf, e[hidden]))
@@ -189,16 +214,18 @@ def main() -> None:
                         idle.append(idle_sec[1:])
                         seeds.append(args.first_seed + s)
                 print(f"  {fam} {name}: sequence {s + 1}/{args.sequences} done", flush=True)
-            for (v, t), (err, stat, secs, idle, seeds, coast, reacq) in cell_rows.items():
+            for (v, t), (err, stat, secs, idle, seeds, coast, reacq, late_err
+                         ) in cell_rows.items():
                 if coast:  # the hidden stretches: their own columns, not in RMSE / max
                     n_hidden = len(coast)
                     hidden_err = err[1::2]
                     false_hidden = int(sum(np.sum(np.isinf(h)) for h in hidden_err))
                     err, stat = err[::2], stat[::2]
-                    extra = [f"{max(coast):.2f}", str(max(reacq)), false_hidden]
+                    extra = [f"{max(coast):.2f}", str(max(reacq)), false_hidden,
+                             "-" if np.all(np.isnan(late_err)) else f"{np.nanmax(late_err):.2f}"]
                     assert n_hidden == len(err)
                 else:
-                    extra = ["-", "-", 0]
+                    extra = ["-", "-", 0, "-"]
                 k = int(np.argmax([np.max(e[np.isfinite(e)], initial=-1.0) for e in err]))
                 sk = error_stats(err[k])
                 worst.append([fam, v, name, t, seeds[k], sk["rmse"], sk["max"], sk["pct_lost"]])
@@ -210,7 +237,7 @@ def main() -> None:
                 i50, i99 = percentiles_ms(np.concatenate(idle))
                 rows.append([fam, "no" if fam in chosen else "yes", v, name, t, st["n"],
                              st["rmse"], st["max"], st["pct_lost"], false_tracked,
-                             100.0 * float(tracked.mean()), extra[0], extra[1], p50, p99,
+                             100.0 * float(tracked.mean()), extra[0], extra[3], extra[1], p50, p99,
                              i50, i99])
     cpu = platform.processor() or platform.machine()
     print(f"\nTrackers on {args.sequences} sequences (seeds {args.first_seed}-"
@@ -219,14 +246,18 @@ def main() -> None:
     print(f"Fitted parameters trained on: {', '.join(fit) or 'nothing (paper defaults)'}; "
           f"thresholds chosen on: {', '.join(TUNED_ON)}. 'held out' = the family is in neither.")
     print(format_table(["family", "held out", "variant", "noise", "tracker", "frames", "RMSE px",
-                        "max px", "lost %", "false trk", "tracked %", "coast max", "reacq",
+                        "max px", "lost %", "false trk", "tracked %", "coast max",
+                        f"@{LATE}", "reacq",
                         "ms p50", "ms p99", "idle p50", "idle p99"], rows))
     print("Errors over the arc frames; 'lost' = no point or > 15 px off; 'false trk' = frames "
           "with status tracked while > 5 px off (or while the corner is hidden). "
           f"'{BEYOND}': heavy arc plus glare hiding the corner for {HIDE[0][1]} and "
           f"{HIDE[1][1]} frames: RMSE, max and lost % over the frames with the corner in "
           "sight; 'coast max' the largest error while hidden; 'reacq' the most frames after a "
-          "hidden stretch until the point is tracked within 2 px again. Time (ms): frame in "
+          "hidden stretch until the point is tracked within 2 px again. "
+          f"'{SHALLOW_LEVEL}': heavy arc plus {SHALLOW[2]} frames of a shallow kink (3-10 deg) "
+          "under glare and spatter on the corner, scored like a hidden stretch; "
+          f"'@{LATE}' the largest error after {LATE} frames of it. Time (ms): frame in "
           "memory -> point, per frame, single stream; idle: the tracker's work after the "
           "point, before the next frame (the live loop runs it once the command is out).")
     print("\nWorst sequence per family, variant, level and tracker (the largest error of a "

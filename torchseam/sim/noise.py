@@ -1,6 +1,7 @@
 """Arc-noise model: what the welding arc adds to a laser-stripe frame.
 
-Terms (amplitudes from ``configs/noise.yaml``, each scaled by the level in [0, 1]):
+Terms (amplitudes from ``configs/noise.yaml``, each scaled by the level in [0, MAX_NOISE_LEVEL];
+1 is the amplitudes as written, above 1 heavier arc than that):
 arc glare around the torch tip (below the stripe), flickering frame to frame; the arc mirrored
 by the groove (a bright band up the seam towards the feature point); spatter streaks
 flying out of the arc, with Markov bursts; slow-drifting specular reflections on the pipes;
@@ -23,7 +24,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from torchseam.core.config import AppearanceFamily, NoiseConfig
+from torchseam.core.config import MAX_NOISE_LEVEL, AppearanceFamily, NoiseConfig
 
 # Colours of the ``sim`` family (``configs/noise.yaml`` holds every family's): arc light behind
 # the 650 nm band-pass, as seen through the Bayer filter (B, G, R): the core saturates white,
@@ -73,7 +74,8 @@ class ArcNoise:
     """Stateful arc-noise generator for one sequence.
 
     Args:
-        cfg: the noise model; level: in [0, 1]; size: (width, height); seed: random seed.
+        cfg: the noise model; level: in [0, MAX_NOISE_LEVEL]; size: (width, height);
+            seed: random seed.
         family: the appearance (None: ``cfg``'s default family).
 
     Example:
@@ -86,8 +88,8 @@ class ArcNoise:
 
     def __init__(self, cfg: NoiseConfig, level: float, size: tuple[int, int], seed: int,
                  family: AppearanceFamily | None = None) -> None:
-        if not 0.0 <= level <= 1.0:
-            raise ValueError(f"noise level {level} must lie in [0, 1]")
+        if not 0.0 <= level <= MAX_NOISE_LEVEL:
+            raise ValueError(f"noise level {level} must lie in [0, {MAX_NOISE_LEVEL:g}]")
         self.cfg = cfg
         self.look = cfg.appearance() if family is None else family
         self.level = float(level)

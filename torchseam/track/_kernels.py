@@ -134,3 +134,61 @@ def mono_median(box, rank):  # pragma: no cover - compiled
         for c in range(w):
             hist[box[r, c]] += 1
     return _rank_value(hist, rank)
+
+
+@numba.njit("void(f8[::1], f8[::1], f8[::1], f8[::1], f8[:, ::1], f8[::1], f8[::1])",
+            cache=True, nogil=True)
+def two_arm_fit(t, y, grid, prior, theta, J, var_a):  # pragma: no cover - compiled
+    """The shallow corner's two-arm fit (:mod:`torchseam.track.shallow`) at every corner
+    column of ``grid`` (K,): points ``t``, ``y`` (N,) sorted by t; ``prior`` (c0_L, w_L, c0_R,
+    w_R). Writes theta (K, 5) = (a, b_L, c_L, b_R, c_R), the sum of squares J (K,) and var(a)
+    per unit noise (K,). Each arm's (b, c) for a given a from its 2x2 normal matrix, a from
+    the Schur complement (closed form)."""
+    n = t.shape[0]
+    yy = 0.0
+    for i in range(n):
+        yy += y[i] * y[i]
+    for k in range(grid.shape[0]):
+        tc = grid[k]
+        # per side: n, S1..S4, T0..T2
+        S = np.zeros((2, 8))
+        for i in range(n):
+            x = t[i] - tc
+            side = 0 if x < 0 else 1
+            x2 = x * x
+            S[side, 0] += 1.0
+            S[side, 1] += x
+            S[side, 2] += x2
+            S[side, 3] += x2 * x
+            S[side, 4] += x2 * x2
+            S[side, 5] += y[i]
+            S[side, 6] += x * y[i]
+            S[side, 7] += x2 * y[i]
+        schur = 1e-12
+        rhs = 0.0
+        keep = np.zeros((2, 6))
+        for side in range(2):
+            c0, w = prior[2 * side], prior[2 * side + 1]
+            b00, b01, b11 = S[side, 2], S[side, 3], S[side, 4] + w
+            det = b00 * b11 - b01 * b01
+            if abs(det) < 1e-300:
+                det = 1e-300
+            i00, i01, i11 = b11 / det, -b01 / det, b00 / det
+            r0, r1 = S[side, 6], S[side, 7] + w * c0
+            s0, s1 = S[side, 1], S[side, 2]
+            bs0, bs1 = i00 * s0 + i01 * s1, i01 * s0 + i11 * s1
+            br0, br1 = i00 * r0 + i01 * r1, i01 * r0 + i11 * r1
+            schur += S[side, 0] - (s0 * bs0 + s1 * bs1)
+            rhs += S[side, 5] - (s0 * br0 + s1 * br1)
+            keep[side, 0], keep[side, 1], keep[side, 2] = bs0, bs1, br0
+            keep[side, 3], keep[side, 4], keep[side, 5] = br1, r0, r1
+        a = rhs / schur
+        theta[k, 0] = a
+        Jk = yy + prior[1] * prior[0] ** 2 + prior[3] * prior[2] ** 2 - a * (S[0, 5] + S[1, 5])
+        for side in range(2):
+            b = keep[side, 2] - a * keep[side, 0]
+            c = keep[side, 3] - a * keep[side, 1]
+            theta[k, 1 + 2 * side], theta[k, 2 + 2 * side] = b, c
+            Jk -= b * keep[side, 4] + c * keep[side, 5]
+        J[k] = Jk
+        var_a[k] = 1.0 / schur

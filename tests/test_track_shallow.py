@@ -1,0 +1,106 @@
+"""Shallow kinks (issue 35): the simulator's shallow-kink stretch and heavier arc, and the
+corner read from the slope break of a nearly straight stripe, against ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torchseam.core.config import load_cell, load_noise, load_part
+from torchseam.sim.noise import ArcNoise
+from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.sim.variants import (
+    flatten_kink,
+    kink_deg,
+    kink_shift,
+    shallow_corner,
+    shallow_schedule,
+)
+from torchseam.track.shallow import shallow_corner as shallow_fit
+from torchseam.vision.tipm import load_tipm
+
+
+@pytest.fixture(scope="module")
+def clean_seq():
+    cell, part, noise = load_cell(), load_part(), load_noise()
+    frames, labels, arms = [], [], []
+    for img, t in simulate(cell, part, noise, SequenceSpec(n_frames=60, level=0.0, seed=7)):
+        frames.append(img)
+        labels.append(t.uv)
+        arms.append(t.arm_uv)
+    return frames, np.array(labels), np.array(arms)
+
+
+def test_extreme_level_is_heavier_than_heavy():
+    noise = load_noise()
+    assert noise.level("extreme") == pytest.approx(1.5 * noise.level("heavy"))
+    arc = ArcNoise(noise, noise.level("extreme"), (656, 492), 0)
+    assert arc.sensor_sigma() > ArcNoise(noise, 1.0, (656, 492), 0).sensor_sigma()
+    with pytest.raises(ValueError):
+        noise.level(2.5)
+
+
+@pytest.mark.parametrize("kink", [3.0, 6.0, 10.0])
+def test_flatten_kink_turns_the_arms_and_keeps_the_corner(clean_seq, kink):
+    frames, labels, arms = clean_seq
+    i = 10
+    own = kink_deg(labels[i], arms[i])
+    assert own > 20.0  # the T joint's corner is sharp
+    dv = kink_shift(labels[i], arms[i], kink, frames[i].shape[1])
+    moved = arms[i] + np.stack([[0.0, np.interp(a[0], np.arange(len(dv)), dv)]
+                                for a in arms[i]])
+    assert kink_deg(labels[i], moved) == pytest.approx(kink, abs=0.05)
+    assert abs(np.interp(labels[i][0], np.arange(len(dv)), dv)) < 0.2
+    # TIPM on the clean flattened frame: refused below its min_corner_deg, or the true corner
+    tipm = load_tipm()
+    res = tipm(flatten_kink(frames[i], labels[i], arms[i], kink))
+    if kink < tipm.cfg.min_corner_deg:
+        assert not res.ok
+    # the stripe's whole centre line still gives the corner by its slope break
+    pts = res.centre
+    assert pts is not None
+    fix = shallow_fit(pts)
+    assert fix is not None
+    assert abs(fix.kink_deg - kink) < 2.0
+    err = fix.uv - labels[i]
+    along = fix.along_px
+    assert np.linalg.norm(err) < max(3.0 * along, 1.0), (err, along)
+
+
+def test_shallow_schedule_and_stretch(clean_seq):
+    frames, labels, arms = clean_seq
+    kinks, weight = shallow_schedule(60, (0.2, 3, 20, 3), (3.0, 10.0, 12))
+    flat = weight >= 1.0
+    assert flat.sum() == 20 and np.all(kinks[flat] >= 3.0) and np.all(kinks[flat] <= 10.0)
+    out, stretch, flat2 = shallow_corner(frames, labels, arms, 0, (0.2, 3, 20, 3),
+                                         (3.0, 10.0, 12))
+    assert np.array_equal(flat2, flat) and stretch.sum() == 26
+    assert all(o is f for o, f, s in zip(out, frames, stretch, strict=True) if not s)
+    # glare on the corner: red clipped there in the flat part
+    k = int(np.flatnonzero(flat)[5])
+    u, v = np.round(labels[k]).astype(int)
+    assert out[k][v, u, 2] == 255
+
+
+def test_shallow_sigma_grows_as_the_kink_flattens():
+    """The std along the stripe follows the error it describes: it grows as the kink
+    flattens, and the errors are within a few of it (white centre-line noise)."""
+    rng = np.random.default_rng(3)
+    sig, rms = [], []
+    for kink in (3.0, 6.0, 20.0):
+        err, s = [], []
+        for _ in range(20):
+            u = np.arange(0.0, 220.0)
+            uc = 110 + rng.uniform(-20, 20)
+            slope = np.tan(np.radians(kink))
+            v = (100 + 4e-4 * (u - uc) ** 2 + np.where(u < uc, 0.1, 0.1 + slope) * (u - uc)
+                 + rng.normal(0, 0.3, u.size))
+            f = shallow_fit(np.stack([u, v], 1))
+            assert f is not None
+            err.append(f.uv[0] - uc)
+            s.append(f.along_px)
+        sig.append(np.mean(s))
+        rms.append(np.sqrt(np.mean(np.square(err))))
+    assert sig[0] > sig[1] > sig[2]
+    for r, s in zip(rms, sig, strict=True):
+        assert 0.4 * s < r < 2.5 * s
