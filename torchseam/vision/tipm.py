@@ -41,6 +41,7 @@ from torchseam.core.dataset import check_frame
 from torchseam.core.kernels import load_kernels
 from torchseam.core.orient import FrameView
 from torchseam.core.overlay import put_label
+from torchseam.vision.axis import stripe_axis
 
 # the shared quadratic fit, re-exported for the tracker and tools that take it from here
 from torchseam.vision.quadfit import power_sums as power_sums
@@ -610,8 +611,9 @@ def find_view(frame: np.ndarray, tipm: Tipm, axis: str = "auto",
     response shows it (``response``: red, intensity or auto; see
     :mod:`torchseam.core.orient`).
 
-    Auto axis: TIPM is run on the frame as it is and turned a quarter; the layout in which it
-    finds a corner wins, the one with the tighter arm fit when both do. Auto response: the
+    Auto axis: the way the stripe itself runs (:func:`~torchseam.vision.axis.stripe_axis`:
+    the view whose centre line covers more columns), never the view that happens to yield a
+    corner (a groove's flank or a bright edge beside the stripe can). Auto response: the
     red excess, unless the stripe TIPM found is overexposed into white on more than
     ``white_core_fraction`` of its centre line (:func:`white_core`), or only the red channel
     shows a corner. None: no corner in any view allowed (not a clean stripe frame: try the
@@ -622,11 +624,11 @@ def find_view(frame: np.ndarray, tipm: Tipm, axis: str = "auto",
         True
     """
     frame = check_frame(frame)
-    axes = ("rows", "columns") if axis == "auto" else (axis,)
     responses = ("red", "intensity") if response == "auto" else (response,)
     for resp in responses:
         best: tuple[float, FrameView, TipmResult] | None = None
-        for name in axes:
+        along = stripe_axis(frame, tipm, resp) if axis == "auto" else axis
+        for name in () if along is None else (along,):
             view = FrameView(name, frame.shape[0], resp)
             res = tipm(np.ascontiguousarray(view.frame(frame)))
             if res.ok and (best is None or res.rms_px < best[0]):

@@ -1,0 +1,247 @@
+"""Joint profiles (torchseam/vision/profiles.py) and the stripe axis from the stripe
+(torchseam/vision/axis.py): a real V-groove frame against hand-measured reference points, and
+drawn frames of every profile whose feature points are known exactly."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.special import erf
+
+from torchseam.core.config import ConfigError, load_config
+from torchseam.vision.axis import stripe_axis
+from torchseam.vision.profiles import (
+    JOINTS,
+    ProfileConfig,
+    ProfileFinder,
+    draw_profile,
+    groove_area,
+    load_profile_config,
+)
+from torchseam.vision.tipm import find_view, load_tipm
+
+REAL = Path(__file__).parent / "data" / "real"
+TIPM = load_tipm()
+CFG = load_profile_config()
+
+
+def finder(joint: str) -> ProfileFinder:
+    return ProfileFinder(TIPM, CFG, joint)
+
+
+# --------------------------------------------------------------------------- the real frame
+#: Reference feature points of tests/data/real/v_groove_spatter.png (u, v), measured without
+#: the code under test:
+#: - shoulders: the stripe's centre was taken per column as the intensity centroid of the
+#:   pixels within 8 rows of a line drawn by eye through each straight piece (zoomed crops of
+#:   the image, 8x, with a 5 px grid), background (the median of 40 rows around) subtracted;
+#:   straight lines were fitted (np.polyfit) to the left plate (columns 20-480), the left flank
+#:   (545-715), the right flank (845-1015) and the right plate (1075-1270), column ranges
+#:   picked by eye well away from the bends; the shoulders are where plate and flank lines
+#:   cross (the fits' residuals: 0.44, 0.71, 0.37, 0.33 px).
+#: - root edges: where the lit stripe ends at the root gap, read off printed grey values of the
+#:   pixels around each end: the column where the brightness along the flank's last row falls
+#:   to half its peak (left: row 585, 223 at column 735, 165 at 736, 83 at 737 -> 736.6; right:
+#:   row 586, 121 at column 815, 170 at 816, 226 at 817, peak 255 -> 815.3), the row of the
+#:   stripe's last cross-section there.
+REAL_REFERENCE = {
+    "left_shoulder": (518.6, 385.2),
+    "left_root": (736.6, 585.0),
+    "right_root": (815.3, 585.8),
+    "right_shoulder": (1037.6, 393.4),
+}
+
+
+def test_real_v_groove_frame_feature_points_within_3px():
+    img = cv2.imread(str(REAL / "v_groove_spatter.png"), cv2.IMREAD_UNCHANGED)
+    assert img is not None and img.shape == (1000, 1280)
+    res = finder("v_groove")(img)
+    assert res.ok, res.reason
+    for name, ref in REAL_REFERENCE.items():
+        err = float(np.hypot(*(res.points[name] - np.array(ref))))
+        assert err <= 3.0, f"{name}: {res.points[name]} is {err:.1f} px from {ref}"
+    mid = (np.array(REAL_REFERENCE["left_root"]) + REAL_REFERENCE["right_root"]) / 2
+    assert np.hypot(*(res.aim - mid)) <= 3.0
+    ref_gap = np.hypot(*np.subtract(REAL_REFERENCE["right_root"], REAL_REFERENCE["left_root"]))
+    assert abs(res.gap_px - ref_gap) <= 4.0
+    ref_area = groove_area(np.array(list(REAL_REFERENCE.values())))
+    assert abs(res.area_px2 - ref_area) <= 0.03 * ref_area
+    # the stripe runs along the rows there, and turned a quarter along the columns
+    assert stripe_axis(img, TIPM) == "rows"
+    assert stripe_axis(cv2.rotate(img, cv2.ROTATE_90_CLOCKWISE), TIPM) == "columns"
+
+
+def test_real_frame_licence_travels_with_it():
+    lic = (REAL / "LICENSE-douglas125-LaserLineTracking").read_text()
+    assert "MIT License" in lic and "Douglas Coimbra de Andrade" in lic
+
+
+# --------------------------------------------------------------------------- drawn frames
+def draw(pieces, size=(480, 640), sigma=1.3, seed=0, blobs=(), edge_rows=None):
+    """A mono uint8 frame (H, W) of straight stripe pieces ``(p0, p1, peak)`` with a Gaussian
+    cross-section of ``sigma``, read noise, speckle and optional spatter blobs ``(u, v, r)``
+    and a bright plate from row ``edge_rows`` down (a table or part edge beside the stripe)."""
+    h, w = size
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    img = np.zeros(size)
+    for (x0, y0), (x1, y1), peak in pieces:
+        # a lit straight piece seen through a Gaussian blur: across, a Gaussian; along, a step
+        # at each end (half the light at the end itself), so pieces that meet add up to one
+        d = np.array([x1 - x0, y1 - y0], float)
+        n = np.hypot(*d)
+        e = d / n
+        t = (x - x0) * e[0] + (y - y0) * e[1]
+        across = (x - x0) * -e[1] + (y - y0) * e[0]
+        along = 0.5 * (erf(t / (np.sqrt(2) * sigma)) - erf((t - n) / (np.sqrt(2) * sigma)))
+        img += peak * np.exp(-across**2 / (2 * sigma**2)) * along
+    speckle = cv2.resize(rng.uniform(0.75, 1.25, (h // 3 + 1, w // 3 + 1)), (w, h))
+    img *= speckle
+    for u, v, r in blobs:
+        img = np.maximum(img, 230 * np.exp(-((x - u) ** 2 + (y - v) ** 2) / (2 * r**2)))
+    if edge_rows is not None:
+        img[edge_rows:] += 90
+    img += 8 + rng.normal(0, 2.5, size)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def near(res, truth, tol):
+    for name, p in truth.items():
+        err = float(np.hypot(*(res.points[name] - np.asarray(p, float))))
+        assert err <= tol, f"{name}: {res.points[name]} is {err:.2f} px from {p}"
+
+
+V_TRUTH = {"left_shoulder": (200.0, 150.0), "left_root": (300.0, 250.0),
+           "right_root": (330.0, 250.0), "right_shoulder": (430.0, 150.0)}
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_v_groove_with_root_gap_and_spatter(seed):
+    t = V_TRUTH
+    pieces = [((0, 150), t["left_shoulder"], 200), (t["left_shoulder"], t["left_root"], 110),
+              (t["right_root"], t["right_shoulder"], 110), (t["right_shoulder"], (639, 150), 200)]
+    img = draw(pieces, seed=seed, blobs=[(380, 60, 4), (250, 330, 5), (90, 260, 3)])
+    res = finder("v_groove")(img)
+    assert res.ok and res.reason == "", res.status
+    near(res, t, 1.0)
+    assert np.hypot(*(res.aim - (315.0, 250.0))) <= 1.0
+    assert res.width_px == pytest.approx(230.0, abs=1.5)
+    assert res.gap_px == pytest.approx(30.0, abs=2.0)
+    assert res.area_px2 == pytest.approx(groove_area(np.array(list(t.values()))), rel=0.03)
+
+
+def test_v_groove_closed_root_and_single_bevel():
+    closed = [((0, 150), (200, 150), 200), ((200, 150), (300, 260), 110),
+              ((300, 260), (400, 150), 110), ((400, 150), (639, 150), 200)]
+    res = finder("v_groove")(draw(closed))
+    assert res.ok, res.status
+    near(res, {"left_root": (300, 260), "right_root": (300, 260),
+               "left_shoulder": (200, 150), "right_shoulder": (400, 150)}, 1.5)
+    assert res.gap_px == pytest.approx(0.0, abs=1e-6)
+    # a bevelled branch over a plate seen from the side: the plate's stripe runs straight into
+    # the root gap; the other side has a flank and a shoulder
+    single = [((0, 300), (300, 300), 200), ((320, 290), (400, 190), 110),
+              ((400, 190), (639, 120), 200)]
+    res = finder("v_groove")(draw(single))
+    assert res.ok and res.reason == "single bevel", res.status
+    near(res, {"left_root": (300, 300), "left_shoulder": (300, 300),
+               "right_root": (320, 290), "right_shoulder": (400, 190)}, 1.5)
+
+
+def test_profiles_refuse_a_plain_straight_stripe():
+    img = draw([((0, 200), (639, 210), 200)])
+    for joint in ("v_groove", "butt", "lap"):
+        res = finder(joint)(img)
+        assert not res.ok and res.status.startswith("none: no "), (joint, res.status)
+        assert np.all(np.isnan(res.aim))
+    assert not finder("fillet")(img).ok
+
+
+@pytest.mark.parametrize("how", ["break", "dip", "step"])
+def test_butt_gap_centre_and_width(how):
+    if how == "break":
+        pieces = [((0, 240), (300, 244), 200), ((318, 244.3), (639, 248), 200)]
+        centre, width = (309.0, 244.15), 18.0
+    elif how == "dip":
+        pieces = [((0, 240), (300, 244), 200), ((300, 244), (312, 244.2), 40),
+                  ((312, 244.2), (639, 248), 200)]
+        centre, width = (306.0, 244.1), 12.0
+    else:  # flush, one plate 8 px higher in the view (hi-lo)
+        pieces = [((0, 240), (305, 244), 200), ((305, 236), (639, 240), 200)]
+        centre, width = (305.0, 240.0), 0.0
+    res = finder("butt")(draw(pieces, blobs=[(500, 100, 4)]))
+    assert res.ok and res.reason == how, res.status
+    assert abs(res.aim[0] - centre[0]) <= 1.5 and abs(res.aim[1] - centre[1]) <= 4.5
+    assert res.width_px == pytest.approx(width, abs=2.0 if width else 3.0)
+
+
+def test_lap_edge_and_root():
+    # the upper plate (nearer the sensor: higher in the view) ends at its edge at u = 330;
+    # its edge face is dark, the lower plate's stripe starts below it
+    pieces = [((0, 200), (330, 204), 200), ((331, 236), (639, 240), 200)]
+    res = finder("lap")(draw(pieces))
+    assert res.ok, res.status
+    near(res, {"edge": (330, 204), "root": (331, 236)}, 1.5)
+    np.testing.assert_allclose(res.aim, res.points["root"])
+    assert res.width_px == pytest.approx(32.0, abs=1.0)
+
+
+def test_a_bright_edge_beside_the_stripe_is_no_part_of_it():
+    """A butt gap in a stripe with a bright plate edge 25 rows below it, along it: the gap is
+    found where it is, and the stripe axis is the stripe's."""
+    pieces = [((0, 200), (300, 203), 200), ((318, 203.2), (639, 206), 200)]
+    img = draw(pieces, edge_rows=228)
+    res = finder("butt")(img)
+    assert res.ok, res.status
+    assert abs(res.aim[0] - 309.0) <= 1.5 and abs(res.aim[1] - 203.1) <= 1.5
+    assert np.all(np.abs(res.centre[:, 1] - 203) < 6), "the edge was read as stripe"
+    assert stripe_axis(img, TIPM) == "rows"
+
+
+def test_auto_axis_follows_the_stripe_not_a_corner():
+    """A butt stripe running down the columns has no corner in either view: auto still says
+    columns (the old rule, the view that yields a corner, had nothing to go by), and a
+    V-groove turned a quarter is read in the turned view."""
+    butt = draw([((0, 240), (300, 244), 200), ((318, 244.3), (639, 248), 200)])
+    turned = cv2.rotate(butt, cv2.ROTATE_90_CLOCKWISE)
+    assert stripe_axis(butt, TIPM) == "rows"
+    assert stripe_axis(turned, TIPM) == "columns"
+    t = V_TRUTH
+    v = draw([((0, 150), t["left_shoulder"], 200), (t["left_shoulder"], t["left_root"], 110),
+              (t["right_root"], t["right_shoulder"], 110), (t["right_shoulder"], (639, 150), 200)])
+    view = find_view(cv2.rotate(v, cv2.ROTATE_90_COUNTERCLOCKWISE), TIPM, "auto", "auto")
+    assert view is None or view.axis == "columns"
+
+
+def test_fillet_is_tipm_corner():
+    img = draw([((0, 100), (320, 300), 200), ((320, 300), (639, 120), 200)])
+    res = finder("fillet")(img)
+    tip = TIPM(img)
+    assert res.ok and tip.ok
+    np.testing.assert_allclose(res.aim, tip.uv)
+    assert np.hypot(*(res.aim - (320, 300))) < 1.0
+    assert set(res.points) == {"corner"}
+
+
+def test_profile_names_and_config_errors(tmp_path):
+    assert JOINTS == ("fillet", "v_groove", "butt", "lap")
+    with pytest.raises(ValueError, match="joint 'tee'"):
+        ProfileFinder(TIPM, CFG, "tee")
+    bad = tmp_path / "profiles.yaml"
+    text = (Path(__file__).parents[1] / "configs" / "profiles.yaml").read_text()
+    bad.write_text(text.replace("min_gap_px: 6.0", "min_gap_px: -1"))
+    with pytest.raises(ConfigError, match="min_gap_px"):
+        load_config(ProfileConfig, bad)
+
+
+def test_overlay_draws_points(tmp_path):
+    t = V_TRUTH
+    img = draw([((0, 150), t["left_shoulder"], 200), (t["left_shoulder"], t["left_root"], 110),
+                (t["right_root"], t["right_shoulder"], 110),
+                (t["right_shoulder"], (639, 150), 200)])
+    res = finder("v_groove")(img)
+    out = draw_profile(img, res)
+    assert out.shape == img.shape + (3,)
+    u, v = np.rint(res.aim).astype(int)
+    assert np.abs(out[v, u].astype(int) - [0, 255, 255]).max() <= 8

@@ -1,0 +1,501 @@
+"""Joint profiles: the feature points of fillets, V-grooves, butt gaps and laps in one frame.
+
+TIPM (:mod:`torchseam.vision.tipm`) finds one profile, the corner where the stripe's two arms
+meet (a fillet). A laser-stripe sensor over other joints shows other shapes, each with its own
+feature points and its own aim point (where the torch goes):
+
+=========  ==========================================  ==================================
+joint      what the stripe shows                       feature points (aim)
+=========  ==========================================  ==================================
+fillet     two arms meeting at a corner                ``corner`` (the corner)
+v_groove   two plate lines, two flanks going down to   ``left_shoulder``, ``left_root``,
+           a root, broken by the root gap (a closed    ``right_root``, ``right_shoulder``
+           root: the flanks meet; a single bevel: one  (the root centre); the groove's
+           side has no flank, its shoulder is its      width (shoulder to shoulder) and
+           root edge)                                  cross-section area
+butt       a straight stripe broken by the gap: a      ``left_edge``, ``right_edge`` (the
+           break, a dip in its brightness (a gap       gap's centre); the gap's width
+           closed flush) or a step in depth (hi-lo)
+lap        a step: the upper plate's line ends at its  ``edge`` (the upper plate's corner),
+           edge, the lower plate's line starts there   ``root`` (the root)
+=========  ==========================================  ==================================
+
+Every profile but the fillet is read off the stripe's centre line (:meth:`Tipm.centre`, in the
+view TIPM works in: the stripe along the rows) as straight pieces fitted by total least squares
+(a flank at 45 degrees or steeper is no function ``v(u)``), split where two lines explain a
+piece best (an exhaustive search over the split, O(N) with cumulative sums). The stripe is
+thresholded lower than TIPM's and its pieces are judged by their size grown over small
+breaks (``stripe:`` in ``configs/profiles.yaml``): the flanks of a groove face away from the camera
+and their stripe is thin, dim and speckled. A pixel is stripe only where it stands above the
+light ``side_px`` rows above it and below it (a line, not an edge): a bright plate or table
+edge beside the stripe passes TIPM's ridge filter as a band, but its bright side stays bright,
+so it is not read as a piece of the stripe; a column's run taller than a stripe (a blob) is
+dropped too.
+A frame without the profile gives ``ok=False`` and a reason, never a guess.
+
+Pixels are (u, v) = (column, row) of the view; :meth:`ProfileResult.to_camera` maps a result
+to the camera's pixels.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from torchseam.core.config import CONFIG_DIR, config_field, load_config
+from torchseam.core.dataset import check_frame
+from torchseam.core.orient import FrameView
+from torchseam.core.overlay import put_label
+from torchseam.vision.tipm import Tipm, TipmResult, red_response
+
+#: the joint profiles (``joint:`` of a part, ``--joint`` of the commands)
+JOINTS = ("fillet", "v_groove", "butt", "lap")
+
+
+@dataclass(frozen=True)
+class StripeSettings:
+    """How the profiles read the stripe (``stripe:`` in ``configs/profiles.yaml``)."""
+
+    rel_threshold: float = config_field(lo=0.0, hi=1.0)
+    close_px: int = config_field(lo=0)
+    min_area: int = config_field(lo=0)
+    max_run_px: int = config_field(lo=3)
+    side_px: int = config_field(lo=1)
+
+
+@dataclass(frozen=True)
+class ProfileConfig:
+    """Parameters of the joint profiles (``configs/profiles.yaml``)."""
+
+    stripe: StripeSettings
+    min_points: int = config_field(lo=3)
+    max_rms_px: float = config_field(lo=0.0, lo_open=True)
+    min_bend_deg: float = config_field(lo=0.0, hi=90.0)
+    min_gap_px: float = config_field(lo=1.0)
+    end_fraction: float = config_field(lo=0.0, hi=1.0)
+    dip_fraction: float = config_field(lo=0.0, hi=1.0)
+    min_step_px: float = config_field(lo=0.0, lo_open=True)
+    min_depth_px: float = config_field(lo=0.0)
+
+
+def load_profile_config(path: str | Path | None = None) -> ProfileConfig:
+    """Read ``configs/profiles.yaml`` (or ``path``)."""
+    return load_config(ProfileConfig, path or CONFIG_DIR / "profiles.yaml")
+
+
+@dataclass
+class ProfileResult:
+    """Outcome of a joint profile on one frame.
+
+    Attributes:
+        joint: the profile (one of :data:`JOINTS`).
+        ok: the profile was found.
+        aim: (2,) where the torch aims (u, v), NaN when not ``ok``.
+        points: the feature points by name, each (2,) (u, v) (see the module's table).
+        reason: why not, when not ``ok``; a note (e.g. ``"single bevel"``) when ``ok``.
+        width_px: the groove's width (v_groove: shoulder to shoulder) or the gap's (butt).
+        gap_px: the root gap (v_groove), NaN where none.
+        area_px2: the groove's cross-section area (v_groove), px^2 in the image.
+        centre: (N, 2) centre-line points used.
+        tipm: the corner TIPM found (fillet).
+    """
+
+    joint: str
+    ok: bool
+    aim: np.ndarray
+    points: dict[str, np.ndarray] = field(default_factory=dict)
+    reason: str = ""
+    width_px: float = float("nan")
+    gap_px: float = float("nan")
+    area_px2: float = float("nan")
+    centre: np.ndarray | None = None
+    tipm: TipmResult | None = None
+
+    @property
+    def status(self) -> str:
+        """``ok`` or ``none: <reason>``: what a per-frame log shows."""
+        return "ok" + (f" ({self.reason})" if self.reason else "") if self.ok else (
+            f"none: {self.reason}")
+
+    def to_camera(self, view: FrameView) -> ProfileResult:
+        """The result with its pixels in the camera image of ``view``."""
+        return dataclasses.replace(
+            self, aim=view.to_camera(self.aim),
+            points={k: view.to_camera(p) for k, p in self.points.items()},
+            centre=None if self.centre is None else view.to_camera(self.centre))
+
+
+def _fail(joint: str, reason: str, centre: np.ndarray | None = None) -> ProfileResult:
+    return ProfileResult(joint, False, np.full(2, np.nan), reason=reason, centre=centre)
+
+
+# ---------------------------------------------------------------------- straight pieces
+@dataclass(frozen=True)
+class Line:
+    """A straight piece of the stripe: a point ``c`` (2,), a unit direction ``d`` (2,) and the
+    RMS of the points' distances to it."""
+
+    c: np.ndarray
+    d: np.ndarray
+    rms: float
+
+    def project(self, p: np.ndarray) -> np.ndarray:
+        """(2,) the foot of ``p`` (2,) on the line."""
+        return self.c + float((p - self.c) @ self.d) * self.d
+
+    def v_at(self, u: float) -> float:
+        """The line's row at column ``u`` (NaN for a vertical line)."""
+        if abs(self.d[0]) < 1e-9:
+            return float("nan")
+        return float(self.c[1] + (u - self.c[0]) * self.d[1] / self.d[0])
+
+
+def fit_line(p: np.ndarray, robust: bool = True) -> Line:
+    """Total-least-squares line through points (N, 2), N >= 2; ``robust``: refitted once on
+    the points within 3 sigma (MAD) of the first fit, so a spatter dot on a piece does not
+    tilt it."""
+    c = p.mean(axis=0)
+    w, vec = np.linalg.eigh(np.cov((p - c).T, bias=True))
+    d = vec[:, 1]
+    r = (p - c) @ np.array([-d[1], d[0]])
+    if robust and len(p) >= 6:
+        keep = np.abs(r - np.median(r)) <= max(3 * 1.4826 * np.median(np.abs(r - np.median(r))),
+                                               1.0)
+        if 2 <= keep.sum() < len(p):
+            return fit_line(p[keep], robust=False)
+    return Line(c, d if d[0] >= 0 else -d, float(np.sqrt(np.mean(r * r))))
+
+
+def split_two_lines(p: np.ndarray, min_points: int) -> int:
+    """Where points (N, 2), ordered along the stripe, are best explained as two straight
+    pieces: the index ``k`` of the first point of the second piece (each piece at least
+    ``min_points``), or -1 when N is too small. The total-least-squares error of every split is
+    read off cumulative sums (the smaller eigenvalue of each piece's scatter matrix)."""
+    n = len(p)
+    if n < 2 * min_points:
+        return -1
+    q = p - p.mean(axis=0)
+    u, v = q[:, 0], q[:, 1]
+    sums = np.cumsum(np.stack([np.ones(n), u, v, u * u, v * v, u * v]), axis=1)
+    total = sums[:, -1:]
+    k = np.arange(min_points, n - min_points + 1)
+    return int(k[np.argmin(_tls_error(sums[:, k - 1]) + _tls_error(total - sums[:, k - 1]))])
+
+
+def _tls_error(s: np.ndarray) -> np.ndarray:
+    """(K,) the total-least-squares squared error of pieces from their sums (6, K) of 1, u, v,
+    u^2, v^2, uv."""
+    n = s[0]
+    sxx = s[3] - s[1] ** 2 / n
+    syy = s[4] - s[2] ** 2 / n
+    sxy = s[5] - s[1] * s[2] / n
+    return (sxx + syy) / 2 - np.sqrt(((sxx - syy) / 2) ** 2 + sxy**2)
+
+
+def meet(a: Line, b: Line) -> np.ndarray | None:
+    """(2,) where two lines cross; None when they are parallel."""
+    m = np.stack([a.d, -b.d], axis=1)
+    if abs(np.linalg.det(m)) < 1e-9:
+        return None
+    s = np.linalg.solve(m, b.c - a.c)
+    return a.c + s[0] * a.d
+
+
+def bend_deg(a: Line, b: Line) -> float:
+    """How much the stripe turns from one line to the other, degrees in [0, 90]."""
+    return float(np.degrees(np.arccos(min(1.0, abs(float(a.d @ b.d))))))
+
+
+def groove_area(poly: np.ndarray) -> float:
+    """The area (px^2) of a polygon (N, 2) (the shoelace formula)."""
+    x, y = poly[:, 0], poly[:, 1]
+    return float(abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) / 2)
+
+
+# ---------------------------------------------------------------------- the finder
+class ProfileFinder:
+    """The feature points of one joint profile in a frame (:data:`JOINTS`).
+
+    Args:
+        tipm: TIPM, whose stripe response, centre line and (fillet) corner are used.
+        cfg: :class:`ProfileConfig`.
+        joint: the profile.
+
+    Example:
+        >>> from torchseam.vision.tipm import load_tipm
+        >>> find = ProfileFinder(load_tipm(), load_profile_config(), "butt")
+        >>> find(np.zeros((64, 64), np.uint8)).status
+        'none: no stripe found (no red pixels above threshold)'
+    """
+
+    def __init__(self, tipm: Tipm, cfg: ProfileConfig, joint: str = "fillet") -> None:
+        if joint not in JOINTS:
+            raise ValueError(f"joint {joint!r}: use one of {', '.join(JOINTS)}")
+        self.tipm, self.cfg, self.joint = tipm, cfg, joint
+        s = cfg.stripe
+        # TIPM's stripe response and centre line with the profiles' threshold; no area filter
+        # and no dilation there: the profiles judge pieces grown over breaks (stripe())
+        self._low = Tipm(dataclasses.replace(tipm.cfg, rel_threshold=s.rel_threshold,
+                                             min_area=0, dilate_px=0), tipm.centre_line)
+        self._close = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * s.close_px + 1,) * 2)
+        self._tall = np.ones((s.max_run_px + 1, 1), np.uint8)
+        self._dilate = tipm._kernel
+        self._ridge = np.zeros((1, 1), np.uint8)  # the frame's stripe response (see _end)
+
+    def __call__(self, frame: np.ndarray) -> ProfileResult:
+        """The profile in one frame (H, W[, 3]), 8 or 16 bit, the stripe along the rows."""
+        frame = check_frame(frame)
+        if self.joint == "fillet":
+            res = self.tipm(frame)
+            if not res.ok:
+                return _fail("fillet", res.reason, res.centre)
+            return ProfileResult("fillet", True, res.uv.copy(), {"corner": res.uv.copy()},
+                                 centre=res.centre, tipm=res)
+        ridge, mask, why = self.stripe(frame)
+        if why:
+            return _fail(self.joint, why)
+        pts = self._low.centre(ridge, mask)
+        if len(pts) < 2 * self.cfg.min_points:
+            return _fail(self.joint, f"no stripe found ({len(pts)} centre-line points)", pts)
+        resp = response_at(ridge, pts)
+        self._ridge = ridge
+        finder = {"v_groove": self._v_groove, "butt": self._butt, "lap": self._lap}[self.joint]
+        return finder(pts, resp)
+
+    def stripe(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+        """The stripe response (H, W) uint8 (a copy), the profiles' mask (H, W) uint8 and a
+        failure reason: TIPM's ridge thresholded at the profiles' level, pieces under
+        ``min_area`` (grown by ``close_px``) dropped, runs taller than ``max_run_px``
+        dropped, dilated as TIPM's."""
+        s = self.cfg.stripe
+        ridge, binary, why = self._low.stripe_mask(frame)
+        ridge = ridge.copy()
+        if why:
+            return ridge, np.zeros_like(ridge), why
+        # a line is brighter than the light side_px rows above AND below it; a bright part or
+        # table edge is not (its bright side stays bright), though its ridge is a band
+        red = red_response(frame)
+        k = s.side_px
+        side = np.zeros_like(red)
+        side[k:] = red[:-k]
+        side[:-k] = np.maximum(side[:-k], red[k:])
+        line = cv2.subtract(red, side)
+        binary = cv2.bitwise_and(binary, cv2.compare(
+            2 * line.astype(np.uint16), ridge.astype(np.uint16), cv2.CMP_GE))
+        # a tall run is a bright blob, not the stripe
+        binary = cv2.subtract(binary, cv2.morphologyEx(binary, cv2.MORPH_OPEN, self._tall))
+        # pieces are measured grown by close_px (a speckled flank breaks into short dashes)
+        grown = cv2.dilate(binary, self._close)
+        n, lab, st, _ = cv2.connectedComponentsWithStats(grown, connectivity=8)
+        keep = np.zeros(n, np.uint8)
+        keep[1:][st[1:, cv2.CC_STAT_AREA] >= s.min_area] = 255
+        if not keep.any():
+            return ridge, np.zeros_like(ridge), "no stripe found (only small blobs)"
+        return ridge, cv2.dilate(cv2.bitwise_and(keep[lab], binary), self._dilate), ""
+
+    # ------------------------------------------------------------------ pieces
+    def _end(self, piece: np.ndarray, resp: np.ndarray, line: Line) -> np.ndarray:
+        """(2,) where a piece (N, 2), ordered from its free end (a gap) inward, ends: the first
+        point whose response reaches ``end_fraction`` of the piece's median, on ``line``, then
+        followed along the line as far as the stripe stays that bright (the centre line's
+        path may stop short of an end where the stripe jumps: a lap's step)."""
+        level = self.cfg.end_fraction * np.median(resp)
+        lit = resp >= level
+        k = int(np.argmax(lit)) if lit.any() else 0
+        end = line.project(piece[k])
+        if len(piece) < 2:
+            return end
+        out = piece[0] - piece[-1]
+        step = line.d if float(out @ line.d) > 0 else -line.d
+        h, w = self._ridge.shape
+        for _ in range(int(4 * self.cfg.min_gap_px)):
+            q = end + step
+            u, v = int(round(q[0])), int(round(q[1]))
+            if not (0 <= u < w and 1 <= v < h - 1) or self._ridge[v - 1:v + 2, u].max() < level:
+                break
+            end = q
+        return end
+
+    def _side(self, side: np.ndarray, resp: np.ndarray
+              ) -> tuple[Line, Line | None, np.ndarray, np.ndarray] | str:
+        """One side of a groove, its points (N, 2) ordered from the root outward: the flank,
+        the plate's line (None: the side has no bevel, its flank is the plate), the shoulder
+        and the root edge; or why not."""
+        cfg = self.cfg
+        m = cfg.min_points
+        if len(side) < m:
+            return f"only {len(side)} points"
+        k = split_two_lines(side, m)
+        if k > 0:
+            flank, plate = fit_line(side[:k]), fit_line(side[k:])
+            shoulder = meet(flank, plate)
+            if bend_deg(flank, plate) >= cfg.min_bend_deg and shoulder is not None:
+                if max(flank.rms, plate.rms) > cfg.max_rms_px:
+                    return f"fit residual {max(flank.rms, plate.rms):.2f} px"
+                return flank, plate, shoulder, self._end(side[:k], resp[:k], flank)
+        line = fit_line(side)
+        if line.rms > cfg.max_rms_px:
+            return f"fit residual {line.rms:.2f} px"
+        root = self._end(side, resp, line)
+        return line, None, root, root
+
+    def _v_groove(self, pts: np.ndarray, resp: np.ndarray) -> ProfileResult:
+        cfg = self.cfg
+        du = np.diff(pts[:, 0])
+        j = int(np.argmax(du))
+        closed = bool(du[j] < cfg.min_gap_px)
+        if not closed:  # the root gap: the widest break
+            left, right = pts[j::-1], pts[j + 1:]
+            lresp, rresp = resp[j::-1], resp[j + 1:]
+        else:  # a closed root: the flanks meet at the point farthest from the chord
+            a, b = pts[0], pts[-1]
+            n = np.array([a[1] - b[1], b[0] - a[0]])
+            j = int(np.argmax(np.abs((pts - a) @ n)))
+            left, right, lresp, rresp = pts[j::-1], pts[j:], resp[j::-1], resp[j:]
+        found = []
+        for name, side, sresp in (("left", left, lresp), ("right", right, rresp)):
+            got = self._side(side, sresp)
+            if isinstance(got, str):
+                return _fail("v_groove", f"no groove: its {name} side: {got}", pts)
+            found.append(got)
+        (lf, lp, ls, lr), (rf, rp, rs, rr) = found
+        if lp is None and rp is None:
+            return _fail("v_groove", "no groove: no shoulder on either side (a square butt "
+                         "gap? try the butt profile)", pts)
+        if closed:  # both root edges where the flanks meet
+            x = meet(lf, rf)
+            if x is None:
+                return _fail("v_groove", "no groove: the flanks are parallel", pts)
+            lr = rr = x
+        aim = (lr + rr) / 2
+        top = rs - ls
+        down = aim - ls
+        depth = abs(float(top[0] * down[1] - top[1] * down[0])) / max(
+            float(np.linalg.norm(top)), 1e-9)
+        if depth < cfg.min_depth_px:
+            return _fail("v_groove", f"no groove: the root is {depth:.1f} px below the "
+                         "shoulders", pts)
+        note = "single bevel" if lp is None or rp is None else ""
+        poly = np.stack([ls, lr, rr, rs])
+        return ProfileResult(
+            "v_groove", True, aim,
+            {"left_shoulder": ls, "left_root": lr, "right_root": rr, "right_shoulder": rs},
+            note, float(np.linalg.norm(top)), float(np.linalg.norm(rr - lr)), groove_area(poly),
+            pts)
+
+    def _two_plates(self, pts: np.ndarray, resp: np.ndarray, j: int
+                    ) -> tuple[Line, Line, np.ndarray, np.ndarray] | str:
+        """The lines of the plates left and right of a joint between centre points ``j`` and
+        ``j + 1`` and the ends of the stripe at it; or why not."""
+        cfg = self.cfg
+        left, right = pts[j::-1], pts[j + 1:]
+        if min(len(left), len(right)) < cfg.min_points:
+            return f"a plate has only {min(len(left), len(right))} points"
+        a, b = fit_line(left), fit_line(right)
+        if max(a.rms, b.rms) > cfg.max_rms_px:
+            return f"plate fit residual {max(a.rms, b.rms):.2f} px"
+        if bend_deg(a, b) >= cfg.min_bend_deg:
+            return f"the stripe bends by {bend_deg(a, b):.1f} deg at the joint"
+        return a, b, self._end(left, resp[j::-1], a), self._end(right, resp[j + 1:], b)
+
+    def _butt(self, pts: np.ndarray, resp: np.ndarray) -> ProfileResult:
+        cfg = self.cfg
+        du = np.diff(pts[:, 0])
+        dv = np.abs(np.diff(pts[:, 1]))
+        j = int(np.argmax(du))
+        how = "break"
+        if du[j] < cfg.min_gap_px:
+            j = int(np.argmax(dv))
+            how = "step"
+            if dv[j] < cfg.min_step_px:
+                dip = _dip(resp, cfg.dip_fraction)
+                if dip is None:
+                    return _fail("butt", "no gap: the stripe is unbroken, even and straight",
+                                 pts)
+                i0, i1 = dip
+                sides = self._two_plates(pts, resp, i0 - 1)
+                if isinstance(sides, str):
+                    return _fail("butt", f"no gap: {sides}", pts)
+                a, b = sides[0], sides[1]
+                le, re = a.project(pts[i0 - 1]), b.project(pts[i1])
+                return ProfileResult("butt", True, (le + re) / 2,
+                                     {"left_edge": le, "right_edge": re}, "dip",
+                                     float(np.linalg.norm(re - le)), centre=pts)
+        sides = self._two_plates(pts, resp, j)
+        if isinstance(sides, str):
+            return _fail("butt", f"no gap: {sides}", pts)
+        _, _, le, re = sides
+        return ProfileResult("butt", True, (le + re) / 2, {"left_edge": le, "right_edge": re},
+                             how, float(abs(re[0] - le[0])), centre=pts)
+
+    def _lap(self, pts: np.ndarray, resp: np.ndarray) -> ProfileResult:
+        cfg = self.cfg
+        # the step: where the row jumps most between neighbouring centre points (across a
+        # break too: the upper plate's edge face may be dark)
+        j = int(np.argmax(np.abs(np.diff(pts[:, 1]))))
+        sides = self._two_plates(pts, resp, j)
+        if isinstance(sides, str):
+            return _fail("lap", f"no step: {sides}", pts)
+        a, b, le, re = sides
+        u = (le[0] + re[0]) / 2
+        step = b.v_at(u) - a.v_at(u)
+        if not abs(step) >= cfg.min_step_px:
+            return _fail("lap", f"no step: the plates are {abs(step):.1f} px apart at the joint",
+                         pts)
+        # the upper (nearer) plate's stripe lies higher in the view (smaller v) in a sensor
+        # looking down the torch at the stripe ahead; its edge is the corner, the lower
+        # plate's end the root where the fillet goes
+        edge, root = (re, le) if step < 0 else (le, re)
+        return ProfileResult("lap", True, root.copy(), {"edge": edge, "root": root},
+                             width_px=float(abs(step)), centre=pts)
+
+
+def _dip(resp: np.ndarray, fraction: float) -> tuple[int, int] | None:
+    """The longest run ``[i0, i1)`` of centre points (not at the stripe's ends) whose response
+    is below ``fraction`` of the median: a gap closed flush, lit but darker; None if none."""
+    low = resp < fraction * np.median(resp)
+    if not low.any():
+        return None
+    d = np.diff(np.concatenate([[0], low.astype(np.int8), [0]]))
+    starts, ends = np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]
+    inner = (starts > 0) & (ends < len(resp))
+    if not inner.any():
+        return None
+    k = int(np.argmax(np.where(inner, ends - starts, -1)))
+    return int(starts[k]), int(ends[k])
+
+
+def response_at(ridge: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """(N,) the stripe response (H, W) at centre points (N, 2): the brightest of the pixel
+    and its neighbours across the stripe (a centre between two rows)."""
+    h, w = ridge.shape
+    u = np.clip(np.rint(pts[:, 0]).astype(int), 0, w - 1)
+    v = np.rint(pts[:, 1]).astype(int)
+    return np.max([ridge[np.clip(v + dv, 0, h - 1), u] for dv in (-1, 0, 1)], axis=0).astype(
+        float)
+
+
+def draw_profile(frame: np.ndarray, res: ProfileResult) -> np.ndarray:
+    """Frame with the centre line (green), the profile's polyline and points (cyan) and the
+    aim point (yellow); a mono frame is drawn on in colour."""
+    out = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR) if frame.ndim == 2 else frame.copy()
+    if res.centre is not None and len(res.centre):
+        for u, v in res.centre[:: max(1, len(res.centre) // 400)].astype(int):
+            cv2.circle(out, (int(u), int(v)), 0, (0, 255, 0), -1)
+    if res.ok:
+        pts = list(res.points.values())
+        poly = np.round(np.array(pts) * 16).astype(np.int32)
+        cv2.polylines(out, [poly], False, (255, 255, 0), 1, cv2.LINE_AA, 4)
+        for p in pts:
+            cv2.circle(out, tuple(int(round(x * 16)) for x in p), 4 * 16, (255, 255, 0), 1,
+                       cv2.LINE_AA, 4)
+        cv2.drawMarker(out, tuple(int(round(x)) for x in res.aim), (0, 255, 255),
+                       cv2.MARKER_CROSS, 18, 1, cv2.LINE_AA)
+    label = (f"{res.joint} aim ({res.aim[0]:.1f}, {res.aim[1]:.1f})" if res.ok
+             else f"{res.joint}: {res.reason}")
+    put_label(out, label, (8, 20), 0.5)
+    return out
