@@ -245,3 +245,27 @@ def test_overlay_draws_points(tmp_path):
     assert out.shape == img.shape + (3,)
     u, v = np.rint(res.aim).astype(int)
     assert np.abs(out[v, u].astype(int) - [0, 255, 255]).max() <= 8
+
+
+def test_detect_joint_on_the_real_frame_and_turned(tmp_path, capsys):
+    """``torchseam detect --joint v_groove``: the aim point and the feature points in camera
+    pixels, the same on the frame turned a quarter (auto axis: the stripe's own)."""
+    from torchseam.cli import main
+
+    img = cv2.imread(str(REAL / "v_groove_spatter.png"), cv2.IMREAD_UNCHANGED)
+    turned = tmp_path / "turned.png"
+    cv2.imwrite(str(turned), cv2.rotate(img, cv2.ROTATE_90_COUNTERCLOCKWISE))
+    assert main(["detect", "--joint", "v_groove", str(REAL / "v_groove_spatter.png"),
+                 str(turned), "--overlay", str(tmp_path / "ov")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 and len(list((tmp_path / "ov").iterdir())) == 2
+    w = img.shape[1]
+    for line, to_cam in ((lines[0], lambda p: p), (lines[1], lambda p: (w - 1 - p[1], p[0]))):
+        fields = line.split()
+        pts = dict(f.split("=") for f in fields[3:])
+        for name, ref in REAL_REFERENCE.items():
+            p = to_cam(tuple(float(x) for x in pts[name].split(",")))
+            assert np.hypot(p[0] - ref[0], p[1] - ref[1]) <= 3.0, (line, name)
+    # a joint the frame does not show: a reason, exit 1
+    assert main(["detect", "--joint", "lap", str(REAL / "v_groove_spatter.png")]) == 1
+    assert capsys.readouterr().out.split(" ", 1)[1].startswith("none: no step")

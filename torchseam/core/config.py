@@ -150,6 +150,9 @@ class CellConfig:
 #: The kinds of part (``kind:`` in ``configs/parts/*.yaml``): what the branch pipe is set on
 #: (see :mod:`torchseam.core.part`).
 PART_KINDS = ("pipe", "offset", "plate", "sphere")
+#: the joint profiles a part's ``joint:`` names (:mod:`torchseam.vision.profiles`): what the
+#: stripe shows at its seam and where the torch aims
+JOINT_PROFILES = ("fillet", "v_groove", "butt", "lap")
 
 
 def _positive(name: str, value: float, what: str, least: float | None = None) -> str:
@@ -168,10 +171,12 @@ class PartConfig:
     spherical head of ``sphere_radius_mm``; ``design_offset_mm`` there puts a hillside nozzle
     off the centre). ``main_od_mm`` and ``main_ovality`` belong to the pipe kinds only;
     ``branch_ovality``, ``branch_offset_mm``, the clamping error and the thermal drift apply
-    to every kind.
+    to every kind. ``joint`` names the joint profile the seam shows the sensor
+    (:data:`JOINT_PROFILES`; default ``fillet``, the corner of a set-on branch).
     """
 
     kind: str = _f(default="pipe", choices=PART_KINDS)
+    joint: str = _f(default="fillet", choices=JOINT_PROFILES)
     # 0 (the default): none (plate, sphere); a pipe kind's must be > 0 (_check says so)
     main_od_mm: float = _f(hi=MAX_PIPE_OD_MM, default=0.0)
     branch_od_mm: float = _f(lo=MIN_PIPE_OD_MM, hi=MAX_PIPE_OD_MM)

@@ -8,13 +8,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from torchseam.core.cliargs import out_dir_arg
-from torchseam.core.config import STRIPE_AXES, STRIPE_RESPONSES
+from torchseam.core.config import JOINT_PROFILES, STRIPE_AXES, STRIPE_RESPONSES
 from torchseam.core.errors import FrameError, TorchseamError
 
 if TYPE_CHECKING:  # imported when the command runs: the parser (--help) needs no OpenCV
     import numpy as np
 
     from torchseam.core.orient import FrameView
+    from torchseam.vision.profiles import ProfileFinder
     from torchseam.vision.tipm import Tipm, TipmResult
 
 
@@ -41,6 +42,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="a colour image's stripe response: red (red excess), intensity (the "
                         "red channel: a stripe overexposed into white) or auto: per image "
                         "(default)")
+    p.add_argument("--joint", choices=JOINT_PROFILES, default="fillet",
+                   help="the joint profile to find (configs/profiles.yaml): fillet (the corner "
+                        "of two stripe arms, TIPM; default), v_groove (shoulders, flanks, root "
+                        "edges; aims at the root centre), butt (the gap in a straight stripe: "
+                        "a break, a dip or a step; aims at its centre) or lap (the step edge; "
+                        "aims at the root). Other than fillet, each line also gives the "
+                        "feature points as NAME=U,V and the groove's width, root gap and "
+                        "cross-section area in pixels where the profile has them")
     p.add_argument("--centre-line", choices=("subpixel", "thinning"), default="subpixel",
                    help="centre-line method (default subpixel; thinning as in the paper)")
     p.set_defaults(func=run)
@@ -61,6 +70,44 @@ def _detect(tipm: Tipm, img: np.ndarray, axis: str, response: str
     return tipm(np.ascontiguousarray(view.frame(img))), view
 
 
+def _detect_profile(find: ProfileFinder | None, img: np.ndarray, path: Path,
+                    args: argparse.Namespace, used: set[str]) -> bool:
+    """One frame's joint profile (``--joint`` other than fillet): its line on stdout, its
+    overlay; whether it was found. The view: ``--stripe-axis`` (auto: the way the stripe runs,
+    :func:`~torchseam.vision.axis.stripe_axis`) and ``--stripe-response`` (auto: red)."""
+    import cv2
+    import numpy as np
+
+    from torchseam.core.orient import FrameView
+    from torchseam.vision.axis import stripe_axis
+    from torchseam.vision.profiles import draw_profile
+
+    assert find is not None
+    resp = "red" if args.stripe_response == "auto" else args.stripe_response
+    along = (stripe_axis(img, find.tipm, resp) or "rows") if args.stripe_axis == "auto" else (
+        args.stripe_axis)
+    view = FrameView(along, img.shape[0], resp)
+    shown = np.ascontiguousarray(view.frame(img))
+    res = find(shown)
+    if res.ok:
+        cam = res.to_camera(view)
+        extra = [f"{k}={p[0]:.3f},{p[1]:.3f}" for k, p in cam.points.items()]
+        extra += [f"{k}={x:.2f}" for k, x in (("width_px", res.width_px),
+                                              ("gap_px", res.gap_px),
+                                              ("area_px2", res.area_px2)) if np.isfinite(x)]
+        print(f"{path} {cam.aim[0]:.3f} {cam.aim[1]:.3f} " + " ".join(extra))
+    else:
+        print(f"{path} none: {res.reason}")
+    if args.overlay:
+        out = draw_profile(shown, res)
+        if view.turned:
+            out = cv2.rotate(out, cv2.ROTATE_90_COUNTERCLOCKWISE)
+        dest = args.overlay / _overlay_name(path, used)
+        if not cv2.imwrite(str(dest), out):
+            raise TorchseamError(f"--overlay: {dest}: cannot be written")
+    return res.ok
+
+
 def _overlay_name(path: Path, used: set[str]) -> str:
     """``STEM_tipm.png``, with the frame's position added when two inputs share a stem."""
     name = f"{path.stem}_tipm.png"
@@ -77,9 +124,12 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from torchseam.core.dataset import read_frame
+    from torchseam.vision.profiles import ProfileFinder, load_profile_config
     from torchseam.vision.tipm import draw_overlay, load_tipm
 
     tipm = load_tipm(centre_line=args.centre_line)
+    profile = (ProfileFinder(tipm, load_profile_config(), args.joint)
+               if args.joint != "fillet" else None)
     if args.overlay:
         try:
             args.overlay.mkdir(parents=True, exist_ok=True)
@@ -93,6 +143,9 @@ def run(args: argparse.Namespace) -> int:
         except FrameError as e:  # bad input: one line, the other frames still detected
             print(f"torchseam detect: error: {e}", file=sys.stderr, flush=True)
             unread += 1
+            continue
+        if args.joint != "fillet":
+            found += _detect_profile(profile, img, path, args, used)
             continue
         res, axis = _detect(tipm, img, args.stripe_axis, args.stripe_response)
         uv = axis.to_camera(res.uv)

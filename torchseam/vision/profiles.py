@@ -46,14 +46,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from torchseam.core.config import CONFIG_DIR, config_field, load_config
+from torchseam.core.config import CONFIG_DIR, JOINT_PROFILES, config_field, load_config
 from torchseam.core.dataset import check_frame
 from torchseam.core.orient import FrameView
 from torchseam.core.overlay import put_label
 from torchseam.vision.tipm import Tipm, TipmResult, red_response
 
 #: the joint profiles (``joint:`` of a part, ``--joint`` of the commands)
-JOINTS = ("fillet", "v_groove", "butt", "lap")
+JOINTS = JOINT_PROFILES
 
 
 @dataclass(frozen=True)
