@@ -269,3 +269,17 @@ def test_detect_joint_on_the_real_frame_and_turned(tmp_path, capsys):
     # a joint the frame does not show: a reason, exit 1
     assert main(["detect", "--joint", "lap", str(REAL / "v_groove_spatter.png")]) == 1
     assert capsys.readouterr().out.split(" ", 1)[1].startswith("none: no step")
+
+
+def test_part_joint_field(tmp_path):
+    from torchseam.core.config import load_part
+
+    assert load_part().joint == "fillet"
+    text = (Path(__file__).parents[1] / "configs" / "parts" / "t_joint.yaml").read_text()
+    good = tmp_path / "bevel.yaml"
+    good.write_text(text + "joint: v_groove\n")
+    assert load_part(good).joint == "v_groove"
+    bad = tmp_path / "tee.yaml"
+    bad.write_text(text + "joint: tee\n")
+    with pytest.raises(ConfigError, match=r"tee.yaml: joint: .*'tee'"):
+        load_part(bad)
