@@ -9,10 +9,13 @@ one). A part the robot cannot weld is refused before anything moves (:class:`Pla
 text is the pre-flight table with the refused segments and the reason; ``torchseam demo`` prints
 it and exits with 2).
 
-Per frame (25 Hz of simulation time): the simulator renders what the sensor sees from where
-the simulated robot actually is; the live loop tracks, locates, plans and hands torch poses to
-the EGM link; ten 4 ms EGM cycles move the simulated IRC5 (lockstep, see
-:mod:`torchseam.live.simcell`). The part carries the deviations of ``--part`` and arc noise of
+Each segment runs through the same runner as ``torchseam weld``
+(:func:`~torchseam.live.runner.run_segment`: the start, the travel, the arc's strike rule, the
+gaps, the operator's hold and stop, the events), with the simulated cell in this process as its
+cell: per frame (25 Hz of simulation time) the simulator renders what the sensor sees from
+where the simulated robot actually is, with the arc the runner asked for; the live loop tracks,
+locates, plans and hands torch poses to the EGM link; ten 4 ms EGM cycles move the simulated
+IRC5 (lockstep, see :mod:`torchseam.live.simcell`). The part carries the deviations of ``--part`` and arc noise of
 ``--noise``. Faults (``--fault``) are injected in the middle of each segment (packet loss:
 over the whole segment, a fraction of the EGM cycles in random bursts, ``demo`` in
 ``configs/live.yaml``).
@@ -39,10 +42,12 @@ from __future__ import annotations
 import dataclasses
 import queue
 import threading
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -67,6 +72,8 @@ from torchseam.live.loop import (
 from torchseam.live.names import FAULTS as FAULTS  # the faults run_demo injects (re-exported)
 from torchseam.live.parts import LiveParts
 from torchseam.live.ring import torch_axis_errors
+from torchseam.live.runner import MAX_GAP_MM as MAX_GAP_MM  # (re-exported)
+from torchseam.live.runner import ArcGapMeter, CellFrame, SegmentJob, run_segment
 from torchseam.live.search import (
     SeamSearch,
     SearchConfig,
@@ -95,11 +102,6 @@ POSES_CSV_HEADER = "t,x,y,z,q1,q2,q3,q4"  # poses.csv: what ``torchseam robot ch
 # does not move); poses.csv counts this much time for each, so that its time stamps are ones
 # a robot can keep (the return is a joint move of tens of degrees)
 TRANSFER_S = 5.0
-#: seam passed with the arc out past the approach, per segment, above which the segment is not
-#: welded (a gap in the bead). Not zero: the simulated cell decides the arc once a frame, so a
-#: stretch passed with the arc out is known to within a frame's travel (0.32 mm at 8 mm/s and
-#: 25 frames/s). The same tolerance as ``torchseam weld`` (:data:`torchseam.live.weld.MAX_GAP_MM`).
-MAX_GAP_MM = 0.5
 
 
 @dataclass
@@ -526,12 +528,6 @@ class _SegmentWeld:
         self.welding: list[bool] = []      # the arc was on when it was handed over
         self.search_failed = ""
         self.start_p, self.start_along = T0[:3, 3], 0.0
-        self.first, self.last_msg = True, ""
-        # the seam passed with the arc out past the approach (see _passed)
-        self.gaps: list[dict] = []
-        self.gap: dict | None = None          # the stretch being passed with the arc out
-        self.arc_out: tuple[float, str] | None = None  # when and why the arc last went out
-        self.passed_mm = 0.0
         self.injected: dict[str, list[float]] = {}   # fault -> [from_t_s, to_t_s, frames]
 
     def weld(self) -> None:
@@ -542,14 +538,23 @@ class _SegmentWeld:
         self.loop = LiveLoop(run.cell, make_tracker(run.tracker, tipm, model_path=run.model_path),
                              self.link, run.weld_plan.plan_config(seg, run.plan), run.live,
                              tipm, run.parts.ecal, nominal=self.nominal)
-        completed, travelled = self._frames()
-        self.gap = None
-        gap_why = self._gap_reason()
-        if not completed or gap_why:
+        job = SegmentJob(seg.name, self.approach, self.seg_len, self.frame_mm, run.dt,
+                         self.simcell.tool_inv, start_along_mm=self.start_along)
+        self.cell = cell = _SimulatedCell(self)
+        done = run_segment(cell, self.loop, job, control=run.control, observer=run.observer,
+                           link=self.link, messages=run.res.messages)
+        self.commands += done.commands
+        self.welding += done.welding
+        run.res.arc_off_s += done.arc_off_s
+        run.res.arc_interruptions += done.arc_interruptions
+        run.stopped = run.stopped or done.stopped
+        gap_why = cell.gap.reason()
+        if not done.reached_end or gap_why:
             why = self.search_failed or (
-                _incomplete_reason(self.loop, run.stopped, travelled, self.approach,
-                                   self.seg_len, self.n_max, run.stopped_by)
-                if not completed else "")
+                (_incomplete_reason(self.loop, run.stopped, done.travelled_mm, self.approach,
+                                    self.seg_len, self.n_max, run.stopped_by)
+                 if done.reason in ("", _SimulatedCell.OUT_OF_FRAMES) or done.stopped
+                 else done.reason) if not done.reached_end else "")
             why = "; ".join(w for w in (gap_why, why) if w)
             run.res.incomplete.append({"segment": seg.name, "reason": why})
             run.res.messages.append(f"[{seg.name} t={run.clock.t:.2f}s] segment incomplete: "
@@ -558,46 +563,12 @@ class _SegmentWeld:
         self.loop.finish()
         self.simcell.close()
 
-    def _passed(self, a: float, b: float, arc: bool) -> None:
-        """The torch moved from ``a`` to ``b`` mm along its path (from the segment's approach
-        start) with the arc ``arc``: the part of it past the approach and within the segment
-        is seam welded, or passed with the arc out (a gap, kept in ``self.gaps``)."""
-        lo, hi = max(a, self.approach), min(b, self.approach + self.seg_len)
-        if hi <= lo:
-            return
-        self.passed_mm += hi - lo
-        if arc:
-            self.gap = None
-            return
-        if self.gap is None:
-            t_out, cause = self.arc_out if self.arc_out is not None else (None, "")
-            self.gap = {"segment": self.seg.name, "from_mm": lo - self.approach,
-                        "to_mm": hi - self.approach, "arc_out_t_s": t_out,
-                        "cause": cause or "before the arc first struck"}
-            self.gaps.append(self.gap)
-        self.gap["to_mm"] = hi - self.approach
-
-    def _gap_reason(self) -> str:
-        """Why the segment is not welded for its gaps ('' when they are within MAX_GAP_MM)."""
-        total = sum(g["to_mm"] - g["from_mm"] for g in self.gaps)
-        if total <= MAX_GAP_MM:
-            return ""
-        parts = []
-        for g in self.gaps:
-            n = g["to_mm"] - g["from_mm"]
-            where = f"{n:.1f} mm from {g['from_mm']:.1f} mm into the segment"
-            parts.append(where + (" before the arc first struck" if g["arc_out_t_s"] is None
-                                  else f" after the arc went out at t={g['arc_out_t_s']:.2f} s "
-                                       f"({g['cause']})"))
-        return (f"{total:.1f} mm of seam unwelded (more than {MAX_GAP_MM:g} mm): "
-                + ", ".join(parts))
-
     def _record_gaps(self) -> None:
-        res, name = self.run.res, self.seg.name
-        res.passed_mm[name] = round(self.passed_mm, 3)
-        res.unwelded_mm[name] = round(float(sum(g["to_mm"] - g["from_mm"] for g in self.gaps)), 3)
-        for g in self.gaps:
-            res.arc_gaps.append({**g, "from_mm": round(g["from_mm"], 3),
+        res, name, gap = self.run.res, self.seg.name, self.cell.gap
+        res.passed_mm[name] = round(gap.passed_mm, 3)
+        res.unwelded_mm[name] = round(gap.gap_mm, 3)
+        for g in gap.stretches:
+            res.arc_gaps.append({"segment": name, **g, "from_mm": round(g["from_mm"], 3),
                                  "to_mm": round(g["to_mm"], 3),
                                  "length_mm": round(g["to_mm"] - g["from_mm"], 3),
                                  "arc_out_t_s": None if g["arc_out_t_s"] is None
@@ -632,43 +603,6 @@ class _SegmentWeld:
         return self.run.weld_plan.nominal_tcp(
             self.seg, np.array([self.s0 - self.approach + u]))[0]
 
-    def _frames(self) -> tuple[bool, float]:
-        """The live loop's frames to the segment's end (or a stop, or ``n_max`` frames):
-        whether the end was reached, and the mm travelled."""
-        run, res, loop = self.run, self.run.res, self.loop
-        # (a search starts the weld where it found the seam: that far into the approach)
-        travelled, prev = self.start_along, self.start_p
-        arc_was = False
-        for k in range(self.n_max):
-            if run.control is not None and run.control.checkpoint():
-                run.stopped = True
-                res.messages.append(f"[{self.seg.name} t={run.clock.t:.2f}s] stopped by "
-                                    f"{run.stopped_by}")
-                break
-            T_B_W = self.simcell.tcp_pose()
-            before = travelled
-            travelled += float(np.linalg.norm(T_B_W[:3, 3] - prev))
-            prev = T_B_W[:3, 3]
-            # (the torch moved since the last frame with the arc as it was set there)
-            self._passed(before, travelled, arc_was)
-            if travelled >= self.approach + self.seg_len:
-                return True, travelled
-            # the arc burns past the approach while the loop lets it (off in a hold); it
-            # strikes a frame's travel early (decided once a frame, it then burns until the
-            # next: struck later, the frame's travel past the segment's start is unwelded)
-            weld_zone = travelled >= self.approach
-            arc_on = travelled + self.frame_mm >= self.approach and loop.arc_ok
-            if weld_zone and not arc_on:
-                res.arc_off_s += run.dt
-                res.arc_interruptions += int(arc_was)
-                if arc_was:
-                    cause = (f"{loop.state.value}: {loop.hold_key}" if loop.hold_key
-                             else loop.state.value)
-                    self.arc_out = (run.clock.t, cause)
-            arc_was = arc_on
-            self._frame(k, T_B_W, arc_on)
-        return False, travelled
-
     def _active_faults(self, k: int) -> list[str]:
         faults = self.run.faults
         active = [f for f in faults if f != "packet-loss"
@@ -677,51 +611,85 @@ class _SegmentWeld:
             active.append("packet-loss")
         return active
 
-    def _frame(self, k: int, T_B_W: np.ndarray, arc_on: bool) -> None:
-        """Render frame ``k`` where the robot is, hand it to the loop, record it, move on."""
-        run, res, seg, clock = self.run, self.run.res, self.seg.name, self.run.clock
-        active = self._active_faults(k)
+
+class _SimulatedCell:
+    """The simulated cell in this process, for :func:`~torchseam.live.runner.run_segment`:
+    each frame rendered where the simulated robot is at its exposure, with the arc the runner
+    asked for burning; the faults injected; then ten 4 ms EGM cycles in lockstep to the next
+    frame. Its clock stands while the operator holds (nothing moves)."""
+
+    OUT_OF_FRAMES = "out of frames"
+
+    def __init__(self, w: _SegmentWeld) -> None:
+        self.w, self.run = w, w.run
+        self.gap = ArcGapMeter()
+        self.k, self.arc = 0, False
+        self.image: np.ndarray | None = None
+        self.truth: Any = None
+        self.active: list[str] = []
+        # (t, torch position) of the last frames: is the torch moving
+        self.recent: deque[tuple[float, np.ndarray]] = deque(maxlen=16)
+
+    def next_frame(self) -> CellFrame | str | None:
+        w, run, clock = self.w, self.run, self.run.clock
+        if self.k >= w.n_max:
+            return self.OUT_OF_FRAMES
+        if self.k:
+            w.simcell.advance(run.dt)
+        T_B_W = w.simcell.tcp_pose()
+        # (the torch came here from the last frame with the arc as the runner set it)
+        self.gap.add(T_B_W[:3, 3], self.arc)
+        self.recent.append((clock.t, T_B_W[:3, 3]))
+        self.active = active = w._active_faults(self.k)
         for f in active:
-            w = self.injected.setdefault(f, [clock.t, clock.t, 0])
-            w[1], w[2] = clock.t, w[2] + 1
-        frame, truth = self.renderer.render(T_B_W, clock.t, arc_on=arc_on,
-                                            laser_on="laser-off" not in active,
-                                            force_flash="arc-flash" in active)
+            win = w.injected.setdefault(f, [clock.t, clock.t, 0])
+            win[1], win[2] = clock.t, win[2] + 1
+        self.image, self.truth = w.renderer.render(T_B_W, clock.t, arc_on=self.arc,
+                                                   laser_on="laser-off" not in active,
+                                                   force_flash="arc-flash" in active)
         if "controller-silence" in active:
-            self.simcell.faults.silent_cycles = 10
-        T_B_F = self.simcell.flange_pose()
+            w.simcell.faults.silent_cycles = 10
         if run.writer is not None:
             run.writer.idle()  # the recorder finishes before the loop takes the frame
-        rep = self._step(frame, T_B_F, T_B_W, arc_on, active)
+        self.k += 1
+        return CellFrame(None if "dropped-frames" in active else self.image, clock.t, T_B_W)
+
+    def torch_now(self) -> np.ndarray | None:
+        return None    # lockstep: the frame's pose is where the torch is
+
+    def moving(self) -> bool:
+        t, p = self.recent[-1]
+        old = [(t0, p0) for t0, p0 in self.recent if t - t0 >= 0.1 - 1e-9]
+        if not old:
+            return True      # too early to tell: the segment's first frames
+        t0, p0 = old[-1]
+        v = float(np.linalg.norm(p - p0)) / (t - t0)
+        return v >= 0.2 * self.run.cell.process.weld_speed_mm_s
+
+    def set_arc(self, on: bool) -> None:
+        self.arc = on
+
+    def hold_here(self) -> None:
+        """(The simulated clock stands while held: nothing moves.)"""
+
+    def guided(self) -> str:
+        return ""
+
+    def label(self, t_s: float | None = None) -> str:
+        return f"[{self.w.seg.name} t={self.run.clock.t:.2f}s]"
+
+    def record(self, f: CellFrame, rep: StepReport | None, arc: bool,
+               along_mm: float) -> FrameRecord:
+        run, w = self.run, self.w
         loc = rep.location if rep else None
-        res.frames.append(_record(seg, truth, loc, rep, self.ref, clock.t, T_B_W,
-                                  ",".join(active)))
-        if run.observer is not None:
-            run.observer(DemoEvent(seg, k, frame, res.frames[-1], rep, T_B_W, self.loop,
-                                   self.link))
-        if run.writer is not None:
-            run.writer.put(frame, truth, loc, rep, seg)
-        self.simcell.advance(run.dt)
+        rec = _record(w.seg.name, self.truth, loc, rep, w.ref, f.t_s, f.T_B_W,
+                      ",".join(self.active), arc)
+        run.res.frames.append(rec)
+        if run.writer is not None and self.image is not None:
+            run.writer.put(self.image, self.truth, loc, rep, w.seg.name)
         if run.progress:
             run.progress(1)
-
-    def _step(self, frame: np.ndarray, T_B_F: np.ndarray, T_B_W: np.ndarray, arc_on: bool,
-              active: list[str]) -> StepReport | None:
-        """The loop's step on a frame (its start on the first: no report)."""
-        loop, t = self.loop, self.run.clock.t
-        if self.first:
-            loop.start(frame, T_B_W, t_s=t)
-            self.first = False
-            return None
-        rep = loop.on_frame(None if "dropped-frames" in active else frame, T_B_F, T_B_W, t)
-        if rep.command is not None:
-            self.commands.append(rep.command)
-            self.welding.append(arc_on)
-        if rep.message and rep.message != self.last_msg:
-            self.run.res.messages.append(f"[{self.seg.name} t={t:.2f}s] {rep.state.value}: "
-                                         f"{rep.message}")
-        self.last_msg = rep.message
-        return rep
+        return rec
 
 
 def _search_clear(gate: ReachGate, T: np.ndarray) -> np.ndarray:
@@ -978,10 +946,10 @@ class _VideoThread:
         self.thread.join()
 
 
-def _record(seg, truth, loc, rep, ref: _SeamRef, t, T_B_W, fault) -> FrameRecord:
+def _record(seg, truth, loc, rep, ref: _SeamRef, t, T_B_W, fault, arc: bool) -> FrameRecord:
     nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
     return FrameRecord(
-        seg, t, truth.arc_on, loc.uv if loc else nan2, truth.uv,
+        seg, t, arc, loc.uv if loc else nan2, truth.uv,
         int(loc.status) if loc else int(TrackStatus.LOST),
         rep.state.value if rep else LoopState.STARTING.value,
         loc.p if loc else nan3, truth.seam_B, ref.distance(t, T_B_W[:3, 3]), fault)

@@ -22,7 +22,8 @@ from torchseam.live.loop import LiveLoop, PoseSink, StepReport
 @dataclass
 class FrameRecord:
     """One frame of a weld as the report and the console keep it; ``uv_true``, ``p_true`` and
-    ``torch_err_mm`` are the simulator's truth (NaN where there is none)."""
+    ``torch_err_mm`` are the simulator's truth (NaN where there is none); ``arc_on`` is the arc
+    asked for from this frame to the next."""
 
     seg: str
     t_s: float

@@ -41,45 +41,18 @@ from torchseam.core.errors import TorchseamError
 from torchseam.core.transforms import invert, pose_matrix
 from torchseam.live.cellfile import WeldCell
 from torchseam.live.clocks import ClockOffset, PoseHistory
-from torchseam.live.events import DemoControl, DemoEvent, FrameRecord
-from torchseam.live.loop import LiveLoop, egm_config_for
+from torchseam.live.events import DemoControl, FrameRecord
+from torchseam.live.loop import LiveLoop, StepReport, egm_config_for
 from torchseam.live.parts import LiveParts
+from torchseam.live.runner import MAX_GAP_MM as MAX_GAP_MM  # (re-exported)
+from torchseam.live.runner import ArcGapMeter, CellFrame, SegmentJob, run_segment
 from torchseam.robot.egm import rapid_data as rd
 
 #: exit codes of ``torchseam weld``
 EXIT_OK, EXIT_INCOMPLETE, EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 2, 130, 143
-#: seam passed with the arc out (after the approach) above this is an unwelded gap: the segment
-#: is not welded (the strike at the approach's end and frame timing leave a few tenths)
-MAX_GAP_MM = 0.5
 #: the older schema: how long the weld holds the torch at a segment's end for RAPID's EGM to
 #: converge and take back (RAPID's convergence condition: the torch still for about a second)
 CONVERGE_WAIT_S = 2.5
-
-
-@dataclass
-class ArcGapMeter:
-    """The seam passed with the arc out, from every fed-back pose (the link's thread, 250 Hz):
-    the path the torch tip travelled since the segment's hand-over, and of it, past
-    ``zone_mm`` (the approach's end), the length passed while the arc was not asked for.
-    What the weld reports as unwelded (a restrike behind the arc-out point would need the
-    torch to go back: the weld says how much instead)."""
-
-    path_mm: float = 0.0
-    gap_mm: float = 0.0
-    zone_mm: float = float("inf")
-    _p: np.ndarray | None = None
-
-    def reset(self, zone_mm: float) -> None:
-        self.path_mm, self.gap_mm, self.zone_mm, self._p = 0.0, 0.0, zone_mm, None
-
-    def add(self, p: np.ndarray, arc: bool) -> None:
-        if self._p is not None:
-            d = float(np.linalg.norm(p - self._p))
-            before = self.path_mm
-            self.path_mm += d
-            if not arc and self.path_mm > self.zone_mm:
-                self.gap_mm += min(d, self.path_mm - max(before, self.zone_mm))
-        self._p = p
 
 
 @dataclass
@@ -444,7 +417,7 @@ class WeldRunner:
             return r.phase.name
         return ""
 
-    def _segment(self, seg: Any) -> SegmentOutcome:  # noqa: C901 - the per-frame loop
+    def _segment(self, seg: Any) -> SegmentOutcome:
         from torchseam.robot.reach import ReachGate
         from torchseam.track.peers import make_tracker
 
@@ -465,127 +438,29 @@ class WeldRunner:
             return SegmentOutcome(seg.name, False, why)
         self.link.gate = gate
         self.reply.set(False, number, rd.SensorState.TRACKING)
-        self.view.gap.reset(geo.approach_mm)
         self.progress(f"weld: segment {seg.name}: EGM guides ({geo.length_mm:.1f} mm after a "
                       f"{geo.approach_mm:.0f} mm approach)")
+        job = SegmentJob(seg.name, geo.approach_mm, geo.length_mm,
+                         self.calib.process.weld_speed_mm_s * self.period_s, self.period_s,
+                         self.tool_inv)
+        cell = _CellInterfaces(self, number, seg.name, geo.length_mm, geo.approach_mm)
         out = SegmentOutcome(seg.name, False, "")
-        started, travelled, prev = False, 0.0, None
-        stalled_since: float | None = None
-        motions = self.view.motions
-        t_handover = last_print = time.monotonic()
         try:
-            while True:
-                self._check_signal()
-                if self.control is not None and (self.control.held or self.control.stopped):
-                    if self.control.held:
-                        self.reply.set(False, number, rd.SensorState.TRACKING)
-                        self._hold_here()
-                        self.res.messages.append(f"segment {seg.name}: held by the operator: "
-                                                 "arc off, robot held")
-                    if self.control.checkpoint():
-                        out.reason = f"stopped by {self.control.stopped_by}"
-                        break
-                phase = self._guided(number)
-                if phase:
-                    out.reason = (f"RAPID took the segment back ({phase}) after "
-                                  f"{max(0.0, travelled - geo.approach_mm):.1f} of "
-                                  f"{geo.length_mm:.1f} mm")
-                    break
-                if self.view.motions != motions:     # EGM restarted: the robot stood still
-                    motions = self.view.motions
-                    self.res.messages.append(f"segment {seg.name}: EGM restarted by the "
-                                             "controller; going on from where the robot is")
-                f = self.cam.get(self.stall_s)
-                now = time.monotonic()
-                if f is None:
-                    if self.cam.error:
-                        out.reason = self.cam.error
-                        break
-                    if stalled_since is None:
-                        stalled_since = now
-                        self.res.stalls += 1
-                        self.reply.set(False, number, rd.SensorState.TRACKING)
-                        self._hold_here()
-                        self.res.messages.append(
-                            f"segment {seg.name}: no frame for {self.stall_s * 1e3:.0f} ms: "
-                            "arc off, robot held")
-                        self.progress(self.res.messages[-1])
-                    elif (now - stalled_since) * 1e3 > 5 * self.parts.live.max_blind_ms:
-                        out.reason = (f"the camera delivered no frame for "
-                                      f"{now - stalled_since:.1f} s")
-                        break
-                    continue
-                self.cam_offset.add(f.t_exp_s, f.t_arrival_s)
-                t_exp = self.cam_offset.to_pc(f.t_exp_s)
-                T_B_W = self.view.poses.at(t_exp)
-                self.res.frames += 1
-                out.frames += 1
-                if T_B_W is None:
-                    self.res.frames_no_pose += 1
-                    continue
-                if stalled_since is not None:
-                    self.res.messages.append(f"segment {seg.name}: frames back after "
-                                             f"{now - stalled_since:.2f} s")
-                    stalled_since = None
-                if not started:
-                    # the start frame: exposed after the hand-over (the robot stood at the
-                    # segment's start), arc off, with the stripe's corner in it
-                    if t_exp < t_handover + self.period_s:
-                        continue
-                    try:
-                        loop.start(f.image, T_B_W, t_s=t_exp)
-                    except TorchseamError as e:
-                        if now - t_handover > 2.0:
-                            out.reason = f"no start frame in 2 s: {e}"
-                            break
-                        continue
-                    started, prev = True, T_B_W[:3, 3]
-                    continue
-                step = float(np.linalg.norm(T_B_W[:3, 3] - prev))
-                travelled += step
-                prev = T_B_W[:3, 3]
-                # where the torch is now: the frame's pose is the latency and the frame's
-                # handling old (the arc strikes, and the segment ends, where the torch is)
-                newest = self.view.poses.newest
-                along = travelled + (0.0 if newest is None else float(
-                    np.linalg.norm(newest[1][:3, 3] - T_B_W[:3, 3])))
-                if along >= geo.approach_mm + geo.length_mm:
-                    arc_out_mm = self.view.gap.gap_mm
-                    # (the older schema: the arc is RAPID's, the weld guided to the end)
-                    out.welded = self.old_schema or arc_out_mm <= MAX_GAP_MM
-                    out.reason = "" if out.welded else (
-                        f"the torch reached the end with {arc_out_mm:.1f} mm of the seam "
-                        "passed with the arc out (unwelded)")
-                    break
-                rep = loop.on_frame(f.image, T_B_W @ self.tool_inv, T_B_W, t_exp)
-                if rep.command is not None and rep.command.ok:
-                    c = rep.command
-                    self.res.poses.append((seg.name, c.t_s, c.p.copy(), c.q.copy()))
-                if self.observer is not None:
-                    self.observer(self._event(seg.name, out.frames, f.image, rep, T_B_W, t_exp,
-                                              loop))
-                moving = self._moving()
-                # the arc strikes a frame's travel early: decided once a frame, it is then
-                # burning when the torch passes the approach's end
-                strike = along + self.calib.process.weld_speed_mm_s * self.period_s
-                self.reply.set(bool(strike >= geo.approach_mm and loop.arc_ok and moving),
-                               number, rd.SensorState.TRACKING)
-                if rep.message and (not self.res.messages
-                                    or not self.res.messages[-1].endswith(rep.message)):
-                    self.res.messages.append(f"segment {seg.name}: {rep.state.value}: "
-                                             f"{rep.message}")
-                if now - last_print > 2.0:
-                    last_print = now
-                    self.progress(f"weld: segment {seg.name}: "
-                                  f"{max(0.0, travelled - geo.approach_mm):5.1f} / "
-                                  f"{geo.length_mm:.1f} mm, {loop.state.value}")
+            run = run_segment(cell, loop, job, control=self.control, observer=self.observer,
+                              link=self.link, messages=self.res.messages)
+            out.frames = run.frames
+            gap_why = "" if self.old_schema else self.view.gap.reason()
+            # (the older schema: the arc is RAPID's, the weld guided to the end)
+            out.welded = run.reached_end and not gap_why
+            out.reason = "; ".join(w for w in (gap_why, run.reason) if w)
+            out.travelled_mm = max(0.0, run.travelled_mm - geo.approach_mm)
         except Interrupted as e:
-            out.reason = (f"interrupted by {e} after {max(0.0, travelled - geo.approach_mm):.1f}"
-                          f" of {geo.length_mm:.1f} mm")
+            out.travelled_mm = max(0.0, cell.along_mm - geo.approach_mm)
+            out.reason = (f"interrupted by {e} after {out.travelled_mm:.1f} of "
+                          f"{geo.length_mm:.1f} mm")
             self._partial = out
             raise
         finally:
-            out.travelled_mm = max(0.0, travelled - geo.approach_mm)
             out.unwelded_mm = float("nan") if self.old_schema else self.view.gap.gap_mm
             self.res.latency_ms += list(loop.stats.timings_ms.get("frame->command", []))
             for k, n in loop.stats.hold_reasons.items():
@@ -604,20 +479,6 @@ class WeldRunner:
         self.progress(f"weld: segment {seg.name}: " + (
             f"welded ({out.travelled_mm:.1f} mm)" if out.welded else f"NOT welded: {out.reason}"))
         return out
-
-    def _event(self, seg: str, k: int, image: np.ndarray, rep: Any, T_B_W: np.ndarray,
-               t_s: float, loop: LiveLoop) -> DemoEvent:
-        """The observer's view of one frame (no truth: NaN where the demo has it)."""
-        loc = rep.location
-        nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
-        from torchseam.track.fusion import TrackStatus
-
-        rec = FrameRecord(seg, t_s, self.reply.effective(),
-                          loc.uv if loc is not None else nan2, nan2,
-                          int(loc.status) if loc is not None else int(TrackStatus.LOST),
-                          rep.state.value, loc.p if loc is not None else nan3, nan3,
-                          float("nan"), "")
-        return DemoEvent(seg, k, image, rec, rep, T_B_W, loop, self.link)
 
     def _moving(self) -> bool:
         """The torch moved at least a fifth of the weld speed over the last 0.1 s (the arc is
@@ -653,6 +514,110 @@ class WeldRunner:
             if r is None or r.phase != rd.RapidPhase.GUIDED or r.segment != number:
                 return
             time.sleep(0.01)
+
+
+class _CellInterfaces:
+    """The cell through its interfaces, for :func:`~torchseam.live.runner.run_segment`: the
+    camera's frames with their exposure time brought onto this PC's clock, the fed-back pose
+    interpolated there, the arc request and the segment's state in the link's replies, RAPID
+    taking the segment back."""
+
+    def __init__(self, w: WeldRunner, number: int, name: str, length_mm: float,
+                 approach_mm: float) -> None:
+        self.w, self.number, self.name = w, number, name
+        self.length_mm, self.approach_mm = length_mm, approach_mm
+        self.gap = w.view.gap
+        self.t_handover = self.last_print = time.monotonic()
+        self.stalled_since: float | None = None
+        self.motions = w.view.motions
+        self.along_mm = 0.0
+
+    def next_frame(self) -> CellFrame | str | None:
+        w = self.w
+        f = w.cam.get(w.stall_s)
+        now = time.monotonic()
+        if f is None:
+            if w.cam.error:
+                return str(w.cam.error)
+            if self.stalled_since is None:
+                self.stalled_since = now
+                w.res.stalls += 1
+                self.set_arc(False)
+                w._hold_here()
+                w.res.messages.append(f"segment {self.name}: no frame for "
+                                      f"{w.stall_s * 1e3:.0f} ms: arc off, robot held")
+                w.progress(w.res.messages[-1])
+            elif (now - self.stalled_since) * 1e3 > 5 * w.parts.live.max_blind_ms:
+                return f"the camera delivered no frame for {now - self.stalled_since:.1f} s"
+            return None
+        w.cam_offset.add(f.t_exp_s, f.t_arrival_s)
+        t_exp = w.cam_offset.to_pc(f.t_exp_s)
+        T_B_W = w.view.poses.at(t_exp)
+        w.res.frames += 1
+        if T_B_W is None:
+            w.res.frames_no_pose += 1
+            return None
+        if self.stalled_since is not None:
+            w.res.messages.append(f"segment {self.name}: frames back after "
+                                  f"{now - self.stalled_since:.2f} s")
+            self.stalled_since = None
+        if t_exp < self.t_handover + w.period_s:
+            return None     # exposed before RAPID handed over: the robot may not stand yet
+        return CellFrame(f.image, t_exp, T_B_W)
+
+    def torch_now(self) -> np.ndarray | None:
+        newest = self.w.view.poses.newest
+        return None if newest is None else newest[1][:3, 3]
+
+    def moving(self) -> bool:
+        return self.w._moving()
+
+    def set_arc(self, on: bool) -> None:
+        self.w.reply.set(on, self.number, rd.SensorState.TRACKING)
+
+    def hold_here(self) -> None:
+        self.w._hold_here()
+
+    def guided(self) -> str:
+        w = self.w
+        w._check_signal()
+        phase = w._guided(self.number)
+        if phase:
+            return (f"RAPID took the segment back ({phase}) after "
+                    f"{max(0.0, self.along_mm - self.approach_mm):.1f} of "
+                    f"{self.length_mm:.1f} mm")
+        if w.view.motions != self.motions:     # EGM restarted: the robot stood still
+            self.motions = w.view.motions
+            w.res.messages.append(f"segment {self.name}: EGM restarted by the controller; "
+                                  "going on from where the robot is")
+        return ""
+
+    def label(self, t_s: float | None = None) -> str:
+        return f"segment {self.name}:"
+
+    def record(self, f: CellFrame, rep: StepReport | None, arc: bool,
+               along_mm: float) -> FrameRecord:
+        """No truth in a cell: NaN where the demo has it."""
+        from torchseam.track.fusion import TrackStatus
+
+        w = self.w
+        self.along_mm = along_mm
+        if rep is not None and rep.command is not None and rep.command.ok:
+            c = rep.command
+            w.res.poses.append((self.name, c.t_s, c.p.copy(), c.q.copy()))
+        now = time.monotonic()
+        if now - self.last_print > 2.0:
+            self.last_print = now
+            w.progress(f"weld: segment {self.name}: "
+                       f"{max(0.0, along_mm - self.approach_mm):5.1f} / "
+                       f"{self.length_mm:.1f} mm, {rep.state.value if rep else 'start'}")
+        loc = rep.location if rep is not None else None
+        nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
+        return FrameRecord(self.name, f.t_s, arc,
+                           loc.uv if loc is not None else nan2, nan2,
+                           int(loc.status) if loc is not None else int(TrackStatus.LOST),
+                           rep.state.value if rep is not None else "start",
+                           loc.p if loc is not None else nan3, nan3, float("nan"), "")
 
 
 @dataclass(frozen=True)
