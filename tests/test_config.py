@@ -124,5 +124,9 @@ def test_noise_levels():
     assert n.level("0.4") == pytest.approx(0.4)
     with pytest.raises(ValueError, match="use a number in"):
         n.level("loud")
-    with pytest.raises(ValueError, match=r"must lie in \[0, 1\]"):
-        n.level(1.5)
+    # above 1: heavier arc than the amplitudes as written (issue 35: 1.5 x heavy), up to 2
+    assert n.level("extreme") == 1.5 and n.level(1.5) == 1.5
+    with pytest.raises(ValueError, match=r"must lie in \[0, 2\]"):
+        n.level(2.5)
+    with pytest.raises(ValueError, match=r"must lie in \[0, 2\]"):
+        n.level(-0.1)

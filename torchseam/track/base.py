@@ -26,6 +26,9 @@ class Fix:
         taken: whether the filter took it (or restarted on it).
         seen: the stripe is seen at the corner: both arms have centre-line points next to it
             (not a corner extrapolated from arms that stop short: glare or a gap over it).
+        shallow: the corner was read from the slope break of a nearly straight stripe
+            (:func:`~torchseam.track.shallow.shallow_corner`, where TIPM gives none): weak
+            along the stripe (``cov`` says how weak), not a TIPM corner.
     """
 
     uv: np.ndarray
@@ -33,6 +36,7 @@ class Fix:
     inflate: float
     taken: bool
     seen: bool = True
+    shallow: bool = False
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,7 @@ import dataclasses
 import functools
 import logging
 import math
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,7 +57,9 @@ from torchseam.track import model_file
 from torchseam.track.base import Fix, Tracker, TrackResult
 from torchseam.track.fusion import EAKFSTC, FusionState, TrackStatus
 from torchseam.track.lite import LiteTracker
+from torchseam.track.shallow import ShallowFix, shallow_corner
 from torchseam.vision.tipm import (
+    SATURATED,
     Tipm,
     TipmResult,
     arm_shape,
@@ -111,6 +114,14 @@ class AnchorConfig:
     reacquire_step_px: float = config_field(lo=0.0, lo_open=True)
     support_px: float = config_field(lo=0.0, lo_open=True)
     support_points: int = config_field(lo=1)
+    shallow_noise: float = config_field(lo=0.0, lo_open=True)
+    shallow_below_deg: float = config_field(lo=0.0, hi=180.0)
+    shallow_min_deg: float = config_field(lo=0.0, hi=90.0)
+    shallow_max_along_px: float = config_field(lo=0.0, lo_open=True)
+    evidence_sigmas: float = config_field(lo=0.0, lo_open=True)
+    velocity_frames: int = config_field(lo=2)
+    velocity_points: int = config_field(lo=2)
+    velocity_fade_frames: float = config_field(lo=0.0, lo_open=True)
 
 
 def load_anchor_config(path: str | Path | None = None) -> AnchorConfig:
@@ -265,6 +276,12 @@ class Observation:
         z: (2,) the corner, frame px (None without one). shape_cov: (2, 2)
             :func:`corner_cov_shape` of it.
         seen: :func:`corner_seen`.
+        shallow: where TIPM gave no corner on a stripe it saw: the corner read from the
+            slope break over both arms' whole length (:func:`shallow_corner`, frame px), its
+            ``cov`` per unit noise factor, along-stripe std capped at
+            ``shallow_max_along_px`` and set to that cap below ``shallow_min_deg`` of kink
+            (a straight stripe says where the line is, not where along it the corner is).
+        shallow_seen: both arms have centre-line points next to the shallow corner.
     """
 
     glare: float
@@ -273,6 +290,8 @@ class Observation:
     z: np.ndarray | None = None
     shape_cov: np.ndarray | None = None
     seen: bool = False
+    shallow: ShallowFix | None = None
+    shallow_seen: bool = False
 
 
 def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | None,
@@ -292,12 +311,41 @@ def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | No
     # ECAL (TrackResult.stripe)
     res, red, mask = tipm.find(roi, prior)
     obs.stripe = (red, mask, (x0, y0))
-    if res.ok:
+    seen = res.ok and corner_seen(res, cfg.support_px, cfg.support_points)
+    if res.ok and (seen or 180.0 - res.corner_deg >= cfg.shallow_below_deg):
         t = tipm.cfg
         obs.res, obs.z = res, res.uv + (x0, y0)
         obs.shape_cov = corner_cov_shape(res, prior, (t.corner_gap_px, t.fit_window_px))
-        obs.seen = corner_seen(res, cfg.support_px, cfg.support_points)
+        obs.seen = seen
+    elif res.reason != SATURATED and res.centre is not None:
+        # no corner, or a shallow one extrapolated over arms that stop short (glare on it):
+        # TIPM's arm fits there lean on the prior's slopes, which a flattening kink no
+        # longer has (a biased corner, its covariance too small); read it from the whole
+        # arms instead
+        _observe_shallow(obs, res.centre, (x0, y0), prior, tipm, cfg)
     return obs
+
+
+def _observe_shallow(obs: Observation, centre: np.ndarray, corner: tuple[int, int],
+                     prior: np.ndarray | None, tipm: Tipm, cfg: AnchorConfig) -> None:
+    """The shallow corner of the window's centre line ``centre`` (N, 2) (window px, its
+    corner at ``corner`` in the frame) into ``obs``: the arms' curvatures pulled toward the
+    arm prior's (they do not change as the kink flattens; the slopes do)."""
+    curv, w_c = (None, 0.0) if prior is None else (prior[:, 1], float(prior[0, 3]))
+    sf = shallow_corner(centre, tipm.cfg.min_points_per_arm, curvature=curv,
+                        curvature_weight=w_c, max_along_px=cfg.shallow_max_along_px)
+    if sf is None:
+        return
+    if sf.kink_deg < cfg.shallow_min_deg:
+        # too straight to say where along the stripe: the line only
+        t = np.array([1.0, sf.slope]) / math.hypot(1.0, sf.slope)
+        cov = sf.cov + (cfg.shallow_max_along_px ** 2 - sf.along_px ** 2) * np.outer(t, t)
+        sf = dataclasses.replace(sf, cov=cov)
+    sf = dataclasses.replace(sf, uv=sf.uv + corner)
+    obs.shallow = sf
+    d = centre[:, 0] + corner[0] - sf.uv[0]
+    obs.shallow_seen = bool(np.sum((d < 0) & (d >= -cfg.support_px)) >= cfg.support_points
+                            and np.sum((d > 0) & (d <= cfg.support_px)) >= cfg.support_points)
 
 
 # --------------------------------------------------------------------------- array backends
@@ -425,6 +473,9 @@ class AnchorFilter:
         self._reacquire: np.ndarray | None = None
         self.reacquired = 0  # times the track was moved onto persistent independent corners
         self.innovation: kalman.Innovation | None = None  # the last measurement's
+        self.k = 0                                   # frames stepped
+        self._trail: deque[tuple[int, np.ndarray]] = deque()  # (frame, point) with evidence
+        self.velocity: np.ndarray | None = None      # (2,) px per frame, from the trail
 
     def set_params(self, params: Mapping[str, Any]) -> None:
         """New fitted values (after an optimiser step)."""
@@ -444,6 +495,30 @@ class AnchorFilter:
         self.coast, self.last_evidence = 0, np.asarray(uv, float).copy()
         self.status = int(TrackStatus.TRACKED)
         self._found, self._reacquire = [], None
+        self._forget_motion()
+
+    def _forget_motion(self) -> None:
+        """The track jumped (a start, a restart on a clean corner, a re-acquisition): the
+        points before say nothing about its motion after."""
+        self._trail.clear()
+        self.velocity = None
+
+    def _learn_motion(self, uv: np.ndarray) -> None:
+        """A point with evidence joins the trail; the velocity is the least-squares slope of
+        the trail's points over the last ``velocity_frames`` frames (at least
+        ``velocity_points`` of them), per axis: ``v = sum (k - k_m)(x_k - x_m) /
+        sum (k - k_m)^2``."""
+        c = self.cfg
+        self._trail.append((self.k, np.asarray(uv, float).copy()))
+        while self._trail and self._trail[0][0] <= self.k - c.velocity_frames:
+            self._trail.popleft()
+        if len(self._trail) < c.velocity_points:
+            self.velocity = None
+            return
+        k = np.array([f for f, _ in self._trail], float)
+        X = np.array([p for _, p in self._trail])
+        dk = k - k.mean()
+        self.velocity = dk @ (X - X.mean(axis=0)) / float(dk @ dk)
 
     def prior(self) -> np.ndarray | None:
         """The arm prior for TIPM: the arm shape of the last fix taken and seen, its variance
@@ -496,10 +571,20 @@ class AnchorFilter:
             self._restart(o.const(self._reacquire), self.Q, None)
             self._reacquire, expected = None, None
             self.reacquired += 1
+            self._forget_motion()
         self.age += 1
-        self.x, self.P = kalman.predict(self.x, self.P, self.I, self.Q)  # a random walk
+        self.k += 1
+        # x <- F x + B u, P <- F P F^T + Q  (F = B = I; u the velocity of the points with
+        # evidence, px per frame: the motion along the stripe goes on while the corner is
+        # not seen; no velocity yet: a random walk)
+        self.x, self.P = kalman.predict(self.x, self.P, self.I, self.Q)
         if expected is not None:
             self.x = o.const(expected)
+        elif self.velocity is not None and self.coast > 0:
+            # the velocity fades while no evidence comes: the corner's image motion is no
+            # constant velocity over tens of frames (the path's wobble, the part's deviation)
+            fade = math.exp(-self.coast / self.cfg.velocity_fade_frames)
+            self.x = self.x + o.const(fade * self.velocity)
         obs = observe(self.tipm, frame, o.value(self.x), self.prior(), c)
         inflate = 1.0 + (o.relu(obs.glare - p["glare_start"]) / p["glare_scale"]) ** 2
         taken, fix = False, None
@@ -518,6 +603,8 @@ class AnchorFilter:
                 if clean or not isinstance(w, float):
                     self.x = o.blend(self.x, z, w)
                     self.P = o.blend(self.P, R, w)
+                if clean:
+                    self._forget_motion()
                 taken = clean
             if taken and obs.seen:
                 # the prior learns only from a corner the image shows: one extrapolated over
@@ -527,6 +614,17 @@ class AnchorFilter:
                 self.shape, self.age = arm_shape(obs.res), 0
             assert obs.z is not None  # set with obs.res
             fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, obs.seen)
+        elif obs.shallow is not None:
+            # a nearly straight stripe: its slope break places the corner weakly along the
+            # stripe, firmly across it (R from the fit, c.shallow_noise for the centre line's
+            # errors correlated along the stripe); gated like a fix, never a restart
+            sf = obs.shallow
+            cov = (c.shallow_noise ** 2) * sf.cov
+            taken = self._measure(o.const(sf.uv), inflate * o.const(cov), p["fix_gate"])
+            # evidence only when the image places it within the evidence radius
+            seen = obs.shallow_seen and c.evidence_sigmas * sf.along_px * c.shallow_noise \
+                <= c.evidence_px
+            fix = Fix(sf.uv.copy(), cov, _num(inflate), taken, seen, shallow=True)
         if inner_ok:
             self._measure(inner_uv, inflate * self.R_track, p["track_gate"])
         reanchor: Any = 0.0
@@ -547,6 +645,7 @@ class AnchorFilter:
         if evidence:
             self.coast, self.last_evidence = 0, np.asarray(out, float).copy()
             self.status = int(TrackStatus.TRACKED)
+            self._learn_motion(out)
         else:
             self.coast += 1
             far = (self.last_evidence is None or not np.all(np.isfinite(out))

@@ -17,7 +17,9 @@ for every ``u_c`` on a grid (coarse, then ``step_px`` around the best; compiled)
 ``u_c`` refined by a parabola through the sum of squares ``J(u_c)``, a robust pass (MAD) and
 a second search. The uncertainty: with the residual variance ``s^2 = J_min / (n - 5)``,
 
-    var(u_c) = 2 s^2 / J''(u_c)            (J rises by s^2 one sigma away: Delta chi^2 = 1)
+    var(u_c) = max(2 s^2 / J''(u_c), w^2)   (J rises by s^2 one sigma away: Delta chi^2 = 1;
+                                             w: the farthest coarse-grid column within s^2
+                                             of J_min, where J has other low minima)
     cov(uv)  = var(u_c) t t^T + var(a) e_v e_v^T,   t = (1, (b_L + b_R) / 2),  e_v = (0, 1)
 
 ``J''`` scales as the square of the slope break, so the sigma along the stripe grows as
@@ -82,15 +84,18 @@ def _solve(t: np.ndarray, y: np.ndarray, tc: np.ndarray, prior: np.ndarray
 
 
 def _search(t: np.ndarray, y: np.ndarray, lo: float, hi: float, step: float,
-            prior: tuple[float, float, float, float]
-            ) -> tuple[float, np.ndarray, float, float, float] | None:
+            prior: np.ndarray
+            ) -> tuple[float, np.ndarray, float, float, float, float] | None:
     """Best corner column over the grid ``lo..hi`` (scaled units), parabola-refined: (tc,
-    theta (5,), J at tc, J'' at tc, A^-1[0, 0] at tc); None without a grid."""
+    theta (5,), J at tc, J'' at tc, A^-1[0, 0] at tc, the half-width of the coarse grid's
+    columns whose J lies within s^2 of the least); None without a grid."""
     if hi - lo < 3 * step:
         return None
     coarse = np.arange(lo, hi + 0.5 * step, COARSE * step)
     _, Jc0, _ = _solve(t, y, coarse, prior)
     k0 = float(coarse[int(np.argmin(Jc0))])
+    s2 = max(float(Jc0.min()), 0.0) / max(len(t) - 5, 1)
+    width = float(np.max(np.abs(coarse[Jc0 <= Jc0.min() + s2] - k0)))
     grid = np.arange(max(lo, k0 - COARSE * step), min(hi, k0 + COARSE * step) + 0.5 * step,
                      step)
     if len(grid) < 3:
@@ -106,7 +111,7 @@ def _search(t: np.ndarray, y: np.ndarray, lo: float, hi: float, step: float,
             tc = float(np.clip(grid[k] + 0.5 * step * (j0 - j2) / (j0 - 2 * j1 + j2),
                                grid[k] - step, grid[k] + step))
     theta, Jc, a00 = _solve(t, y, np.array([tc]), prior)
-    return tc, theta[0], float(Jc[0]), curv, float(a00[0])
+    return tc, theta[0], float(Jc[0]), curv, float(a00[0]), width
 
 
 def _residuals(t: np.ndarray, y: np.ndarray, tc: float, th: np.ndarray) -> np.ndarray:
@@ -172,11 +177,13 @@ def shallow_corner(pts: np.ndarray, min_points: int = 15, step_px: float = 1.0,
             break
         keep = new
     assert best is not None
-    tc, th, J, curv, a00 = best
+    tc, th, J, curv, a00, width = best
     n = int(keep.sum())
     s2 = max(J, 0.0) / max(n - 5, 1)
-    var_u = min(2.0 * s2 / curv * _SCALE ** 2, max_along_px ** 2) if curv > 0 else (
-        max_along_px ** 2)
+    # the local curvature's sigma, or, where J has other minima about as low (a spatter
+    # streak, glare bending an arm), the reach of those (Delta chi^2 = 1 over the whole grid)
+    var_u = min(max(2.0 * s2 / curv if curv > 0 else np.inf, width ** 2) * _SCALE ** 2,
+                max_along_px ** 2)
     b_left, b_right = th[1] / _SCALE, th[3] / _SCALE  # dv/du at the corner, px
     slope = 0.5 * (b_left + b_right)
     tvec = np.array([1.0, slope])
