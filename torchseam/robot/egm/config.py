@@ -46,6 +46,8 @@ class EgmLinkConfig:
     session_silence_ms: float = _f(lo=0.0)  # the session silent this long before one is believed
     latency_samples: int = _f(lo=1)
     rt_priority: int = _f(lo=0, hi=99)  # SCHED_FIFO priority of the link thread; 0: normal
+    # the serving process's GIL switch interval while the link serves (0: Python's own)
+    switch_interval_ms: float = _f(lo=0.0)
 
 
 @dataclass(frozen=True)

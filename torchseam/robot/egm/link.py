@@ -108,7 +108,9 @@ or tracker of :mod:`torchseam.robot.egm.policy` that it calls with plain values.
 
 Binding: ``network.host`` (loopback by default); a non-loopback address is logged as a warning.
 ``link.rt_priority`` asks for SCHED_FIFO for the serving thread. Keep the link out of a process
-whose other threads hold the GIL for milliseconds (torch inference): a reply waits for it.
+whose other threads hold the GIL for milliseconds (torch inference): a reply waits for it. While
+the link serves, the process's GIL switch interval is ``link.switch_interval_ms`` (Python's
+default 5 ms is longer than an EGM cycle), put back when it stops.
 """
 
 from __future__ import annotations
@@ -311,6 +313,7 @@ class EgmLink:
         # passed); the first reply of the session holds there when there is nothing to send
         self._session_pose: Pose | None = None
         self._thread: threading.Thread | None = None
+        self._switch_interval: float | None = None   # the interpreter's own, while serving
         self._stop = threading.Event()
         # the shared socket: bound, unconnected; every sender but the controller (and the
         # controller too until it has a socket of its own)
@@ -399,6 +402,12 @@ class EgmLink:
             raise EgmError("the link was made with bind=False and has no socket")
         if self._thread is None:
             self._stop.clear()
+            ms = self.config.link.switch_interval_ms
+            if ms > 0 and ms / 1e3 < sys.getswitchinterval():
+                # the serving thread gets the interpreter within ``ms`` of a datagram even
+                # while another thread runs Python (the process-wide setting, put back at stop)
+                self._switch_interval = sys.getswitchinterval()
+                sys.setswitchinterval(ms / 1e3)
             self._thread = threading.Thread(target=self.serve_forever, name="egm-link",
                                             daemon=True)
             self._thread.start()
@@ -410,6 +419,9 @@ class EgmLink:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
+        if self._switch_interval is not None:
+            sys.setswitchinterval(self._switch_interval)
+            self._switch_interval = None
         for sock in (self._ctrl, self._shared):
             if sock is not None:
                 sock.close()
