@@ -15,10 +15,10 @@ gaps, the operator's hold and stop, the events), with the simulated cell in this
 cell: per frame (25 Hz of simulation time) the simulator renders what the sensor sees from
 where the simulated robot actually is, with the arc the runner asked for; the live loop tracks,
 locates, plans and hands torch poses to the EGM link; ten 4 ms EGM cycles move the simulated
-IRC5 (lockstep, see :mod:`torchseam.live.simcell`). The part carries the deviations of ``--part`` and arc noise of
-``--noise``. Faults (``--fault``) are injected in the middle of each segment (packet loss:
-over the whole segment, a fraction of the EGM cycles in random bursts, ``demo`` in
-``configs/live.yaml``).
+IRC5 (lockstep, see :mod:`torchseam.live.simcell`). The part carries the deviations of
+``--part`` and arc noise of ``--noise``. Faults (``--fault``) are injected in the middle of
+each segment (packet loss: over the whole segment, a fraction of the EGM cycles in random
+bursts, ``demo`` in ``configs/live.yaml``).
 
 The simulated arc follows the loop: it burns from the end of the approach on while the loop
 lets it (:attr:`~torchseam.live.loop.LiveLoop.arc_ok`: off while the loop holds or resumes). A
