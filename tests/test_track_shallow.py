@@ -106,6 +106,27 @@ def test_shallow_sigma_grows_as_the_kink_flattens():
         assert 0.4 * s < r < 2.5 * s
 
 
+def test_shallow_fit_drops_a_spatter_streak():
+    """The robust pass: a streak of 15 centre-line points 6 px off one arm is dropped (the
+    points kept say so), and the corner found without it is the one found on the clean
+    line, within its own sigma of the truth."""
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        u = np.arange(0.0, 220.0)
+        uc = 110 + rng.uniform(-15, 15)
+        v = (100 + np.where(u < uc, 0.0, np.tan(np.radians(6.0))) * (u - uc)
+             + rng.normal(0, 0.2, u.size))
+        clean = shallow_fit(np.stack([u, v], 1))
+        s = int(uc) - 40
+        v[s:s + 15] += 6.0
+        f = shallow_fit(np.stack([u, v], 1))
+        assert clean is not None and f is not None
+        assert u.size - 20 <= f.n <= u.size - 15
+        assert abs(f.uv[0] - clean.uv[0]) < 0.5 * clean.along_px
+        assert abs(f.uv[0] - uc) < 3.0 * f.along_px
+        assert abs(f.uv[1] - 100) < 0.3
+
+
 def _v_frame(uv: np.ndarray, slopes: tuple[float, float], size=(656, 492)) -> np.ndarray:
     """A clean BGR frame with a red V stripe whose corner is ``uv``."""
     import cv2

@@ -136,6 +136,21 @@ def mono_median(box, rank):  # pragma: no cover - compiled
     return _rank_value(hist, rank)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _arm_normal(n, s1, s2, s3, s4, t0, t1, t2, c0, w):  # pragma: no cover - compiled
+    """One arm of :func:`two_arm_fit`: from its sums (n, S1..S4, T0..T2) and curvature prior
+    (c0, w), its Schur term, its right-hand side term, A^-1 s, A^-1 r and r."""
+    b00, b01, b11 = s2, s3, s4 + w
+    det = b00 * b11 - b01 * b01
+    if abs(det) < 1e-300:
+        det = 1e-300
+    i00, i01, i11 = b11 / det, -b01 / det, b00 / det
+    r0, r1 = t1, t2 + w * c0
+    bs0, bs1 = i00 * s1 + i01 * s2, i01 * s1 + i11 * s2
+    br0, br1 = i00 * r0 + i01 * r1, i01 * r0 + i11 * r1
+    return n - (s1 * bs0 + s2 * bs1), t0 - (s1 * br0 + s2 * br1), bs0, bs1, br0, br1, r0, r1
+
+
 @numba.njit("void(f8[::1], f8[::1], f8[::1], f8[::1], f8[:, ::1], f8[::1], f8[::1])",
             cache=True, nogil=True)
 def two_arm_fit(t, y, grid, prior, theta, J, var_a):  # pragma: no cover - compiled
@@ -150,45 +165,168 @@ def two_arm_fit(t, y, grid, prior, theta, J, var_a):  # pragma: no cover - compi
         yy += y[i] * y[i]
     for k in range(grid.shape[0]):
         tc = grid[k]
-        # per side: n, S1..S4, T0..T2
-        S = np.zeros((2, 8))
+        # per side: n, S1..S4, T0..T2 (scalars: the sums stay in registers)
+        l0 = l1 = l2 = l3 = l4 = l5 = l6 = l7 = 0.0
+        r0 = r1 = r2 = r3 = r4 = r5 = r6 = r7 = 0.0
         for i in range(n):
             x = t[i] - tc
-            side = 0 if x < 0 else 1
+            yi = y[i]
             x2 = x * x
-            S[side, 0] += 1.0
-            S[side, 1] += x
-            S[side, 2] += x2
-            S[side, 3] += x2 * x
-            S[side, 4] += x2 * x2
-            S[side, 5] += y[i]
-            S[side, 6] += x * y[i]
-            S[side, 7] += x2 * y[i]
+            if x < 0:
+                l0 += 1.0
+                l1 += x
+                l2 += x2
+                l3 += x2 * x
+                l4 += x2 * x2
+                l5 += yi
+                l6 += x * yi
+                l7 += x2 * yi
+            else:
+                r0 += 1.0
+                r1 += x
+                r2 += x2
+                r3 += x2 * x
+                r4 += x2 * x2
+                r5 += yi
+                r6 += x * yi
+                r7 += x2 * yi
+        sl, ql, bsl0, bsl1, brl0, brl1, rl0, rl1 = _arm_normal(
+            l0, l1, l2, l3, l4, l5, l6, l7, prior[0], prior[1])
+        sr, qr, bsr0, bsr1, brr0, brr1, rr0, rr1 = _arm_normal(
+            r0, r1, r2, r3, r4, r5, r6, r7, prior[2], prior[3])
         schur = 1e-12
+        schur += sl
+        schur += sr
         rhs = 0.0
-        keep = np.zeros((2, 6))
-        for side in range(2):
-            c0, w = prior[2 * side], prior[2 * side + 1]
-            b00, b01, b11 = S[side, 2], S[side, 3], S[side, 4] + w
-            det = b00 * b11 - b01 * b01
-            if abs(det) < 1e-300:
-                det = 1e-300
-            i00, i01, i11 = b11 / det, -b01 / det, b00 / det
-            r0, r1 = S[side, 6], S[side, 7] + w * c0
-            s0, s1 = S[side, 1], S[side, 2]
-            bs0, bs1 = i00 * s0 + i01 * s1, i01 * s0 + i11 * s1
-            br0, br1 = i00 * r0 + i01 * r1, i01 * r0 + i11 * r1
-            schur += S[side, 0] - (s0 * bs0 + s1 * bs1)
-            rhs += S[side, 5] - (s0 * br0 + s1 * br1)
-            keep[side, 0], keep[side, 1], keep[side, 2] = bs0, bs1, br0
-            keep[side, 3], keep[side, 4], keep[side, 5] = br1, r0, r1
+        rhs += ql
+        rhs += qr
         a = rhs / schur
         theta[k, 0] = a
-        Jk = yy + prior[1] * prior[0] ** 2 + prior[3] * prior[2] ** 2 - a * (S[0, 5] + S[1, 5])
-        for side in range(2):
-            b = keep[side, 2] - a * keep[side, 0]
-            c = keep[side, 3] - a * keep[side, 1]
-            theta[k, 1 + 2 * side], theta[k, 2 + 2 * side] = b, c
-            Jk -= b * keep[side, 4] + c * keep[side, 5]
+        Jk = yy + prior[1] * prior[0] ** 2 + prior[3] * prior[2] ** 2 - a * (l5 + r5)
+        b = brl0 - a * bsl0
+        c = brl1 - a * bsl1
+        theta[k, 1], theta[k, 2] = b, c
+        Jk -= b * rl0 + c * rl1
+        b = brr0 - a * bsr0
+        c = brr1 - a * bsr1
+        theta[k, 3], theta[k, 4] = b, c
+        Jk -= b * rr0 + c * rr1
         J[k] = Jk
         var_a[k] = 1.0 / schur
+
+
+@numba.njit(cache=True, nogil=True)
+def _arange(lo, hi, step):  # pragma: no cover - compiled
+    """``np.arange(lo, hi, step)`` as numpy fills it (``lo + i * ((lo + step) - lo)``), so
+    the compiled search visits the very columns the numpy one did."""
+    n = max(int(np.ceil((hi - lo) / step)), 0)
+    out = np.empty(n)
+    if n > 0:
+        out[0] = lo
+    if n > 1:
+        delta = (lo + step) - lo
+        out[1] = lo + delta
+        for i in range(2, n):
+            out[i] = lo + i * delta
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit_at(t, y, grid, prior):  # pragma: no cover - compiled
+    theta, J, var_a = np.empty((grid.shape[0], 5)), np.empty(grid.shape[0]), np.empty(
+        grid.shape[0])
+    two_arm_fit(t, y, grid, prior, theta, J, var_a)
+    return theta, J, var_a
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_search(t, y, lo, hi, step, prior, coarse, out):  # pragma: no cover - compiled
+    """The best corner column over ``lo..hi`` (coarse grid, then ``step`` around its best,
+    parabola-refined): out = (tc, J, J'', A^-1[0, 0], width, theta (5)); False without a
+    grid."""
+    if hi - lo < 3 * step:
+        return False
+    cgrid = _arange(lo, hi + 0.5 * step, coarse * step)
+    _, Jc0, _ = _fit_at(t, y, cgrid, prior)
+    i0 = int(np.argmin(Jc0))
+    k0 = cgrid[i0]
+    jmin = Jc0[i0]
+    s2 = max(jmin, 0.0) / max(t.shape[0] - 5, 1)
+    width = 0.0
+    for i in range(cgrid.shape[0]):
+        if Jc0[i] <= jmin + s2:
+            width = max(width, abs(cgrid[i] - k0))
+    grid = _arange(max(lo, k0 - coarse * step), min(hi, k0 + coarse * step) + 0.5 * step,
+                   step)
+    m = grid.shape[0]
+    if m < 3:
+        return False
+    _, J, _ = _fit_at(t, y, grid, prior)
+    k = int(np.argmin(J))
+    curv = 0.0
+    tc = grid[k]
+    if 0 < k < m - 1:
+        j0, j1, j2 = J[k - 1], J[k], J[k + 1]
+        curv = (j0 - 2 * j1 + j2) / step ** 2
+        if curv > 0:
+            tc = min(max(grid[k] + 0.5 * step * (j0 - j2) / (j0 - 2 * j1 + j2),
+                         grid[k] - step), grid[k] + step)
+    one = np.empty(1)
+    one[0] = tc
+    theta, Jc, a00 = _fit_at(t, y, one, prior)
+    out[0], out[1], out[2], out[3], out[4] = tc, Jc[0], curv, a00[0], width
+    out[5:10] = theta[0]
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _two_arm_residuals(t, y, tc, th):  # pragma: no cover - compiled
+    e = np.empty(t.shape[0])
+    for i in range(t.shape[0]):
+        x = t[i] - tc
+        if x < 0:
+            e[i] = y[i] - (th[0] + th[1] * x + th[2] * x * x)
+        else:
+            e[i] = y[i] - (th[0] + th[3] * x + th[4] * x * x)
+    return e
+
+
+@numba.njit("i8(f8[::1], f8[::1], i8, f8, f8[::1], i8, f8[::1])", cache=True, nogil=True)
+def shallow_search(t, y, min_points, step, prior, coarse, out):  # pragma: no cover - compiled
+    """The shallow corner's whole search (:func:`torchseam.track.shallow.shallow_corner`):
+    the grid search over the corner columns of points ``t``, ``y`` (N,) sorted by t (from
+    the ``min_points``-th point to the ``min_points``-th from the end), a robust pass (points
+    within max(3 MAD, 0.5) of the fit kept) and a second search on the kept points. Writes
+    out (10,) = (tc, J, J'', A^-1[0, 0], width, theta (5)) and returns the points kept, or
+    0 (too few points, no grid)."""
+    n = t.shape[0]
+    keep = np.ones(n, np.bool_)
+    nk = n
+    for _ in range(2):  # a search, then one on the points the robust pass kept
+        if nk < 2 * min_points + 5:
+            return 0
+        tk, yk = np.empty(nk), np.empty(nk)
+        j = 0
+        for i in range(n):
+            if keep[i]:
+                tk[j], yk[j] = t[i], y[i]
+                j += 1
+        if not _grid_search(tk, yk, tk[min_points - 1], tk[nk - min_points], step, prior,
+                            coarse, out):
+            return 0
+        tc, th = out[0], out[5:10]
+        e = _two_arm_residuals(tk, yk, tc, th)
+        mad = 1.4826 * np.median(np.abs(e - np.median(e)))
+        e_all = _two_arm_residuals(t, y, tc, th)
+        lim = max(3.0 * mad, 0.5)
+        same = True
+        new_n = 0
+        new = np.empty(n, np.bool_)
+        for i in range(n):
+            new[i] = abs(e_all[i]) < lim
+            new_n += new[i]
+            same = same and new[i] == keep[i]
+        if same:
+            break
+        keep, nk = new, new_n
+    return nk

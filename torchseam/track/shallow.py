@@ -70,57 +70,6 @@ class ShallowFix:
         return float(np.sqrt(max(np.linalg.eigvalsh(self.cov)[-1], 0.0)))
 
 
-def _solve(t: np.ndarray, y: np.ndarray, tc: np.ndarray, prior: np.ndarray
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The two-arm fit at every corner column ``tc`` (K,): (theta (K, 5) = (a, b_L, c_L, b_R,
-    c_R), J (K,), var(a) per unit noise (K,)); compiled (``_kernels.two_arm_fit``: each
-    arm's (b, c) for a given ``a`` from its 2x2 normal matrix, ``a`` from the Schur
-    complement)."""
-    K = len(tc)
-    theta, J, var_a = np.empty((K, 5)), np.empty(K), np.empty(K)
-    load_kernels(__package__).two_arm_fit(t, y, np.ascontiguousarray(tc, dtype=np.float64),
-                                          prior, theta, J, var_a)
-    return theta, J, var_a
-
-
-def _search(t: np.ndarray, y: np.ndarray, lo: float, hi: float, step: float,
-            prior: np.ndarray
-            ) -> tuple[float, np.ndarray, float, float, float, float] | None:
-    """Best corner column over the grid ``lo..hi`` (scaled units), parabola-refined: (tc,
-    theta (5,), J at tc, J'' at tc, A^-1[0, 0] at tc, the half-width of the coarse grid's
-    columns whose J lies within s^2 of the least); None without a grid."""
-    if hi - lo < 3 * step:
-        return None
-    coarse = np.arange(lo, hi + 0.5 * step, COARSE * step)
-    _, Jc0, _ = _solve(t, y, coarse, prior)
-    k0 = float(coarse[int(np.argmin(Jc0))])
-    s2 = max(float(Jc0.min()), 0.0) / max(len(t) - 5, 1)
-    width = float(np.max(np.abs(coarse[Jc0 <= Jc0.min() + s2] - k0)))
-    grid = np.arange(max(lo, k0 - COARSE * step), min(hi, k0 + COARSE * step) + 0.5 * step,
-                     step)
-    if len(grid) < 3:
-        return None
-    _, J, _ = _solve(t, y, grid, prior)
-    k = int(np.argmin(J))
-    curv = 0.0
-    tc = float(grid[k])
-    if 0 < k < len(grid) - 1:
-        j0, j1, j2 = J[k - 1], J[k], J[k + 1]
-        curv = (j0 - 2 * j1 + j2) / step ** 2
-        if curv > 0:
-            tc = float(np.clip(grid[k] + 0.5 * step * (j0 - j2) / (j0 - 2 * j1 + j2),
-                               grid[k] - step, grid[k] + step))
-    theta, Jc, a00 = _solve(t, y, np.array([tc]), prior)
-    return tc, theta[0], float(Jc[0]), curv, float(a00[0]), width
-
-
-def _residuals(t: np.ndarray, y: np.ndarray, tc: float, th: np.ndarray) -> np.ndarray:
-    x = t - tc
-    left = x < 0
-    return y - np.where(left, th[0] + th[1] * x + th[2] * x * x,
-                        th[0] + th[3] * x + th[4] * x * x)
-
-
 def shallow_corner(pts: np.ndarray, min_points: int = 15, step_px: float = 1.0,
                    curvature: np.ndarray | None = None, curvature_weight: float = 0.0,
                    max_along_px: float = 1e4) -> ShallowFix | None:
@@ -159,26 +108,14 @@ def shallow_corner(pts: np.ndarray, min_points: int = 15, step_px: float = 1.0,
         s2 = _SCALE * _SCALE
         w = curvature_weight / s2 ** 2  # w (c - c0)^2 in px -> in the scaled units
         prior[:] = (float(curvature[0]) * s2, w, float(curvature[1]) * s2, w)
-    step = step_px / _SCALE
-    keep = np.ones(len(t), bool)
-    best = None
-    for _ in range(2):  # a search, then one on the points the robust pass kept
-        tk, yk = np.ascontiguousarray(t[keep]), np.ascontiguousarray(y[keep])
-        if len(tk) < 2 * min_points + 5:
-            return None
-        best = _search(tk, yk, float(tk[min_points - 1]), float(tk[-min_points]), step, prior)
-        if best is None:
-            return None
-        e = _residuals(tk, yk, best[0], best[1])
-        mad = 1.4826 * float(np.median(np.abs(e - np.median(e))))
-        e_all = _residuals(t, y, best[0], best[1])
-        new = np.abs(e_all) < max(3.0 * mad, 0.5)
-        if np.array_equal(new, keep):
-            break
-        keep = new
-    assert best is not None
-    tc, th, J, curv, a00, width = best
-    n = int(keep.sum())
+    out = np.empty(10)
+    n = int(load_kernels(__package__).shallow_search(
+        np.ascontiguousarray(t), np.ascontiguousarray(y), min_points, step_px / _SCALE, prior,
+        COARSE, out))
+    if n == 0:
+        return None
+    tc, J, curv, a00, width = (float(x) for x in out[:5])
+    th = out[5:]
     s2 = max(J, 0.0) / max(n - 5, 1)
     # the local curvature's sigma, or, where J has other minima about as low (a spatter
     # streak, glare bending an arm), the reach of those (Delta chi^2 = 1 over the whole grid)
