@@ -326,3 +326,29 @@ def test_ecal_compiled_crossings_match_their_numpy_statement(cell, part, noise, 
             n_cross += len(g)
         n_rejected += sum(g[1] for g in got)
     assert n_cross > 500 and n_rejected > 20  # crossings and rejected spatter were compared
+
+
+def test_numpy_torch_frame_matches_the_torch_one():
+    import torch
+
+    from torchseam.core.transforms import axis_rotation, matrix_to_quat
+    from torchseam.geometry.torch_frame import frame_from_arms, quaternions, tilt, torch_frame
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        p, a1, a2 = rng.normal(size=3) * 300, rng.normal(size=3) * 5, rng.normal(size=3) * 5
+        t = rng.normal(size=3)
+        P = torch.tensor(p)[None]
+        R, ok = torch_frame(P, P + torch.tensor(a1)[None], P + torch.tensor(a2)[None],
+                            tangent=torch.tensor(t)[None])
+        Rn, okn = frame_from_arms(p, p + a1, p + a2, t)
+        assert okn == bool(ok[0])
+        np.testing.assert_allclose(Rn, R[0].numpy(), atol=1e-12)
+        Rt = tilt(R, 4.0, -6.0)[0].numpy()
+        np.testing.assert_allclose(Rn @ axis_rotation(0, 4.0) @ axis_rotation(1, -6.0), Rt,
+                                   atol=1e-12)
+        np.testing.assert_allclose(matrix_to_quat(Rt), quaternions(torch.tensor(Rt[None]))[0],
+                                   atol=1e-12)
+    # collinear arms: no frame
+    p = np.zeros(3)
+    assert not frame_from_arms(p, p + [0, 1.0, 0], p + [0, 2.0, 0], np.array([1.0, 0, 0]))[1]

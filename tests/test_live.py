@@ -103,32 +103,6 @@ def test_loop_history_is_bounded_and_the_demo_keeps_every_pose(baseline):
     assert baseline.summary["poses_sent"] == len(baseline.sent) >= LENGTH_MM / 2
 
 
-def test_numpy_torch_frame_matches_the_torch_one():
-    import torch
-
-    from torchseam.core.transforms import matrix_to_quat
-    from torchseam.geometry.torch_frame import quaternions, tilt, torch_frame
-    from torchseam.live.loop import _rot, frame_from_arms
-
-    rng = np.random.default_rng(0)
-    for _ in range(20):
-        p, a1, a2 = rng.normal(size=3) * 300, rng.normal(size=3) * 5, rng.normal(size=3) * 5
-        t = rng.normal(size=3)
-        P = torch.tensor(p)[None]
-        R, ok = torch_frame(P, P + torch.tensor(a1)[None], P + torch.tensor(a2)[None],
-                            tangent=torch.tensor(t)[None])
-        Rn, okn = frame_from_arms(p, p + a1, p + a2, t)
-        assert okn == bool(ok[0])
-        np.testing.assert_allclose(Rn, R[0].numpy(), atol=1e-12)
-        Rt = tilt(R, 4.0, -6.0)[0].numpy()
-        np.testing.assert_allclose(Rn @ _rot(0, 4.0) @ _rot(1, -6.0), Rt, atol=1e-12)
-        np.testing.assert_allclose(matrix_to_quat(Rt), quaternions(torch.tensor(Rt[None]))[0],
-                                   atol=1e-12)
-    # collinear arms: no frame
-    p = np.zeros(3)
-    assert not frame_from_arms(p, p + [0, 1.0, 0], p + [0, 2.0, 0], np.array([1.0, 0, 0]))[1]
-
-
 def test_sim_controller_lockstep_cycle(cell):
     import dataclasses
 

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from pytorch_kinematics.transforms import matrix_to_quaternion
 from torch import Tensor
 
 from torchseam.core.checks import check_shape
+from torchseam.core.transforms import axis_rotation, cross3
 
 # |u1 x u2| / (|u1| |u2|) below this: the three points are (nearly) collinear
 MIN_SIN = 0.02
@@ -79,16 +81,45 @@ def torch_frame(p: Tensor, q1: Tensor, q2: Tensor, travel: Tensor | None = None,
     return R, valid
 
 
-def tilt(R: Tensor, work_deg: float = 0.0, travel_deg: float = 0.0) -> Tensor:
-    """Apply the work angle (about wx) and the travel angle (about wy) in the torch frame."""
-    def rot(axis: int, deg: float) -> Tensor:
-        c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
-        M = torch.eye(3, dtype=R.dtype, device=R.device)
-        i, j = [(1, 2), (2, 0), (0, 1)][axis]
-        M[i, i], M[i, j], M[j, i], M[j, j] = c, -s, s, c
-        return M
+def frame_from_arms(p: np.ndarray, q1: np.ndarray, q2: np.ndarray, tangent: np.ndarray
+                    ) -> tuple[np.ndarray, bool]:
+    """The torch frame of :func:`torch_frame` with a seam tangent (Omega perpendicular to the
+    seam, px along the tangent), for one point in numpy: the live loop's twin of the batched
+    torch version (which pays ~1.5 ms of per-call tensor overhead on 3-vectors, this one
+    ~30 us); ``tests/test_geometry.py`` holds the two to the same numbers (1e-12).
 
-    return R @ rot(0, work_deg) @ rot(1, travel_deg)
+    Args:
+        p: (3,) weld point; q1, q2: (3,) a point on each stripe arm; tangent: (3,) the seam's
+            direction of travel (need not be unit). All mm, base frame.
+
+    Returns:
+        ``(R, ok)``: (3, 3) rotation with columns (wx, wy, wz) and whether the points define a
+        frame (coincident or collinear arms: ``ok`` False and the identity).
+    """
+    t = tangent / max(float(np.linalg.norm(tangent)), 1e-12)
+    u1, u2 = q1 - p, q2 - p
+    u1 = u1 - (u1 @ t) * t
+    u2 = u2 - (u2 @ t) * t
+    n1, n2 = float(np.linalg.norm(u1)), float(np.linalg.norm(u2))
+    cross = cross3(u1, u2)
+    nc = float(np.linalg.norm(cross))
+    sin = nc / max(n1 * n2, 1e-12)
+    if not (n1 > MIN_ARM_MM and n2 > MIN_ARM_MM and sin > MIN_SIN and math.isfinite(nc)):
+        return np.eye(3), False
+    px = cross / max(nc, 1e-12)                                        # eq. 27
+    if px @ t < 0:
+        px = -px
+    pz = u1 / max(n1, 1e-12) + u2 / max(n2, 1e-12)                     # eq. 28
+    pz = pz / max(float(np.linalg.norm(pz)), 1e-12)
+    py = cross3(pz, px)
+    return np.stack([px, -py, -pz], axis=1), True                      # eq. 29
+
+
+def tilt(R: Tensor, work_deg: float = 0.0, travel_deg: float = 0.0) -> Tensor:
+    """Apply the work angle (about wx) and the travel angle (about wy) in the torch frame:
+    ``R`` (..., 3, 3) -> (..., 3, 3)."""
+    M = axis_rotation(0, work_deg) @ axis_rotation(1, travel_deg)
+    return R @ torch.as_tensor(M, dtype=R.dtype, device=R.device)
 
 
 def quaternions(R: Tensor, previous: Tensor | None = None) -> Tensor:

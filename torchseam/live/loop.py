@@ -50,9 +50,15 @@ from scipy.spatial import cKDTree
 
 from torchseam.core.config import CONFIG_DIR, CellConfig, ConfigError, load_config
 from torchseam.core.config import config_field as _f
-from torchseam.core.transforms import matrix_to_quat, quat_to_matrix, slerp
+from torchseam.core.transforms import (
+    axis_rotation,
+    matrix_to_quat,
+    quat_angle_deg,
+    quat_to_matrix,
+    slerp,
+)
 from torchseam.geometry.ecal import Ecal
-from torchseam.geometry.torch_frame import MIN_ARM_MM, MIN_SIN
+from torchseam.geometry.torch_frame import frame_from_arms
 from torchseam.live.locate import Location, SeamLocator
 from torchseam.plan.path import LookAheadBuffer, PlanConfig, ipi_step
 from torchseam.robot.egm import Verdict
@@ -187,17 +193,12 @@ class History(deque[_T]):
 TURN_SHARE = 0.8
 
 
-def _angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
-    """Rotation between two unit quaternions (4,), degrees."""
-    return 2.0 * math.degrees(math.acos(min(1.0, abs(float(q1 @ q2)))))
-
-
 def _turn_limited(q_prev: np.ndarray | None, q: np.ndarray, max_deg: float) -> np.ndarray:
     """Slerp from ``q_prev`` towards ``q`` by at most ``max_deg`` (quaternions (4,) w, x, y,
     z, same hemisphere): the torch turns to a newly seen frame over several steps."""
     if q_prev is None:
         return q
-    ang = 2.0 * math.degrees(math.acos(min(1.0, abs(float(q_prev @ q)))))
+    ang = quat_angle_deg(q_prev, q)
     if ang <= max_deg:
         return q
     return slerp(q_prev, q, max_deg / ang)
@@ -210,58 +211,6 @@ def _blend(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
     out = np.where(np.isfinite(a).all(axis=1, keepdims=True), out, b)
     out = np.where(np.isfinite(b).all(axis=1, keepdims=True), out, a)
     return out / np.linalg.norm(out, axis=1, keepdims=True)
-
-
-def _rot(axis: int, deg: float) -> np.ndarray:
-    """(3, 3) rotation by ``deg`` about coordinate axis ``axis`` (0 x, 1 y, 2 z)."""
-    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
-    M = np.eye(3)
-    i, j = [(1, 2), (2, 0), (0, 1)][axis]
-    M[i, i], M[i, j], M[j, i], M[j, j] = c, -s, s, c
-    return M
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product of two 3-vectors (np.cross costs ~25 us a call on 3-vectors)."""
-    a0, a1, a2 = a.tolist()
-    b0, b1, b2 = b.tolist()
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
-
-
-def frame_from_arms(p: np.ndarray, q1: np.ndarray, q2: np.ndarray, tangent: np.ndarray
-                    ) -> tuple[np.ndarray, bool]:
-    """The torch frame of :func:`torchseam.geometry.torch_frame.torch_frame` with a seam
-    tangent (Omega perpendicular to the seam, px along the tangent), for one point in numpy.
-
-    The live loop plans one pose per step; the torch version pays ~1.5 ms of per-call tensor
-    overhead on these 3-vectors, this one ~30 us (``tests/test_live.py`` holds the two to the
-    same numbers).
-
-    Args:
-        p: (3,) weld point; q1, q2: (3,) a point on each stripe arm; tangent: (3,) the seam's
-            direction of travel (need not be unit). All mm, base frame.
-
-    Returns:
-        ``(R, ok)``: (3, 3) rotation with columns (wx, wy, wz) and whether the points define a
-        frame (coincident or collinear arms: ``ok`` False and the identity).
-    """
-    t = tangent / max(float(np.linalg.norm(tangent)), 1e-12)
-    u1, u2 = q1 - p, q2 - p
-    u1 = u1 - (u1 @ t) * t
-    u2 = u2 - (u2 @ t) * t
-    n1, n2 = float(np.linalg.norm(u1)), float(np.linalg.norm(u2))
-    cross = _cross(u1, u2)
-    nc = float(np.linalg.norm(cross))
-    sin = nc / max(n1 * n2, 1e-12)
-    if not (n1 > MIN_ARM_MM and n2 > MIN_ARM_MM and sin > MIN_SIN and math.isfinite(nc)):
-        return np.eye(3), False
-    px = cross / max(nc, 1e-12)                                        # eq. 27
-    if px @ t < 0:
-        px = -px
-    pz = u1 / max(n1, 1e-12) + u2 / max(n2, 1e-12)                     # eq. 28
-    pz = pz / max(float(np.linalg.norm(pz)), 1e-12)
-    py = _cross(pz, px)
-    return np.stack([px, -py, -pz], axis=1), True                      # eq. 29
 
 
 def load_live_config(path: str | Path | None = None) -> LiveConfig:
@@ -401,7 +350,8 @@ class LiveLoop:
         # every command collects StepReport.command itself
         self.commands: History[Command] = History(maxlen=self.cfg.history)
         self.message = ""
-        self._tilt = (_rot(0, self.plan.work_angle_deg) @ _rot(1, self.plan.travel_angle_deg))
+        self._tilt = (axis_rotation(0, self.plan.work_angle_deg)
+                      @ axis_rotation(1, self.plan.travel_angle_deg))
         # prepare()'s pose: (the buffer's answer it came from, last_q then, the pose (ip, q,
         # the seam's frame there))
         self._prepared: tuple[tuple[np.ndarray, np.ndarray | None, np.ndarray] | None,
@@ -838,7 +788,7 @@ class LiveLoop:
         w, cp = self.want_q, self.target
         if w is None or cp is None:
             return ip, q
-        turn = _angle_deg(w, q)
+        turn = quat_angle_deg(w, q)
         if turn <= self.cfg.max_turn_deg:
             return ip, q
         d = float(np.linalg.norm(ip - cp))

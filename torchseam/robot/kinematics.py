@@ -32,6 +32,7 @@ from pytorch_kinematics.transforms import rotation_conversions as rc
 
 from torchseam import shipped
 from torchseam.core.errors import TorchseamError
+from torchseam.core.transforms import cross
 from torchseam.robot.config import RobotConfig, load_robot
 
 #: The shipped URDF (written from the IRB 1410's standard DH table: the ARTE toolbox,
@@ -733,16 +734,12 @@ def arm_forward(xp: ModuleType, g: _ArmGeometry, q_deg: Array, tool: Array | Non
         pt, R6 = pe + R6 @ tool[:3, 3], R6 @ tool[:3, :3]
     # columns: axis 2 translates the forearm (parallelogram); axis 6 moves only a TCP off it
     axes = _stack(xp, [z1, y1, y1, x3, y4, x5], 1)                          # (N, 6, 3)
-    lin = _cross(axes, _stack(xp, [pt, p3 - p2, pt - p3, pt - pw, pt - pw, pt - pe], 1))
+    lin = cross(axes, _stack(xp, [pt, p3 - p2, pt - p3, pt - pw, pt - pw, pt - pe], 1))
     ang = _stack(xp, [z1, xp.zeros_like(z1), y1, x3, y4, x5], 1)
     J = xp.swapaxes(xp.concat([lin, ang], 2), 1, 2)
     bottom = xp.broadcast_to(_const(xp, [[0.0, 0.0, 0.0, 1.0]], q), (q.shape[0], 1, 4))
     T = xp.concat([xp.concat([R6, pt[:, :, None]], -1), bottom], 1)
     return T, J
-
-
-def _cross(a: Array, b: Array) -> Array:  # (..., 3); np.cross is slow on tiny arrays
-    return a[..., [1, 2, 0]] * b[..., [2, 0, 1]] - a[..., [2, 0, 1]] * b[..., [1, 2, 0]]
 
 
 def range_excess(q_deg: Array, lo: Array, hi: Array, axis3_difference: bool) -> Array:

@@ -62,6 +62,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from torchseam.core.transforms import quat_angle_deg as quat_angle_deg  # (re-exported)
 from torchseam.robot.egm.config import EgmSafety
 
 U32 = 0xFFFFFFFF
@@ -525,12 +526,6 @@ def hold_pose(reference: Pose | None, session_start: Pose | None) -> Pose:
     if session_start is not None:
         return session_start
     raise ValueError("no accepted pose and no session start to hold at")
-
-
-def quat_angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
-    """Rotation angle between two unit quaternions (w, x, y, z), degrees."""
-    d = min(1.0, abs(float(np.dot(q1, q2))))
-    return math.degrees(2.0 * math.acos(d))
 
 
 def reply_step(prev_vec: np.ndarray, vec: np.ndarray, prev_quat: np.ndarray | None = None,
