@@ -475,7 +475,8 @@ class AnchorFilter:
         self.innovation: kalman.Innovation | None = None  # the last measurement's
         self.k = 0                                   # frames stepped
         self._trail: deque[tuple[int, np.ndarray]] = deque()  # (frame, point) with evidence
-        self.velocity: np.ndarray | None = None      # (2,) px per frame, from the trail
+        self._velocity: np.ndarray | None = None     # (2,) px per frame, from the trail ...
+        self._velocity_due = False                   # ... fitted again when next asked
 
     def set_params(self, params: Mapping[str, Any]) -> None:
         """New fitted values (after an optimiser step)."""
@@ -501,24 +502,33 @@ class AnchorFilter:
         """The track jumped (a start, a restart on a clean corner, a re-acquisition): the
         points before say nothing about its motion after."""
         self._trail.clear()
-        self.velocity = None
+        self._velocity, self._velocity_due = None, False
 
     def _learn_motion(self, uv: np.ndarray) -> None:
-        """A point with evidence joins the trail; the velocity is the least-squares slope of
-        the trail's points over the last ``velocity_frames`` frames (at least
-        ``velocity_points`` of them), per axis: ``v = sum (k - k_m)(x_k - x_m) /
-        sum (k - k_m)^2``."""
+        """A point with evidence joins the trail (the last ``velocity_frames`` frames'); the
+        velocity is fitted from it when next asked (:attr:`velocity`)."""
         c = self.cfg
         self._trail.append((self.k, np.asarray(uv, float).copy()))
         while self._trail and self._trail[0][0] <= self.k - c.velocity_frames:
             self._trail.popleft()
-        if len(self._trail) < c.velocity_points:
-            self.velocity = None
-            return
-        k = np.array([f for f, _ in self._trail], float)
-        X = np.array([p for _, p in self._trail])
-        dk = k - k.mean()
-        self.velocity = dk @ (X - X.mean(axis=0)) / float(dk @ dk)
+        self._velocity_due = True
+
+    @property
+    def velocity(self) -> np.ndarray | None:
+        """(2,) px per frame: the least-squares slope of the trail's points (at least
+        ``velocity_points`` of them), per axis: ``v = sum (k - k_m)(x_k - x_m) /
+        sum (k - k_m)^2``; None with fewer. Fitted only when asked (the trail changes only
+        with evidence; the live loop, which has the robot's expected pixel, never asks)."""
+        if self._velocity_due:
+            self._velocity_due = False
+            if len(self._trail) < self.cfg.velocity_points:
+                self._velocity = None
+            else:
+                k = np.array([f for f, _ in self._trail], float)
+                X = np.array([p for _, p in self._trail])
+                dk = k - k.mean()
+                self._velocity = dk @ (X - X.mean(axis=0)) / float(dk @ dk)
+        return self._velocity
 
     def prior(self) -> np.ndarray | None:
         """The arm prior for TIPM: the arm shape of the last fix taken and seen, its variance
@@ -580,7 +590,7 @@ class AnchorFilter:
         self.x, self.P = kalman.predict(self.x, self.P, self.I, self.Q)
         if expected is not None:
             self.x = o.const(expected)
-        elif self.velocity is not None and self.coast > 0:
+        elif self.coast > 0 and self.velocity is not None:
             # the velocity fades while no evidence comes: the corner's image motion is no
             # constant velocity over tens of frames (the path's wobble, the part's deviation)
             fade = math.exp(-self.coast / self.cfg.velocity_fade_frames)
