@@ -188,6 +188,12 @@ class PartConfig:
     branch_ovality: float = _f(lo=0.0, hi=0.1, default=0.0)
     distortion_mm: float = _f(lo=0.0, hi=10.0)
     distortion_period_s: float = _f(lo=1.0, hi=86400.0)
+    # a bevelled branch (torchseam.core.part.BevelledJoint): its end cut at bevel_deg from the
+    # square end across the wall of branch_wall_mm, set root_gap_mm off the main body
+    # (measured along the branch axis); 0 (the default): a square-cut branch sitting on it
+    bevel_deg: float = _f(lo=0.0, hi=60.0, default=0.0)
+    branch_wall_mm: float = _f(lo=0.0, hi=100.0, default=0.0)
+    root_gap_mm: float = _f(lo=0.0, hi=6.0, default=0.0)
     placement: Pose = field(default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
     placement_error: Pose = field(
         default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
@@ -209,6 +215,7 @@ class PartConfig:
                 raise ValueError(f"{name}: a part of kind {kind} has none (leave it out)")
         r = self.branch_od_mm / 2 * (1 + self.branch_ovality)
         y = self.design_offset_mm + self.branch_offset_mm[1]
+        self._check_bevel()
         if pipe:
             if self.main_od_mm <= 0.0:
                 raise ValueError(_positive("main_od_mm", self.main_od_mm,
@@ -231,6 +238,22 @@ class PartConfig:
                 raise ValueError(
                     "branch_od_mm: branch radius plus its offset from the sphere's centre must "
                     f"stay inside the sphere ({r + off:.1f} mm >= {self.sphere_radius_mm:.1f} mm)")
+
+
+    def _check_bevel(self) -> None:
+        """A bevel needs the wall it is cut across, and a root gap needs a bevel (a square
+        branch lifted off the main body has no groove for the torch to bisect)."""
+        r_min = self.branch_od_mm / 2 * (1 - self.branch_ovality)
+        if self.bevel_deg > 0.0 and self.branch_wall_mm <= 0.0:
+            raise ValueError(_positive("branch_wall_mm", self.branch_wall_mm,
+                                       "the branch's wall thickness (a bevel is cut across it)"))
+        if self.branch_wall_mm >= r_min:
+            raise ValueError(f"branch_wall_mm: the wall must be thinner than the branch's radius "
+                             f"({self.branch_wall_mm!r} >= {r_min:.1f} mm)")
+        if self.root_gap_mm > 0.0 and self.bevel_deg <= 0.0:
+            raise ValueError("root_gap_mm: a root gap needs a bevelled branch (bevel_deg > 0)")
+        if self.bevel_deg > 0.0 and self.bevel_deg < 15.0:
+            raise ValueError(f"bevel_deg: expected 0 (none) or 15..60, got {self.bevel_deg!r}")
 
 
 @dataclass(frozen=True)

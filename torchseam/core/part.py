@@ -76,6 +76,9 @@ class Joint:
 
     kind = "pipe"
     main_name = "main pipe"   # what the main body is called in messages
+    #: the seam lies on both surfaces (a fillet's corner); False where the seam point is the
+    #: middle of a root gap (:class:`BevelledJoint`), which no surface holds
+    seam_on_surface = True
 
     def __init__(self, part: PartConfig) -> None:
         self.kind = part.kind
@@ -309,12 +312,203 @@ class SphereJoint(Joint):
         return {"kind": "sphere", "origin": self.m.copy(), "radius": self.R}
 
 
+#: :class:`BevelledJoint`: how many points along a ray's path through the branch wall are
+#: tried for its first entry into the wall's material, then bisection steps on the bracket
+BEVEL_MARCH_POINTS = 48
+BEVEL_BISECT_STEPS = 30
+
+
+class BevelledJoint(Joint):
+    """A bevelled branch set on a main body with a root gap: the groove of a full-penetration
+    set-on branch (``bevel_deg`` > 0 in the part file; issue 37's ``t_joint_bevel.yaml``).
+
+    The branch is a pipe of wall ``w = branch_wall_mm`` (inner radius ``r_i = r - w``, oval
+    like the outside). Its end is cut at the bevel angle ``b`` from the square end across the
+    wall: in the half-plane of the branch axis at angle ``phi`` the end face runs from the
+    *root edge* at radius ``r_i``, ``root_gap_mm`` (``g``) above where the inner generator meets
+    the main body (height ``h_i(phi)`` along the axis), straight out and up to the *shoulder*
+    at radius ``r``, ``w tan b`` higher. The groove is the wedge between that face and the main
+    body's surface; the main body is cut to the branch's bore (a set-on branch), so light
+    that passes through the root gap into the bore is lost (the ray counts as a miss).
+
+    The seam is the **root centre**, the middle of the gap: ``c_i(phi) + (h_i + g / 2) d``,
+    where the torch aims; it lies on no surface (:attr:`seam_on_surface` False). Its
+    ``normal_main`` is the main body's normal at the main side's root edge and its
+    ``normal_branch`` the bevel face's normal at the branch's root edge, so
+    :func:`torch_frames` puts the torch on the bisector of the groove (on the T joint's crown
+    22.5 degrees off the main pipe for a 45-degree bevel). The fillet's bisector would lie in
+    the plane of a 45-degree bevel there: the laser, riding with the torch, would graze the
+    bevel face and the camera would not see it.
+
+    Surface ids of :meth:`raycast`: 1 the main body, 2 the branch (its outer wall above the
+    shoulder and the bevel face alike); :meth:`normal_branch` tells them apart by the radius.
+    The main body's own geometry (``_height``, ``normal_main``, ``_hit_main``,
+    ``main_solid``) is the plain joint's of the same kind (``base``).
+    """
+
+    seam_on_surface = False
+
+    def __init__(self, base: Joint, part: PartConfig) -> None:
+        super().__init__(part)
+        self.base = base
+        self.kind, self.main_name = base.kind, base.main_name
+        self.branch_bottom, self.branch_top = base.branch_bottom, base.branch_top
+        self.wall = float(part.branch_wall_mm)
+        self.r_in = self.r - self.wall
+        self.gap = float(part.root_gap_mm)
+        self.tan_b = float(np.tan(np.deg2rad(part.bevel_deg)))
+
+    # ------------------------------------------------------------------ the main body
+    def _height(self, c: np.ndarray, dc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.base._height(c, dc)
+
+    def normal_main(self, p: np.ndarray) -> np.ndarray:
+        return self.base.normal_main(p)
+
+    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """The main body's surface, except inside the branch's bore (cut out: set-on)."""
+        t = self.base._hit_main(o, d)
+        hit = np.isfinite(t)
+        p = o + np.where(hit, t, 0.0)[:, None] * d
+        bore = self._polar(p)[0] < self.r_in
+        return np.where(hit & ~bore, t, np.inf)
+
+    def main_solid(self) -> dict:
+        return self.base.main_solid()
+
+    # ------------------------------------------------------------------ the bevelled branch
+    def _generator(self, rho: float | np.ndarray, phi: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Points across the branch axis at radius ``rho`` (of the round branch: scaled by the
+        ovality like the outside) and angles ``phi``, (N, 3), and their derivatives in phi."""
+        rho = np.asarray(rho, dtype=float).reshape(-1, 1)
+        cos, sin = np.cos(phi)[:, None], np.sin(phi)[:, None]
+        c = self.o + rho * (cos * self._f1 + sin * self._f2)
+        dc = rho * (-sin * self._f1 + cos * self._f2)
+        return c, dc
+
+    def _polar(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(radius of the round branch, angle phi, height along the axis) of points (N, 3)."""
+        q = p - self.o
+        a = q @ self.d
+        u = (q @ self.e1) / self.k1
+        v = (q @ self.e2) / self.k2
+        return np.hypot(u, v), np.arctan2(v, u), a
+
+    def root_height(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Height along the branch axis of the branch's root edge at angles ``phi`` (the inner
+        generator's meeting with the main body plus the gap), and its derivative in phi."""
+        h, dh = self.base._height(*self._generator(self.r_in, phi))
+        return h + self.gap, dh
+
+    def _material(self, p: np.ndarray) -> np.ndarray:
+        """(N,) > 0 where points of the wall's shell (r_i <= radius <= r) lie in the wall's
+        material: above the bevel face and below the branch's top."""
+        rho, phi, a = self._polar(p)
+        base = self.root_height(phi)[0] + (rho - self.r_in) * self.tan_b
+        return np.minimum(a - base, self.branch_top - a)
+
+    def _bevel_normal(self, rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
+        """(N, 3) outward unit normals of the bevel face at radius ``rho``, angle ``phi``."""
+        _, dh = self.root_height(phi)
+        cos, sin = np.cos(phi)[:, None], np.sin(phi)[:, None]
+        d_rho = cos * self._f1 + sin * self._f2 + self.tan_b * self.d
+        d_phi = rho[:, None] * (-sin * self._f1 + cos * self._f2) + dh[:, None] * self.d
+        n = np.cross(d_phi, d_rho)
+        n *= -np.sign(n @ self.d)[:, None]  # the face looks down the axis, out of the wall
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def normal_branch(self, p: np.ndarray) -> np.ndarray:
+        """Outward unit normals of the branch at its surface points: the outer wall's where a
+        point lies on it, the bevel face's below the shoulder."""
+        rho, phi, _ = self._polar(p)
+        out = super().normal_branch(p)
+        face = rho < self.r * (1.0 - 1e-9)
+        if face.any():
+            out[face] = self._bevel_normal(rho[face], phi[face])
+        return out
+
+    def seam(self, phi: np.ndarray) -> SeamSample:
+        """The root centre at branch angles ``phi`` (N,) rad: the middle of the root gap on
+        the branch's inner generator; tangent, the main body's normal at its root edge and
+        the bevel face's at the branch's root edge."""
+        phi = np.asarray(phi, dtype=float).reshape(-1)
+        c, dc = self._generator(self.r_in, phi)
+        h, dh = self.base._height(c, dc)
+        p = c + (h + 0.5 * self.gap)[:, None] * self.d
+        t = dc + dh[:, None] * self.d
+        t /= np.linalg.norm(t, axis=1, keepdims=True)
+        n_main = self.base.normal_main(c + h[:, None] * self.d)
+        n_face = self._bevel_normal(np.full(len(phi), self.r_in), phi)
+        return SeamSample(phi, p, t, n_main, n_face)
+
+    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """First entry of rays into the wall's material: where a ray crosses the outer
+        cylinder above the shoulder, else the first point of its path through the wall's shell
+        (outer cylinder to bore) that lies above the bevel face (marched, then bisected)."""
+        n = len(d)
+        q = o - self.o
+        qa, da = q @ self.d, d @ self.d
+        qp = self._across(q - qa[:, None] * self.d, self._un)
+        dp = self._across(d - da[:, None] * self.d, self._un)
+        A = np.einsum("ij,ij->i", dp, dp)
+        B = 2 * np.einsum("ij,ij->i", qp, dp)
+        qq = np.einsum("ij,ij->i", qp, qp)
+        t_out = _roots(A, B, qq - self.r**2)
+        t_in = _roots(A, B, qq - self.r_in**2)
+        start = np.maximum(t_out[0], 0.0)
+        # the shell's first stretch ends where the ray enters the bore, else where it leaves
+        end = np.where(np.isfinite(t_in[0]) & (t_in[0] > start), t_in[0], t_out[1])
+        ok = np.isfinite(t_out[0]) & (t_out[1] > 0.0) & (end > start)
+        # a ray along the axis crosses no cylinder: in the shell from its origin, if at all
+        axial = (A <= 1e-12) & (qq <= self.r**2) & (qq >= self.r_in**2)
+        start = np.where(axial, 0.0, start)
+        end = np.where(axial, 2.0 * (abs(self.branch_top) + np.abs(qa)) + 1.0, end)
+        ok |= axial
+        t = np.full(n, np.inf)
+        idx = np.flatnonzero(ok)
+        if not len(idx):
+            return t
+        s0, s1, oo, dd = start[idx], end[idx], o[idx], d[idx]
+        m = BEVEL_MARCH_POINTS
+        frac = np.linspace(0.0, 1.0, m)
+        ts = s0[:, None] + (s1 - s0)[:, None] * frac                        # (k, m)
+        pts = oo[:, None, :] + ts[..., None] * dd[:, None, :]
+        inside = self._material(pts.reshape(-1, 3)).reshape(len(idx), m) >= 0.0
+        first = np.argmax(inside, axis=1)
+        anyin = inside.any(axis=1)
+        at_entry = anyin & (first == 0)
+        t[idx[at_entry]] = s0[at_entry]     # the outer wall (or the origin is in the wall)
+        k = np.flatnonzero(anyin & (first > 0))
+        if len(k):
+            lo, hi = ts[k, first[k] - 1], ts[k, first[k]]
+            ok_, dk = oo[k], dd[k]
+            for _ in range(BEVEL_BISECT_STEPS):
+                mid = 0.5 * (lo + hi)
+                m_in = self._material(ok_ + mid[:, None] * dk) >= 0.0
+                hi = np.where(m_in, mid, hi)
+                lo = np.where(m_in, lo, mid)
+            t[idx[k]] = hi
+        return t
+
+
 def make_joint(part: PartConfig) -> Joint:
     """The joint of ``part``'s kind (``pipe`` and ``offset``: :class:`PipeJoint`; ``plate``:
-    :class:`PlateJoint`; ``sphere``: :class:`SphereJoint`)."""
+    :class:`PlateJoint`; ``sphere``: :class:`SphereJoint`); a bevelled branch
+    (``bevel_deg`` > 0) is the :class:`BevelledJoint` on it."""
     cls = {"pipe": PipeJoint, "offset": PipeJoint, "plate": PlateJoint,
            "sphere": SphereJoint}[part.kind]
-    return cls(part)
+    base = cls(part)
+    return BevelledJoint(base, part) if part.bevel_deg > 0.0 else base
+
+
+def _roots(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Both roots (smaller, larger) of A t^2 + B t + C = 0, ``inf`` where there are none."""
+    disc = B * B - 4 * A * C
+    ok = (disc >= 0) & (A > 1e-12)
+    sq = np.sqrt(np.where(ok, disc, 0.0))
+    den = np.where(ok, 2 * A, 1.0)
+    return (np.where(ok, (-B - sq) / den, np.inf), np.where(ok, (-B + sq) / den, np.inf))
 
 
 def _entry_root(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:

@@ -25,6 +25,10 @@ from torchseam.core.part import Joint
 from torchseam.core.transforms import apply, invert
 
 ARM_DISTANCE_MM = 5.0  # truth points on each stripe arm lie this far (3D) from the seam point
+#: a groove's lit pieces (:meth:`LaserSensor._edges`): neighbouring hits farther apart than this
+#: are on two pieces, and each piece's end is bisected this many times on the fan angle
+EDGE_JUMP_MM = 1.0
+EDGE_BISECT_STEPS = 20
 SPLAT_STEP_PX = 0.25   # spacing of splatted samples along the imaged stripe
 BLUR_MARGIN_PX = 16    # stripe box margin for the blur: > the Gaussian kernel's radius (7 px)
 #: The stripe of the ``sim`` appearance family (``configs/noise.yaml``): a Gaussian
@@ -128,11 +132,14 @@ class LaserSensor:
         R, c = T_T_C[:3, :3], T_T_C[:3, 3]
         src = apply(T_T_C, self.src_C)
         dirs = self.fan_C @ R.T
-        t, surf = joint.raycast(src, dirs)
+        t, surf_all = joint.raycast(src, dirs)
         hit = np.isfinite(t)
         psi = self.psi[hit]
         P = src + t[hit, None] * dirs[hit]
-        surf = surf[hit]
+        surf = surf_all[hit]
+        if not joint.seam_on_surface:  # a groove: its edges where they are, not at a ray
+            psi, P, surf = self._edges(joint, src, R, t, surf_all, hit, psi, P)
+            dirs, hit = self._fan_dirs(psi, R), np.ones(len(psi), bool)  # the kept rays
         n_T = R @ self.n_C
         d_T = self.d_C + n_T @ c
 
@@ -171,10 +178,11 @@ class LaserSensor:
             seam_uv, visible = np.full(2, np.nan), False
 
         # Insert the exact seam point where the fan passes from one surface to the other, so
-        # the imaged corner is sharp.
+        # the imaged corner is sharp (not where the seam is the middle of a root gap: no
+        # surface holds it, the stripe breaks there).
         order_P, order_s, order_b, order_seen = P, surf, bright, seen
         jump = np.nonzero(surf[1:] != surf[:-1])[0]
-        if len(jump):
+        if len(jump) and joint.seam_on_surface:
             k = jump[np.argmin(np.linalg.norm(P[jump] - seam_T, axis=1))] + 1
             if np.linalg.norm(P[k] - seam_T) < 2.0:
                 order_P = np.insert(P, k, seam_T, axis=0)
@@ -195,6 +203,67 @@ class LaserSensor:
         arm_uv = self.project((arm_T - c) @ R)
         return StripeView(uv[keep], order_b[keep], order_s[keep], seam_uv, seam_T, arm_T,
                           arm_uv, visible)
+
+    def _fan_dirs(self, psi: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """(N, 3) fan directions in {T} at fan angles ``psi`` for a camera turned by ``R``."""
+        a, b = self._fan_ab
+        return (np.cos(psi)[:, None] * a + np.sin(psi)[:, None] * b) @ R.T
+
+    def _edges(self, joint: Joint, src: np.ndarray, R: np.ndarray, t: np.ndarray,
+               surf_all: np.ndarray, hit: np.ndarray, psi: np.ndarray, P: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The lit points with the exact ends of each lit piece added: where the fan passes
+        from one ray to the next across an edge (a hit then a miss, as at a root gap whose
+        light goes into the bore, or a jump of more than ``EDGE_JUMP_MM``), the fan angle of
+        the edge is bisected (``EDGE_BISECT_STEPS``) from the ray on the lit side: the piece
+        continues while a ray hits the same surface near the line of the last two hits. The
+        rays are ~0.2 mm apart on a face lit at 22 degrees, so a piece drawn to its last ray
+        ended ~1.4 px short of the edge on average. Returns (psi, P, surface), in fan order."""
+        idx = np.flatnonzero(hit)
+        n = len(self.psi)
+        surf_hit = surf_all[idx]
+        anchors: list[tuple[int, int, int]] = []  # (lit ray, neighbour ray, previous lit ray)
+        for j, i in enumerate(idx):
+            for nb, back in ((i + 1, j - 1), (i - 1, j + 1)):
+                if not 0 <= nb < n or not 0 <= back < len(idx):
+                    continue
+                if abs(int(idx[back]) - int(i)) != 1:
+                    continue  # no neighbour on the lit side to continue the piece's line
+                gone = not hit[nb] or surf_all[nb] != surf_hit[j]
+                if not gone:
+                    k = int(np.searchsorted(idx, nb))
+                    gone = float(np.linalg.norm(P[k] - P[j])) > EDGE_JUMP_MM
+                if gone:
+                    anchors.append((j, int(nb), back))
+        if not anchors:
+            return psi, P, surf_hit
+        js = np.array([a[0] for a in anchors])
+        lo = self.psi[idx[js]]
+        hi = self.psi[np.array([a[1] for a in anchors])]
+        p0, p_back = P[js], P[np.array([a[2] for a in anchors])]
+        sid = surf_hit[js]
+        step = np.linalg.norm(p0 - p_back, axis=1)
+        line = (p0 - p_back) / np.maximum(step, 1e-12)[:, None]
+        for _ in range(EDGE_BISECT_STEPS):
+            mid = 0.5 * (lo + hi)
+            d = self._fan_dirs(mid, R)
+            tm, sm = joint.raycast(src, d)
+            q = src + np.where(np.isfinite(tm), tm, 0.0)[:, None] * d
+            off = q - p0
+            along = np.einsum("ij,ij->i", off, line)
+            across = np.linalg.norm(off - along[:, None] * line, axis=1)
+            same = (np.isfinite(tm) & (sm == sid) & (along > 0) & (along < 2.0 * step + 0.05)
+                    & (across < 0.25 * step + 1e-3))
+            lo, hi = np.where(same, mid, lo), np.where(same, hi, mid)
+        d = self._fan_dirs(lo, R)
+        te, se = joint.raycast(src, d)
+        ok = np.isfinite(te) & (se == sid)
+        e_psi = lo[ok]
+        e_P = src + te[ok, None] * d[ok]
+        psi_all = np.concatenate([psi, e_psi])
+        order = np.argsort(psi_all, kind="stable")
+        return (psi_all[order], np.concatenate([P, e_P])[order],
+                np.concatenate([surf_hit, se[ok]])[order])
 
     @staticmethod
     def _seam_in_plane(joint: Joint, n: np.ndarray, d: float, c: np.ndarray,

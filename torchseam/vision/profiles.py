@@ -80,6 +80,8 @@ class ProfileConfig:
     dip_fraction: float = config_field(lo=0.0, hi=1.0)
     min_step_px: float = config_field(lo=0.0, lo_open=True)
     min_depth_px: float = config_field(lo=0.0)
+    fit_px: float = config_field(lo=2.0)
+    shoulder_ratio: float = config_field(lo=1.0)
 
 
 def load_profile_config(path: str | Path | None = None) -> ProfileConfig:
@@ -102,6 +104,10 @@ class ProfileResult:
         area_px2: the groove's cross-section area (v_groove), px^2 in the image.
         centre: (N, 2) centre-line points used.
         tipm: the corner TIPM found (fillet).
+        arm_points: (2, 2) v_groove: a point on the stripe's piece that leaves each root
+            edge (left, right), up to ``fit_px`` along it (the flank, or a side's plate where
+            it has no flank): with the root edges, the two faces' directions at the root
+            (what the torch bisects); None where not found.
     """
 
     joint: str
@@ -114,6 +120,7 @@ class ProfileResult:
     area_px2: float = float("nan")
     centre: np.ndarray | None = None
     tipm: TipmResult | None = None
+    arm_points: np.ndarray | None = None
 
     @property
     def status(self) -> str:
@@ -126,7 +133,8 @@ class ProfileResult:
         return dataclasses.replace(
             self, aim=view.to_camera(self.aim),
             points={k: view.to_camera(p) for k, p in self.points.items()},
-            centre=None if self.centre is None else view.to_camera(self.centre))
+            centre=None if self.centre is None else view.to_camera(self.centre),
+            arm_points=None if self.arm_points is None else view.to_camera(self.arm_points))
 
 
 def _fail(joint: str, reason: str, centre: np.ndarray | None = None) -> ProfileResult:
@@ -302,7 +310,10 @@ class ProfileFinder:
         """(2,) where a piece (N, 2), ordered from its free end (a gap) inward, ends: the first
         point whose response reaches ``end_fraction`` of the piece's median, on ``line``, then
         followed along the line as far as the stripe stays that bright (the centre line's
-        path may stop short of an end where the stripe jumps: a lap's step)."""
+        path may stop short of an end where the stripe jumps: a lap's step), to the sub-pixel
+        point where the response (bilinear, the brightest of the line and a pixel either side
+        of it) falls through that level: a blurred line's end is where it has half its
+        brightness, and whole-pixel steps stopped ~1 px short of it."""
         level = self.cfg.end_fraction * np.median(resp)
         lit = resp >= level
         k = int(np.argmax(lit)) if lit.any() else 0
@@ -311,20 +322,39 @@ class ProfileFinder:
             return end
         out = piece[0] - piece[-1]
         step = line.d if float(out @ line.d) > 0 else -line.d
-        h, w = self._ridge.shape
-        for _ in range(int(4 * self.cfg.min_gap_px)):
-            q = end + step
-            u, v = int(round(q[0])), int(round(q[1]))
-            if not (0 <= u < w and 1 <= v < h - 1) or self._ridge[v - 1:v + 2, u].max() < level:
-                break
-            end = q
-        return end
+        normal = np.array([-step[1], step[0]])
+        ds = END_STEP_PX
+        n = int(4 * self.cfg.min_gap_px / ds)
+        along = end + (ds * np.arange(n + 1))[:, None] * step                  # (n + 1, 2)
+        val = np.max([_bilinear(self._ridge, along + o * normal) for o in (-1.0, 0.0, 1.0)],
+                     axis=0)
+        below = np.flatnonzero(val < level)
+        if not len(below) or below[0] == 0:  # bright throughout, or dim where it starts
+            return along[-1] if not len(below) else end
+        i = int(below[0])
+        frac = (val[i - 1] - level) / max(val[i - 1] - val[i], 1e-9)
+        return along[i - 1] + frac * ds * step
+
+    def _near(self, piece: np.ndarray) -> int:
+        """How many points of a piece (N, 2), from its first, lie within ``fit_px`` of it (at
+        least ``min_points``): the stretch a line is fitted to next to an edge, where a
+        curved surface (a pipe cut by the laser plane) is still straight."""
+        d = np.linalg.norm(piece - piece[0], axis=1)
+        return max(self.cfg.min_points, int(np.searchsorted(np.maximum.accumulate(d),
+                                                            self.cfg.fit_px, side="right")))
 
     def _side(self, side: np.ndarray, resp: np.ndarray
-              ) -> tuple[Line, Line | None, np.ndarray, np.ndarray] | str:
-        """One side of a groove, its points (N, 2) ordered from the root outward: the flank,
-        the plate's line (None: the side has no bevel, its flank is the plate), the shoulder
-        and the root edge; or why not."""
+              ) -> tuple[Line, Line | None, np.ndarray, np.ndarray, np.ndarray] | str:
+        """One side of a groove, its points (N, 2) ordered from the root outward: the line at
+        the root (the flank; the plate where the side has no bevel), the plate's line (None:
+        no bevel), the shoulder, the root edge and a point up the root's piece (``fit_px``
+        along it at most); or why not.
+
+        A side has a shoulder where two straight pieces explain it (each within
+        ``max_rms_px``), bending by ``min_bend_deg`` at least, ``shoulder_ratio`` times better
+        than one smooth curve (a quadratic): a curved plate (a pipe cut by the laser plane)
+        split in two bends too, but a quadratic follows it as well as two lines. Lines next to
+        an edge are fitted to the ``fit_px`` of the piece there."""
         cfg = self.cfg
         m = cfg.min_points
         if len(side) < m:
@@ -333,22 +363,40 @@ class ProfileFinder:
         if k > 0:
             flank, plate = fit_line(side[:k]), fit_line(side[k:])
             shoulder = meet(flank, plate)
-            if bend_deg(flank, plate) >= cfg.min_bend_deg and shoulder is not None:
-                if max(flank.rms, plate.rms) > cfg.max_rms_px:
-                    return f"fit residual {max(flank.rms, plate.rms):.2f} px"
-                return flank, plate, shoulder, self._end(side[:k], resp[:k], flank)
-        line = fit_line(side)
+            two = max(flank.rms, plate.rms)
+            if (bend_deg(flank, plate) >= cfg.min_bend_deg and shoulder is not None
+                    and _curve_rms(side) > cfg.shoulder_ratio * max(two, 0.25)):
+                if two > cfg.max_rms_px:
+                    return f"fit residual {two:.2f} px"
+                near = fit_line(side[k:k + self._near(side[k:])])
+                shoulder = meet(flank, near)
+                if shoulder is None:
+                    shoulder = flank.project(side[k])
+                root = self._end(side[:k], resp[:k], flank)
+                reach = min(cfg.fit_px, float(np.linalg.norm(shoulder - root)))
+                return flank, plate, shoulder, root, root + reach * _outward(flank, side)
+        n = self._near(side)
+        line = fit_line(side[:n])
         if line.rms > cfg.max_rms_px:
             return f"fit residual {line.rms:.2f} px"
         root = self._end(side, resp, line)
-        return line, None, root, root
+        return line, None, root, root, root + cfg.fit_px * _outward(line, side)
 
     def _v_groove(self, pts: np.ndarray, resp: np.ndarray) -> ProfileResult:
         cfg = self.cfg
         du = np.diff(pts[:, 0])
         j = int(np.argmax(du))
         closed = bool(du[j] < cfg.min_gap_px)
-        if not closed:  # the root gap: the widest break
+        breaks = np.flatnonzero(du >= cfg.min_gap_px)
+        if len(breaks) > 1:
+            # the root gap is the deepest break (farthest from the chord of the stripe's
+            # ends), not the widest: a wide, blurred stripe narrows the root gap below a
+            # dropout on a plate
+            a, b = pts[0], pts[-1]
+            n = np.array([a[1] - b[1], b[0] - a[0]])
+            mid = 0.5 * (pts[breaks] + pts[breaks + 1])
+            j = int(breaks[np.argmax(np.abs((mid - a) @ n))])
+        if not closed:  # the root gap
             left, right = pts[j::-1], pts[j + 1:]
             lresp, rresp = resp[j::-1], resp[j + 1:]
         else:  # a closed root: the flanks meet at the point farthest from the chord
@@ -362,7 +410,7 @@ class ProfileFinder:
             if isinstance(got, str):
                 return _fail("v_groove", f"no groove: its {name} side: {got}", pts)
             found.append(got)
-        (lf, lp, ls, lr), (rf, rp, rs, rr) = found
+        (lf, lp, ls, lr, la), (rf, rp, rs, rr, ra) = found
         if lp is None and rp is None:
             return _fail("v_groove", "no groove: no shoulder on either side (a square butt "
                          "gap? try the butt profile)", pts)
@@ -385,7 +433,7 @@ class ProfileFinder:
             "v_groove", True, aim,
             {"left_shoulder": ls, "left_root": lr, "right_root": rr, "right_shoulder": rs},
             note, float(np.linalg.norm(top)), float(np.linalg.norm(rr - lr)), groove_area(poly),
-            pts)
+            pts, arm_points=np.stack([la, ra]))
 
     def _two_plates(self, pts: np.ndarray, resp: np.ndarray, j: int
                     ) -> tuple[Line, Line, np.ndarray, np.ndarray] | str:
@@ -452,6 +500,43 @@ class ProfileFinder:
         edge, root = (re, le) if step < 0 else (le, re)
         return ProfileResult("lap", True, root.copy(), {"edge": edge, "root": root},
                              width_px=float(abs(step)), centre=pts)
+
+
+#: :meth:`ProfileFinder._end`'s step along a line when it follows the stripe to its end (px)
+END_STEP_PX = 0.25
+
+
+def _bilinear(img: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(N,) ``img`` (H, W) sampled bilinearly at points (N, 2) (u, v); 0 outside it."""
+    h, w = img.shape
+    u, v = p[:, 0], p[:, 1]
+    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    u0 = np.clip(np.floor(u).astype(int), 0, w - 2)
+    v0 = np.clip(np.floor(v).astype(int), 0, h - 2)
+    fu, fv = np.clip(u - u0, 0, 1), np.clip(v - v0, 0, 1)
+    f = img.astype(float)
+    val = ((1 - fu) * (1 - fv) * f[v0, u0] + fu * (1 - fv) * f[v0, u0 + 1]
+           + (1 - fu) * fv * f[v0 + 1, u0] + fu * fv * f[v0 + 1, u0 + 1])
+    return np.where(inside, val, 0.0)
+
+
+def _outward(line: Line, piece: np.ndarray) -> np.ndarray:
+    """(2,) the unit direction of ``line`` from a piece's first point (N, 2) towards its
+    last."""
+    return line.d if float((piece[-1] - piece[0]) @ line.d) >= 0 else -line.d
+
+
+def _curve_rms(p: np.ndarray) -> float:
+    """RMS distance of points (N, 2) from the quadratic fitted to them across their chord
+    (least squares in the chord's frame): how well one smooth curve explains them."""
+    chord = p[-1] - p[0]
+    n = float(np.linalg.norm(chord))
+    if n < 1e-9 or len(p) < 4:
+        return 0.0
+    t = chord / n
+    x, y = (p - p[0]) @ t, (p - p[0]) @ np.array([-t[1], t[0]])
+    r = y - np.polyval(np.polyfit(x, y, 2), x)
+    return float(np.sqrt(np.mean(r * r)))
 
 
 def _dip(resp: np.ndarray, fraction: float) -> tuple[int, int] | None:

@@ -1,0 +1,95 @@
+"""The bevelled saddle (issue 37): the part's geometry (core/part.py BevelledJoint), the
+simulator's frames of it and their truth, against the v_groove profile."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torchseam.core.config import CONFIG_DIR, ConfigError, load_cell, load_noise, load_part
+from torchseam.core.part import BevelledJoint, make_joint, torch_frames
+from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.vision.profiles import ProfileFinder, load_profile_config
+from torchseam.vision.tipm import load_tipm
+
+BEVEL = CONFIG_DIR / "parts" / "t_joint_bevel.yaml"
+
+
+@pytest.fixture(scope="module")
+def part():
+    return load_part(BEVEL)
+
+
+def test_bevel_part_is_the_t_joint_with_a_groove(part):
+    t = load_part(CONFIG_DIR / "parts" / "t_joint.yaml")
+    assert part.joint == "v_groove"
+    assert (part.bevel_deg, part.root_gap_mm) == (45.0, 1.5)
+    for name in ("main_od_mm", "branch_od_mm", "branch_offset_mm", "main_ovality",
+                 "placement", "placement_error", "distortion_mm"):
+        assert getattr(part, name) == getattr(t, name), name
+    assert isinstance(make_joint(part), BevelledJoint)
+    assert not isinstance(make_joint(t), BevelledJoint)
+
+
+def test_root_centre_is_the_middle_of_the_gap(part):
+    j = make_joint(part)
+    phi = np.linspace(0, 2 * np.pi, 37)
+    s = j.seam(phi)
+    # half the gap above the main pipe along the branch axis, on the branch's inner radius
+    rho, _, a = j._polar(s.point)
+    assert np.allclose(rho, j.r_in)
+    t, surf = j.raycast(s.point - 0.01 * j.d, np.tile(-j.d, (len(phi), 1)))
+    assert np.allclose(t, 0.75 - 0.01, atol=1e-6) and np.all(surf == 1)
+    # up from just outside the bore (a ray along the bore's wall grazes it): the bevel face,
+    # 0.01 mm higher there
+    out = s.point - j.o - np.outer((s.point - j.o) @ j.d, j.d)
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    t, surf = j.raycast(s.point + 0.01 * out + 0.01 * j.d, np.tile(j.d, (len(phi), 1)))
+    assert np.allclose(t, 0.75, atol=2e-3) and np.all(surf == 2)
+    # the bevel face is 45 degrees off the branch axis; the torch bisects the groove
+    cos = np.einsum("ij,j->i", s.normal_branch, -j.d)
+    assert np.allclose(np.degrees(np.arccos(cos)), 45.0, atol=2.0)  # (the saddle tilts it)
+    z = torch_frames(s)[:, :3, 2]
+    a_main = np.einsum("ij,ij->i", z, -s.normal_main)
+    a_face = np.einsum("ij,ij->i", z, -s.normal_branch)
+    assert np.allclose(a_main, a_face, atol=1e-9)
+
+
+def test_light_through_the_gap_is_lost_in_the_bore(part):
+    j = make_joint(part)
+    s = j.seam(np.array([0.0]))
+    inward = -(s.point[0] - j.o - (s.point[0] - j.o) @ j.d * j.d)
+    inward /= np.linalg.norm(inward)
+    t, surf = j.raycast(s.point[0] - 5.0 * inward, inward[None])
+    assert np.isinf(t[0]) and surf[0] == 0
+
+
+def test_bad_bevel_is_named(tmp_path):
+    text = BEVEL.read_text().replace("branch_wall_mm: 10.0", "branch_wall_mm: 0.0")
+    (tmp_path / "p.yaml").write_text(text)
+    with pytest.raises(ConfigError, match="p.yaml: branch_wall_mm"):
+        load_part(tmp_path / "p.yaml")
+    text = BEVEL.read_text().replace("bevel_deg: 45.0", "bevel_deg: 0.0")
+    (tmp_path / "q.yaml").write_text(text)
+    with pytest.raises(ConfigError, match="q.yaml: root_gap_mm"):
+        load_part(tmp_path / "q.yaml")
+
+
+@pytest.mark.parametrize("level,family,tol", [(0.0, None, 1.5), (0.0, "wide", 2.0),
+                                              (0.0, "thin", 2.0)])
+def test_rendered_groove_shows_the_aim_point(part, level, family, tol):
+    """The v_groove profile on the simulator's frames of the bevelled saddle finds the root
+    centre the simulator knows (its truth), round the saddle."""
+    cell, noise = load_cell(), load_noise()
+    finder = ProfileFinder(load_tipm(), load_profile_config(), "v_groove")
+    errs = []
+    for start in (0.0, 120.0, 240.0, 360.0):
+        frames = simulate(cell, part, noise, SequenceSpec(
+            n_frames=3, start_mm=start, level=level, seed=int(start), family=family,
+            arc_on_frame=0))
+        for img, truth in frames:
+            assert truth.visible and np.all(np.isfinite(truth.seam_B))
+            res = finder(img)
+            assert res.ok, res.reason
+            errs.append(np.linalg.norm(res.aim - truth.uv))
+    assert np.median(errs) < tol / 2 and max(errs) < tol, errs
