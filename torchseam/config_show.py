@@ -24,6 +24,7 @@ CONFIGS: dict[str, tuple[str, str]] = {
     "cell": ("torchseam.core.config", "CellConfig"),
     "noise": ("torchseam.core.config", "NoiseConfig"),
     "tipm": ("torchseam.vision.tipm", "TipmConfig"),
+    "profiles": ("torchseam.vision.profiles", "ProfileConfig"),
     "anchor": ("torchseam.track.live", "AnchorConfig"),
     "ecal": ("torchseam.geometry.ecal", "EcalConfig"),
     "calibration": ("torchseam.core.calibration", "CalibrationConfig"),
@@ -32,6 +33,7 @@ CONFIGS: dict[str, tuple[str, str]] = {
     "egm": ("torchseam.robot.egm.config", "EgmConfig"),
     "live": ("torchseam.live.loop", "LiveConfig"),
     "search": ("torchseam.live.search", "SearchConfig"),
+    "profile_track": ("torchseam.live.profile_track", "ProfileTrackConfig"),
     "console": ("torchseam.console.config", "ConsoleConfig"),
     "train_live": ("torchseam.fit.live", "LiveFitConfig"),
 }

@@ -535,7 +535,11 @@ class _SegmentWeld:
         if self.start.search is not None:
             self._search(self.start.search)
         tipm = run.parts.tipm
-        self.loop = LiveLoop(run.cell, make_tracker(run.tracker, tipm, model_path=run.model_path),
+        # the part's joint decides what is tracked (a fillet: run.tracker; else its profile)
+        tracker = (make_tracker(run.tracker, tipm, model_path=run.model_path)
+                   if run.part.joint == "fillet"
+                   else run.parts.tracker(run.tracker, run.part.joint, run.model_path))
+        self.loop = LiveLoop(run.cell, tracker,
                              self.link, run.weld_plan.plan_config(seg, run.plan), run.live,
                              tipm, run.parts.ecal, nominal=self.nominal)
         job = SegmentJob(seg.name, self.approach, self.seg_len, self.frame_mm, run.dt,

@@ -18,8 +18,10 @@ from torchseam.core.errors import TorchseamError
 from torchseam.core.orient import FrameView
 from torchseam.geometry.ecal import Ecal, EcalResult
 from torchseam.geometry.triangulate import FastTriangulator
+from torchseam.live.profile_track import ProfileTracker
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import FrameTracker
+from torchseam.vision.axis import stripe_axis
 from torchseam.vision.tipm import Tipm, find_view
 
 EXPECT_POINTS = 40     # recent located points kept for the expected pixel (~1.5 s at 25 Hz)
@@ -54,7 +56,10 @@ class SeamLocator:
 
     Args:
         cell: calibration (camera, laser plane, hand-eye).
-        tracker: any :class:`~torchseam.track.peers.FrameTracker` (EAKF-STC in the live loop).
+        tracker: any :class:`~torchseam.track.peers.FrameTracker` (EAKF-STC in the live loop);
+            a :class:`~torchseam.live.profile_track.ProfileTracker` (a joint other than the
+            fillet) is started on its profile's aim point, and its profile's faces at the root
+            are the arms (no ECAL: the aim point lies in the root gap, on no face).
         tipm: TIPM: the start frame's pixel, the stripe's view with ``auto``, and the stripe
             mask around the feature point that ECAL searches.
         ecal: ECAL, the arm points (its ``r_max_px`` sizes the region around the feature
@@ -82,6 +87,8 @@ class SeamLocator:
         """Initialise on a clean frame (TIPM when ``uv0``, camera pixels, is None). Returns the
         start pixel (camera pixels). With ``stripe_axis: auto`` the frame also tells which
         way the stripe runs."""
+        if self.axis is None and isinstance(self.tracker, ProfileTracker):
+            self.axis = self._profile_view(frame)
         if self.axis is None:
             self.axis = find_view(frame, self.tipm, *self._view_setting)
             if self.axis is None:
@@ -90,6 +97,11 @@ class SeamLocator:
                                      f"{self._view_setting[0]}, stripe_response "
                                      f"{self._view_setting[1]})")
         view = self.axis.frame(frame)
+        if uv0 is None and isinstance(self.tracker, ProfileTracker):
+            prof = self.tracker.find(view)
+            if not prof.ok:
+                raise TorchseamError(f"cannot start tracking: {prof.joint}: {prof.reason}")
+            uv0 = self.axis.to_camera(prof.aim)
         if uv0 is None:
             res = self.tipm(view)
             if not res.ok:
@@ -99,6 +111,40 @@ class SeamLocator:
         self.prev_angles = None
         self._seen.clear()
         return np.asarray(uv0, float)
+
+    def _profile_view(self, frame: np.ndarray) -> FrameView | None:
+        """The view of a joint other than the fillet: the stripe's own axis (a groove need
+        not show TIPM a corner), red response unless the cell file says otherwise."""
+        axis, response = self._view_setting
+        response = "red" if response == "auto" else response
+        if axis == "auto":
+            found = stripe_axis(frame, self.tipm, response)
+            if found is None:
+                return None
+            axis = found
+        return FrameView(axis, frame.shape[0], response)
+
+    def _profile_location(self, axis: FrameView, uv: np.ndarray, status: int,
+                          T_B_F: np.ndarray, times: dict[str, float]) -> Location:
+        """A profile joint's location: the aim point triangulated, and where the tracker took
+        a profile on the frame, the two faces at the root (each root edge and a point up its
+        piece, triangulated: their 3D direction, placed at the aim point, is the arm the
+        torch frame bisects; the aim point itself lies on no face)."""
+        assert isinstance(self.tracker, ProfileTracker)
+        t1 = time.perf_counter()
+        prof = self.tracker.result
+        pix = [uv]
+        if status == TrackStatus.TRACKED and prof is not None and prof.arm_points is not None:
+            pix += [prof.points["left_root"], prof.arm_points[0], prof.points["right_root"],
+                    prof.arm_points[1]]
+        X = self.tri(axis.to_camera(np.stack(pix)), T_B_F)
+        if status == TrackStatus.TRACKED and np.all(np.isfinite(X[0])):
+            self._seen.append(X[0])
+        q, arms_ok = np.full((2, 3), np.nan), False
+        if len(X) == 5 and np.all(np.isfinite(X)):
+            q, arms_ok = np.stack([X[0] + X[2] - X[1], X[0] + X[4] - X[3]]), True
+        times["triangulate"] = (time.perf_counter() - t1) * 1e3
+        return Location(axis.to_camera(uv), status, X[0], q, arms_ok, False, times)
 
     def _expect(self, T_B_F: np.ndarray) -> np.ndarray | None:
         """The feature pixel this frame should show, from the seam seen so far and the camera's
@@ -165,6 +211,8 @@ class SeamLocator:
     def step(self, frame: np.ndarray, T_B_F: np.ndarray) -> Location:
         """Locate the seam in ``frame`` taken with the flange at ``T_B_F`` (4, 4) mm."""
         t0 = time.perf_counter()
+        if self.axis is None and isinstance(self.tracker, ProfileTracker):
+            self.axis = self._profile_view(frame)
         if self.axis is None:  # a tracker started by the caller, not by start(): find it here
             self.axis = find_view(frame, self.tipm, *self._view_setting) or FrameView(
                 "rows", frame.shape[0])
@@ -180,6 +228,8 @@ class SeamLocator:
         if status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
             return Location(axis.to_camera(uv), status, nan3, q, False, False,
                             {"track": (t1 - t0) * 1e3})
+        if isinstance(self.tracker, ProfileTracker):
+            return self._profile_location(axis, uv, status, T_B_F, {"track": (t1 - t0) * 1e3})
         red, mask, (x0, y0) = self._stripe(frame, uv, res.stripe)
         local = uv - (x0, y0)
         arms = self.ecal(mask, local, red, self.prev_angles, tangents=False)

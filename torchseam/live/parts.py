@@ -12,13 +12,21 @@ command line: a caller with other settings replaces a field
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from torchseam.geometry.ecal import Ecal, load_ecal
 from torchseam.live.loop import LiveConfig, load_live_config
+from torchseam.live.profile_track import (
+    ProfileTrackConfig,
+    load_profile_track_config,
+    make_joint_tracker,
+)
 from torchseam.live.search import SearchConfig, load_search_config
 from torchseam.plan.path import PlanConfig, load_plan_config
 from torchseam.robot.egm import EgmConfig, load_egm_config
 from torchseam.robot.kinematics import IRB1410, load_irb1410
+from torchseam.track.peers import FrameTracker
+from torchseam.vision.profiles import ProfileConfig, load_profile_config
 from torchseam.vision.tipm import Tipm, load_tipm
 
 __all__ = ["LiveParts", "load_live_parts"]
@@ -39,6 +47,10 @@ class LiveParts:
         tipm: the stripe image processing (``configs/tipm.yaml``): start frames, the search's
             corner, the locator's arm directions.
         ecal: the arm finder (``configs/ecal.yaml``).
+        profiles: the joint profiles (``configs/profiles.yaml``): a part whose ``joint`` is
+            not a fillet is followed by its profile's aim point.
+        profile_track: how that is followed (``configs/profile_track.yaml``;
+            :class:`~torchseam.live.profile_track.ProfileTracker`).
     """
 
     plan: PlanConfig
@@ -48,12 +60,23 @@ class LiveParts:
     robot: IRB1410
     tipm: Tipm
     ecal: Ecal
+    profiles: ProfileConfig
+    profile_track: ProfileTrackConfig
+
+    def tracker(self, name: str, joint: str, model_path: str | Path | None = None
+                ) -> FrameTracker:
+        """The live loop's tracker ``name`` for a part's ``joint``
+        (:func:`~torchseam.live.profile_track.make_joint_tracker`)."""
+        return make_joint_tracker(name, joint, self.tipm, self.profiles, self.profile_track,
+                                  model_path)
 
 
 def load_live_parts() -> LiveParts:
     """The shipped :class:`LiveParts`: ``configs/plan.yaml``, ``live.yaml``, ``search.yaml``,
-    ``egm.yaml``, ``robot.yaml``, ``tipm.yaml`` and ``ecal.yaml``, each read by its own loader
-    (a bad file raises ``ConfigError`` naming it and the field)."""
+    ``egm.yaml``, ``robot.yaml``, ``tipm.yaml``, ``ecal.yaml``, ``profiles.yaml`` and
+    ``profile_track.yaml``, each read by its own loader (a bad file raises ``ConfigError``
+    naming it and the field)."""
     return LiveParts(plan=load_plan_config(), live=load_live_config(),
                      search=load_search_config(), egm=load_egm_config(), robot=load_irb1410(),
-                     tipm=load_tipm(), ecal=load_ecal())
+                     tipm=load_tipm(), ecal=load_ecal(), profiles=load_profile_config(),
+                     profile_track=load_profile_track_config())
