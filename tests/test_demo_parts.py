@@ -106,15 +106,15 @@ def test_a_part_the_robot_cannot_weld_is_refused_before_any_motion(tmp_path, cap
 
     import torchseam.live.demo as demo
     import torchseam.robot.kinematics as kinematics
-    from torchseam.robot.config import load_robot
+    from torchseam.robot.config import load_robot_config
 
     def no_motion(*a, **k):
         raise AssertionError("the cell was simulated")
 
-    cfg = load_robot()
+    cfg = load_robot_config()
     cylinder = dataclasses.replace(cfg, torch=dataclasses.replace(cfg.torch,
                                                                   nozzle_length_mm=0.0))
-    monkeypatch.setattr(kinematics, "load_robot", lambda *a: cylinder)
+    monkeypatch.setattr(kinematics, "load_robot_config", lambda *a: cylinder)
     monkeypatch.setattr(demo, "LockstepCell", no_motion)
     out = tmp_path / "demo"
     rc = main(["demo", "--part", str(PARTS / "y_joint_60.yaml"), "--segments", "a",

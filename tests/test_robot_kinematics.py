@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from torchseam.core.config import ConfigError
-from torchseam.robot.config import load_robot, robot_config_from_dict
+from torchseam.robot.config import load_robot_config, robot_config_from_dict
 from torchseam.robot.kinematics import (
     IRB1410,
     URDF_PATH,
@@ -70,7 +70,7 @@ def test_urdf_loads_with_yourdfpy_and_matches_the_config():
                            load_meshes=False)
     assert u.actuated_joint_names == [f"joint_{i}" for i in range(1, 7)]
     assert "tool0" in u.link_map
-    cfg = load_robot()
+    cfg = load_robot_config()
     lo, hi = np.radians(cfg.axes.min_deg), np.radians(cfg.axes.max_deg)
     # joint_3 = axis3 - axis2: its URDF limit is the widest the coupled range allows
     lo[2], hi[2] = lo[2] - hi[1], hi[2] - lo[1]
@@ -421,11 +421,11 @@ def test_bad_inputs_raise_clear_errors(robot, tmp_path):
     with pytest.raises(RobotInputError, match="expected 1 or 2 seeds"):
         robot.ik(torch.eye(4, dtype=F64).repeat(2, 1, 1), torch.zeros(3, 6))
     with pytest.raises(URDFError, match="cannot read URDF"):
-        IRB1410(load_robot(), tmp_path / "none.urdf")
+        IRB1410(load_robot_config(), tmp_path / "none.urdf")
     bad = tmp_path / "bad.urdf"
     bad.write_text(URDF_PATH.read_text().replace('xyz="0 0 0.6"', 'xyz="0 0.05 0.6"'))
     with pytest.raises(URDFError, match="not an IRB 1410-like arm"):
-        IRB1410(load_robot(), bad)
+        IRB1410(load_robot_config(), bad)
 
 
 def test_robot_config_errors_name_the_field():

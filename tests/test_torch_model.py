@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from torchseam.core.config import CONFIG_DIR, ConfigError, load_cell, load_part
-from torchseam.robot.config import load_robot, robot_config_from_dict
+from torchseam.robot.config import load_robot_config, robot_config_from_dict
 from torchseam.robot.kinematics import IRB1410
 from torchseam.robot.reach import ReachGate, _segment_convex_distance
 
@@ -19,7 +19,7 @@ PARTS = CONFIG_DIR / "parts"
 
 
 def _gate(part_name: str, **torch_kw) -> ReachGate:
-    cfg = load_robot()
+    cfg = load_robot_config()
     cfg = dataclasses.replace(cfg, torch=dataclasses.replace(cfg.torch, **torch_kw))
     return ReachGate(IRB1410(config=cfg), cell=load_cell(),
                      part=load_part(PARTS / f"{part_name}.yaml"))
@@ -38,7 +38,7 @@ def _plate_pose(part, alpha_deg: float, h_mm: float, x_mm: float = -200.0) -> np
 
 
 def test_the_configured_torch_is_a_bottleneck_nozzle_on_a_wider_body():
-    tc = load_robot().torch
+    tc = load_robot_config().torch
     (d0, d1, r0, r1), (e0, e1, s0, s1) = tc.pieces()
     assert (d0, d1) == (tc.tip_exclusion_mm, tc.nozzle_length_mm) and (e0, e1) == (
         tc.nozzle_length_mm, tc.length_mm)

@@ -110,7 +110,7 @@ class RobotConfig:
     """The whole ``configs/robot.yaml``.
 
     Example:
-        >>> cfg = load_robot()
+        >>> cfg = load_robot_config()
         >>> cfg.axes.max_deg[4], cfg.axis3_range_applies_to
         (115.0, 'controller')
     """
@@ -144,7 +144,7 @@ def robot_config_from_dict(data: Any, source: str = "<dict>") -> RobotConfig:
     return from_dict(RobotConfig, data, source)
 
 
-def load_robot(path: str | os.PathLike[str] | None = None) -> RobotConfig:
+def load_robot_config(path: str | os.PathLike[str] | None = None) -> RobotConfig:
     """Load ``configs/robot.yaml`` (or ``path``).
 
     Raises:

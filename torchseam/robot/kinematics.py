@@ -33,7 +33,7 @@ from pytorch_kinematics.transforms import rotation_conversions as rc
 from torchseam import shipped
 from torchseam.core.errors import TorchseamError
 from torchseam.core.transforms import cross
-from torchseam.robot.config import RobotConfig, load_robot
+from torchseam.robot.config import RobotConfig, load_robot_config
 
 #: The shipped URDF (written from the IRB 1410's standard DH table: the ARTE toolbox,
 #: robots/ABB/IRB1410/parameters.m, the same numbers in Malla & Shanmugavel, Industrial Robot
@@ -242,8 +242,8 @@ class IRB1410:
         URDFError: unreadable URDF, wrong joint names, or not the 6R spherical-wrist structure.
 
     Example:
-        >>> from torchseam.robot.config import load_robot
-        >>> robot = IRB1410(load_robot())
+        >>> from torchseam.robot.config import load_robot_config
+        >>> robot = IRB1410(load_robot_config())
         >>> T = robot.fk(torch.zeros(1, 6, dtype=torch.float64))
         >>> T[0, :3, 3]
         tensor([ 955.0000,    0.0000, 1195.0000], dtype=torch.float64)
@@ -603,10 +603,11 @@ def load_irb1410(path: str | os.PathLike[str] | None = None,
                  urdf_path: str | os.PathLike[str] | None = None,
                  dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
                  ) -> IRB1410:
-    """The shipped arm: :class:`IRB1410` with ``configs/robot.yaml`` (or ``path``), read by
-    :func:`~torchseam.robot.config.load_robot` (a bad file: ``ConfigError`` naming the field).
-    For the command line and scripts; library code takes the model as an argument."""
-    return IRB1410(load_robot(path), urdf_path, dtype, device)
+    """The shipped arm (the model): :class:`IRB1410` with ``configs/robot.yaml`` (or
+    ``path``), read by :func:`~torchseam.robot.config.load_robot_config` (the config; a bad
+    file: ``ConfigError`` naming the field). For the command line and scripts; library code
+    takes the model as an argument."""
+    return IRB1410(load_robot_config(path), urdf_path, dtype, device)
 
 
 def to_numpy(x: Tensor | np.ndarray) -> np.ndarray:
