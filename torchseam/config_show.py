@@ -16,7 +16,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from torchseam.core.config import CONFIG_DIR, ConfigError, load_config, read_yaml, to_dict
+from torchseam.core.config import ConfigError, config_path, load_config, read_yaml, to_dict
 from torchseam.core.errors import TorchseamError
 
 #: config name -> (module, dataclass) of its file ``configs/NAME.yaml``
@@ -71,7 +71,7 @@ def settings(name: str, model_path: Path | None = None) -> list[tuple[str, Any, 
     """``(setting, effective value, source)`` of config ``name`` (see the module)."""
     module, cls_name = CONFIGS[name]
     cls = getattr(importlib.import_module(module), cls_name)
-    path = CONFIG_DIR / f"{name}.yaml"
+    path = config_path(f"{name}.yaml")
     obj = load_config(cls, path)
     raw = _flat(read_yaml(path) or {})
     rows = []
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
             raise
         except (OSError, KeyError) as e:
             raise TorchseamError(f"config {name}: {e}") from None
-        print(f"{name} ({CONFIG_DIR / (name + '.yaml')})")
+        print(f"{name} ({config_path(name + '.yaml')})")
         print(format_table(["setting", "value", "source"],
                            [[k, str(v), s] for k, v, s in rows]))
         print()

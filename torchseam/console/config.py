@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from torchseam.core.config import CONFIG_DIR, CellConfig, NoiseConfig, load_config
+from torchseam.core.config import CellConfig, NoiseConfig, config_path, load_config
 from torchseam.core.config import config_field as _f
 from torchseam.core.errors import TorchseamError
 
@@ -120,7 +120,7 @@ class ConsoleConfig:
 
 def load_console_config(path: str | Path | None = None) -> ConsoleConfig:
     """The console settings (default ``configs/console.yaml``)."""
-    return load_config(ConsoleConfig, path or CONFIG_DIR / "console.yaml")
+    return load_config(ConsoleConfig, path or config_path("console.yaml"))
 
 
 # --------------------------------------------------------------------------- weld parameters

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from torchseam.core.config import CONFIG_DIR, Pose, load_config
+from torchseam.core.config import Pose, config_path, load_config
 from torchseam.core.config import config_field as _m
 from torchseam.core.errors import TorchseamError
 
@@ -232,4 +232,4 @@ def load_calibration(path: str | os.PathLike[str] | None = None) -> CalibrationC
     Raises:
         ConfigError: naming the file and the field, like every config of the project.
     """
-    return load_config(CalibrationConfig, path or CONFIG_DIR / "calibration.yaml")
+    return load_config(CalibrationConfig, path or config_path("calibration.yaml"))

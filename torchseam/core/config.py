@@ -29,9 +29,16 @@ from torchseam.core.errors import TorchseamError
 
 T = TypeVar("T")
 
-#: Folder the configs are read from: ``$TORCHSEAM_CONFIGS`` (``torchseam --config-dir DIR`` sets
-#: it), else the configs shipped in the package (the repository's ``configs/`` in a checkout).
+#: Folder the configs were read from when this module was imported. Deprecated: read at import,
+#: it misses a later ``--config-dir``; use :func:`config_path`, resolved when called.
 CONFIG_DIR = config_dir()
+
+
+def config_path(*parts: str) -> Path:
+    """A path in the config folder in use, resolved when called: ``$TORCHSEAM_CONFIGS``
+    (``torchseam --config-dir DIR`` sets it for the command), else the configs shipped in the
+    package (the repository's ``configs/`` in a checkout)."""
+    return config_dir().joinpath(*parts)
 
 
 class ConfigError(TorchseamError, ValueError):
@@ -746,7 +753,7 @@ def yaml_problem(e: yaml.YAMLError) -> str:
 
 def load_cell(path: str | os.PathLike[str] | None = None) -> CellConfig:
     """The cell configuration (default ``configs/cell.yaml``)."""
-    return load_config(CellConfig, path or CONFIG_DIR / "cell.yaml")
+    return load_config(CellConfig, path or config_path("cell.yaml"))
 
 
 def load_part(path: str | os.PathLike[str] | None = None) -> PartConfig:
@@ -756,7 +763,7 @@ def load_part(path: str | os.PathLike[str] | None = None) -> PartConfig:
     the manual writes it: ``--part configs/parts/y_joint_75.yaml``) is the config folder in
     use's file of that name (the shipped configs, or ``--config-dir``)."""
     if path is None:
-        return load_config(PartConfig, CONFIG_DIR / "parts" / "t_joint.yaml")
+        return load_config(PartConfig, config_path("parts", "t_joint.yaml"))
     return load_config(PartConfig, shipped_config(path))
 
 
@@ -766,13 +773,13 @@ def shipped_config(path: str | os.PathLike[str]) -> Path:
     p = Path(path)
     if p.exists() or p.is_absolute() or not p.parts or p.parts[0] != "configs":
         return p
-    alt = CONFIG_DIR.joinpath(*p.parts[1:])
+    alt = config_path(*p.parts[1:])
     return alt if alt.exists() else p
 
 
 def load_noise(path: str | os.PathLike[str] | None = None) -> NoiseConfig:
     """The arc-noise model (default ``configs/noise.yaml``)."""
-    return load_config(NoiseConfig, path or CONFIG_DIR / "noise.yaml")
+    return load_config(NoiseConfig, path or config_path("noise.yaml"))
 
 
 def to_dict(obj: Any) -> Any:

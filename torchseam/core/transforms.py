@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -22,6 +21,8 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
         return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                          [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                          [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    from scipy.spatial.transform import Rotation  # (batches only: --help stays light)
+
     return Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix().reshape(
         *q.shape[:-1], 3, 3)
 
@@ -31,6 +32,8 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     R = np.asarray(R, dtype=float)
     if R.shape == (3, 3):
         return _matrix_to_quat_one(R)
+    from scipy.spatial.transform import Rotation
+
     q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat(scalar_first=True)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
     return q.reshape(*R.shape[:-2], 4)
@@ -159,5 +162,7 @@ def cross(a, b):  # noqa: ANN001, ANN201 - numpy or torch arrays alike
 
 def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """3x3 rotation about a unit ``axis`` by ``angle_rad``."""
+    from scipy.spatial.transform import Rotation
+
     axis = np.asarray(axis, dtype=float)
     return Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle_rad).as_matrix()

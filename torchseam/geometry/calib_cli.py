@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from torchseam.core.cliargs import out_dir_arg, out_file_arg
-from torchseam.core.config import CONFIG_DIR, load_cell
+from torchseam.core.config import config_path, load_cell
 from torchseam.core.errors import TorchseamError
 from torchseam.geometry.names import HAND_EYE_METHODS
 
@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     )
 
     cfg = load_calibration(args.calib)
-    cell_path = Path(args.cell) if args.cell else CONFIG_DIR / "cell.yaml"
+    cell_path = Path(args.cell) if args.cell else config_path("cell.yaml")
     cell = load_cell(cell_path)
     folder = Path(args.dir)
     section, _ = KINDS[args.kind]

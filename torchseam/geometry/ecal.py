@@ -30,7 +30,7 @@ from typing import overload
 
 import numpy as np
 
-from torchseam.core.config import CONFIG_DIR, load_config
+from torchseam.core.config import config_path, load_config
 from torchseam.core.kernels import load_kernels
 
 ARC_STEP_PX = 1.5     # sampling step along the largest circle (all circles share the angles)
@@ -54,7 +54,7 @@ class EcalConfig:
 
 def load_ecal_config(path: str | Path | None = None) -> EcalConfig:
     """Read ``configs/ecal.yaml`` (or ``path``)."""
-    return load_config(EcalConfig, path or CONFIG_DIR / "ecal.yaml")
+    return load_config(EcalConfig, path or config_path("ecal.yaml"))
 
 
 def load_ecal(path: str | Path | None = None) -> Ecal:

@@ -132,9 +132,9 @@ def run_virtual_cell_cmd(args: argparse.Namespace) -> int:
         if not (math.isfinite(val) and val > 0):
             raise TorchseamError(f"{name} must be > 0, got {val}")
     if args.part is None:
-        from torchseam.core.config import CONFIG_DIR
+        from torchseam.core.config import config_path
 
-        args.part = CONFIG_DIR / "parts" / "t_joint.yaml"
+        args.part = config_path("parts", "t_joint.yaml")
     return run_virtual_cell(args)
 
 

@@ -48,7 +48,7 @@ from typing import Any, Protocol, SupportsIndex, TypeVar, overload
 import numpy as np
 from scipy.spatial import cKDTree
 
-from torchseam.core.config import CONFIG_DIR, CellConfig, ConfigError, load_config
+from torchseam.core.config import CellConfig, ConfigError, config_path, load_config
 from torchseam.core.config import config_field as _f
 from torchseam.core.transforms import (
     axis_rotation,
@@ -214,7 +214,7 @@ def _blend(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
 
 
 def load_live_config(path: str | Path | None = None) -> LiveConfig:
-    return load_config(LiveConfig, path or CONFIG_DIR / "live.yaml")
+    return load_config(LiveConfig, path or config_path("live.yaml"))
 
 
 class LoopState(str, Enum):

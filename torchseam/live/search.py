@@ -35,8 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from torchseam.core.config import CONFIG_DIR, load_config
 from torchseam.core.config import config_field as _f
+from torchseam.core.config import config_path, load_config
 from torchseam.core.transforms import rotvec
 
 
@@ -76,7 +76,7 @@ class SearchConfig:
 
 
 def load_search_config(path=None) -> SearchConfig:
-    return load_config(SearchConfig, path or CONFIG_DIR / "search.yaml")
+    return load_config(SearchConfig, path or config_path("search.yaml"))
 
 
 def offset_pose(T: np.ndarray, lateral_mm: float = 0.0, angle_deg: float = 0.0,

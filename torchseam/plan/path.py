@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchseam.core.config import CONFIG_DIR, config_field, load_config
+from torchseam.core.config import config_field, config_path, load_config
 
 SEGMENTS = 6
 SEGMENT_NAMES = "abcdef"
@@ -83,7 +83,7 @@ class PlanConfig:
 
 
 def load_plan_config(path: str | Path | None = None) -> PlanConfig:
-    return load_config(PlanConfig, path or CONFIG_DIR / "plan.yaml")
+    return load_config(PlanConfig, path or config_path("plan.yaml"))
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
-from torchseam.core.config import CONFIG_DIR, ConfigError, from_dict, load_config
+from torchseam.core.config import ConfigError, config_path, from_dict, load_config
 from torchseam.core.config import config_field as _f
 
 #: Allowed values of the string fields.
@@ -150,4 +150,4 @@ def load_robot_config(path: str | os.PathLike[str] | None = None) -> RobotConfig
     Raises:
         ConfigError: ``"<file>: <field>: <problem>"`` for a missing file, bad YAML or bad field.
     """
-    return load_config(RobotConfig, path if path is not None else CONFIG_DIR / "robot.yaml")
+    return load_config(RobotConfig, path if path is not None else config_path("robot.yaml"))

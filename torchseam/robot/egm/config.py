@@ -11,8 +11,8 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
-from torchseam.core.config import CONFIG_DIR, from_dict, load_config
 from torchseam.core.config import config_field as _f
+from torchseam.core.config import config_path, from_dict, load_config
 
 #: EGM modes: position guidance (``EgmSensor``) or path correction (``EgmSensorPathCorr``).
 MODES = ("pose", "pathcorr")
@@ -104,4 +104,4 @@ def load_egm_config(path: str | os.PathLike[str] | None = None) -> EgmConfig:
     Raises:
         ConfigError: ``"<file>: <field>: <problem>"``.
     """
-    return load_config(EgmConfig, path if path is not None else CONFIG_DIR / "egm.yaml")
+    return load_config(EgmConfig, path if path is not None else config_path("egm.yaml"))
