@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchseam.core.config import CONFIG_DIR, config_field, load_config
+from torchseam.core.config import config_field, config_path, load_config
 from torchseam.core.dataset import check_frame
 from torchseam.core.errors import TorchseamError
 from torchseam.track.base import Tracker, TrackResult
@@ -54,7 +54,7 @@ class ProfileTrackConfig:
 
 def load_profile_track_config(path: str | Path | None = None) -> ProfileTrackConfig:
     """:class:`ProfileTrackConfig` from ``path`` (default ``configs/profile_track.yaml``)."""
-    return load_config(ProfileTrackConfig, path or CONFIG_DIR / "profile_track.yaml")
+    return load_config(ProfileTrackConfig, path or config_path("profile_track.yaml"))
 
 
 class ProfileTracker(Tracker):

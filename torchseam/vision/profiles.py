@@ -46,7 +46,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from torchseam.core.config import CONFIG_DIR, JOINT_PROFILES, config_field, load_config
+from torchseam.core.config import JOINT_PROFILES, config_field, config_path, load_config
 from torchseam.core.dataset import check_frame
 from torchseam.core.orient import FrameView
 from torchseam.core.overlay import put_label
@@ -86,7 +86,7 @@ class ProfileConfig:
 
 def load_profile_config(path: str | Path | None = None) -> ProfileConfig:
     """Read ``configs/profiles.yaml`` (or ``path``)."""
-    return load_config(ProfileConfig, path or CONFIG_DIR / "profiles.yaml")
+    return load_config(ProfileConfig, path or config_path("profiles.yaml"))
 
 
 @dataclass

@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from torchseam.core.checks import InputError, check_shape
-from torchseam.core.config import CONFIG_DIR, config_field, load_config
+from torchseam.core.config import config_field, config_path, load_config
 from torchseam.core.dataset import check_frame
 from torchseam.core.kernels import load_kernels
 from torchseam.core.orient import FrameView
@@ -181,7 +181,7 @@ def red_response(frame: np.ndarray, with_green: bool = False,
 
 def load_tipm_config(path: str | Path | None = None) -> TipmConfig:
     """Read ``configs/tipm.yaml`` (or ``path``)."""
-    return load_config(TipmConfig, path or CONFIG_DIR / "tipm.yaml")
+    return load_config(TipmConfig, path or config_path("tipm.yaml"))
 
 
 def load_tipm(path: str | Path | None = None, centre_line: str = "subpixel") -> Tipm:
