@@ -191,11 +191,13 @@ def test_shallow_kink_under_glare_is_weak_evidence_not_tracked():
     sharp = (0.35, -0.3)
     trk.init(_v_frame(uv, sharp), uv)
     for _ in range(5):
-        assert trk.track(_v_frame(uv, sharp)).status == TrackStatus.TRACKED
+        res = trk.track(_v_frame(uv, sharp))
+        assert res.status == TrackStatus.TRACKED
+        assert res.fix is not None and res.fix.firm and not res.fix.shallow
         trk.idle()
     t = np.tan(np.radians(1.5))
     rng = np.random.default_rng(0)
-    errs = []
+    errs, firm = [], []
     for _ in range(20):
         f = glare_on_corner(_v_frame(uv, (0.05 + t, 0.05 - t)), uv, rng)
         assert not tipm(f).ok
@@ -205,5 +207,18 @@ def test_shallow_kink_under_glare_is_weak_evidence_not_tracked():
         assert res.fix is not None and res.fix.shallow and res.fix.taken
         ev = np.linalg.eigvalsh(res.fix.cov)
         assert ev[1] > 25.0 * ev[0]   # weak along the stripe, firm across it
+        # firm (to place the seam by) when its std along the stripe, glare included, is
+        # within evidence_px; and then it is near the corner
+        assert res.fix.firm == (np.sqrt(ev[1] * res.fix.inflate) <= trk.cfg.evidence_px)
+        if res.fix.firm:
+            firm.append(float(np.linalg.norm(res.fix.uv - uv)))
         errs.append(float(np.linalg.norm(res.uv - uv)))
     assert max(errs) < 3.0, errs
+    assert firm and max(firm) < 2 * trk.cfg.evidence_px and np.mean(firm) < trk.cfg.evidence_px
+    # arms 1 degree from collinear: the line only (below shallow_min_deg), never firm
+    t = np.tan(np.radians(0.5))
+    for _ in range(5):
+        res = trk.track(glare_on_corner(_v_frame(uv, (0.05 + t, 0.05 - t)), uv, rng))
+        trk.idle()
+        assert res.status != TrackStatus.TRACKED
+        assert res.fix is not None and res.fix.shallow and not res.fix.firm

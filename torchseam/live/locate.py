@@ -241,10 +241,10 @@ class SeamLocator:
             pix += list(self._tangent_points(arms, local, res.arm_dirs) + (x0, y0))
         X = self.tri(axis.to_camera(np.stack(pix)), T_B_F)
         # the points the expected pixel is drawn from: those resting on a TIPM corner taken
-        # this frame (seen, or extrapolated over a short gap: accurate either way), not
-        # predictions
+        # this frame (seen, or extrapolated over a short gap: accurate either way) or a firm
+        # shallow one (Fix.firm; docs/benchmarks.md), not predictions
         if np.all(np.isfinite(X[0])) and (status == TrackStatus.TRACKED or (
-                res.fix is not None and res.fix.taken)):
+                res.fix is not None and res.fix.taken and res.fix.firm)):
             self._seen.append(X[0])
         if arms_ok:
             q = X[1:3]

@@ -29,6 +29,9 @@ class Fix:
         shallow: the corner was read from the slope break of a nearly straight stripe
             (:func:`~torchseam.track.shallow.shallow_corner`, where TIPM gives none): weak
             along the stripe (``cov`` says how weak), not a TIPM corner.
+        firm: precise enough to place the seam by (the live loop's located points for the
+            robot's expected pixel): a TIPM corner; a shallow one only when its std along
+            the stripe, glare term included, is within the tracker's ``evidence_px``.
     """
 
     uv: np.ndarray
@@ -37,6 +40,7 @@ class Fix:
     taken: bool
     seen: bool = True
     shallow: bool = False
+    firm: bool = True
 
 
 @dataclass(frozen=True)

@@ -631,10 +631,14 @@ class AnchorFilter:
             sf = obs.shallow
             cov = (c.shallow_noise ** 2) * sf.cov
             taken = self._measure(o.const(sf.uv), inflate * o.const(cov), p["fix_gate"])
-            # evidence only when the image places it within the evidence radius
-            seen = obs.shallow_seen and c.evidence_sigmas * sf.along_px * c.shallow_noise \
+            # evidence only when the image places it within the evidence radius; firm (a
+            # located point for the robot's expected pixel) when its std along the stripe,
+            # glare included, is within it
+            along = sf.along_px
+            seen = obs.shallow_seen and c.evidence_sigmas * along * c.shallow_noise \
                 <= c.evidence_px
-            fix = Fix(sf.uv.copy(), cov, _num(inflate), taken, seen, shallow=True)
+            firm = along * c.shallow_noise * math.sqrt(_num(inflate)) <= c.evidence_px
+            fix = Fix(sf.uv.copy(), cov, _num(inflate), taken, seen, shallow=True, firm=firm)
         if inner_ok:
             self._measure(inner_uv, inflate * self.R_track, p["track_gate"])
         reanchor: Any = 0.0
