@@ -75,6 +75,24 @@ def test_y_joint_75_plan_passes_every_segment_after_the_search(cell, robot):
                                                 np.eye(3))
 
 
+def test_searched_plan_keeps_its_margin_to_the_singularity(cell, robot):
+    """The bevelled T joint's plan is searched (its torch bisects the groove, not the corner);
+    the search keeps the margin off the wrist singularity as off an axis range: a plan that
+    passes the gate by a hair there (sigma_min 0.035 against 0.03, axis 5 at 5.7 deg: a plan
+    this search chose before) is refused on the tracked path, whose poses differ by degrees."""
+    report = preflight(cell, load_part(PARTS / "t_joint_bevel.yaml"), config=PLAN, robot=robot)
+    assert report.ok and report.plan.searched
+    target = PLAN.search.min_joint_margin_deg
+    min_sigma = robot.config.singularity.min_sigma
+    for v in report.verdicts:
+        sigma = v.result.sigma_min.numpy()
+        q5 = np.abs(v.result.q_deg.numpy()[:, 4])
+        assert v.margin_deg >= target
+        # 10 degrees of margin: sigma_min well above the gate's, axis 5 well off 0
+        assert sigma.min() > min_sigma + 0.06 and q5.min() > 10.0 + 3.5
+    assert "(singularity)" in report.text()
+
+
 def test_y_joint_60_the_nozzle_fits_the_groove_a_cylinder_does_not(cell, robot):
     """The 60-degree joint: the search clears every axis-range refusal of the configured plan;
     the torch as configured (a bottleneck nozzle, 16 mm across at its front, widening to the

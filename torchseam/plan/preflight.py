@@ -29,6 +29,7 @@ import numpy as np
 from torchseam.core.config import CellConfig, PartConfig
 from torchseam.plan.path import PlanConfig
 from torchseam.plan.weld import (
+    SINGULARITY_AXIS,
     PlanEvaluator,
     SegmentVerdict,
     WeldPlan,
@@ -82,7 +83,7 @@ class PlanReport:
         for seg, v in zip(plan.segments, verdicts, strict=True):
             a, b = np.degrees(seg.phi_start) % 360, np.degrees(seg.phi_end) % 360
             if v.passed:
-                verdict = f"margin {v.margin_deg:.1f} deg (axis {v.margin_axis})"
+                verdict = f"margin {v.margin_deg:.1f} deg ({_margin_name(v.margin_axis)})"
             else:
                 where = f"pose {v.first_refused} at {v.phi_deg[v.first_refused]:.0f} deg"
                 counts = ", ".join(f"{k} {n}" for k, n in v.counts.items())
@@ -154,6 +155,10 @@ class PlanReport:
             out["configured"] = {"plan": self.configured_plan.to_dict(),
                                  "segments": rows(self.configured_plan, self.configured)}
         return out
+
+
+def _margin_name(axis: int) -> str:
+    return "singularity" if axis == SINGULARITY_AXIS else f"axis {axis}"
 
 
 def _table(headers: list[str], rows: list[list[str]]) -> str:

@@ -19,9 +19,12 @@ IK, axis ranges, singularity margin, joint speeds and torch-vs-part clearance) i
    among the candidates), shifted (``shift_mm``), one parameter at a time, with the start
    re-chosen near the best one, until nothing improves.
    Candidates are ranked by the poses refused for other reasons than clearance, then how far
-   the worst axis falls short of the margin, then how far the layout is from the configured one
-   (in search steps), then the worst margin. Clearance is left out of this rank: it depends on
-   the torch's angles to the part, not on where the part sits.
+   the worst axis falls short of the margin (the wrist and elbow singularities count as an
+   axis: a pose's distance to the gate's ``min_sigma`` in degrees of axis 5 at the wrist
+   singularity, :attr:`SegmentVerdict.margin_axis` 7; a plan that grazes the singular band
+   passes on the planned path but not on the tracked one), then how far the layout is from
+   the configured one (in search steps), then the worst margin. Clearance is left out of
+   this rank: it depends on the torch's angles to the part, not on where the part sits.
 3. Every segment that still has a refused pose gets its own work and travel angles (a grid
    within the configured limits), then its roll, ranked by the refused poses, the margin's
    shortfall, how far the angles are from the configured ones, and the margin.
@@ -52,11 +55,14 @@ from torchseam.core.config import CellConfig, PartConfig, Pose
 from torchseam.core.part import SegmentGeometry, make_joint, nominal_part, torch_frames
 from torchseam.core.transforms import matrix_to_quat, rotation_about
 from torchseam.plan.path import SEGMENT_NAMES, SEGMENTS, PlanConfig, Segment
-from torchseam.robot.kinematics import IRB1410, checked_values
+from torchseam.robot.kinematics import IRB1410, arm_forward, checked_values
 from torchseam.robot.reach import ReachGate, ReachResult, Reason
 
 __all__ = ["Placement", "SegmentPlan", "SegmentGeometry", "WeldPlan", "SegmentVerdict",
            "PlanEvaluator", "plan_weld", "torch_angles"]
+
+#: :attr:`SegmentVerdict.margin_axis` when the nearest limit is the singularity margin
+SINGULARITY_AXIS = 7
 
 _Z = np.array([0.0, 0.0, 1.0])
 _Y = np.array([0.0, 1.0, 0.0])
@@ -240,8 +246,11 @@ class SegmentVerdict:
         other: refused for other reasons than clearance alone (reach, axis ranges,
             singularity, joint speed).
         margin_deg: the worst axis's distance to its range over the poses whose joints count
-            (passed, or refused for clearance only); ``-inf`` when there are none.
-        margin_axis: which axis (1..6; 0 when none).
+            (passed, or refused for clearance only), or to the singularity margin (the gate's
+            ``min_sigma``) in degrees of axis 5 at the wrist singularity if that is nearer;
+            ``-inf`` when there are none.
+        margin_axis: which axis (1..6; :data:`SINGULARITY_AXIS`: the singularity; 0 when
+            none).
         clearance_mm: the smallest torch-to-pipe clearance.
         first_refused: index of the first refused pose (-1: none) and its reason.
         phi_deg: (poses,) branch angle of each pose, degrees, in [0, 360).
@@ -284,6 +293,8 @@ class PlanEvaluator:
         self.robot = robot
         ax = self.robot.config.axes
         self._lo, self._hi = np.asarray(ax.min_deg, float), np.asarray(ax.max_deg, float)
+        self._min_sigma = float(self.robot.config.singularity.min_sigma)
+        self._sigma_per_deg = _sigma_per_wrist_deg(self.robot)
         self.joint = make_joint(part)
         self._phi_tab, self._s_tab = self.joint.arc_length_table()
         self._length = float(self._s_tab[-1])
@@ -354,6 +365,10 @@ class PlanEvaluator:
         q = r.q_deg.detach().cpu().numpy().astype(float)
         v = checked_values(q, self.robot.axis3_difference)
         m = np.minimum(v - self._lo, self._hi - v)                              # (N, 6)
+        # the singularity margin as a seventh axis: degrees of axis 5 at the wrist singularity
+        sigma = r.sigma_min.detach().cpu().numpy().astype(float)
+        m = np.concatenate([m, ((sigma - self._min_sigma) / self._sigma_per_deg)[:, None]],
+                           axis=1)                                              # (N, 7)
         if counted.any():
             mc = m[counted]
             i, k = np.unravel_index(int(np.argmin(mc)), mc.shape)
@@ -384,6 +399,19 @@ class _Layout:
     key: tuple
     verdicts: list[SegmentVerdict]
     verified: bool = False   # checked on every pose (else screened)
+
+
+def _sigma_per_wrist_deg(robot: IRB1410) -> float:
+    """How fast the gate's singularity measure (the smallest singular value of the scaled
+    flange Jacobian) grows per degree of axis 5 away from the wrist singularity, at the home
+    joints: what turns a pose's ``sigma_min - min_sigma`` into degrees for the plan's margin."""
+    q = np.tile(np.asarray(robot.config.home_deg, float), (2, 1))
+    q[:, 4] = (0.0, 1.0)
+    J = arm_forward(np, robot.geometry, q)[1]
+    scale = np.ones((6, 1))
+    scale[:3] = 1.0 / robot.config.singularity.length_mm
+    s = np.linalg.svd(J * scale, compute_uv=False)[:, -1]
+    return float(max(s[1] - s[0], 1e-6))
 
 
 def _grid(lo: float, hi: float, step: float) -> list[float]:
