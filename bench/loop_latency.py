@@ -8,6 +8,7 @@ renderer) can be timed frame by frame and checked to compute the very same numbe
     python bench/loop_latency.py record --segments ab --out /tmp/seg_ab.npz
     taskset -c 1 python bench/loop_latency.py replay /tmp/seg_ab.npz --reps 3
     taskset -c 1 python bench/loop_latency.py render /tmp/seg_ab.npz.render --reps 2
+    python bench/loop_latency.py score /tmp/seg_ab.npz
 
 ``record`` runs ``torchseam demo`` (the T joint, heavy arc, seed 0, the ``anchored`` tracker;
 ``--segments``) and keeps every frame with its flange pose and what the loop's
@@ -20,7 +21,9 @@ minimum over the repetitions, which keeps another job's bursts out of a comparis
 many frames came out different from the recording (bit for bit; 0 means the code computes what
 the recorded one did). ``render`` does the same for the renderer (thread CPU time per frame;
 frames and truth compared bit for bit). Run the two sides of a comparison alternately, pinned
-to one core (``taskset -c 1``), several times each, and say the load.
+to one core (``taskset -c 1``), several times each, and say the load. ``score`` replays once
+and scores against the renderer's truth (from ``OUT.render``): the tracker's point and the
+robot's expected pixel (px), the located 3D point against the true seam point (mm).
 """
 
 from __future__ import annotations
@@ -132,6 +135,49 @@ def _replay(args: argparse.Namespace) -> None:
             print(f"  {name:<12} {_pct(np.nanmin(t[:, ok], axis=0))}")
 
 
+def _score(args: argparse.Namespace) -> None:
+    from torchseam.core.config import load_cell
+    from torchseam.live.locate import SeamLocator
+    from torchseam.live.parts import load_live_parts
+    from torchseam.track.peers import make_tracker
+
+    d = np.load(args.recording)
+    frames, poses, seg = d["frame"], d["T_B_F"], d["seg"]
+    with open(f"{args.recording}.render", "rb") as f:
+        _, calls = pickle.load(f)
+    truth = {hash(fr.tobytes()): tr for (_, _, _, fr, tr) in calls}
+    cell, parts = load_cell(), load_live_parts()
+    err: dict[str, list[float]] = {"tracker px": [], "expected px": [], "3D point mm": []}
+    loc = None
+    for k in range(len(frames)):
+        if k == 0 or seg[k] != seg[k - 1]:
+            loc = SeamLocator(cell, make_tracker("anchored", parts.tipm), parts.tipm,
+                              parts.ecal)
+            loc.start(frames[k])
+            continue
+        assert loc is not None
+        seen = loc._expect(poses[k])  # what step() hands the tracker first
+        out = loc.step(frames[k], poses[k])
+        idle = getattr(loc.tracker, "idle", None)
+        if idle is not None:
+            idle()
+        t = truth.get(hash(frames[k].tobytes()))
+        if t is None or t.uv is None or not np.all(np.isfinite(t.uv)):
+            continue
+        if seen is not None:
+            err["expected px"].append(float(np.linalg.norm(seen - t.uv)))
+        if np.all(np.isfinite(out.uv)):
+            err["tracker px"].append(float(np.linalg.norm(out.uv - t.uv)))
+        if np.all(np.isfinite(out.p)) and np.all(np.isfinite(t.seam_B)):
+            err["3D point mm"].append(float(np.linalg.norm(out.p - np.asarray(t.seam_B))))
+    print(f"{len(frames)} frames, scored against the renderer's truth: p50 / p99 / max (n)")
+    for name, e in err.items():
+        a = np.array(e)
+        if a.size:
+            print(f"  {name:<12} {np.percentile(a, 50):.3f} / {np.percentile(a, 99):.3f} / "
+                  f"{a.max():.3f} ({a.size})")
+
+
 def _render(args: argparse.Namespace) -> None:
     from torchseam.sim.sequence import SensorRenderer
 
@@ -168,14 +214,14 @@ def main() -> None:
     rec.add_argument("--noise", default="heavy")
     rec.add_argument("--seed", type=int, default=0)
     rec.add_argument("--out", type=Path, required=True)
-    for name in ("replay", "render"):
+    for name in ("replay", "render", "score"):
         p = sub.add_parser(name)
         p.add_argument("recording", type=Path)
         p.add_argument("--reps", type=int, default=3)
     args = ap.parse_args()
     torch.set_num_threads(1)  # the live loop's setting: one core per camera
     cv2.setNumThreads(1)
-    {"record": _record, "replay": _replay, "render": _render}[args.cmd](args)
+    {"record": _record, "replay": _replay, "render": _render, "score": _score}[args.cmd](args)
 
 
 if __name__ == "__main__":
