@@ -127,6 +127,30 @@ def test_shallow_fit_drops_a_spatter_streak():
         assert abs(f.uv[1] - 100) < 0.3
 
 
+def test_prefix_sum_fit_matches_the_direct_sums():
+    """The search's two-arm fit from prefix sums (O(K log N)) gives the direct sums' (O(K N))
+    sums of squares, parameters and var(a), on a noisy bent line with a curvature prior."""
+    from torchseam.core.kernels import load_kernels
+    k = load_kernels("torchseam.track")
+    rng = np.random.default_rng(11)
+    u = np.sort(rng.uniform(0.0, 220.0, 200))
+    v = 100 + np.where(u < 120, 0.05, 0.12) * (u - 120) + 3e-4 * (u - 120) ** 2
+    v = v + rng.normal(0, 0.3, u.size)
+    t, y = (u - u.mean()) / 100.0, v - v.mean()
+    grid = np.arange(t[14], t[-15], 0.01)
+    prior = np.array([3.0, 0.5, 3.0, 0.5])
+    direct = [np.empty((grid.size, 5)), np.empty(grid.size), np.empty(grid.size)]
+    k.two_arm_fit(t, y, grid, prior, *direct)
+    P, yy = k._prefix(t, y)
+    theta, J, var_a = k._fit_prefix(t, P, yy, grid, prior)
+    assert np.allclose(J, direct[1], rtol=1e-9, atol=1e-9)
+    assert np.allclose(theta, direct[0], rtol=1e-8, atol=1e-9)
+    assert np.allclose(var_a, direct[2], rtol=1e-9)
+    # the corner column the two pick is the same, and where the line bends
+    assert np.argmin(J) == np.argmin(direct[1])
+    assert abs(grid[np.argmin(J)] * 100.0 + u.mean() - 120) < 10
+
+
 def _v_frame(uv: np.ndarray, slopes: tuple[float, float], size=(656, 492)) -> np.ndarray:
     """A clean BGR frame with a red V stripe whose corner is ``uv``."""
     import cv2

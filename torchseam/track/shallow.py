@@ -13,7 +13,8 @@ The model: the centre line ``v(u)`` is two quadratics that meet at the corner co
     v = a + b_L x + c_L x^2   (x = u - u_c < 0),     v = a + b_R x + c_R x^2   (x >= 0),
 
 fitted by least squares (5 unknowns, a curvature prior ``w_c (c - c0)^2`` per arm when given)
-for every ``u_c`` on a grid (coarse, then ``step_px`` around the best; compiled), the best
+for every ``u_c`` on a grid (coarse, then ``step_px`` around the best; compiled, each arm's
+sums about ``u_c`` from prefix sums of the points sorted by u), the best
 ``u_c`` refined by a parabola through the sum of squares ``J(u_c)``, a robust pass (MAD) and
 a second search. The uncertainty: with the residual variance ``s^2 = J_min / (n - 5)``,
 
@@ -100,6 +101,8 @@ def shallow_corner(pts: np.ndarray, min_points: int = 15, step_px: float = 1.0,
     pts = np.asarray(pts, dtype=np.float64)
     if pts.ndim != 2 or len(pts) < 2 * min_points + 5:
         return None
+    if np.any(np.diff(pts[:, 0]) < 0):  # the compiled search takes the points sorted by u
+        pts = pts[np.argsort(pts[:, 0], kind="stable")]
     u, v = pts[:, 0], pts[:, 1]
     m, vm = float(u.mean()), float(v.mean())
     t, y = (u - m) / _SCALE, v - vm
