@@ -401,3 +401,60 @@ def test_the_cell_file_names_its_camera(tmp_path):
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match=r"bad.yaml: camera.source: expected tcp://HOST:PORT"):
         load_weld_cell(tmp_path / "bad.yaml")
+
+
+def test_the_reply_puts_the_arc_out_over_a_standing_torch():
+    """Every EGM cycle: a torch the controller feeds back as standing (a loop that fell
+    behind between two frames) gets no arc, though the loop's lease still asks for it; moving
+    again, it gets the arc back at once."""
+    from torchseam.live.runner import REPLY_MOVING_WINDOW_S, STANDING_MM_S
+    from torchseam.live.weld import ControllerView, SensorReply
+    from torchseam.robot.egm import rapid_data as rd
+    from torchseam.robot.egm.messages import EgmSensor
+
+    view = ControllerView(cycle_s=0.004)
+    r = SensorReply(lease_s=10.0)
+    r.moving = lambda: view.speed_mm_s(REPLY_MOVING_WINDOW_S) >= STANDING_MM_S
+    r.set(True, 1, rd.SensorState.TRACKING)
+
+    def arc_after(xs):
+        for k, x in enumerate(xs):
+            view.recent.append((len(view.recent) * 0.004 + k * 0.0, np.array([x, 0.0, 0.0])))
+        msg = EgmSensor()
+        r.on_reply(msg)
+        return rd.read_sensor_data(msg).arc_request
+
+    assert arc_after([0.032 * k for k in range(20)])          # 8 mm/s
+    x = float(view.recent[-1][1][0])
+    assert not arc_after([x] * 12)                             # stood 48 ms
+    assert arc_after([x + 0.032 * k for k in range(1, 4)])     # moving again
+
+
+def test_an_internal_error_leaves_a_report_and_no_traceback(tmp_path, monkeypatch, capsys):
+    """A fault of the weld program itself (a bug): summary.json says so with every segment
+    not welded, the traceback goes to error.txt, one line on stderr, exit 1."""
+    from torchseam.cli import main
+    from torchseam.core.config import load_cell
+    from torchseam.live import weld
+    from torchseam.live.cellfile import CameraLink, ControllerLink, WeldCell, save_weld_cell
+
+    save_weld_cell(WeldCell(load_cell(), CameraLink(source="tcp://127.0.0.1:9", latency_ms=20.0),
+                            ControllerLink(host="127.0.0.1", port=0,
+                                           controller_host="127.0.0.1", controller_port=0)),
+                   tmp_path / "cell.yaml")
+
+    def broken(self):
+        raise RuntimeError("deque mutated during iteration")
+
+    monkeypatch.setattr(weld.WeldRunner, "run", broken)
+    out = tmp_path / "W"
+    rc = main(["weld", "--cell", str(tmp_path / "cell.yaml"), "--part", str(PART),
+               "--segments", "ab", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1
+    assert len(err) == 1 and "internal error: RuntimeError: deque mutated" in err[0], err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["segments_welded"] == [] and [d["segment"] for d in s["segments_incomplete"]] == [
+        "a", "b"]
+    assert "RuntimeError" in (out / "error.txt").read_text()
+    assert not (out / "RUNNING").exists()

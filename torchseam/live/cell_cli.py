@@ -196,6 +196,20 @@ def run_weld_cmd(args: argparse.Namespace) -> int:
             "segments_incomplete": [{"segment": n, "reason": str(e)} for n in args.segments]})
         (out / "RUNNING").unlink(missing_ok=True)
         raise
+    except Exception as e:
+        # a fault of this program (a bug): the arc went out and RAPID was told (WeldRunner.run);
+        # the report says so, the traceback goes to a file, one line on the terminal
+        import traceback
+
+        (out / "error.txt").write_text(traceback.format_exc())
+        why = f"internal error: {type(e).__name__}: {e} (traceback in {out / 'error.txt'})"
+        write_json_atomic(out / "summary.json", {
+            "part": str(args.part), "cell": str(args.cell), "segments": args.segments,
+            "segments_welded": [], "error": why,
+            "segments_incomplete": [{"segment": n, "reason": why} for n in args.segments]})
+        (out / "RUNNING").unlink(missing_ok=True)
+        print(f"torchseam weld: {why}; nothing claimed welded", file=sys.stderr)
+        return 1
     finally:
         for s, h in old.items():
             signal.signal(s, h)

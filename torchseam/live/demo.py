@@ -73,7 +73,14 @@ from torchseam.live.names import FAULTS as FAULTS  # the faults run_demo injects
 from torchseam.live.parts import LiveParts
 from torchseam.live.ring import torch_axis_errors
 from torchseam.live.runner import MAX_GAP_MM as MAX_GAP_MM  # (re-exported)
-from torchseam.live.runner import ArcGapMeter, CellFrame, SegmentJob, run_segment
+from torchseam.live.runner import (
+    MOVING_FRACTION,
+    MOVING_WINDOW_S,
+    ArcGapMeter,
+    CellFrame,
+    SegmentJob,
+    run_segment,
+)
 from torchseam.live.search import (
     SeamSearch,
     SearchConfig,
@@ -663,12 +670,12 @@ class _SimulatedCell:
 
     def moving(self) -> bool:
         t, p = self.recent[-1]
-        old = [(t0, p0) for t0, p0 in self.recent if t - t0 >= 0.1 - 1e-9]
+        old = [(t0, p0) for t0, p0 in self.recent if t - t0 >= MOVING_WINDOW_S - 1e-9]
         if not old:
             return True      # too early to tell: the segment's first frames
         t0, p0 = old[-1]
         v = float(np.linalg.norm(p - p0)) / (t - t0)
-        return v >= 0.2 * self.run.cell.process.weld_speed_mm_s
+        return v >= MOVING_FRACTION * self.run.cell.process.weld_speed_mm_s
 
     def set_arc(self, on: bool) -> None:
         self.arc = on

@@ -37,6 +37,15 @@ from torchseam.live.loop import Command, LiveLoop, StepReport
 #: welded (a gap in the bead). Not zero: the arc is decided once a frame, so a stretch passed
 #: with the arc out is known to within a frame's travel (0.32 mm at 8 mm/s and 25 frames/s).
 MAX_GAP_MM = 0.5
+#: the torch moves when it went at least this fraction of the weld speed over the last
+#: MOVING_WINDOW_S (decided once a frame, the arc asked for only then)
+MOVING_FRACTION = 0.2
+MOVING_WINDOW_S = 0.1
+#: the link's replies check every EGM cycle that the torch is not standing (slower than
+#: STANDING_MM_S over REPLY_MOVING_WINDOW_S), so that a torch left standing between two frames
+#: (a loop that fell behind) has the arc out within a few cycles, not at the next frame
+STANDING_MM_S = 0.5
+REPLY_MOVING_WINDOW_S = 0.04
 
 
 @dataclass(frozen=True)
@@ -339,5 +348,6 @@ class _Segment:
                                     f.T_B_W, self.loop, self.link))
 
 
-__all__ = ["MAX_GAP_MM", "ArcGapMeter", "CellFrame", "SegmentCell", "SegmentJob", "SegmentRun",
+__all__ = ["MAX_GAP_MM", "MOVING_FRACTION", "MOVING_WINDOW_S", "REPLY_MOVING_WINDOW_S",
+           "STANDING_MM_S", "ArcGapMeter", "CellFrame", "SegmentCell", "SegmentJob", "SegmentRun",
            "run_segment"]

@@ -30,7 +30,7 @@ import dataclasses
 import signal
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,7 +45,16 @@ from torchseam.live.events import DemoControl, FrameRecord
 from torchseam.live.loop import LiveLoop, StepReport, egm_config_for
 from torchseam.live.parts import LiveParts
 from torchseam.live.runner import MAX_GAP_MM as MAX_GAP_MM  # (re-exported)
-from torchseam.live.runner import ArcGapMeter, CellFrame, SegmentJob, run_segment
+from torchseam.live.runner import (
+    MOVING_FRACTION,
+    MOVING_WINDOW_S,
+    REPLY_MOVING_WINDOW_S,
+    STANDING_MM_S,
+    ArcGapMeter,
+    CellFrame,
+    SegmentJob,
+    run_segment,
+)
 from torchseam.robot.egm import rapid_data as rd
 
 #: exit codes of ``torchseam weld``
@@ -81,6 +90,8 @@ class ControllerView:
     # segment's start); the next datagram then starts a new session of the link
     new_motion_pending: bool = False
     arc_now: Any = None          # () -> bool: the arc request the replies carry now
+    # the newest fed-back torch positions (t PC s, p (3,)): the torch's speed now
+    recent: deque[tuple[float, np.ndarray]] = field(default_factory=lambda: deque(maxlen=64))
     _resets: int = 0
 
     def __post_init__(self) -> None:
@@ -106,6 +117,7 @@ class ControllerView:
         if n > 0:
             p = np.array([c.pos.x, c.pos.y, c.pos.z])
             self.poses.add(self.offset.to_pc(t_fb), pose_matrix(p, q / n))
+            self.recent.append((self.offset.to_pc(t_fb), p))
             self.gap.add(p, bool(self.arc_now()) if self.arc_now is not None else False)
         data = rd.read_rapid_data(robot)
         if data is None:
@@ -119,6 +131,17 @@ class ControllerView:
         if new:
             self.motions += 1
         return new
+
+    def speed_mm_s(self, window_s: float) -> float:
+        """The torch's speed over the newest ``window_s`` of fed-back poses (mm/s; 0 with
+        fewer than two poses in it)."""
+        recent = tuple(self.recent)   # (one C call: the link's thread appends meanwhile)
+        if len(recent) < 2:
+            return 0.0
+        t1, p1 = recent[-1]
+        old = [(t, p) for t, p in recent if t >= t1 - window_s - 1e-9]
+        t0, p0 = old[0]
+        return float(np.linalg.norm(p1 - p0)) / (t1 - t0) if t1 > t0 else 0.0
 
 
 @dataclass
@@ -135,6 +158,7 @@ class SensorReply:
     state: rd.SensorState = rd.SensorState.WAIT
     heartbeat: int = 0
     lease_s: float = 0.06
+    moving: Any = None          # () -> bool: the torch moves now (None: not checked)
     _since: float = 0.0
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -144,8 +168,12 @@ class SensorReply:
             self._since = time.monotonic()
 
     def effective(self) -> bool:
-        """The arc request the next reply carries (False once the lease ran out)."""
-        return self.arc_request and time.monotonic() - self._since <= self.lease_s
+        """The arc request the next reply carries: False once the lease ran out, and False
+        while the fed-back torch stands (checked every cycle: a loop that falls behind leaves
+        the robot standing at its last target between two frames; the arc must not burn
+        there)."""
+        return (self.arc_request and time.monotonic() - self._since <= self.lease_s
+                and (self.moving is None or bool(self.moving())))
 
     def on_reply(self, msg: Any) -> None:
         with self._lock:
@@ -222,6 +250,7 @@ class WeldRunner:
         self.period_s = 1.0 / cell.calibration.process.frame_rate_hz
         self.reply = SensorReply(lease_s=2.5 * self.period_s)
         self.view.arc_now = self.reply.effective
+        self.reply.moving = lambda: self.view.speed_mm_s(REPLY_MOVING_WINDOW_S) >= STANDING_MM_S
         self.tool_inv = invert(self.calib.tool.matrix())
         self.period_s = 1.0 / self.calib.process.frame_rate_hz
         self.stall_s = cell.camera.stall_frames * self.period_s
@@ -312,6 +341,12 @@ class WeldRunner:
             if self._partial is not None:
                 self.res.segments.append(self._partial)
             self._abort_current("interrupted by " + str(e))
+        except Exception as e:
+            # a fault of this program: arc out, the segment aborted towards RAPID, the robot
+            # held; the caller reports it
+            self._raise_on_signal = False
+            self._abort_current(f"internal error: {type(e).__name__}: {e}")
+            raise
         finally:
             if hasattr(self, "link"):
                 self.close()
@@ -481,17 +516,11 @@ class WeldRunner:
         return out
 
     def _moving(self) -> bool:
-        """The torch moved at least a fifth of the weld speed over the last 0.1 s (the arc is
-        never asked for over a torch that stands: it would burn through)."""
-        newest = self.view.poses.newest
-        if newest is None:
-            return False
-        t, T = newest
-        T0 = self.view.poses.nearest(t - 0.1, 0.03)
-        if T0 is None:
-            return False
-        v = float(np.linalg.norm(T[:3, 3] - T0[:3, 3])) / 0.1
-        return v >= 0.2 * self.calib.process.weld_speed_mm_s
+        """The torch moved at least :data:`~torchseam.live.runner.MOVING_FRACTION` of the weld
+        speed over the last :data:`~torchseam.live.runner.MOVING_WINDOW_S` (the arc is never
+        asked for over a torch that stands: it would burn through)."""
+        v = self.view.speed_mm_s(MOVING_WINDOW_S)
+        return v >= MOVING_FRACTION * self.calib.process.weld_speed_mm_s
 
     def _hold_here(self) -> None:
         """Hold the robot where it stands: its fed-back pose as the target (the link checks
