@@ -23,7 +23,8 @@ the recorded one did). ``render`` does the same for the renderer (thread CPU tim
 frames and truth compared bit for bit). Run the two sides of a comparison alternately, pinned
 to one core (``taskset -c 1``), several times each, and say the load. ``score`` replays once
 and scores against the renderer's truth (from ``OUT.render``): the tracker's point and the
-robot's expected pixel (px), the located 3D point against the true seam point (mm).
+robot's expected pixel (px), the located 3D point against the true seam point (mm), the
+arm directions against the true arms (deg, the larger of the two).
 """
 
 from __future__ import annotations
@@ -135,6 +136,17 @@ def _replay(args: argparse.Namespace) -> None:
             print(f"  {name:<12} {_pct(np.nanmin(t[:, ok], axis=0))}")
 
 
+def _arm_angle(p: np.ndarray, q: np.ndarray, seam: np.ndarray, arms: np.ndarray) -> float:
+    """The larger angle (deg) between a located arm direction (q_i - p) and the true one
+    (arm_B - seam_B), the arms paired the way that fits best."""
+    def unit(a: np.ndarray) -> np.ndarray:
+        return a / np.linalg.norm(a, axis=1, keepdims=True)
+
+    got, true = unit(q - p), unit(arms - seam)
+    ang = np.degrees(np.arccos(np.clip(got @ true.T, -1.0, 1.0)))  # (located, true)
+    return float(min(max(ang[0, 0], ang[1, 1]), max(ang[0, 1], ang[1, 0])))
+
+
 def _score(args: argparse.Namespace) -> None:
     from torchseam.core.config import load_cell
     from torchseam.live.locate import SeamLocator
@@ -147,7 +159,8 @@ def _score(args: argparse.Namespace) -> None:
         _, calls = pickle.load(f)
     truth = {hash(fr.tobytes()): tr for (_, _, _, fr, tr) in calls}
     cell, parts = load_cell(), load_live_parts()
-    err: dict[str, list[float]] = {"tracker px": [], "expected px": [], "3D point mm": []}
+    err: dict[str, list[float]] = {"tracker px": [], "expected px": [], "3D point mm": [],
+                                   "arm deg": []}
     loc = None
     for k in range(len(frames)):
         if k == 0 or seg[k] != seg[k - 1]:
@@ -170,6 +183,9 @@ def _score(args: argparse.Namespace) -> None:
             err["tracker px"].append(float(np.linalg.norm(out.uv - t.uv)))
         if np.all(np.isfinite(out.p)) and np.all(np.isfinite(t.seam_B)):
             err["3D point mm"].append(float(np.linalg.norm(out.p - np.asarray(t.seam_B))))
+        if out.arms_ok and np.all(np.isfinite(out.q)) and np.all(np.isfinite(t.arm_B)):
+            err["arm deg"].append(_arm_angle(out.p, out.q, np.asarray(t.seam_B),
+                                             np.asarray(t.arm_B)))
     print(f"{len(frames)} frames, scored against the renderer's truth: p50 / p99 / max (n)")
     for name, e in err.items():
         a = np.array(e)
