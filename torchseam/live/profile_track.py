@@ -20,6 +20,8 @@ profile itself (feature points and the pieces leaving the root edges) stays on t
 
 from __future__ import annotations
 
+import dataclasses
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +39,8 @@ from torchseam.vision.tipm import Tipm
 #: the evidence gate after n frames without evidence: ``gate_px (1 + n)``, at most this many
 #: times ``gate_px``
 MAX_GATE_GROWTH = 4.0
+#: the sides of a groove, in the order of :meth:`ProfileTracker._root_edges`' arrays
+SIDES = ("left", "right")
 
 __all__ = ["ProfileTrackConfig", "ProfileTracker", "load_profile_track_config",
            "make_joint_tracker"]
@@ -50,6 +54,10 @@ class ProfileTrackConfig:
     gate_px: float = config_field(lo=0.0, lo_open=True)
     lost_frames: int = config_field(lo=1)
     smooth: float = config_field(lo=0.0, hi=1.0, hi_open=True)
+    edge_history: int = config_field(lo=1)
+    edge_min: int = config_field(lo=1)
+    edge_tol_px: float = config_field(lo=0.0, lo_open=True)
+    edge_max_frames: int = config_field(lo=0)
 
 
 def load_profile_track_config(path: str | Path | None = None) -> ProfileTrackConfig:
@@ -87,6 +95,11 @@ class ProfileTracker(Tracker):
         self.misses = 0
         #: the profile found on the last frame (frame pixels), None when none was taken
         self.result: ProfileResult | None = None
+        #: v_groove: each root edge's place along its face's line from where the two lines
+        #: meet, (2,) px, on the recent frames with a profile
+        self._edges = (deque[float](maxlen=cfg.edge_history),
+                       deque[float](maxlen=cfg.edge_history))
+        self._stale = [0, 0]  # frames in a row each side's edge was taken from its history
 
     def find(self, frame: np.ndarray) -> ProfileResult:
         """The profile on a whole frame (the start: no prediction yet)."""
@@ -96,6 +109,9 @@ class ProfileTracker(Tracker):
         self.uv = np.asarray(uv, float).copy()
         self.velocity = np.zeros(2)
         self.expected, self.misses, self.result = None, 0, None
+        for hist in self._edges:
+            hist.clear()
+        self._stale = [0, 0]
 
     def expect(self, uv: np.ndarray | None) -> None:
         self.expected = None if uv is None else np.asarray(uv, float).copy()
@@ -127,6 +143,8 @@ class ProfileTracker(Tracker):
         res = self._window(frame, pred)
         # a prediction grows less certain with each frame without evidence
         gate = self.cfg.gate_px * min(1.0 + self.misses, MAX_GATE_GROWTH)
+        if res.ok:
+            res = self._root_edges(res)
         if res.ok and float(np.linalg.norm(res.aim - pred)) <= gate:
             uv = self.cfg.smooth * pred + (1.0 - self.cfg.smooth) * res.aim
             self.velocity = uv - self.uv if np.all(np.isfinite(self.uv)) else np.zeros(2)
@@ -136,6 +154,71 @@ class ProfileTracker(Tracker):
         self.uv, self.velocity = pred, np.zeros(2)  # held, not extrapolated, while blind
         status = TrackStatus.LOST if self.misses > self.cfg.lost_frames else TrackStatus.COASTING
         return TrackResult(pred.copy(), int(status))
+
+    def _root_edges(self, res: ProfileResult) -> ProfileResult:
+        """A v_groove's root edges checked against the recent frames'. The stripe's end at a
+        root edge is the profile's weakest reading: the arc's glare and its reflection up the
+        groove wash out (or saturate) the stripe's last pixels there, a spatter streak carries
+        it on into the gap; the faces' lines, fitted to tens of points, are its strongest.
+        Each edge's place along its face's line, measured from where the two lines meet, is
+        stable from frame to frame (the groove's shape changes slowly round the saddle).
+
+        Per side, with ``edge_min`` of its places known (the last ``edge_history`` that
+        agreed), an edge more than ``edge_tol_px`` off their median is taken at the median, on
+        its line as this frame shows it; only places that agree join the history (an edge
+        washed out for a second does not become the groove's shape). A side taken from its
+        history on more than ``edge_max_frames`` frames in a row is no longer known: its
+        history starts again from what the frames show (the gate on the prediction still
+        holds). A frame with both edges off (a glare band over the root: the lines are no
+        better there, a spatter streak bridging the gap) or with the edge of a side no longer
+        known is no evidence (``ok`` False)."""
+        if res.joint != "v_groove" or res.arm_points is None:
+            return res
+        roots = np.stack([res.points["left_root"], res.points["right_root"]])
+        d = res.arm_points - roots
+        n = np.linalg.norm(d, axis=1)
+        if np.any(n < 1e-9):
+            return res
+        d /= n[:, None]
+        m = np.stack([d[0], -d[1]], axis=1)
+        if abs(float(np.linalg.det(m))) < 1e-6:  # parallel faces: no place to measure from
+            return res
+        x = roots[0] + float(np.linalg.solve(m, roots[1] - roots[0])[0]) * d[0]
+        place = np.einsum("ij,ij->i", roots - x, d)                            # (2,)
+        off = np.zeros(2, bool)
+        ref = place.copy()
+        for i, hist in enumerate(self._edges):
+            if len(hist) >= self.cfg.edge_min:
+                ref[i] = float(np.median(hist))
+                off[i] = abs(place[i] - ref[i]) > self.cfg.edge_tol_px
+            if off[i]:
+                self._stale[i] += 1
+                if self._stale[i] > self.cfg.edge_max_frames:  # no longer known: start again
+                    hist.clear()
+                    self._stale[i] = 0
+                    return dataclasses.replace(
+                        res, ok=False, aim=np.full(2, np.nan),
+                        reason=f"the {SIDES[i]} root edge off its recent place for "
+                               f"{self.cfg.edge_max_frames} frames")
+            else:
+                hist.append(place[i])
+                self._stale[i] = 0
+        if not off.any():
+            return res
+        if off.all():  # a glare band over the root, a spatter streak across the gap
+            return dataclasses.replace(
+                res, ok=False, aim=np.full(2, np.nan),
+                reason=f"both root edges off their recent places (by "
+                       f"{np.abs(place - ref).max():.1f} px)")
+        new = roots.copy()
+        new[off] = x + ref[off, None] * d[off]
+        pts = dict(res.points, left_root=new[0], right_root=new[1])
+        which = SIDES[int(np.flatnonzero(off)[0])]
+        return dataclasses.replace(
+            res, aim=new.mean(axis=0), points=pts,
+            reason=(res.reason + "; " if res.reason else "") + f"{which} root edge at its "
+            "recent place",
+            gap_px=float(np.linalg.norm(new[1] - new[0])))
 
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
         r = self.track(frame)
