@@ -143,3 +143,43 @@ def test_only_the_default_tracker_follows_a_profile():
     parts = load_live_parts()
     with pytest.raises(TorchseamError, match="tracker tipm: a v_groove joint"):
         parts.tracker("tipm", "v_groove")
+
+
+def test_replay_joint_follows_the_groove_and_names_a_bad_choice(tmp_path, capsys):
+    """``torchseam replay --joint v_groove`` on the simulator's frames of the bevelled saddle:
+    every frame tracked on the profile's aim point (against the simulator's labels, the root
+    centre); a tracker that cannot follow a profile and an unknown joint: one error line."""
+    import csv
+
+    from torchseam.cli import main
+
+    seq = tmp_path / "seq"
+    assert main(["simulate", str(seq), "--frames", "6", "--part", str(BEVEL), "--seed", "4",
+                 "--start-mm", "200"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "replay.csv"
+    assert main(["replay", str(seq), "--joint", "v_groove", "--out", str(out)]) == 0
+    rows = list(csv.DictReader(out.open()))
+    labels = {int(r["frame"]): (float(r["u"]), float(r["v"]))
+              for r in csv.DictReader((seq / "labels.csv").open())}
+    assert len(rows) == 5 and all(r["status"] == "tracked" for r in rows)  # after the start
+    err = [np.hypot(float(r["u"]) - labels[int(r["frame"])][0],
+                    float(r["v"]) - labels[int(r["frame"])][1]) for r in rows]
+    assert max(err) < 1.5, err
+    capsys.readouterr()
+    assert main(["replay", str(seq), "--joint", "v_groove", "--tracker", "tipm"]) == 2
+    err_lines = capsys.readouterr().err.strip().splitlines()
+    assert len(err_lines) == 1 and "tracker tipm: a v_groove joint" in err_lines[0]
+    with pytest.raises(SystemExit) as e:
+        main(["replay", str(seq), "--joint", "groove"])
+    assert e.value.code == 2
+    err_lines = capsys.readouterr().err.strip().splitlines()
+    assert len(err_lines) == 1 and "--joint: invalid choice: 'groove'" in err_lines[0]
+
+
+def test_console_joint_must_be_the_simulated_part_s():
+    """``torchseam console --joint`` names the joint of recorded frames; on the simulated cell
+    the part's file says it: another is refused (one line, exit 2) before anything is served."""
+    from torchseam.cli import main
+
+    assert main(["console", "--joint", "v_groove", "--port", "0"]) == 2

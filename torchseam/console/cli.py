@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from torchseam.console.config import DEFAULT_HOST
+from torchseam.core.config import JOINT_PROFILES
 from torchseam.core.errors import TorchseamError
 
 #: Named frame sources; any other ``--source`` is a recorded folder, a video file, or a
@@ -51,6 +52,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "noise, seed and faults do not (default: none, the simulated cell or "
                         "--source)")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
+    p.add_argument("--joint", choices=JOINT_PROFILES, default=None,
+                   help="the joint in --source's frames (default fillet: the page's tracker "
+                        "follows TIPM's corner; v_groove, butt, lap: the profile's aim point, "
+                        "default tracker only); with the simulated cell or --cell, the part's "
+                        "joint: field (a different --joint is refused)")
     p.add_argument("--noise", default="heavy",
                    help="initial arc-noise level on the page: a name from configs/noise.yaml "
                         "or a number in [0, 1] (default heavy)")
@@ -83,13 +89,21 @@ def run(args: argparse.Namespace) -> int:
     defaults = {"noise": args.noise, "segments": args.segments, "length_mm": args.length_mm}
     cell, noise, parts = load_cell(), load_noise(), load_live_parts()
     try:
+        if args.source == "sim" or args.cell is not None:
+            part = load_part(args.part)
+            if args.joint not in (None, part.joint):
+                raise TorchseamError(f"--joint {args.joint}: the part "
+                                     f"({args.part or 'configs/parts/t_joint.yaml'}) is a "
+                                     f"{part.joint} joint (its joint: field); --joint names the "
+                                     "joint in --source's recorded frames")
         if args.cell is not None:
             console = _cell_console(args, cfg, noise, parts, defaults)
         elif args.source == "sim":
-            console = simulated_console(cfg, cell, load_part(args.part), noise, parts,
-                                        defaults=defaults)
+            console = simulated_console(cfg, cell, part, noise, parts, defaults=defaults)
         else:   # a folder or video: open_source's errors name the path
-            console = replay_console(args.source, cfg, cell, noise, parts, defaults=defaults)
+            parts.tracker("anchored", args.joint or "fillet")  # a bad joint, before serving
+            console = replay_console(args.source, cfg, cell, noise, parts, defaults=defaults,
+                                     joint=args.joint or "fillet")
     except ParamError as e:
         raise TorchseamError(str(e)) from None
     console.allowed_hosts = tuple(args.allow_host)

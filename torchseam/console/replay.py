@@ -27,7 +27,6 @@ from torchseam.live.events import DemoControl, DemoEvent
 from torchseam.live.parts import LiveParts
 from torchseam.live.replay import ReplayResult, run_replay
 from torchseam.live.sources import CameraSource, FolderSource, open_source
-from torchseam.track.peers import make_tracker
 
 #: Shown on the page next to the source: the form fields a replay ignores.
 IGNORED = "open loop, no controller; noise, seed, faults, segments and length do not apply"
@@ -75,17 +74,19 @@ def replay_summary(res: ReplayResult) -> dict[str, Any]:
     }
 
 
-def replay_weld(cell: CellConfig, path: str | os.PathLike[str], parts: LiveParts
+def replay_weld(cell: CellConfig, path: str | os.PathLike[str], parts: LiveParts,
+                joint: str = "fillet"
                 ) -> Callable[[WeldParams, Callable[[DemoEvent], None], DemoControl], ReplayWeld]:
     """A weld function for :class:`WeldSession`: :func:`run_replay` of ``path`` (opened anew
-    for every weld) with the page's tracker and process settings and ``parts``."""
+    for every weld) with the page's tracker and process settings and ``parts``; ``joint``: the
+    joint in the frames (:meth:`LiveParts.tracker`)."""
 
     def weld(p: WeldParams, observer: Callable[[DemoEvent], None],
              control: DemoControl) -> ReplayWeld:
         c = p.apply(cell)
         source = open_source(path, (c.camera.width, c.camera.height))
         with source:
-            res = run_replay(c, source, make_tracker(p.tracker, parts.tipm), parts=parts,
+            res = run_replay(c, source, parts.tracker(p.tracker, joint), parts=parts,
                              truth=_truth(source), observer=observer, control=control)
         return ReplayWeld(res, replay_summary(res))
 
@@ -94,7 +95,8 @@ def replay_weld(cell: CellConfig, path: str | os.PathLike[str], parts: LiveParts
 
 def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig, cell: CellConfig,
                    noise: NoiseConfig, parts: LiveParts,
-                   defaults: dict[str, Any] | None = None) -> ConsoleServer:
+                   defaults: dict[str, Any] | None = None, joint: str = "fillet"
+                   ) -> ConsoleServer:
     """A :class:`ConsoleServer` running the recorded folder, video file or live camera at
     ``path`` (see :func:`~torchseam.live.sources.open_source`) open loop, with these settings
     (the command line reads them; :func:`~torchseam.live.parts.load_live_parts` the shipped
@@ -118,5 +120,5 @@ def replay_console(path: str | os.PathLike[str], cfg: ConsoleConfig, cell: CellC
     period = 1.0 / fps if fps and fps > 0 else 1.0 / cell.process.frame_rate_hz
     if kind == "live camera":
         period = 0.0  # a camera paces itself; pacing on top would only drop frames
-    return make_console(cfg, cell, noise, replay_weld(cell, path, parts), period,
+    return make_console(cfg, cell, noise, replay_weld(cell, path, parts, joint), period,
                         f"{kind} {name} ({IGNORED})", defaults, open_loop=True)

@@ -21,7 +21,7 @@ from torchseam.core.cliargs import (
     seed_arg,
     segments_arg,
 )
-from torchseam.core.config import load_cell, load_noise, load_part
+from torchseam.core.config import JOINT_PROFILES, load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import ReportError, format_table
 from torchseam.live.names import FAULTS
@@ -97,8 +97,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                                   "camera: camera:N (device index) or a stream URL")
     r.add_argument("--tracker", choices=TRACKERS, default="anchored",
                    help="feature-point tracker (default anchored)")
+    r.add_argument("--joint", choices=JOINT_PROFILES, default="fillet",
+                   help="the joint in the frames (default fillet: TIPM's corner, followed by "
+                        "--tracker; v_groove, butt, lap: the profile's aim point, "
+                        "configs/profiles.yaml, with the default tracker)")
     r.add_argument("--init", default=None, metavar="U,V",
-                   help="start pixel (default: TIPM on the first frame, which must be arc-off)")
+                   help="start pixel (default: TIPM on the first frame, which must be arc-off; "
+                        "a --joint other than fillet: its profile's aim point there)")
     r.add_argument("--pose", default=None, metavar="X,Y,Z,Q1,Q2,Q3,Q4",
                    help="torch pose for frames without one (mm, quaternion w,x,y,z; default: "
                         "the tool pose with the flange at the base origin, so such frames' 3D "
@@ -137,7 +142,7 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     from torchseam.live.replay import run_replay
     from torchseam.live.sources import open_source
     from torchseam.track.fusion import TrackStatus
-    from torchseam.track.peers import STATUS_NAMES, make_tracker
+    from torchseam.track.peers import STATUS_NAMES
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -154,6 +159,7 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
             raise TorchseamError("--pose: the quaternion is zero")
         pose = pose_matrix(np.array(v[:3]), q / np.linalg.norm(q))
     cell, parts = load_cell(), load_live_parts()
+    tracker = parts.tracker(args.tracker, args.joint, args.model)  # refused before any frame
     source = open_source(args.source, (cell.camera.width, cell.camera.height), args.fps)
     truth = None
     meta = getattr(getattr(source, "ds", None), "meta", None)
@@ -163,7 +169,7 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     with source:
         res = run_replay(cell, source,
-                         make_tracker(args.tracker, parts.tipm, model_path=args.model),
+                         tracker,
                          pose, uv0, parts=parts, max_frames=args.max_frames, truth=truth)
     wall = time.perf_counter() - t0
     n = len(res.index)
