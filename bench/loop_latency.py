@@ -158,9 +158,24 @@ def _score(args: argparse.Namespace) -> None:
     with open(f"{args.recording}.render", "rb") as f:
         _, calls = pickle.load(f)
     truth = {hash(fr.tobytes()): tr for (_, _, _, fr, tr) in calls}
+    found = [truth.get(hash(f.tobytes())) for f in frames]
+    flat = np.zeros(len(frames), bool)
+    if args.shallow:  # each segment's frames with bench/tracking.py's shallow stretch
+        from torchseam.sim.variants import shallow_corner
+        frames = list(frames)
+        for n, s in enumerate(np.unique(seg)):
+            idx = np.flatnonzero(seg == s)
+            if any(found[i] is None for i in idx):
+                continue
+            uv = np.array([found[i].uv for i in idx], float)
+            arm = np.array([found[i].arm_uv for i in idx], float)
+            out_f, _, fl = shallow_corner([frames[i] for i in idx], uv, arm, n)
+            for j, i in enumerate(idx):
+                frames[i] = out_f[j]
+            flat[idx] = fl
     cell, parts = load_cell(), load_live_parts()
     err: dict[str, list[float]] = {"tracker px": [], "expected px": [], "3D point mm": [],
-                                   "arm deg": []}
+                                   "arm deg": [], "flat: tracker px": []}
     loc = None
     for k in range(len(frames)):
         if k == 0 or seg[k] != seg[k - 1]:
@@ -174,9 +189,11 @@ def _score(args: argparse.Namespace) -> None:
         idle = getattr(loc.tracker, "idle", None)
         if idle is not None:
             idle()
-        t = truth.get(hash(frames[k].tobytes()))
+        t = found[k]
         if t is None or t.uv is None or not np.all(np.isfinite(t.uv)):
             continue
+        if flat[k]:
+            err["flat: tracker px"].append(float(np.linalg.norm(out.uv - t.uv)))
         if seen is not None:
             err["expected px"].append(float(np.linalg.norm(seen - t.uv)))
         if np.all(np.isfinite(out.uv)):
@@ -234,6 +251,10 @@ def main() -> None:
         p = sub.add_parser(name)
         p.add_argument("recording", type=Path)
         p.add_argument("--reps", type=int, default=3)
+        if name == "score":
+            p.add_argument("--shallow", action="store_true",
+                           help="give each segment bench/tracking.py's shallow-kink stretch "
+                                "(glare and spatter on the corner) before replaying it")
     args = ap.parse_args()
     torch.set_num_threads(1)  # the live loop's setting: one core per camera
     cv2.setNumThreads(1)

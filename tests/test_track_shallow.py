@@ -246,3 +246,13 @@ def test_shallow_kink_under_glare_is_weak_evidence_not_tracked():
         trk.idle()
         assert res.status != TrackStatus.TRACKED
         assert res.fix is not None and res.fix.shallow and not res.fix.firm
+    # with the robot's expected pixel (the live loop; shallow_with_expected false) no shallow
+    # corner is read: the prediction places the point better than weak evidence
+    assert not trk.cfg.shallow_with_expected
+    t = np.tan(np.radians(1.5))
+    for _ in range(3):
+        trk.expect(uv)
+        res = trk.track(glare_on_corner(_v_frame(uv, (0.05 + t, 0.05 - t)), uv, rng))
+        trk.idle()
+        assert res.fix is None or not res.fix.shallow
+        assert np.linalg.norm(res.uv - uv) < 1.0

@@ -122,6 +122,7 @@ class AnchorConfig:
     velocity_frames: int = config_field(lo=2)
     velocity_points: int = config_field(lo=2)
     velocity_fade_frames: float = config_field(lo=0.0, lo_open=True)
+    shallow_with_expected: bool = config_field()
 
 
 def load_anchor_config(path: str | Path | None = None) -> AnchorConfig:
@@ -295,9 +296,11 @@ class Observation:
 
 
 def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | None,
-            cfg: AnchorConfig) -> Observation:
+            cfg: AnchorConfig, shallow: bool = True) -> Observation:
     """TIPM in the ``window_px`` window of ``frame`` around the predicted point ``x`` (2,),
-    its arm fits pulled toward ``prior`` (see :meth:`Tipm.corner`), and the glare there."""
+    its arm fits pulled toward ``prior`` (see :meth:`Tipm.corner`), and the glare there; with
+    ``shallow``, the shallow corner where TIPM gives none or an extrapolated one (else TIPM's
+    corner whenever it gives one)."""
     h, w = frame.shape[:2]
     cu, cv = float(x[0]), float(x[1])
     obs = Observation(glare_level(frame, x, cfg.glare_px))
@@ -312,12 +315,12 @@ def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | No
     res, red, mask = tipm.find(roi, prior)
     obs.stripe = (red, mask, (x0, y0))
     seen = res.ok and corner_seen(res, cfg.support_px, cfg.support_points)
-    if res.ok and (seen or 180.0 - res.corner_deg >= cfg.shallow_below_deg):
+    if res.ok and (seen or not shallow or 180.0 - res.corner_deg >= cfg.shallow_below_deg):
         t = tipm.cfg
         obs.res, obs.z = res, res.uv + (x0, y0)
         obs.shape_cov = corner_cov_shape(res, prior, (t.corner_gap_px, t.fit_window_px))
         obs.seen = seen
-    elif res.reason != SATURATED and res.centre is not None:
+    elif shallow and res.reason != SATURATED and res.centre is not None:
         # no corner, or a shallow one extrapolated over arms that stop short (glare on it):
         # TIPM's arm fits there lean on the prior's slopes, which a flattening kink no
         # longer has (a biased corner, its covariance too small); read it from the whole
@@ -595,7 +598,10 @@ class AnchorFilter:
             # constant velocity over tens of frames (the path's wobble, the part's deviation)
             fade = math.exp(-self.coast / self.cfg.velocity_fade_frames)
             self.x = self.x + o.const(fade * self.velocity)
-        obs = observe(self.tipm, frame, o.value(self.x), self.prior(), c)
+        # the shallow corner only where no robot prediction comes (offline), unless set: in
+        # the live loop the expected pixel places the point better (docs/benchmarks.md)
+        obs = observe(self.tipm, frame, o.value(self.x), self.prior(), c,
+                      shallow=expected is None or c.shallow_with_expected)
         inflate = 1.0 + (o.relu(obs.glare - p["glare_start"]) / p["glare_scale"]) ** 2
         taken, fix = False, None
         if obs.res is not None:
