@@ -82,6 +82,7 @@ class ProfileConfig:
     min_depth_px: float = config_field(lo=0.0)
     fit_px: float = config_field(lo=2.0)
     shoulder_ratio: float = config_field(lo=1.0)
+    arm_px: float = config_field(lo=2.0)
 
 
 def load_profile_config(path: str | Path | None = None) -> ProfileConfig:
@@ -106,8 +107,9 @@ class ProfileResult:
         tipm: the corner TIPM found (fillet).
         arm_points: (2, 2) v_groove: a point on the stripe's piece that leaves each root
             edge (left, right), up to ``fit_px`` along it (the flank, or a side's plate where
-            it has no flank): with the root edges, the two faces' directions at the root
-            (what the torch bisects); None where not found.
+            it has no flank: along the plate's tangent at the edge, ``arm_px``): with the
+            root edges, the two faces' directions at the root (what the torch bisects); None
+            where not found.
     """
 
     joint: str
@@ -335,13 +337,14 @@ class ProfileFinder:
         frac = (val[i - 1] - level) / max(val[i - 1] - val[i], 1e-9)
         return along[i - 1] + frac * ds * step
 
-    def _near(self, piece: np.ndarray) -> int:
-        """How many points of a piece (N, 2), from its first, lie within ``fit_px`` of it (at
-        least ``min_points``): the stretch a line is fitted to next to an edge, where a
-        curved surface (a pipe cut by the laser plane) is still straight."""
+    def _near(self, piece: np.ndarray, reach: float | None = None) -> int:
+        """How many points of a piece (N, 2), from its first, lie within ``fit_px`` (or
+        ``reach``) of it (at least ``min_points``): the stretch a line is fitted to next to an
+        edge, where a curved surface (a pipe cut by the laser plane) is still straight."""
         d = np.linalg.norm(piece - piece[0], axis=1)
-        return max(self.cfg.min_points, int(np.searchsorted(np.maximum.accumulate(d),
-                                                            self.cfg.fit_px, side="right")))
+        return max(self.cfg.min_points, int(np.searchsorted(
+            np.maximum.accumulate(d), self.cfg.fit_px if reach is None else reach,
+            side="right")))
 
     def _side(self, side: np.ndarray, resp: np.ndarray
               ) -> tuple[Line, Line | None, np.ndarray, np.ndarray, np.ndarray] | str:
@@ -374,7 +377,8 @@ class ProfileFinder:
                     shoulder = flank.project(side[k])
                 root = self._end(side[:k], resp[:k], flank)
                 reach = min(cfg.fit_px, float(np.linalg.norm(shoulder - root)))
-                return flank, plate, shoulder, root, root + reach * _outward(flank, side)
+                along = _tangent_at(side[:min(k, self._near(side, cfg.arm_px))], flank, root)
+                return flank, plate, shoulder, root, root + reach * along
         n = self._near(side)
         line = fit_line(side[:n])
         if line.rms > cfg.max_rms_px:
@@ -524,6 +528,24 @@ def _outward(line: Line, piece: np.ndarray) -> np.ndarray:
     """(2,) the unit direction of ``line`` from a piece's first point (N, 2) towards its
     last."""
     return line.d if float((piece[-1] - piece[0]) @ line.d) >= 0 else -line.d
+
+
+def _tangent_at(piece: np.ndarray, line: Line, at: np.ndarray) -> np.ndarray:
+    """(2,) the unit direction of a piece (N, 2), ordered from ``at`` (its end, on ``line``)
+    outward, at ``at``: the tangent there of the quadratic fitted to it across ``line`` (a
+    plate that is a pipe cut by the laser plane curves; a line fitted along it gives the
+    direction at the middle of the stretch, off the one at its end by half the turn over
+    it). The line's own direction where there are too few points for a quadratic."""
+    out = _outward(line, piece)
+    if len(piece) < 6:
+        return out
+    nrm = np.array([-out[1], out[0]])
+    x, y = (piece - at) @ out, (piece - at) @ nrm
+    if float(np.ptp(x)) < 1e-6:
+        return out
+    slope = float(np.polyfit(x, y, 2)[1])
+    d = out + slope * nrm
+    return d / float(np.linalg.norm(d))
 
 
 def _curve_rms(p: np.ndarray) -> float:
