@@ -21,7 +21,7 @@ import importlib
 import os
 import sys
 from collections.abc import Iterable, Iterator
-from pathlib import Path, PurePath
+from pathlib import Path
 from typing import Any, NoReturn
 
 from torchseam import CONFIGS_ENV, MODELS_ENV, config_dir, model_dir
@@ -133,32 +133,17 @@ def build_parser(commands: Iterable[str] | None = None) -> argparse.ArgumentPars
 
 @contextlib.contextmanager
 def use_config_dir(path: Path | None) -> Iterator[None]:
-    """Read the configs from ``path`` while the block runs (None: leave them as they are).
-
-    Sets ``$TORCHSEAM_CONFIGS`` before any stage module reads it (``CONFIG_DIR`` is fixed when
-    :mod:`torchseam.core.config` is imported); when called in a process that has imported them
-    already (``main`` called twice, tests), every torchseam module's path into the old config
-    folder (``CONFIG_DIR`` and the paths made from it) is pointed into ``path`` instead, and
-    put back afterwards."""
+    """Read the configs from ``path`` while the block runs (None: leave them as they are):
+    ``$TORCHSEAM_CONFIGS`` is set for the block, and every loader locates its file when it
+    reads it (:func:`torchseam.core.config.config_path`); no module attribute is touched."""
     if path is None:
         yield
         return
     old_env = os.environ.get(CONFIGS_ENV)
     os.environ[CONFIGS_ENV] = str(path)
-    moved: list[tuple[Any, str, PurePath]] = []
-    cfg = sys.modules.get("torchseam.core.config")
-    old = getattr(cfg, "CONFIG_DIR", None)
-    if old is not None and Path(old) != path:
-        for mod in [m for n, m in sys.modules.items() if n.split(".")[0] == "torchseam"]:
-            for attr, value in list(vars(mod).items()):
-                if isinstance(value, PurePath) and (value == old or old in value.parents):
-                    moved.append((mod, attr, value))
-                    setattr(mod, attr, type(value)(path, value.relative_to(old)))
     try:
         yield
     finally:
-        for mod, attr, value in reversed(moved):
-            setattr(mod, attr, value)
         if old_env is None:
             os.environ.pop(CONFIGS_ENV, None)
         else:

@@ -29,8 +29,9 @@ from torchseam.core.errors import TorchseamError
 
 T = TypeVar("T")
 
-#: Folder the configs were read from when this module was imported. Deprecated: read at import,
-#: it misses a later ``--config-dir``; use :func:`config_path`, resolved when called.
+#: Folder of the configs when this module was imported (tests and bench scripts reading the
+#: shipped files): the package's loaders use :func:`config_path`, resolved when called, which
+#: follows a later ``--config-dir``.
 CONFIG_DIR = config_dir()
 
 

@@ -33,7 +33,7 @@ import yaml
 from torchseam.core.config import ConfigError
 from torchseam.core.errors import DatasetError, TorchseamError
 from torchseam.core.report import format_table
-from torchseam.fit.config import TRAIN_YAML, FitConfig, load_fit_config, parse_seeds
+from torchseam.fit.config import FitConfig, load_fit_config, parse_seeds, train_yaml
 
 if TYPE_CHECKING:  # torch: imported when the command runs, not by its parser (--help)
     from torchseam.fit.train import DistInfo, EpochRecord
@@ -56,7 +56,7 @@ def _defaults() -> dict[str, Any]:
     (read leniently: a broken file is reported when the command runs, not here)."""
     d = FitConfig().to_dict()
     try:
-        data = yaml.safe_load(TRAIN_YAML.read_text())
+        data = yaml.safe_load(train_yaml().read_text())
     except (OSError, yaml.YAMLError):
         data = None
     if isinstance(data, dict):
@@ -95,7 +95,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         return f"(default {_shown(d[key])})"
 
     p.add_argument("--config", type=Path, default=None,
-                   help=f"options file (default {TRAIN_YAML.relative_to(TRAIN_YAML.parents[1])}"
+                   help="options file (default configs/train.yaml"
                         " when present); the options below override it")
     g = p.add_argument_group("data")
     g.add_argument("--data", metavar="DIR",
@@ -382,7 +382,7 @@ def _loss_png(history: list[EpochRecord], path: Path) -> None:
 def _file_keys(config: Path | None) -> set[str]:
     """The options the options file sets (``--config``, else ``configs/train.yaml`` when
     present); :func:`load_fit_config` has read and checked it already."""
-    p = Path(config) if config is not None else TRAIN_YAML
+    p = Path(config) if config is not None else train_yaml()
     if config is None and not p.exists():
         return set()
     try:

@@ -16,19 +16,23 @@ from pathlib import Path
 from typing import Any
 
 from torchseam.core.config import (
-    CONFIG_DIR,
     FAMILY_NAMES,
     ConfigError,
     config_field,
+    config_path,
     from_dict,
     read_yaml,
 )
 from torchseam.track.config import TrackerConfig
 
-__all__ = ["FitConfig", "PARAM_GROUPS", "TRAIN_YAML", "load_fit_config", "parse_seeds"]
+__all__ = ["FitConfig", "PARAM_GROUPS", "train_yaml", "load_fit_config", "parse_seeds"]
 
 #: Default options file.
-TRAIN_YAML = CONFIG_DIR / "train.yaml"
+
+
+def train_yaml() -> Path:
+    """The fit's options file: ``train.yaml`` of the config folder in use."""
+    return config_path("train.yaml")
 
 #: ``--fit`` names -> the EAKFSTC parameters they free (raw, unconstrained forms). A name ending
 #: in "." frees every parameter under that prefix (the drift guard's set may grow).
@@ -220,7 +224,7 @@ def load_fit_config(path: str | Path | None = None, overrides: Mapping[str, Any]
         ConfigError: ``"<file>: <field>: <problem>"`` (``command line`` for overrides).
     """
     sources: list[tuple[str, Any]] = []
-    p = Path(path) if path is not None else TRAIN_YAML
+    p = Path(path) if path is not None else train_yaml()
     if path is not None or p.exists():
         data = read_yaml(p)
         sources.append((str(p), {} if data is None else data))

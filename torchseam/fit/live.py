@@ -32,11 +32,11 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchseam.core.config import (
-    CONFIG_DIR,
     CellConfig,
     NoiseConfig,
     PartConfig,
     config_field,
+    config_path,
     load_config,
 )
 from torchseam.core.report import error_stats
@@ -81,7 +81,7 @@ class LiveFitConfig:
 
 def load_live_fit_config(path: str | Path | None = None) -> LiveFitConfig:
     """:class:`LiveFitConfig` from ``path`` (default ``configs/train_live.yaml``)."""
-    return load_config(LiveFitConfig, path or CONFIG_DIR / "train_live.yaml")
+    return load_config(LiveFitConfig, path or config_path("train_live.yaml"))
 
 
 @dataclass

@@ -50,7 +50,7 @@ import torch
 from torch import Tensor, nn
 
 from torchseam.core import kalman
-from torchseam.core.config import CONFIG_DIR, config_field, load_config
+from torchseam.core.config import config_field, config_path, load_config
 from torchseam.core.errors import TorchseamError
 from torchseam.core.kernels import load_kernels
 from torchseam.track import model_file
@@ -127,7 +127,7 @@ class AnchorConfig:
 
 def load_anchor_config(path: str | Path | None = None) -> AnchorConfig:
     """:class:`AnchorConfig` from ``path`` (default ``configs/anchor.yaml``)."""
-    return load_config(AnchorConfig, path or CONFIG_DIR / "anchor.yaml")
+    return load_config(AnchorConfig, path or config_path("anchor.yaml"))
 
 
 # --------------------------------------------------------------------------- TIPM's evidence
