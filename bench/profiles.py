@@ -6,7 +6,7 @@ Usage: python bench/profiles.py [--parts configs/parts/t_joint_bevel.yaml,...]
                                 [--start-mm 100] [--worst 0]
 
 For a part whose joint is not a fillet the live loop follows the joint profile's aim point
-(:class:`torchseam.live.profile_track.ProfileTracker`, settings ``configs/profile_track.yaml``,
+(:class:`torchseam.track.profile.ProfileTracker`, settings ``configs/profile_track.yaml``,
 the profile's ``configs/profiles.yaml``). Here it runs open loop on the simulator's frames along
 the nominal path (:func:`torchseam.sim.sequence.simulate`): started on frame 0 (arc off) from
 the whole frame's profile, then each frame read in the window round the point the robot's motion
@@ -34,9 +34,9 @@ import numpy as np
 
 from torchseam.core.config import CONFIG_DIR, FAMILY_NAMES, load_cell, load_noise, load_part
 from torchseam.core.report import format_table
-from torchseam.live.profile_track import ProfileTracker, load_profile_track_config
 from torchseam.sim.sequence import SequenceSpec, simulate
 from torchseam.track.fusion import TrackStatus
+from torchseam.track.profile import ProfileTracker, load_profile_track_config
 from torchseam.vision.profiles import ProfileFinder, load_profile_config
 from torchseam.vision.tipm import load_tipm
 

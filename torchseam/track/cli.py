@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from torchseam.core.cliargs import model_arg, out_file_arg, threads_arg
-from torchseam.core.config import STRIPE_AXES, STRIPE_RESPONSES
+from torchseam.core.config import JOINT_PROFILES, STRIPE_AXES, STRIPE_RESPONSES
 from torchseam.core.errors import FrameError, TorchseamError
 from torchseam.core.report import error_stats, format_table, percentiles_ms
 from torchseam.track.names import TRACKERS
@@ -52,8 +52,13 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tracker", choices=TRACKERS, default="anchored",
                    help="tracker (default anchored: EAKF-STC fused with TIPM, as the live loop "
                         "and demo run it; eakf-stc alone drifts along the stripe)")
+    p.add_argument("--joint", choices=JOINT_PROFILES, default="fillet",
+                   help="the joint in the frames (default fillet: --tracker follows TIPM's "
+                        "corner; v_groove, butt, lap: the profile's aim point, "
+                        "configs/profiles.yaml, with the default tracker)")
     p.add_argument("--init", metavar="U,V",
-                   help="start point on the first frame (default: TIPM on the first frame)")
+                   help="start point on the first frame (default: TIPM on the first frame; a "
+                        "--joint other than fillet: its profile's aim point there)")
     p.add_argument("--stripe-axis", choices=STRIPE_AXES, default="auto",
                    help="how the stripe runs in the frames: rows, columns (sensor mounted at "
                         "90 degrees) or auto: found on the first frame (default)")
@@ -102,6 +107,9 @@ def _start(img: np.ndarray, tipm: Tipm, uv0: np.ndarray | None, args: argparse.N
     from torchseam.vision.tipm import find_view
 
     axis, response = args.stripe_axis, args.stripe_response
+    if args.joint != "fillet":  # a profile: the stripe's own axis, the profile's aim point
+        from torchseam.track.profile import profile_start
+        return profile_start(img, tipm, args.joint, uv0, axis, response, name, number)
     if "auto" in (axis, response):
         view = find_view(img, tipm, axis, response)
         if view is None:
@@ -129,6 +137,11 @@ def _make_tracker(args: argparse.Namespace, tipm: Tipm):
 
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
+    if args.joint != "fillet":
+        from torchseam.track.profile import load_profile_track_config, make_joint_tracker
+        from torchseam.vision.profiles import load_profile_config
+        return make_joint_tracker(args.tracker, args.joint, tipm, load_profile_config(),
+                                  load_profile_track_config(), args.model)
     return make_tracker(args.tracker, tipm, model_path=args.model)
 
 

@@ -1,0 +1,277 @@
+"""The tracker for joints other than the fillet: the joint profile's aim point.
+
+TIPM's corner and the anchored EAKF-STC tracker (:mod:`torchseam.track.anchored`) follow a
+fillet: two arms meeting at a corner. A V-groove's aim point is the root centre, the middle of
+a gap in the stripe, where there is no corner and nothing to learn an appearance from.
+:class:`ProfileTracker` reads the part's joint profile (:class:`~torchseam.vision.profiles.
+ProfileFinder`) in a window round the point it predicts: the expected pixel the locator hands
+it from the robot's motion (:meth:`~torchseam.track.base.Tracker.expect`), else its last point
+moved as it last moved (held where it was after a frame without evidence). A profile found
+there, its aim point within ``gate_px`` of the prediction (``(1 + n) gate_px`` after n frames
+without evidence, at most :data:`MAX_GATE_GROWTH` times), is the frame's evidence: status
+``tracked``, the point the aim point. Otherwise the
+point is the prediction, ``coasting``, and after ``lost_frames`` such frames ``lost``. The
+profile itself (feature points and the pieces leaving the root edges) stays on the tracker
+(:attr:`ProfileTracker.result`) for the locator, which locates the faces' directions from it.
+
+:func:`make_joint_tracker` gives the tracker for a part's joint: the named tracker
+(:func:`~torchseam.track.peers.make_tracker`) for a fillet, as before; this one otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from torchseam.core.config import config_field, config_path, load_config
+from torchseam.core.dataset import check_frame
+from torchseam.core.errors import TorchseamError
+from torchseam.core.orient import FrameView
+from torchseam.track.base import Tracker, TrackResult
+from torchseam.track.fusion import TrackStatus
+from torchseam.track.peers import FrameTracker, make_tracker
+from torchseam.vision.axis import stripe_axis
+from torchseam.vision.profiles import (
+    JOINTS,
+    ProfileConfig,
+    ProfileFinder,
+    ProfileResult,
+    load_profile_config,
+)
+from torchseam.vision.tipm import Tipm
+
+#: the evidence gate after n frames without evidence: ``gate_px (1 + n)``, at most this many
+#: times ``gate_px``
+MAX_GATE_GROWTH = 4.0
+#: the sides of a groove, in the order of :meth:`ProfileTracker._root_edges`' arrays
+SIDES = ("left", "right")
+
+__all__ = ["ProfileTrackConfig", "ProfileTracker", "load_profile_track_config",
+           "make_joint_tracker", "profile_start"]
+
+
+@dataclass(frozen=True)
+class ProfileTrackConfig:
+    """Settings of :class:`ProfileTracker` (``configs/profile_track.yaml``, px)."""
+
+    window_px: int = config_field(lo=16)
+    gate_px: float = config_field(lo=0.0, lo_open=True)
+    lost_frames: int = config_field(lo=1)
+    smooth: float = config_field(lo=0.0, hi=1.0, hi_open=True)
+    edge_history: int = config_field(lo=1)
+    edge_min: int = config_field(lo=1)
+    edge_tol_px: float = config_field(lo=0.0, lo_open=True)
+    edge_max_frames: int = config_field(lo=0)
+
+
+def load_profile_track_config(path: str | Path | None = None) -> ProfileTrackConfig:
+    """:class:`ProfileTrackConfig` from ``path`` (default ``configs/profile_track.yaml``)."""
+    return load_config(ProfileTrackConfig, path or config_path("profile_track.yaml"))
+
+
+class ProfileTracker(Tracker):
+    """A joint profile's aim point, read in a window round the predicted point per frame.
+
+    Args:
+        finder: the joint's profile (not ``fillet``: TIPM's trackers follow a fillet).
+        cfg: :class:`ProfileTrackConfig`.
+
+    Example:
+        >>> from torchseam.vision.profiles import load_profile_config
+        >>> from torchseam.vision.tipm import load_tipm
+        >>> t = ProfileTracker(ProfileFinder(load_tipm(), load_profile_config(), "v_groove"),
+        ...                    load_profile_track_config())
+        >>> t.init(np.zeros((64, 64), np.uint8), np.array([30.0, 30.0]))
+        >>> TrackStatus(t.track(np.zeros((64, 64), np.uint8)).status).name
+        'COASTING'
+    """
+
+    name = "profile"
+
+    def __init__(self, finder: ProfileFinder, cfg: ProfileTrackConfig) -> None:
+        if finder.joint == "fillet":
+            raise ValueError("ProfileTracker follows a joint other than the fillet (TIPM's "
+                             "trackers follow fillets)")
+        self.finder, self.cfg = finder, cfg
+        self.uv = np.full(2, np.nan)
+        self.velocity = np.zeros(2)
+        self.expected: np.ndarray | None = None
+        self.misses = 0
+        #: the profile found on the last frame (frame pixels), None when none was taken
+        self.result: ProfileResult | None = None
+        #: v_groove: each root edge's place along its face's line from where the two lines
+        #: meet, (2,) px, on the recent frames with a profile
+        self._edges = (deque[float](maxlen=cfg.edge_history),
+                       deque[float](maxlen=cfg.edge_history))
+        self._stale = [0, 0]  # frames in a row each side's edge was taken from its history
+
+    def find(self, frame: np.ndarray) -> ProfileResult:
+        """The profile on a whole frame (the start: no prediction yet)."""
+        return self.finder(frame)
+
+    def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
+        self.uv = np.asarray(uv, float).copy()
+        self.velocity = np.zeros(2)
+        self.expected, self.misses, self.result = None, 0, None
+        for hist in self._edges:
+            hist.clear()
+        self._stale = [0, 0]
+
+    def expect(self, uv: np.ndarray | None) -> None:
+        self.expected = None if uv is None else np.asarray(uv, float).copy()
+
+    def _window(self, frame: np.ndarray, centre: np.ndarray) -> ProfileResult:
+        """The profile in the window round ``centre``, in frame pixels."""
+        h, w = frame.shape[:2]
+        r = self.cfg.window_px
+        u0 = int(np.clip(round(float(centre[0])) - r, 0, max(w - 1, 0)))
+        v0 = int(np.clip(round(float(centre[1])) - r, 0, max(h - 1, 0)))
+        crop = np.ascontiguousarray(frame[v0:v0 + 2 * r + 1, u0:u0 + 2 * r + 1])
+        res = self.finder(crop)
+        if not res.ok:
+            return res
+        off = np.array([u0, v0], float)
+        return ProfileResult(
+            res.joint, True, res.aim + off, {k: p + off for k, p in res.points.items()},
+            res.reason, res.width_px, res.gap_px, res.area_px2,
+            None if res.centre is None else res.centre + off, None,
+            None if res.arm_points is None else res.arm_points + off)
+
+    def track(self, frame: np.ndarray) -> TrackResult:
+        frame = check_frame(frame)
+        pred = self.expected if self.expected is not None else self.uv + self.velocity
+        self.expected = None
+        self.result = None
+        if not np.all(np.isfinite(pred)):
+            return TrackResult(np.full(2, np.nan), int(TrackStatus.LOST))
+        res = self._window(frame, pred)
+        # a prediction grows less certain with each frame without evidence
+        gate = self.cfg.gate_px * min(1.0 + self.misses, MAX_GATE_GROWTH)
+        if res.ok:
+            res = self._root_edges(res)
+        if res.ok and float(np.linalg.norm(res.aim - pred)) <= gate:
+            uv = self.cfg.smooth * pred + (1.0 - self.cfg.smooth) * res.aim
+            self.velocity = uv - self.uv if np.all(np.isfinite(self.uv)) else np.zeros(2)
+            self.uv, self.misses, self.result = uv, 0, res
+            return TrackResult(uv.copy(), int(TrackStatus.TRACKED))
+        self.misses += 1
+        self.uv, self.velocity = pred, np.zeros(2)  # held, not extrapolated, while blind
+        status = TrackStatus.LOST if self.misses > self.cfg.lost_frames else TrackStatus.COASTING
+        return TrackResult(pred.copy(), int(status))
+
+    def _root_edges(self, res: ProfileResult) -> ProfileResult:
+        """A v_groove's root edges checked against the recent frames'. The stripe's end at a
+        root edge is the profile's weakest reading: the arc's glare and its reflection up the
+        groove wash out (or saturate) the stripe's last pixels there, a spatter streak carries
+        it on into the gap; the faces' lines, fitted to tens of points, are its strongest.
+        Each edge's place along its face's line, measured from where the two lines meet, is
+        stable from frame to frame (the groove's shape changes slowly round the saddle).
+
+        Per side, with ``edge_min`` of its places known (the last ``edge_history`` that
+        agreed), an edge more than ``edge_tol_px`` off their median is taken at the median, on
+        its line as this frame shows it; only places that agree join the history (an edge
+        washed out for a second does not become the groove's shape). A side taken from its
+        history on more than ``edge_max_frames`` frames in a row is no longer known: its
+        history starts again from what the frames show (the gate on the prediction still
+        holds). A frame with both edges off (a glare band over the root: the lines are no
+        better there, a spatter streak bridging the gap) or with the edge of a side no longer
+        known is no evidence (``ok`` False)."""
+        if res.joint != "v_groove" or res.arm_points is None:
+            return res
+        roots = np.stack([res.points["left_root"], res.points["right_root"]])
+        d = res.arm_points - roots
+        n = np.linalg.norm(d, axis=1)
+        if np.any(n < 1e-9):
+            return res
+        d /= n[:, None]
+        m = np.stack([d[0], -d[1]], axis=1)
+        if abs(float(np.linalg.det(m))) < 1e-6:  # parallel faces: no place to measure from
+            return res
+        x = roots[0] + float(np.linalg.solve(m, roots[1] - roots[0])[0]) * d[0]
+        place = np.einsum("ij,ij->i", roots - x, d)                            # (2,)
+        off = np.zeros(2, bool)
+        ref = place.copy()
+        for i, hist in enumerate(self._edges):
+            if len(hist) >= self.cfg.edge_min:
+                ref[i] = float(np.median(hist))
+                off[i] = abs(place[i] - ref[i]) > self.cfg.edge_tol_px
+            if off[i]:
+                self._stale[i] += 1
+                if self._stale[i] > self.cfg.edge_max_frames:  # no longer known: start again
+                    hist.clear()
+                    self._stale[i] = 0
+                    return dataclasses.replace(
+                        res, ok=False, aim=np.full(2, np.nan),
+                        reason=f"the {SIDES[i]} root edge off its recent place for "
+                               f"{self.cfg.edge_max_frames} frames")
+            else:
+                hist.append(place[i])
+                self._stale[i] = 0
+        if not off.any():
+            return res
+        if off.all():  # a glare band over the root, a spatter streak across the gap
+            return dataclasses.replace(
+                res, ok=False, aim=np.full(2, np.nan),
+                reason=f"both root edges off their recent places (by "
+                       f"{np.abs(place - ref).max():.1f} px)")
+        new = roots.copy()
+        new[off] = x + ref[off, None] * d[off]
+        pts = dict(res.points, left_root=new[0], right_root=new[1])
+        which = SIDES[int(np.flatnonzero(off)[0])]
+        return dataclasses.replace(
+            res, aim=new.mean(axis=0), points=pts,
+            reason=(res.reason + "; " if res.reason else "") + f"{which} root edge at its "
+            "recent place",
+            gap_px=float(np.linalg.norm(new[1] - new[0])))
+
+    def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
+        r = self.track(frame)
+        return r.uv, r.status
+
+
+def make_joint_tracker(name: str, joint: str, tipm: Tipm, profiles: ProfileConfig,
+                       track: ProfileTrackConfig, model_path: str | Path | None = None
+                       ) -> FrameTracker:
+    """The live loop's tracker for a part's ``joint``: the tracker ``name``
+    (:func:`~torchseam.track.peers.make_tracker`, ``model_path`` its model) for a fillet; a
+    :class:`ProfileTracker` of that profile otherwise, which only ``anchored`` (the default)
+    names: another tracker asked for a joint it cannot follow is an error."""
+    if joint not in JOINTS:
+        raise TorchseamError(f"joint {joint!r}: use one of {', '.join(JOINTS)}")
+    if joint == "fillet":
+        return make_tracker(name, tipm, model_path=model_path)
+    if name != "anchored" or model_path is not None:
+        raise TorchseamError(f"tracker {name}{' --model' if model_path else ''}: a {joint} joint "
+                             "is followed by its profile's aim point (the default tracker, "
+                             "anchored, without a model)")
+    return ProfileTracker(ProfileFinder(tipm, profiles, joint), track)
+
+
+def profile_start(img: np.ndarray, tipm: Tipm, joint: str, uv0: np.ndarray | None, axis: str,
+                  response: str, name: str, number: int) -> tuple[FrameView, np.ndarray, str]:
+    """How to view a stream of a ``joint`` other than the fillet and where to start, from its
+    first readable frame ``img`` (``torchseam track`` and ``eval``, as the live locator
+    starts): the stripe's own axis with ``auto`` (:func:`~torchseam.vision.axis.stripe_axis`:
+    a groove need not show TIPM a corner), the red response unless ``response`` names one,
+    and the profile's aim point there unless ``uv0`` (camera pixels) is given. Returns
+    ``(view, start pixel (camera), note)``; :class:`TorchseamError` naming ``name`` where the
+    frame shows no stripe or not the profile."""
+    response = "red" if response == "auto" else response
+    if axis == "auto":
+        found = stripe_axis(img, tipm, response)
+        if found is None:
+            raise TorchseamError(f"{name}: no stripe on the first frame to find its axis; give "
+                                 "--stripe-axis")
+        axis = found
+    view = FrameView(axis, img.shape[0], response)
+    if uv0 is not None:
+        return view, np.asarray(uv0, float), "given"
+    res = ProfileFinder(tipm, load_profile_config(), joint)(view.frame(img))
+    if not res.ok:
+        raise TorchseamError(f"{name}: the {joint} profile cannot start the tracker on the "
+                             f"first frame ({res.reason}); give the start point with --init U,V")
+    return view, view.to_camera(res.aim), f"{joint} profile on frame {number}"
