@@ -28,7 +28,7 @@ from torchseam.core.dataset import Dataset
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import format_table
 from torchseam.sim.sequence import SequenceSpec, simulate_labelled
-from torchseam.track.live import AnchoredTracker, load_live_tracker
+from torchseam.track.anchored import AnchoredTracker, load_anchored_model
 from torchseam.vision.tipm import load_tipm
 
 BINS = (0, 20, 40, 60, 80, 100, 256)  # glare, grey levels
@@ -49,7 +49,7 @@ def parse_seeds(text: str) -> list[int]:
 
 def fix_rows(frames, labels: np.ndarray) -> list[tuple[float, float, float, float, bool]]:
     """(glare, error px, Mahalanobis^2 without / with the glare term, taken) per TIPM corner."""
-    trk = AnchoredTracker(load_live_tracker(), load_tipm())
+    trk = AnchoredTracker(load_anchored_model(), load_tipm())
     rows = []
     it = iter(frames)
     trk.init(next(it), labels[0])

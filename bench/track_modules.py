@@ -25,9 +25,9 @@ import numpy as np
 import torch
 
 from torchseam.sim.vstripe import v_stripe_sequence
+from torchseam.track.anchored import fitted_eakf_stc
 from torchseam.track.eakf import EAKF
 from torchseam.track.fusion import EAKFSTC
-from torchseam.track.live import fitted_eakf_stc
 from torchseam.track.stc import STC
 
 H, W = 492, 656

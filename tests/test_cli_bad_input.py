@@ -268,7 +268,7 @@ def _track_uv(capsys, seq: Path, out: Path, *extra: str) -> np.ndarray:
 
 
 def test_model_option_loads_that_model(seq, tmp_path, capsys):
-    from torchseam.track.live import fitted_eakf_stc
+    from torchseam.track.anchored import fitted_eakf_stc
 
     module = fitted_eakf_stc(model_path=model_file.EAKF_STC_MODEL)  # eakf-stc's default
     same = model_io.save_fitted(module, tmp_path / "same.safetensors")

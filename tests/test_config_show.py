@@ -20,11 +20,11 @@ def _rows(out: str) -> dict[str, tuple[str, str]]:
 
 
 def test_anchor_shows_the_models_values_and_that_the_files_are_not_used(capsys):
-    from torchseam.track.live import FITTED, load_live_tracker
+    from torchseam.track.anchored import FITTED, load_anchored_model
 
     assert main(["config", "show", "anchor"]) == 0
     rows = _rows(capsys.readouterr().out)
-    fitted = load_live_tracker().fusion.values()
+    fitted = load_anchored_model().fusion.values()
     for key in FITTED:
         value, source = rows[key]
         assert source.startswith("model ") and "live_tracker.safetensors" in source, key

@@ -331,7 +331,7 @@ def test_shipped_model_loads_into_the_default_tracker():
     path = REPO / "models" / "eakf_stc.safetensors"
     if not path.exists():
         pytest.skip("no shipped model yet")
-    from torchseam.track.live import STRUCTURAL_STC, fitted_eakf_stc
+    from torchseam.track.anchored import STRUCTURAL_STC, fitted_eakf_stc
 
     _, meta = read_model(path)
     assert meta["info"]["data"]["train"]["seeds"]  # it says what it was fitted on

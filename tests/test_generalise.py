@@ -10,8 +10,8 @@ import pytest
 from torchseam.cli import main
 from torchseam.core.orient import FrameView
 from torchseam.sim.sequence import SequenceSpec, simulate_labelled
+from torchseam.track.anchored import AnchoredTracker, load_anchored_model
 from torchseam.track.fusion import TrackStatus
-from torchseam.track.live import AnchoredTracker, load_live_tracker
 from torchseam.track.peers import run_tracker
 from torchseam.vision.tipm import find_view, load_tipm
 
@@ -20,7 +20,7 @@ TIPM = load_tipm()  # the shipped configs/tipm.yaml
 
 def _anchored() -> AnchoredTracker:
     """The live tracker with the shipped model, as ``make_tracker("anchored", TIPM)`` makes it."""
-    return AnchoredTracker(load_live_tracker(), TIPM)
+    return AnchoredTracker(load_anchored_model(), TIPM)
 
 TRACKED, COASTING, LOST = (int(s) for s in TrackStatus)
 
@@ -286,7 +286,7 @@ def test_an_extrapolated_corner_is_no_evidence():
     """A V whose corner is blacked out: TIPM's arm fits still meet near the true corner (a
     good estimate), but the stripe is not seen bending there, so the tracker may not say
     'tracked'; with the corner visible it does."""
-    from torchseam.track.live import corner_seen
+    from torchseam.track.anchored import corner_seen
 
     img = np.zeros((492, 656, 3), np.uint8)
     corner = (330, 260)

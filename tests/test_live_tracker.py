@@ -1,4 +1,4 @@
-"""The live tracker as one differentiable module (torchseam/track/live.py): the module run in
+"""The live tracker as one differentiable module (torchseam/track/anchored.py): the module run in
 torch is the tracker the live loop runs in numpy, its every fitted value gets a gradient, a fit
 moves them, and the model file round-trips."""
 
@@ -12,15 +12,15 @@ import torch
 
 from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.fit import model_io
-from torchseam.fit.live import load_live_fit_config, simulate_set, track_set
-from torchseam.track.fusion import EAKFSTC
-from torchseam.track.live import (
+from torchseam.fit.anchored import load_anchored_fit_config, simulate_set, track_set
+from torchseam.track.anchored import (
     FITTED,
+    AnchoredModel,
     AnchoredTracker,
-    LiveTracker,
     load_anchor_config,
-    load_live_tracker,
+    load_anchored_model,
 )
+from torchseam.track.fusion import EAKFSTC
 from torchseam.vision.tipm import load_tipm, red_response
 
 F64 = torch.float64
@@ -48,9 +48,9 @@ def _numpy_track(live, seq):
 
 def test_torch_module_is_the_numpy_live_tracker(seqs):
     """The same frames through AnchoredTracker (numpy, the live loop's) and through
-    LiveTracker.step_state (torch, batched, what the fit differentiates): the same points and
+    AnchoredModel.step_state (torch, batched, what the fit differentiates): the same points and
     statuses, frame by frame, with the shipped model's values."""
-    live = load_live_tracker().to(F64)
+    live = load_anchored_model().to(F64)
     ref = [_numpy_track(live, s)[0] for s in seqs]
     with torch.no_grad():
         _, uvs, stats = track_set(live, seqs, batch=1, tipm=TIPM)
@@ -70,9 +70,9 @@ def test_every_fitted_value_gets_a_gradient(seqs):
     """One truncated-BPTT chunk: the loss reaches every value of the fusion that acted on
     these frames (the gates and thresholds through their straight-through decisions) and
     EAKF-STC's parameters (through its weak measurement and the re-anchoring)."""
-    eakf = EAKFSTC(dataclasses.replace(load_live_tracker().eakf_stc.config, learnable=True))
+    eakf = EAKFSTC(dataclasses.replace(load_anchored_model().eakf_stc.config, learnable=True))
     model_io.load_fitted(eakf, model_io.DEFAULT_MODEL)
-    live = LiveTracker(eakf, load_anchor_config(), learnable=True).to(F64)
+    live = AnchoredModel(eakf, load_anchor_config(), learnable=True).to(F64)
     loss = 0.0
     for seq in seqs:  # heavy arc (glare around the point) and the corner hidden (restarts)
         labels = torch.from_numpy(seq.labels).to(F64)
@@ -97,13 +97,13 @@ def test_model_file_round_trip_and_refusals(tmp_path):
     """The live model file holds EAKF-STC and the fusion; the live tracker runs with the
     file's fitted values, not configs/anchor.yaml's; EAKF-STC alone loads its part; a file of
     EAKF-STC alone is no live model; a non-positive fitted value is refused."""
-    live = load_live_tracker()
+    live = load_anchored_model()
     with torch.no_grad():
         live.fusion.log_fix_gate.fill_(np.log(5.5))
         live.fusion.log_motion_u_px.fill_(np.log(0.7))
     path = model_io.save_fitted(live, tmp_path / "live.safetensors", {"note": "test"})
     assert model_io.read_model(path)[1]["format"] == model_io.LIVE_FORMAT
-    trk = AnchoredTracker(load_live_tracker(path), TIPM)
+    trk = AnchoredTracker(load_anchored_model(path), TIPM)
     assert trk.cfg.fix_gate == pytest.approx(5.5) and trk.cfg.motion_u_px == pytest.approx(0.7)
     assert load_anchor_config().fix_gate != pytest.approx(5.5)
     inner = EAKFSTC(live.eakf_stc.config)
@@ -112,7 +112,7 @@ def test_model_file_round_trip_and_refusals(tmp_path):
         assert torch.equal(v, live.eakf_stc.state_dict()[k]), k
     alone = model_io.save_fitted(live.eakf_stc, tmp_path / "alone.safetensors")
     with pytest.raises(model_io.FitError, match="not a live-tracker model"):
-        model_io.load_fitted(LiveTracker(EAKFSTC(live.eakf_stc.config), load_anchor_config()),
+        model_io.load_fitted(AnchoredModel(EAKFSTC(live.eakf_stc.config), load_anchor_config()),
                              alone)
     with pytest.raises(model_io.FitError, match="cannot replace the live tracker"):
         model_io.install_model(alone)
@@ -120,7 +120,7 @@ def test_model_file_round_trip_and_refusals(tmp_path):
         live.fusion.log_fix_gate.fill_(float("nan"))
     bad = model_io.save_fitted(live, tmp_path / "bad.safetensors")
     with pytest.raises(model_io.FitError, match="NaN"):
-        load_live_tracker(bad)
+        load_anchored_model(bad)
 
 
 def test_shipped_model_is_a_fit_with_nothing_added_by_hand():
@@ -141,7 +141,7 @@ def test_train_live_command_fits_and_writes_a_run(tmp_path, monkeypatch, capsys)
     --install."""
     from torchseam.cli import main
 
-    cfg = dataclasses.asdict(load_live_fit_config())
+    cfg = dataclasses.asdict(load_anchored_fit_config())
     cfg.update(families=["sim"], levels=["beyond"], val_levels=["heavy"], frames=40,
                hide_frames=[8], epochs=1, chunk=10, batch=1)
     (tmp_path / "c.yaml").write_text(
@@ -178,7 +178,7 @@ def test_train_live_fits_on_labelled_recordings(tmp_path, monkeypatch, capsys):
         w = csv.DictWriter(fh, fieldnames=["frame", "u", "v"])
         w.writeheader()
         w.writerows(r for r in rows if int(r["frame"]) == 0 or int(r["frame"]) % 3)
-    cfg = dataclasses.asdict(load_live_fit_config())
+    cfg = dataclasses.asdict(load_anchored_fit_config())
     cfg.update(epochs=1, chunk=10, batch=1)
     (tmp_path / "c.yaml").write_text(
         "\n".join(f"{k}: {list(v) if isinstance(v, tuple) else v}" for k, v in cfg.items()))

@@ -10,9 +10,9 @@ from torchseam.core.transforms import apply, invert
 from torchseam.live.locate import SeamLocator
 from torchseam.sim.scene import Scene
 from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.track.anchored import AnchoredTracker, arm_directions, load_anchored_model
 from torchseam.track.base import Tracker, TrackResult
 from torchseam.track.fusion import TrackStatus
-from torchseam.track.live import AnchoredTracker, arm_directions, load_live_tracker
 
 
 def _v_frame(left_deg: float, right_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -131,9 +131,9 @@ def test_clean_tipm_arms_beat_ecal_against_the_true_surfaces(cell, part, noise, 
     seq = list(simulate(cell, p, noise, SequenceSpec(n_frames=80, level=1.0, seed=7,
                                                      arc_on_frame=5)))
     tipm, ecal = parts.tipm, parts.ecal
-    anchored = AnchoredTracker(load_live_tracker(), tipm)
+    anchored = AnchoredTracker(load_anchored_model(), tipm)
     with_tipm, lent = _arm_errors_deg(SeamLocator(cell, anchored, tipm, ecal), cell, scene, seq)
-    no_lending = _NoLending(load_live_tracker(), tipm)
+    no_lending = _NoLending(load_anchored_model(), tipm)
     ecal_only, _ = _arm_errors_deg(SeamLocator(cell, no_lending, tipm, ecal), cell, scene, seq)
     assert lent > len(seq) // 2 and len(with_tipm) > 2 * 50
     rms = (float(np.sqrt(np.mean(with_tipm ** 2))), float(np.sqrt(np.mean(ecal_only ** 2))))

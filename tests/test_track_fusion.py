@@ -274,10 +274,10 @@ def _anchored_with_tipm(offsets, rms, shapes=None):
     """AnchoredTracker on a stub EAKF-STC fixed at (200, 150) and a stub TIPM returning the
     corner at ``offsets[k]`` from the true point (200, 150) on call k (``shapes[k]``: its
     ``_corner`` keyword arguments, slopes and gap)."""
-    from torchseam.track.live import AnchoredTracker, load_live_tracker
+    from torchseam.track.anchored import AnchoredTracker, load_anchored_model
     from torchseam.vision.tipm import load_tipm, load_tipm_config
 
-    trk = AnchoredTracker(load_live_tracker(), load_tipm())
+    trk = AnchoredTracker(load_anchored_model(), load_tipm())
     trk.inner = _StubInner((200.0, 150.0))
     trk.x = None
     calls = iter(offsets)
@@ -376,10 +376,10 @@ def test_anchored_leans_on_its_prediction_under_red_glare():
     """A glare band over the corner: TIPM's fits stay tight while the corner slides along the
     stripe, and EAKF-STC follows. Under red haze around the point the filter trusts both less
     (the fitted glare_start, glare_scale) and moves onto them slowly."""
-    from torchseam.track.live import glare_level, load_live_tracker
+    from torchseam.track.anchored import glare_level, load_anchored_model
 
     # the fitted glare weights (models/live_tracker.safetensors), as AnchoredTracker runs them
-    cfg = load_live_tracker().anchor_config()
+    cfg = load_anchored_model().anchor_config()
     dark = np.zeros((480, 640, 3), np.uint8)
     haze = dark.copy()
     # a red haze as strong as a frame holds (250 grey levels at most): the covariances grow by
@@ -412,7 +412,7 @@ def test_anchored_leans_on_its_prediction_under_red_glare():
 
 
 def test_corner_covariance_is_weak_along_a_shallow_stripe():
-    from torchseam.track.live import corner_cov
+    from torchseam.track.anchored import corner_cov
 
     C = corner_cov(_corner((100.0, 100.0), 0.2, slopes=(-0.3, 0.3)), 0.5, 0.1)
     assert C[0, 0] > 10 * C[1, 1]                 # 147 deg corner: weak along u
@@ -424,7 +424,7 @@ def test_corner_covariance_grows_when_an_arm_stops_short_of_the_corner():
     """An arm whose centre line ends 40 px before the corner (spatter across it) is
     extrapolated there: its line is uncertain at the corner, so the fix is weak across that
     arm; complete arms keep the plain covariance, and a ridge prior steadies the extrapolation."""
-    from torchseam.track.live import corner_cov
+    from torchseam.track.anchored import corner_cov
 
     def cov(res, prior=None):
         return corner_cov(res, 0.5, 0.1, prior, (5.0, 120.0))
@@ -466,7 +466,7 @@ def test_tipm_arm_prior_keeps_the_corner_where_an_arm_has_a_gap():
 
 def test_anchor_config_names_a_bad_field(tmp_path):
     from torchseam.core.config import ConfigError
-    from torchseam.track.live import load_anchor_config
+    from torchseam.track.anchored import load_anchor_config
 
     text = (Path(__file__).parents[1] / "configs" / "anchor.yaml").read_text()
     bad = tmp_path / "anchor.yaml"
@@ -479,7 +479,7 @@ def test_glare_level_counts_the_median_np_partition_selects():
     """The glare level counted in one compiled pass (a histogram of the box's red response) is
     the element ``np.partition`` of the response selects: colour and mono boxes, clipped at
     the frame's border, even and odd pixel counts."""
-    from torchseam.track.live import glare_level
+    from torchseam.track.anchored import glare_level
     from torchseam.vision.tipm import red_response
 
     rng = np.random.default_rng(8)

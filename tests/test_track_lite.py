@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from torchseam.track import EAKFSTC, TrackInputError, TrackStatus
+from torchseam.track.anchored import fitted_eakf_stc
 from torchseam.track.lite import LiteEAKFSTC, LiteTracker
-from torchseam.track.live import fitted_eakf_stc
 from torchseam.track.peers import (
     grey_tensor,
     make_tracker,

@@ -171,8 +171,8 @@ def _coast_error(velocity_points: int) -> tuple[float, list[int]]:
     import dataclasses
 
     from torchseam.sim.variants import glare_over_corner
-    from torchseam.track.live import AnchoredTracker, load_live_tracker
-    trk = AnchoredTracker(load_live_tracker(), load_tipm())
+    from torchseam.track.anchored import AnchoredTracker, load_anchored_model
+    trk = AnchoredTracker(load_anchored_model(), load_tipm())
     trk.cfg = dataclasses.replace(trk.cfg, velocity_points=velocity_points)
     trk.filter.cfg = trk.cfg
     start, speed = np.array([300.0, 250.0]), np.array([0.5, 0.1])
@@ -207,10 +207,10 @@ def test_shallow_kink_under_glare_is_weak_evidence_not_tracked():
     TIPM gives no corner; the tracker reads one from the whole arms, weak along the stripe
     (its covariance says so), takes it, and never calls the frame ``tracked``."""
     from torchseam.sim.variants import glare_on_corner
+    from torchseam.track.anchored import AnchoredTracker, load_anchored_model
     from torchseam.track.fusion import TrackStatus
-    from torchseam.track.live import AnchoredTracker, load_live_tracker
     tipm = load_tipm()
-    trk = AnchoredTracker(load_live_tracker(), tipm)
+    trk = AnchoredTracker(load_anchored_model(), tipm)
     uv = np.array([320.0, 240.0])
     sharp = (0.35, -0.3)
     trk.init(_v_frame(uv, sharp), uv)

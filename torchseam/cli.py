@@ -56,7 +56,7 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
     ("track", "torchseam.track.cli", "track the feature point through a folder of frames"),
     ("eval", "torchseam.track.cli", "track a labelled folder and print the error table"),
     ("train", "torchseam.fit.cli", "fit the EAKF-STC parameters on labelled sequences"),
-    ("train-live", "torchseam.fit.live_cli",
+    ("train-live", "torchseam.fit.anchored_cli",
      "fit the live tracker (EAKF-STC and the fusion) end to end on full sequences"),
     ("calibrate", "torchseam.live.calibrate_cli",
      "calibrate camera, laser plane, hand-eye or TCP from a folder"),

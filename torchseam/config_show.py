@@ -25,7 +25,7 @@ CONFIGS: dict[str, tuple[str, str]] = {
     "noise": ("torchseam.core.config", "NoiseConfig"),
     "tipm": ("torchseam.vision.tipm", "TipmConfig"),
     "profiles": ("torchseam.vision.profiles", "ProfileConfig"),
-    "anchor": ("torchseam.track.live", "AnchorConfig"),
+    "anchor": ("torchseam.track.anchored", "AnchorConfig"),
     "ecal": ("torchseam.geometry.ecal", "EcalConfig"),
     "calibration": ("torchseam.core.calibration", "CalibrationConfig"),
     "plan": ("torchseam.plan.path", "PlanConfig"),
@@ -35,7 +35,7 @@ CONFIGS: dict[str, tuple[str, str]] = {
     "search": ("torchseam.live.search", "SearchConfig"),
     "profile_track": ("torchseam.live.profile_track", "ProfileTrackConfig"),
     "console": ("torchseam.console.config", "ConsoleConfig"),
-    "train_live": ("torchseam.fit.live", "LiveFitConfig"),
+    "train_live": ("torchseam.fit.anchored", "AnchoredFitConfig"),
 }
 
 
@@ -87,12 +87,12 @@ def _fitted(rows: list[tuple[str, Any, str]], model_path: Path | None
             ) -> list[tuple[str, Any, str]]:
     """The fusion's fitted values replace the YAML's (when the model file holds them)."""
     from torchseam.track import model_file
-    from torchseam.track.live import FITTED, load_live_tracker
+    from torchseam.track.anchored import FITTED, load_anchored_model
 
     path = Path(model_path) if model_path is not None else model_file.DEFAULT_MODEL
     if not path.is_file():
         return rows
-    values = {k: float(v) for k, v in load_live_tracker(path).fusion.values().items()}
+    values = {k: float(v) for k, v in load_anchored_model(path).fusion.values().items()}
     out = []
     for key, value, src in rows:
         if key in FITTED and key in values:

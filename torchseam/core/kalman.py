@@ -5,7 +5,7 @@ inspection (gating, consistency checks).
 The functions take numpy arrays or torch tensors alike (``@``, ``+``, ``-`` and a transpose of
 the last two axes), so the same lines run on the live loop (numpy, one stream) and under
 autograd when a filter's values are fitted (torch). The live tracker's fusion filter
-(:mod:`torchseam.track.live`) is built on them; EAKF (:mod:`torchseam.track.eakf`) keeps its
+(:mod:`torchseam.track.anchored`) is built on them; EAKF (:mod:`torchseam.track.eakf`) keeps its
 own delayed-measurement equations for coloured noise (METHOD.md section 3).
 
 Example:

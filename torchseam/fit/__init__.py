@@ -7,7 +7,7 @@
 - ``torchseam train`` / ``train/fit_tracker.py``: the command (:mod:`torchseam.fit.cli`).
 
 The names above are imported on first use, so that the command line's parsers
-(:mod:`torchseam.fit.cli`, :mod:`torchseam.fit.live_cli`) do not import torch.
+(:mod:`torchseam.fit.cli`, :mod:`torchseam.fit.anchored_cli`) do not import torch.
 """
 
 from __future__ import annotations

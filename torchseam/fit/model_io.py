@@ -5,7 +5,7 @@ the safetensors format (no pickled objects); its header metadata (strings) recor
 the tracker configuration it was fitted with and what it was fitted on. Two formats:
 
 - ``torchseam-live-tracker/1``: the live tracker
-  (:class:`~torchseam.track.live.LiveTracker`: ``eakf_stc.*`` and ``fusion.*`` tensors), what
+  (:class:`~torchseam.track.anchored.AnchoredModel`: ``eakf_stc.*`` and ``fusion.*`` tensors), what
   ships and what ``torchseam train`` writes;
 - ``torchseam-eakf-stc/1``: EAKF-STC alone (older fits, and component fits).
 
@@ -57,13 +57,13 @@ def save_fitted(module: nn.Module, path: str | os.PathLike[str],
     tensors = {k: v.detach().to("cpu", copy=True).contiguous()
                for k, v in module.state_dict().items()}
     cfg = getattr(module, "config", None)
-    from torchseam.track.live import LiveTracker
+    from torchseam.track.anchored import AnchoredModel
 
-    live = isinstance(module, LiveTracker)  # the only module with a fusion head
+    live = isinstance(module, AnchoredModel)  # the only module with a fusion head
     meta = {"format": LIVE_FORMAT if live else MODEL_FORMAT,
             "tracker_config": json.dumps(cfg.to_dict() if cfg is not None else {}),
             "info": json.dumps(dict(info or {}))}
-    if isinstance(module, LiveTracker):
+    if isinstance(module, AnchoredModel):
         meta["anchor_config"] = json.dumps(dataclasses.asdict(module.cfg))
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     save_file(tensors, str(tmp), metadata=meta)

@@ -16,9 +16,10 @@ from torchseam.core.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from torchseam.core.checks import InputError as TrackInputError  # the tracker's name for it
+    from torchseam.track.base import TrackResult
     from torchseam.track.config import TrackerConfig
     from torchseam.track.eakf import EAKF, EAKFState, eakf_filter
-    from torchseam.track.fusion import EAKFSTC, DriftGuard, TrackResult, TrackStatus
+    from torchseam.track.fusion import EAKFSTC, DriftGuard, SequenceResult, TrackStatus
     from torchseam.track.lite import LiteEAKFSTC
     from torchseam.track.stc import STC, STCState, extract_windows, locate_peak, peak_quality
 
@@ -28,14 +29,15 @@ _LAZY = {
     "TrackerConfig": ("torchseam.track.config", "TrackerConfig"),
     **{n: ("torchseam.track.eakf", n) for n in ("EAKF", "EAKFState", "eakf_filter")},
     **{n: ("torchseam.track.fusion", n)
-       for n in ("EAKFSTC", "DriftGuard", "TrackResult", "TrackStatus")},
+       for n in ("EAKFSTC", "DriftGuard", "SequenceResult", "TrackStatus")},
+    "TrackResult": ("torchseam.track.base", "TrackResult"),
     "LiteEAKFSTC": ("torchseam.track.lite", "LiteEAKFSTC"),
     **{n: ("torchseam.track.stc", n)
        for n in ("STC", "STCState", "extract_windows", "locate_peak", "peak_quality")},
 }
 
 __all__ = ["EAKF", "EAKFSTC", "STC", "DriftGuard", "EAKFState", "LiteEAKFSTC", "STCState",
-           "TrackInputError",
+           "SequenceResult", "TrackInputError",
            "TrackResult", "TrackStatus", "TrackerConfig", "eakf_filter", "extract_windows",
            "locate_peak", "peak_quality"]
 

@@ -74,7 +74,7 @@ from torchseam.track.stc import STC, STCState, cached
 
 _D = TrackerConfig()  # the defaults
 
-__all__ = ["DriftGuard", "EAKFSTC", "FusionState", "StepTimer", "TrackResult", "TrackStatus",
+__all__ = ["DriftGuard", "EAKFSTC", "FusionState", "StepTimer", "SequenceResult", "TrackStatus",
            "TrackerConfig"]
 
 
@@ -261,7 +261,7 @@ class FusionState:
 
 
 @dataclass
-class TrackResult:
+class SequenceResult:
     """Output of :meth:`EAKFSTC.run_sequence`; every field is (B, T) or (B, T, 2)."""
 
     uv: Tensor
@@ -481,7 +481,7 @@ class EAKFSTC(nn.Module):
         return self.timer.ms()
 
     def run_sequence(self, frames: Tensor, uv0: Tensor, detach_every: int | None = None
-                     ) -> TrackResult:
+                     ) -> SequenceResult:
         """Track whole sequences (training and batched evaluation).
 
         Args:
@@ -491,7 +491,7 @@ class EAKFSTC(nn.Module):
                 None keeps the whole graph (when gradients are enabled).
 
         Returns:
-            :class:`TrackResult` with uv (B, T, 2) (``uv[:, 0] = uv0``), status (B, T), the raw
+            :class:`SequenceResult` with uv (B, T, 2) (``uv[:, 0] = uv0``), status (B, T), the raw
             STC measurement z (B, T, 2) and per-frame trust, psr, second_ratio, d2, std (B, T)
             (frame 0: z = uv0, trust 1, d2 0, psr/second_ratio NaN-free placeholders 0).
         """
@@ -515,4 +515,4 @@ class EAKFSTC(nn.Module):
                 cols[k].append(q[k])
         out: dict[str, Any] = {k: torch.stack(v, dim=1) for k, v in cols.items()}
         self.state = state
-        return TrackResult(**out)
+        return SequenceResult(**out)

@@ -6,7 +6,7 @@ the safetensors format (no pickled objects); its header metadata (strings) recor
 the tracker configuration it was fitted with and what it was fitted on. Two formats:
 
 - ``torchseam-live-tracker/1``: the live tracker
-  (:class:`~torchseam.track.live.LiveTracker`: ``eakf_stc.*`` and ``fusion.*`` tensors), what
+  (:class:`~torchseam.track.anchored.AnchoredModel`: ``eakf_stc.*`` and ``fusion.*`` tensors), what
   ships and what ``torchseam train-live`` writes;
 - ``torchseam-eakf-stc/1``: EAKF-STC alone (``torchseam train``).
 

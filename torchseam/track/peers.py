@@ -24,14 +24,14 @@ from torchseam.core.dataset import check_frame
 from torchseam.core.errors import TorchseamError
 from torchseam.core.orient import FrameView
 from torchseam.track import model_file
+from torchseam.track.anchored import (
+    AnchoredTracker,
+    fitted_eakf_stc,
+    load_anchored_model,
+)
 from torchseam.track.base import Tracker
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.lite import LiteTracker
-from torchseam.track.live import (
-    AnchoredTracker,
-    fitted_eakf_stc,
-    load_live_tracker,
-)
 from torchseam.track.names import TRACKERS
 from torchseam.track.stc import STC
 from torchseam.vision.tipm import (
@@ -140,7 +140,7 @@ def make_tracker(name: str, tipm: Tipm, model: dict | None = None,
     (``tipm`` on every frame, ``anchored`` for its fixes). The EAKF-STC trackers read their
     fitted model: ``model_path`` (a model file; ``eakf-stc`` takes the EAKF-STC part of a
     live-tracker file), else ``anchored`` ``models/live_tracker.safetensors`` (with
-    ``configs/anchor.yaml``, see :func:`~torchseam.track.live.load_live_tracker`) and
+    ``configs/anchor.yaml``, see :func:`~torchseam.track.anchored.load_anchored_model`) and
     ``eakf-stc`` its own fit ``models/eakf_stc.safetensors``, unless ``model`` (a TrackerConfig
     mapping) is given. A ``model_path`` for a tracker without EAKF-STC is an error (it would be
     ignored)."""
@@ -152,7 +152,7 @@ def make_tracker(name: str, tipm: Tipm, model: dict | None = None,
             model_path = model_file.EAKF_STC_MODEL  # its own fit, not the live tracker's part
         return LiteTracker(fitted_eakf_stc(model, model_path))
     if name == "anchored":
-        return AnchoredTracker(load_live_tracker(model_path, model=model), tipm)
+        return AnchoredTracker(load_anchored_model(model_path, model=model), tipm)
     if name == "stc":
         return TorchTracker(name, STC())
     if name == "tipm":

@@ -1,5 +1,5 @@
 """Fitting the live tracker end to end: EAKF-STC and the fusion's values
-(:class:`~torchseam.track.live.LiveTracker`) by gradient descent on full-length labelled
+(:class:`~torchseam.track.anchored.AnchoredModel`) by gradient descent on full-length labelled
 sequences of several appearance families.
 
 One epoch: the training sequences, B at a time, tracked from their frame-0 label exactly as the
@@ -8,7 +8,8 @@ coasting); truncated back-propagation through time in chunks of ``chunk`` frames
 chunk the Huber loss between the fused and the true points is back-propagated, the optimiser
 steps, and the state, cut from the graph, carries on with the new values. Whole sequences
 (300 frames and more), so long heavy-arc and glare stretches are in the loss. The gates and
-thresholds are hard forward and straight-through backward (:class:`~torchseam.track.live.TorchOps`).
+thresholds are hard forward and straight-through backward
+(:class:`~torchseam.track.anchored.TorchOps`).
 After each epoch the validation sequences (other seeds) are tracked without gradients; the
 values of the epoch with the lowest validation loss are kept (epoch 0, the starting point,
 competes). Nothing is changed by hand afterwards.
@@ -44,11 +45,11 @@ from torchseam.fit.config import PARAM_GROUPS
 from torchseam.fit.model_io import FitError, save_fitted
 from torchseam.sim.sequence import SequenceSpec, simulate_labelled
 from torchseam.sim.variants import hide_corner
-from torchseam.track.live import LiveTracker
+from torchseam.track.anchored import AnchoredModel
 from torchseam.vision.tipm import Tipm, find_view, red_response
 
-__all__ = ["BEYOND", "LiveFitConfig", "LiveSequence", "fit_live", "load_live_fit_config",
-           "load_set", "simulate_set", "track_set"]
+__all__ = ["BEYOND", "AnchoredFitConfig", "AnchoredSequence", "fit_anchored",
+           "load_anchored_fit_config", "load_set", "simulate_set", "track_set"]
 
 log = logging.getLogger("torchseam.fit")
 
@@ -57,7 +58,7 @@ BEYOND = "beyond"
 
 
 @dataclass(frozen=True)
-class LiveFitConfig:
+class AnchoredFitConfig:
     """Options of ``torchseam train-live`` (``configs/train_live.yaml``)."""
 
     families: tuple[str, ...] = config_field()
@@ -79,13 +80,13 @@ class LiveFitConfig:
     dtype: str = config_field()
 
 
-def load_live_fit_config(path: str | Path | None = None) -> LiveFitConfig:
-    """:class:`LiveFitConfig` from ``path`` (default ``configs/train_live.yaml``)."""
-    return load_config(LiveFitConfig, path or config_path("train_live.yaml"))
+def load_anchored_fit_config(path: str | Path | None = None) -> AnchoredFitConfig:
+    """:class:`AnchoredFitConfig` from ``path`` (default ``configs/train_live.yaml``)."""
+    return load_config(AnchoredFitConfig, path or config_path("train_live.yaml"))
 
 
 @dataclass
-class LiveSequence:
+class AnchoredSequence:
     """One labelled sequence in memory: ``frames`` (T of (H, W, 3) uint8), ``labels`` (T, 2),
     ``group`` (``family/level``), ``hidden`` (T,) frames with the corner hidden."""
 
@@ -99,7 +100,7 @@ def simulate_set(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
                  families: Sequence[str], levels: Sequence[str], seeds: Sequence[int],
                  n_frames: int, hide_frames: Sequence[int] = (30, 60),
                  progress: Callable[[str], None] | None = None, *, tipm: Tipm
-                 ) -> list[LiveSequence]:
+                 ) -> list[AnchoredSequence]:
     """One sequence per (family, level, seed), simulated in memory and read in the view the
     live loop finds on its first frame (:func:`~torchseam.vision.tipm.find_view` with
     ``tipm``). Level
@@ -132,14 +133,14 @@ def simulate_set(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
                 view = find_view(frames[0], tipm, "rows", "auto")
                 if view is not None and view.response != "red":
                     frames = [view.frame(f) for f in frames]
-                out.append(LiveSequence(frames, labels, f"{fam}/{name}", hidden))
+                out.append(AnchoredSequence(frames, labels, f"{fam}/{name}", hidden))
                 if progress:
                     progress(f"simulated {fam}/{name} seed {s}")
     return out
 
 
 def load_set(roots: Sequence[str | Path], progress: Callable[[str], None] | None = None, *,
-             tipm: Tipm) -> list[LiveSequence]:
+             tipm: Tipm) -> list[AnchoredSequence]:
     """Labelled recordings (a dataset folder, or a folder of them: frames ``00000.png`` ... and
     ``labels.csv``) as sequences in the view the live loop finds on their first frame (with
     ``tipm``); each is
@@ -160,7 +161,7 @@ def load_set(roots: Sequence[str | Path], progress: Callable[[str], None] | None
                 raise FitError(f"{d}: no stripe corner on frame {first}, the first labelled "
                                "one (the fit starts each recording there)")
             frames = [view.frame(f) for f in frames]
-            out.append(LiveSequence(frames, ds.labels[first:], d.name,
+            out.append(AnchoredSequence(frames, ds.labels[first:], d.name,
                                     np.zeros(len(frames), bool)))
             if progress:
                 progress(f"read {d} ({len(frames)} frames)")
@@ -171,7 +172,7 @@ def _grey(frames: Sequence[np.ndarray]) -> Tensor:
     return torch.from_numpy(np.stack([red_response(f) for f in frames]))
 
 
-def track_set(module: LiveTracker, seqs: Sequence[LiveSequence], batch: int,
+def track_set(module: AnchoredModel, seqs: Sequence[AnchoredSequence], batch: int,
               chunk: int = 0, huber: float = 2.0,
               opt: torch.optim.Optimizer | None = None, clip: float = 0.0, *, tipm: Tipm
               ) -> tuple[float, list[np.ndarray], list[list[int]]]:
@@ -227,7 +228,7 @@ def track_set(module: LiveTracker, seqs: Sequence[LiveSequence], batch: int,
     return hsum / max(hn, 1), uvs, stats
 
 
-def errors_by_group(seqs: Sequence[LiveSequence], uvs: Sequence[np.ndarray],
+def errors_by_group(seqs: Sequence[AnchoredSequence], uvs: Sequence[np.ndarray],
                     lost_px: float) -> dict[str, dict[str, float]]:
     """error_stats per group over frames 1.. of each sequence."""
     errs: dict[str, list[np.ndarray]] = {}
@@ -239,7 +240,7 @@ def errors_by_group(seqs: Sequence[LiveSequence], uvs: Sequence[np.ndarray],
     return {g: error_stats(np.concatenate(v), lost_px) for g, v in errs.items()}
 
 
-def _select(module: LiveTracker, groups: Sequence[str]) -> list[str]:
+def _select(module: AnchoredModel, groups: Sequence[str]) -> list[str]:
     """Free EAKF-STC's parameters of ``groups`` (:data:`PARAM_GROUPS`) and every fusion
     value (``fusion``); freeze the rest."""
     names: set[str] = set()
@@ -263,7 +264,7 @@ def _select(module: LiveTracker, groups: Sequence[str]) -> list[str]:
     return sorted(names)
 
 
-def readable(module: LiveTracker) -> dict[str, Any]:
+def readable(module: AnchoredModel) -> dict[str, Any]:
     """The fusion's values and EAKF-STC's scalars in their units (for logs and the report)."""
     out: dict[str, Any] = {f"fusion.{k}": round(v, 6)
                            for k, v in module.fusion.values().items()}
@@ -276,9 +277,10 @@ def readable(module: LiveTracker) -> dict[str, Any]:
     return out
 
 
-def fit_live(module: LiveTracker, train: Sequence[LiveSequence], val: Sequence[LiveSequence],
-             cfg: LiveFitConfig, out: Path, info: dict[str, Any],
-             say: Callable[[str], None] = print, *, tipm: Tipm) -> dict[str, Any]:
+def fit_anchored(module: AnchoredModel, train: Sequence[AnchoredSequence],
+                 val: Sequence[AnchoredSequence], cfg: AnchoredFitConfig, out: Path,
+                 info: dict[str, Any], say: Callable[[str], None] = print, *,
+                 tipm: Tipm) -> dict[str, Any]:
     """Fit ``module`` (built learnable) on ``train``, select on ``val`` (``tipm``: the fixes'
     TIPM, the one the live loop runs); write ``out/live_tracker.safetensors`` and
     ``out/metrics.json``.

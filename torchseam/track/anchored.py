@@ -1,14 +1,14 @@
 """The live tracker: EAKF-STC with TIPM as an absolute anchor, fused by a Kalman filter on the
 point, with its status decided from image evidence; one differentiable module fitted end to end.
 
-Per frame (:class:`AnchorFilter`, one stream):
+Per frame (:class:`AnchoredFilter`, one stream):
 
 1. EAKF-STC tracks (the inner tracker);
 2. the fusion filter predicts the point, ``x <- x``, ``P <- P + Q`` (a random walk), or takes
    the robot's expected pixel (:meth:`AnchoredTracker.expect`);
 3. TIPM looks for the stripe corner in a window around the prediction, its arm fits pulled
    toward the arm shape of the last fix taken where the corner was seen (:func:`observe`; a
-   corner extrapolated under glare has the prior's own shape, see :meth:`AnchorFilter.step`);
+   corner extrapolated under glare has the prior's own shape, see :meth:`AnchoredFilter.step`);
 4. the corner is a measurement ``z`` with covariance ``R = g (s max(rms, floor))^2 M``
    (:func:`corner_cov_shape` gives ``M``, the glare term ``g`` is
    ``1 + (relu(glare - glare_start) / glare_scale)^2``), taken through a Mahalanobis gate:
@@ -26,7 +26,7 @@ Per frame (:class:`AnchorFilter`, one stream):
 The fusion is written once, over a tiny array backend (:class:`NumpyOps` for the live loop,
 :class:`TorchOps` for fitting): the same code runs the robot and is differentiated. The
 settings of steps 2-6 (noise levels, gates, glare weights, the clean-fix and re-anchor
-thresholds) are :class:`FixFusion`'s parameters, fitted with EAKF-STC's by gradient descent
+thresholds) are :class:`AnchoredParams`'s parameters, fitted with EAKF-STC's by gradient descent
 (``torchseam train``): the gates and thresholds are hard decisions in the forward pass and
 straight-through sigmoids in the backward pass, so the fitted tracker *is* the one that runs.
 The evidence rules of step 7 and TIPM's window and arm prior are settings
@@ -68,16 +68,16 @@ from torchseam.vision.tipm import (
     red_response,
 )
 
-__all__ = ["FITTED", "AnchorConfig", "AnchorFilter", "AnchoredTracker", "FixFusion",
-           "LiveState", "LiveTracker", "NumpyOps", "TorchOps", "arm_directions", "corner_cov",
+__all__ = ["FITTED", "AnchorConfig", "AnchoredFilter", "AnchoredTracker", "AnchoredParams",
+           "AnchoredState", "AnchoredModel", "NumpyOps", "TorchOps", "arm_directions", "corner_cov",
            "corner_cov_shape", "corner_seen", "fitted_eakf_stc", "glare_level",
-           "load_anchor_config", "load_live_tracker"]
+           "load_anchor_config", "load_anchored_model"]
 
 log = logging.getLogger("torchseam.track")
 
 #: TrackerConfig fields that add parameters to EAKF-STC: read from the model file
 STRUCTURAL_STC = ("reg", "anchor", "anchor_frames")
-#: the fusion's settings fitted by gradient descent (:class:`FixFusion`); the rest of
+#: the fusion's settings fitted by gradient descent (:class:`AnchoredParams`); the rest of
 #: :class:`AnchorConfig` are settings
 FITTED = ("motion_u_px", "motion_v_px", "track_u_px", "track_v_px", "fix_noise",
           "fix_floor_px", "fix_gate", "track_gate", "max_rms_px", "reanchor_px",
@@ -88,7 +88,7 @@ FITTED = ("motion_u_px", "motion_v_px", "track_u_px", "track_v_px", "fix_noise",
 class AnchorConfig:
     """Settings of the live tracker (``configs/anchor.yaml``; px unless named). The fields of
     :data:`FITTED` are the starting point of a fit; a tracker runs with the fitted values of its
-    model file (:meth:`LiveTracker.anchor_config`)."""
+    model file (:meth:`AnchoredModel.anchor_config`)."""
 
     window_px: int = config_field(lo=16)
     reanchor_px: float = config_field(lo=0.0, lo_open=True)
@@ -452,7 +452,7 @@ GATE_TEMP, RMS_TEMP, REANCHOR_TEMP = 0.5, 0.05, 0.5
 
 # --------------------------------------------------------------------------- one stream
 
-class AnchorFilter:
+class AnchoredFilter:
     """The fusion and the evidence rules of one stream (see the module docstring), on an array
     backend (:class:`NumpyOps` or :class:`TorchOps`) with the fitted values ``params`` (the
     names of :data:`FITTED`: floats, or 0-d tensors for fitting).
@@ -698,11 +698,11 @@ class AnchorFilter:
 
 # --------------------------------------------------------------------------- the module
 
-class FixFusion(nn.Module):
+class AnchoredParams(nn.Module):
     """The fusion's fitted values (:data:`FITTED`), kept as logarithms (all are positive).
 
     Example:
-        >>> f = FixFusion(load_anchor_config())
+        >>> f = AnchoredParams(load_anchor_config())
         >>> round(float(f.natural()["fix_gate"]), 3)
         4.0
     """
@@ -726,16 +726,16 @@ class FixFusion(nn.Module):
 
 
 @dataclass
-class LiveState:
-    """B streams of :class:`LiveTracker`: the inner EAKF-STC's batched state and one
-    :class:`AnchorFilter` per stream (torch backend)."""
+class AnchoredState:
+    """B streams of :class:`AnchoredModel`: the inner EAKF-STC's batched state and one
+    :class:`AnchoredFilter` per stream (torch backend)."""
 
     inner: FusionState
-    filters: list[AnchorFilter]
+    filters: list[AnchoredFilter]
     frames: list[np.ndarray | None]  # this step's frames, for the between-frames search
 
 
-class LiveTracker(nn.Module):
+class AnchoredModel(nn.Module):
     """The live tracker as one module: EAKF-STC (``eakf_stc``) and the fusion's fitted values
     (``fusion``). Its ``state_dict`` is the model file; :class:`AnchoredTracker` runs it on
     the live loop (numpy, one stream), :meth:`step_state` on B streams in torch for fitting.
@@ -746,7 +746,7 @@ class LiveTracker(nn.Module):
         learnable: the fusion's values are parameters (else buffers).
 
     Example:
-        >>> trk = LiveTracker(EAKFSTC(), load_anchor_config())
+        >>> trk = AnchoredModel(EAKFSTC(), load_anchor_config())
         >>> sorted(trk.anchor_config().__dict__)[:2]
         ['arm_noise_px', 'curvature_step']
     """
@@ -755,7 +755,7 @@ class LiveTracker(nn.Module):
                  ) -> None:
         super().__init__()
         self.eakf_stc = eakf_stc
-        self.fusion = FixFusion(cfg, learnable)
+        self.fusion = AnchoredParams(cfg, learnable)
         self.cfg = cfg
 
     @property
@@ -774,7 +774,7 @@ class LiveTracker(nn.Module):
         return {k: v.to(dt) for k, v in self.fusion.natural().items()}
 
     def init_state(self, frames: Sequence[np.ndarray], grey: Tensor, uv0: Tensor,
-                   tipm: Tipm) -> LiveState:
+                   tipm: Tipm) -> AnchoredState:
         """Start B streams at ``uv0`` (B, 2) on their first frames (``frames``: B colour or
         mono frames; ``grey``: (B, H, W) their stripe response, what EAKF-STC sees; ``tipm``:
         the fixes' TIPM, the live loop's)."""
@@ -783,22 +783,22 @@ class LiveTracker(nn.Module):
         params = self._params()
         filters = []
         for i in range(len(frames)):
-            f = AnchorFilter(self.cfg, tipm, params, ops)
+            f = AnchoredFilter(self.cfg, tipm, params, ops)
             f.start(uv0[i].detach().to(torch.float64).numpy())
             filters.append(f)
-        return LiveState(inner, filters, [None] * len(frames))
+        return AnchoredState(inner, filters, [None] * len(frames))
 
-    def detach(self, state: LiveState) -> LiveState:
+    def detach(self, state: AnchoredState) -> AnchoredState:
         """Cut the state from the graph (truncated BPTT) with the current fitted values."""
         params = self._params()
         for f in state.filters:
             f.x = f.x.detach()
             f.P = f.P.detach()
             f.set_params(params)
-        return LiveState(self.eakf_stc.detach(state.inner), state.filters, state.frames)
+        return AnchoredState(self.eakf_stc.detach(state.inner), state.filters, state.frames)
 
-    def step_state(self, state: LiveState, frames: Sequence[np.ndarray], grey: Tensor
-                   ) -> tuple[LiveState, Tensor, list[int]]:
+    def step_state(self, state: AnchoredState, frames: Sequence[np.ndarray], grey: Tensor
+                   ) -> tuple[AnchoredState, Tensor, list[int]]:
         """One frame of B streams (as :meth:`AnchoredTracker.track`, per stream).
 
         Returns:
@@ -819,7 +819,7 @@ class LiveTracker(nn.Module):
         hard = w.detach() > 0.5
         if bool(hard.any()):
             inner = self._reanchor(inner, grey, out, w, hard)
-        return LiveState(inner, state.filters, list(frames)), out, statuses
+        return AnchoredState(inner, state.filters, list(frames)), out, statuses
 
     def _reanchor(self, s: FusionState, grey: Tensor, uv: Tensor, w: Tensor, hard: Tensor
                   ) -> FusionState:
@@ -851,24 +851,24 @@ class LiveTracker(nn.Module):
 
 class AnchoredTracker(Tracker):
     """The live tracker on one stream (the live loop's): EAKF-STC's numpy twin
-    (:class:`~torchseam.track.lite.LiteEAKFSTC`) and :class:`AnchorFilter` on numpy, with the
-    fitted values of ``live`` (a :class:`LiveTracker`: :func:`load_live_tracker` reads the
+    (:class:`~torchseam.track.lite.LiteEAKFSTC`) and :class:`AnchoredFilter` on numpy, with the
+    fitted values of ``live`` (a :class:`AnchoredModel`: :func:`load_anchored_model` reads the
     shipped model file), its fixes found by ``tipm``.
 
     Example:
         >>> from torchseam.vision.tipm import load_tipm
-        >>> trk = AnchoredTracker(load_live_tracker(), load_tipm())  # the shipped model
+        >>> trk = AnchoredTracker(load_anchored_model(), load_tipm())  # the shipped model
         >>> trk.init(frame0, uv0)             # doctest: +SKIP
         >>> res = trk.track(frame1)           # doctest: +SKIP
     """
 
     name = "anchored"
 
-    def __init__(self, live: LiveTracker, tipm: Tipm) -> None:
+    def __init__(self, live: AnchoredModel, tipm: Tipm) -> None:
         self.live = live
         self.inner = LiteTracker(live.eakf_stc)
         self.cfg = live.anchor_config()
-        self.filter = AnchorFilter(self.cfg, tipm, self.cfg.__dict__)
+        self.filter = AnchoredFilter(self.cfg, tipm, self.cfg.__dict__)
         self._expected: np.ndarray | None = None
         self._frame: np.ndarray | None = None
         self.glare = 0.0
@@ -926,7 +926,7 @@ class AnchoredTracker(Tracker):
 
     def idle(self) -> None:
         """Between frames: EAKF-STC's learning of the last update, and, while the track has no
-        evidence, the whole-frame search (:meth:`AnchorFilter.search`). Run here, after the
+        evidence, the whole-frame search (:meth:`AnchoredFilter.search`). Run here, after the
         frame's command is out, it costs the frame-to-point latency nothing."""
         self.inner.idle()
         frame, self._frame = self._frame, None
@@ -989,15 +989,15 @@ def fitted_eakf_stc(model: dict | EAKFSTC | None = None,
     return module
 
 
-def load_live_tracker(model_path: str | Path | None = None, cfg: AnchorConfig | None = None,
-                      model: dict | None = None) -> LiveTracker:
+def load_anchored_model(model_path: str | Path | None = None, cfg: AnchorConfig | None = None,
+                      model: dict | None = None) -> AnchoredModel:
     """The live tracker with the fitted values of ``model_path`` (default: the shipped
     ``models/live_tracker.safetensors``). ``model``: an explicit EAKF-STC configuration
     (TrackerConfig fields) instead of a file; the fusion then keeps ``cfg``'s values (the
     starting values of a fit, ``configs/anchor.yaml``), as it does, with a warning, for a file
     of EAKF-STC alone or when no model file is present."""
     cfg = cfg if cfg is not None else load_anchor_config()
-    live = LiveTracker(fitted_eakf_stc(model, model_path), cfg)
+    live = AnchoredModel(fitted_eakf_stc(model, model_path), cfg)
     if model:
         return live
     path = Path(model_path) if model_path is not None else model_file.DEFAULT_MODEL

@@ -1,4 +1,4 @@
-"""``torchseam train-live``: fit the live tracker end to end (see :mod:`torchseam.fit.live`).
+"""``torchseam train-live``: fit the live tracker end to end (see :mod:`torchseam.fit.anchored`).
 
     torchseam train-live --name live-1            # configs/train_live.yaml, into runs/live-1/
     torchseam train-live --name live-1 --install  # ... and make it the model the trackers load
@@ -91,13 +91,18 @@ def run(args: argparse.Namespace) -> int:
 
     from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
     from torchseam.fit import model_io
+    from torchseam.fit.anchored import (
+        fit_anchored,
+        load_anchored_fit_config,
+        load_set,
+        simulate_set,
+    )
     from torchseam.fit.cli import RUNS_DIR
-    from torchseam.fit.live import fit_live, load_live_fit_config, load_set, simulate_set
     from torchseam.fit.train import make_module
-    from torchseam.track.live import LiveTracker, fitted_eakf_stc, load_anchor_config
+    from torchseam.track.anchored import AnchoredModel, fitted_eakf_stc, load_anchor_config
     from torchseam.vision.tipm import load_tipm
 
-    cfg = load_live_fit_config(args.config)
+    cfg = load_anchored_fit_config(args.config)
     over = {k: getattr(args, k) for k in ("families", "levels", "seeds", "val_seeds",
                                           "frames", "epochs")
             if getattr(args, k, None) is not None}
@@ -116,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     base = fitted_eakf_stc(model_path=start)
     eakf = make_module(base.config, dtype)
     model_io.load_fitted(eakf, start)
-    live = LiveTracker(eakf, load_anchor_config(), learnable=True).to(dtype)
+    live = AnchoredModel(eakf, load_anchor_config(), learnable=True).to(dtype)
     if model_io.read_model(start)[1]["format"] == model_io.LIVE_FORMAT:
         model_io.load_fitted(live, start)
     if bool(args.data) != bool(args.val_data):
@@ -146,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
             "start": str(start), "command": "torchseam train-live " + " ".join(
                 f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()
                 if k in over)}
-    metrics = fit_live(live, train, val, cfg, out, info,
+    metrics = fit_anchored(live, train, val, cfg, out, info,
                        say=lambda s: print(s, flush=True), tipm=tipm)
     path = out / "live_tracker.safetensors"
     print(f"kept epoch {metrics['best_epoch']}; model {path}")
