@@ -225,3 +225,41 @@ def test_track_and_eval_joint_follow_the_groove(tmp_path, capsys):
     assert main(["track", str(turned), "--joint", "v_groove", "--tracker", "kcf"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "tracker kcf: a v_groove joint" in lines[0]
+
+
+def test_profile_tracker_puts_a_washed_out_root_edge_back():
+    """ProfileTracker's root-edge check on v_groove results whose geometry is known: an edge
+    moved along its face's line (the glare ate the stripe's end) is taken at its recent place,
+    on the line; both edges moved, or one moved while a face's line turned, is no evidence."""
+    import dataclasses
+
+    from torchseam.live.profile_track import ProfileTracker, load_profile_track_config
+    from torchseam.vision.profiles import ProfileResult
+
+    cfg = load_profile_track_config()
+    t = ProfileTracker(ProfileFinder(load_tipm(), load_profile_config(), "v_groove"), cfg)
+    x = np.array([300.0, 200.0])                    # where the faces' lines meet
+    dl, dr = np.array([-0.6, 0.8]), np.array([1.0, 0.0])
+
+    def result(sl: float, sr: float, turn_deg: float = 0.0) -> ProfileResult:
+        c, s = np.cos(np.radians(turn_deg)), np.sin(np.radians(turn_deg))
+        d1 = np.array([c * dl[0] - s * dl[1], s * dl[0] + c * dl[1]])
+        lr, rr = x + sl * dl, x + sr * dr
+        return ProfileResult("v_groove", True, (lr + rr) / 2,
+                             {"left_shoulder": lr + 120 * dl, "left_root": lr,
+                              "right_root": rr, "right_shoulder": rr},
+                             arm_points=np.stack([lr + 40 * d1, rr + 40 * dr]))
+
+    for k in range(cfg.edge_min + 2):               # the places become known
+        r = result(8.0 + 0.1 * (k % 2), 9.0)
+        assert t._root_edges(r) is r
+    got = t._root_edges(result(8.0 + 3 * cfg.edge_tol_px, 9.0))   # the left edge eaten back
+    assert got.ok and "left root edge at its recent place" in got.reason
+    assert np.allclose(got.points["left_root"], x + 8.0 * dl, atol=0.06)
+    assert np.allclose(got.aim, (x + 8.0 * dl + x + 9.0 * dr) / 2, atol=0.06)
+    both = t._root_edges(result(8.0 + 3 * cfg.edge_tol_px, 9.0 + 3 * cfg.edge_tol_px))
+    assert not both.ok and "both root edges" in both.reason
+    bent = t._root_edges(result(8.0 + 3 * cfg.edge_tol_px, 9.0, 2 * cfg.line_tol_deg))
+    assert not bent.ok and "turned" in bent.reason
+    kept = dataclasses.replace(result(8.0, 9.0), joint="butt")   # other profiles: as found
+    assert t._root_edges(kept) is kept

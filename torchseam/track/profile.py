@@ -66,6 +66,7 @@ class ProfileTrackConfig:
     edge_min: int = config_field(lo=1)
     edge_tol_px: float = config_field(lo=0.0, lo_open=True)
     edge_max_frames: int = config_field(lo=0)
+    line_tol_deg: float = config_field(lo=0.0)
 
 
 def load_profile_track_config(path: str | Path | None = None) -> ProfileTrackConfig:
@@ -108,6 +109,10 @@ class ProfileTracker(Tracker):
         self._edges = (deque[float](maxlen=cfg.edge_history),
                        deque[float](maxlen=cfg.edge_history))
         self._stale = [0, 0]  # frames in a row each side's edge was taken from its history
+        #: each side's face line's direction (degrees, image) on the recent frames with both
+        #: edges in their places
+        self._dirs = (deque[float](maxlen=cfg.edge_history),
+                      deque[float](maxlen=cfg.edge_history))
 
     def find(self, frame: np.ndarray) -> ProfileResult:
         """The profile on a whole frame (the start: no prediction yet)."""
@@ -117,7 +122,7 @@ class ProfileTracker(Tracker):
         self.uv = np.asarray(uv, float).copy()
         self.velocity = np.zeros(2)
         self.expected, self.misses, self.result = None, 0, None
-        for hist in self._edges:
+        for hist in (*self._edges, *self._dirs):
             hist.clear()
         self._stale = [0, 0]
 
@@ -177,9 +182,12 @@ class ProfileTracker(Tracker):
         washed out for a second does not become the groove's shape). A side taken from its
         history on more than ``edge_max_frames`` frames in a row is no longer known: its
         history starts again from what the frames show (the gate on the prediction still
-        holds). A frame with both edges off (a glare band over the root: the lines are no
-        better there, a spatter streak bridging the gap) or with the edge of a side no longer
-        known is no evidence (``ok`` False)."""
+        holds). No evidence (``ok`` False): a frame with both edges off (a glare band over the
+        root: the lines are no better there; a spatter streak bridging the gap), with an edge
+        off and a face's line turned by more than ``line_tol_deg`` from its direction on the
+        recent frames with both edges in place (the glare that took the edge bent the line
+        the edge is put back on, and the face's direction the torch bisects), or with the
+        edge of a side no longer known."""
         if res.joint != "v_groove" or res.arm_points is None:
             return res
         roots = np.stack([res.points["left_root"], res.points["right_root"]])
@@ -211,6 +219,13 @@ class ProfileTracker(Tracker):
             else:
                 hist.append(place[i])
                 self._stale[i] = 0
+        ang = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
+        turn = np.zeros(2)
+        for i, hist in enumerate(self._dirs):
+            if len(hist) >= self.cfg.edge_min:
+                turn[i] = abs((ang[i] - float(np.median(hist)) + 180.0) % 360.0 - 180.0)
+            if not off.any():
+                hist.append(float(ang[i]))
         if not off.any():
             return res
         if off.all():  # a glare band over the root, a spatter streak across the gap
@@ -218,6 +233,11 @@ class ProfileTracker(Tracker):
                 res, ok=False, aim=np.full(2, np.nan),
                 reason=f"both root edges off their recent places (by "
                        f"{np.abs(place - ref).max():.1f} px)")
+        if turn.max() > self.cfg.line_tol_deg:  # the glare that took an edge bent a line
+            return dataclasses.replace(
+                res, ok=False, aim=np.full(2, np.nan),
+                reason=f"a root edge off its recent place and a face's line turned by "
+                       f"{turn.max():.1f} deg")
         new = roots.copy()
         new[off] = x + ref[off, None] * d[off]
         pts = dict(res.points, left_root=new[0], right_root=new[1])
