@@ -107,9 +107,10 @@ class ProfileResult:
         tipm: the corner TIPM found (fillet).
         arm_points: (2, 2) v_groove: a point on the stripe's piece that leaves each root
             edge (left, right), up to ``fit_px`` along it (the flank, or a side's plate where
-            it has no flank: along the plate's tangent at the edge, ``arm_px``): with the
-            root edges, the two faces' directions at the root (what the torch bisects); None
-            where not found.
+            it has no flank), along its tangent at the edge (a quadratic over ``arm_px`` of
+            it: a bevel is a cone and a pipe a cylinder, and their laser cuts curve): with
+            the root edges, the two faces' directions at the root (what the torch bisects);
+            None where not found.
     """
 
     joint: str
@@ -384,7 +385,8 @@ class ProfileFinder:
         if line.rms > cfg.max_rms_px:
             return f"fit residual {line.rms:.2f} px"
         root = self._end(side, resp, line)
-        return line, None, root, root, root + cfg.fit_px * _outward(line, side)
+        along = _tangent_at(side[:self._near(side, cfg.arm_px)], line, root)
+        return line, None, root, root, root + cfg.fit_px * along
 
     def _v_groove(self, pts: np.ndarray, resp: np.ndarray) -> ProfileResult:
         cfg = self.cfg
