@@ -43,6 +43,8 @@ from torchseam.robot.egm import EgmLink
 from torchseam.robot.egm.config import load_egm_config
 from torchseam.track.peers import TRACKERS
 
+pytestmark = pytest.mark.realtime  # wall-clock timing: run alone (README's test command)
+
 # what the command line reads for the console: the cell, the part, the noise, the live parts
 CELL, PART, NOISE, PARTS = load_cell(), load_part(), load_noise(), load_live_parts()
 

@@ -29,6 +29,8 @@ from torchseam.console.sim import simulated_console
 from torchseam.live.demo import FAULTS
 from torchseam.track.peers import TRACKERS
 
+pytestmark = pytest.mark.realtime  # wall-clock timing: run alone (README's test command)
+
 SHIPPED = (CELL, PART, NOISE, PARTS)  # the cell, part, noise and live parts of the console
 EVIL = "evil.example"
 REAL = "the address connected to"

@@ -46,6 +46,8 @@ from torchseam.console.server import (
 )
 from torchseam.core.config import CONFIG_DIR, ConfigError
 
+pytestmark = pytest.mark.realtime  # wall-clock timing: run alone (README's test command)
+
 
 def _cfg(**server):
     c = load_console_config()

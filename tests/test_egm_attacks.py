@@ -38,6 +38,8 @@ from torchseam.robot.egm.policy import (
     quat_angle_deg,
 )
 
+pytestmark = pytest.mark.realtime  # wall-clock timing: run alone (README's test command)
+
 CTRL = ("127.0.0.1", 6511)          # the shipped config's controller address
 FB_POS = np.array([984.0, 0.0, 624.0])
 FB_QUAT = np.array([0.0, 0.0, 1.0, 0.0])

@@ -31,8 +31,9 @@ from torchseam.robot.egm import EgmLink, latency_summary, parse_sensor
 from torchseam.robot.egm.config import load_egm_config
 from torchseam.robot.egm.messages import EgmHeader, EgmRobot
 
-pytestmark = pytest.mark.skipif(sys.platform != "linux",
-                                reason="the controller's own socket is Linux's delivery rule")
+pytestmark = [pytest.mark.realtime,   # wall-clock timing: run alone (README's test command)
+              pytest.mark.skipif(sys.platform != "linux",
+                                 reason="the controller's own socket is Linux's delivery rule")]
 
 FLOOD_N = 50_000
 SESSION_S = 4.0

@@ -25,6 +25,8 @@ from torchseam.robot.egm.config import egm_config_from_dict, load_egm_config
 from torchseam.robot.egm.messages import EgmHeader, EgmRobot, EgmSensor
 from torchseam.robot.egm_session import Feed, loopback_session, run_feed
 
+pytestmark = pytest.mark.realtime  # wall-clock timing: run alone (README's test command)
+
 CTRL = ("127.0.0.1", 6511)  # the shipped config's controller address
 FB_POS = np.array([984.0, 0.0, 624.0])  # fed-back TCP of the unit tests, mm
 FB_QUAT = np.array([0.0, 0.0, 1.0, 0.0])  # torch pointing down

@@ -15,6 +15,8 @@ import pytest
 from torchseam.live.clocks import ClockOffset
 from torchseam.live.framestream import FrameStreamError
 
+pytestmark = pytest.mark.realtime  # wall-clock timing: run alone (README's test command)
+
 FAKE = shutil.which("arv-fake-gv-camera-0.8")
 
 

@@ -28,6 +28,8 @@ from torchseam.sim.record import write_sequence
 from torchseam.sim.sequence import SequenceSpec
 from torchseam.track.peers import make_tracker
 
+pytestmark = pytest.mark.realtime  # wall-clock timing: run alone (README's test command)
+
 N_FRAMES = 24
 SPEC = SequenceSpec(n_frames=N_FRAMES, level=0.3, seed=4, start_mm=40.0)
 
