@@ -104,8 +104,9 @@ def test_model_file_round_trip_and_refusals(tmp_path):
     path = model_io.save_fitted(live, tmp_path / "live.safetensors", {"note": "test"})
     assert model_io.read_model(path)[1]["format"] == model_io.LIVE_FORMAT
     trk = AnchoredTracker(load_anchored_model(path), TIPM)
-    assert trk.cfg.fix_gate == pytest.approx(5.5) and trk.cfg.motion_u_px == pytest.approx(0.7)
-    assert load_anchor_config().fix_gate != pytest.approx(5.5)
+    assert trk.values["fix_gate"] == pytest.approx(5.5)
+    assert trk.values["motion_u_px"] == pytest.approx(0.7)
+    assert load_anchor_config().start.fix_gate != pytest.approx(5.5)
     inner = EAKFSTC(live.eakf_stc.config)
     assert model_io.load_fitted(inner, path)
     for k, v in inner.state_dict().items():

@@ -376,10 +376,12 @@ def test_anchored_leans_on_its_prediction_under_red_glare():
     """A glare band over the corner: TIPM's fits stay tight while the corner slides along the
     stripe, and EAKF-STC follows. Under red haze around the point the filter trusts both less
     (the fitted glare_start, glare_scale) and moves onto them slowly."""
+    from types import SimpleNamespace
+
     from torchseam.track.anchored import glare_level, load_anchored_model
 
     # the fitted glare weights (models/live_tracker.safetensors), as AnchoredTracker runs them
-    cfg = load_anchored_model().anchor_config()
+    cfg = SimpleNamespace(**load_anchored_model().fusion.values())
     dark = np.zeros((480, 640, 3), np.uint8)
     haze = dark.copy()
     # a red haze as strong as a frame holds (250 grey levels at most): the covariances grow by

@@ -3,16 +3,15 @@
 A setting's value comes from the config folder in use (the shipped configs, or yours with
 ``--config-dir`` / ``$TORCHSEAM_CONFIGS``), or is the dataclass's default when the file leaves
 it out, or, for the live tracker's fitted values (``anchor``: the fusion's noise, gates and
-glare scale), from the fitted model file: those the YAML holds are not used, and the table says
-so. It imports every stage's config class, the offline fit's included, so it sits beside the
-command line, above every stage; it reads and changes nothing.
+glare scale), from the fitted model file (``configs/anchor.yaml`` holds only where a fit
+starts them, ``start.*``). It imports every stage's config class, the offline fit's included,
+so it sits beside the command line, above every stage; it reads and changes nothing.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import math
 from pathlib import Path
 from typing import Any
 
@@ -44,8 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "config", help="show every setting's effective value and where it came from",
         description="Show the settings the commands run with: each value and its source (the "
                     "config folder in use, a default the file leaves out, or the fitted model "
-                    "file, whose values replace the live tracker's fitted settings in "
-                    "configs/anchor.yaml).")
+                    "file, which alone sets the live tracker's fitted values).")
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
     s = verbs.add_parser("show", help="print the settings of one config, or of all",
                          description="Print NAME's settings (default: all): name, value, "
@@ -72,7 +70,12 @@ def settings(name: str, model_path: Path | None = None) -> list[tuple[str, Any, 
     module, cls_name = CONFIGS[name]
     cls = getattr(importlib.import_module(module), cls_name)
     path = config_path(f"{name}.yaml")
-    obj = load_config(cls, path)
+    if name == "anchor":    # its loader also refuses a value the model sets
+        from torchseam.track.anchored import load_anchor_config
+
+        obj = load_anchor_config(path)
+    else:
+        obj = load_config(cls, path)
     raw = _flat(read_yaml(path) or {})
     rows = []
     for key, value in _flat(to_dict(obj)).items():
@@ -85,24 +88,19 @@ def settings(name: str, model_path: Path | None = None) -> list[tuple[str, Any, 
 
 def _fitted(rows: list[tuple[str, Any, str]], model_path: Path | None
             ) -> list[tuple[str, Any, str]]:
-    """The fusion's fitted values replace the YAML's (when the model file holds them)."""
+    """The fusion's fitted values, from the model file the tracker runs with, after the
+    settings; the file's ``start.*`` marked as only a fit's starting values."""
     from torchseam.track import model_file
     from torchseam.track.anchored import FITTED, load_anchored_model
 
     path = Path(model_path) if model_path is not None else model_file.DEFAULT_MODEL
+    out = [(k, v, src + " (a fit's starting value, not the run's)" if k.startswith("start.")
+            else src) for k, v, src in rows]
     if not path.is_file():
-        return rows
-    values = {k: float(v) for k, v in load_anchored_model(path).fusion.values().items()}
-    out = []
-    for key, value, src in rows:
-        if key in FITTED and key in values:
-            v = values[key]
-            note = (f"model {path}" + ("" if math.isclose(v, float(value), rel_tol=1e-6)
-                                       else f" (the file's {value:g} is not used)"))
-            out.append((key, round(v, 6), note))
-        else:
-            out.append((key, value, src))
-    return out
+        return out + [(k, "-", f"no model file {path}: a tracker warns and runs start.{k}")
+                      for k in FITTED]
+    values = load_anchored_model(path).fusion.values()
+    return out + [(k, round(values[k], 6), f"model {path}") for k in FITTED]
 
 
 def run(args: argparse.Namespace) -> int:

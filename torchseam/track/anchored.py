@@ -50,7 +50,7 @@ import torch
 from torch import Tensor, nn
 
 from torchseam.core import kalman
-from torchseam.core.config import config_field, config_path, load_config
+from torchseam.core.config import ConfigError, config_field, config_path, load_config, read_yaml
 from torchseam.core.errors import TorchseamError
 from torchseam.core.kernels import load_kernels
 from torchseam.track import model_file
@@ -68,10 +68,10 @@ from torchseam.vision.tipm import (
     red_response,
 )
 
-__all__ = ["FITTED", "AnchorConfig", "AnchoredFilter", "AnchoredTracker", "AnchoredParams",
-           "AnchoredState", "AnchoredModel", "NumpyOps", "TorchOps", "arm_directions", "corner_cov",
-           "corner_cov_shape", "corner_seen", "fitted_eakf_stc", "glare_level",
-           "load_anchor_config", "load_anchored_model"]
+__all__ = ["FITTED", "AnchorConfig", "AnchoredFilter", "AnchoredModel", "AnchoredParams",
+           "AnchoredState", "AnchoredTracker", "FusionValues", "NumpyOps", "TorchOps",
+           "arm_directions", "corner_cov", "corner_cov_shape", "corner_seen", "fitted_eakf_stc",
+           "glare_level", "load_anchor_config", "load_anchored_model"]
 
 log = logging.getLogger("torchseam.track")
 
@@ -85,12 +85,11 @@ FITTED = ("motion_u_px", "motion_v_px", "track_u_px", "track_v_px", "fix_noise",
 
 
 @dataclass(frozen=True)
-class AnchorConfig:
-    """Settings of the live tracker (``configs/anchor.yaml``; px unless named). The fields of
-    :data:`FITTED` are the starting point of a fit; a tracker runs with the fitted values of its
-    model file (:meth:`AnchoredModel.anchor_config`)."""
+class FusionValues:
+    """The fusion's values that a fit sets (:data:`FITTED`; px unless named): what
+    :class:`AnchoredParams` holds. A tracker runs with those of its model file; the ones in
+    ``configs/anchor.yaml`` (``start:``) are only where a fit starts."""
 
-    window_px: int = config_field(lo=16)
     reanchor_px: float = config_field(lo=0.0, lo_open=True)
     motion_u_px: float = config_field(lo=0.0, lo_open=True)
     motion_v_px: float = config_field(lo=0.0, lo_open=True)
@@ -101,12 +100,21 @@ class AnchorConfig:
     fix_gate: float = config_field(lo=0.0, lo_open=True)
     track_gate: float = config_field(lo=0.0, lo_open=True)
     max_rms_px: float = config_field(lo=0.0, lo_open=True)
+    glare_start: float = config_field(lo=0.0, lo_open=True)
+    glare_scale: float = config_field(lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class AnchorConfig:
+    """Settings of the live tracker (``configs/anchor.yaml``; px unless named). The values a fit
+    sets are not among them: a tracker runs with those of its model file
+    (:attr:`AnchoredModel.fusion`); ``start`` is where a fit starts from."""
+
+    window_px: int = config_field(lo=16)
     arm_noise_px: float = config_field(lo=0.0, lo_open=True)
     slope_step: float = config_field(lo=0.0, lo_open=True)
     curvature_step: float = config_field(lo=0.0, lo_open=True)
     glare_px: int = config_field(lo=1)
-    glare_start: float = config_field(lo=0.0, lo_open=True)
-    glare_scale: float = config_field(lo=0.0, lo_open=True)
     evidence_px: float = config_field(lo=0.0, lo_open=True)
     lost_frames: int = config_field(lo=1)
     lost_px: float = config_field(lo=0.0, lo_open=True)
@@ -123,11 +131,23 @@ class AnchorConfig:
     velocity_points: int = config_field(lo=2)
     velocity_fade_frames: float = config_field(lo=0.0, lo_open=True)
     shallow_with_expected: bool = config_field()
+    start: FusionValues = config_field()
 
 
 def load_anchor_config(path: str | Path | None = None) -> AnchorConfig:
-    """:class:`AnchorConfig` from ``path`` (default ``configs/anchor.yaml``)."""
-    return load_config(AnchorConfig, path or config_path("anchor.yaml"))
+    """:class:`AnchorConfig` from ``path`` (default ``configs/anchor.yaml``). A value the fitted
+    model sets (:data:`FITTED`) given among the settings is refused, naming the model file: it
+    would do nothing (the model's replaces it)."""
+    p = Path(path or config_path("anchor.yaml"))
+    raw = read_yaml(p)
+    given = [k for k in FITTED if isinstance(raw, dict) and k in raw]
+    if given:
+        raise ConfigError(
+            f"{p}: {given[0]}: set by the fitted model {model_file.DEFAULT_MODEL}, not by this "
+            f"file (the value in use: `torchseam config show anchor`); a fit's starting value "
+            f"goes under start:, another value for the run needs a new fit "
+            f"(`torchseam train-live`)")
+    return load_config(AnchorConfig, p)
 
 
 # --------------------------------------------------------------------------- TIPM's evidence
@@ -702,15 +722,15 @@ class AnchoredParams(nn.Module):
     """The fusion's fitted values (:data:`FITTED`), kept as logarithms (all are positive).
 
     Example:
-        >>> f = AnchoredParams(load_anchor_config())
+        >>> f = AnchoredParams(load_anchor_config().start)
         >>> round(float(f.natural()["fix_gate"]), 3)
         4.0
     """
 
-    def __init__(self, cfg: AnchorConfig, learnable: bool = False) -> None:
+    def __init__(self, start: FusionValues, learnable: bool = False) -> None:
         super().__init__()
         for name in FITTED:
-            t = torch.tensor(math.log(float(getattr(cfg, name))), dtype=torch.float64)
+            t = torch.tensor(math.log(float(getattr(start, name))), dtype=torch.float64)
             if learnable:
                 self.register_parameter(f"log_{name}", nn.Parameter(t))
             else:
@@ -742,31 +762,27 @@ class AnchoredModel(nn.Module):
 
     Args:
         eakf_stc: the inner tracker module.
-        cfg: the settings (and the fusion's starting values).
+        cfg: the settings; the fusion starts at ``cfg.start`` (a model file's
+            :func:`~torchseam.track.model_file.load_fitted` then sets it).
         learnable: the fusion's values are parameters (else buffers).
 
     Example:
         >>> trk = AnchoredModel(EAKFSTC(), load_anchor_config())
-        >>> sorted(trk.anchor_config().__dict__)[:2]
-        ['arm_noise_px', 'curvature_step']
+        >>> sorted(trk.fusion.values())[:2]
+        ['fix_floor_px', 'fix_gate']
     """
 
     def __init__(self, eakf_stc: EAKFSTC, cfg: AnchorConfig, learnable: bool = False
                  ) -> None:
         super().__init__()
         self.eakf_stc = eakf_stc
-        self.fusion = AnchoredParams(cfg, learnable)
+        self.fusion = AnchoredParams(cfg.start, learnable)
         self.cfg = cfg
 
     @property
     def config(self) -> Any:
         """The inner tracker's configuration (what the model file records)."""
         return self.eakf_stc.config
-
-    def anchor_config(self) -> AnchorConfig:
-        """The settings with the fitted values in place."""
-        values: dict[str, Any] = self.fusion.values()
-        return dataclasses.replace(self.cfg, **values)
 
     # ------------------------------------------------------------------ batched (fitting)
     def _params(self) -> dict[str, Tensor]:
@@ -867,8 +883,9 @@ class AnchoredTracker(Tracker):
     def __init__(self, live: AnchoredModel, tipm: Tipm) -> None:
         self.live = live
         self.inner = LiteTracker(live.eakf_stc)
-        self.cfg = live.anchor_config()
-        self.filter = AnchoredFilter(self.cfg, tipm, self.cfg.__dict__)
+        self.cfg = live.cfg
+        self.values = live.fusion.values()   # the fitted values the filter runs with
+        self.filter = AnchoredFilter(self.cfg, tipm, self.values)
         self._expected: np.ndarray | None = None
         self._frame: np.ndarray | None = None
         self.glare = 0.0
@@ -951,7 +968,8 @@ class AnchoredTracker(Tracker):
             self.inner.reanchor(frame, out)
         self.glare, self.fix = obs.glare, fix
         arm_dirs = (arm_directions(obs.res) if fix is not None and fix.taken
-                    and obs.res is not None and obs.res.inlier_rms_px <= self.cfg.max_rms_px
+                    and obs.res is not None
+                    and obs.res.inlier_rms_px <= self.values["max_rms_px"]
                     else None)
         self.arm_dirs = arm_dirs
         status = self.filter.verdict(out, fix)
