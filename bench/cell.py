@@ -6,7 +6,13 @@ does), then prints one row: the weld's exit code and what it said, and the virtu
 welded, the arc-off time after a camera stall, the robot's stop after a lost weld).
 
     python bench/cell.py                       # the issue-34 cases
-    python bench/cell.py --cases t_joint:20    # part:latency[:fault][:kill]
+    python bench/cell.py --cases t_joint:20    # part:latency[:fault][:kill][@fps]
+    python bench/cell.py --cases t_joint:20@30,t_joint:20@50   # the camera at 30 / 50 fps
+
+A case ending ``@FPS`` runs both processes on a copy of the shipped configs whose camera runs at
+FPS frames/s (``cell.yaml`` ``process.frame_rate_hz``): the virtual camera renders at that rate
+and the weld keeps up with it or drops frames (``dropped`` counts those the weld passed over
+for a newer one).
 """
 
 from __future__ import annotations
@@ -27,14 +33,33 @@ DEFAULT = ["t_joint:20", "y_joint_75:20", "pipe_on_plate:20", "t_joint:40",
            "t_joint:20:controller-restart", "t_joint:20::kill"]
 
 
+def _configs_at(fps: str, work: Path) -> list[str]:
+    """``--config-dir`` of a copy of the shipped configs with the camera at ``fps``."""
+    import shutil
+
+    d = work / f"configs_{fps}fps"
+    if not d.exists():
+        shutil.copytree(REPO / "configs", d)
+        text = (d / "cell.yaml").read_text()
+        key = "frame_rate_hz: "
+        i = text.index(key) + len(key)
+        j = text.index("\n", i)
+        rest = text[i:j]
+        comment = rest[rest.index("#"):] if "#" in rest else ""
+        (d / "cell.yaml").write_text(text[:i] + f"{float(fps):g}  {comment}".rstrip() + text[j:])
+    return ["--config-dir", str(d)]
+
+
 def run_case(spec: str, length: float, seed: int, work: Path) -> dict:
+    spec_fps = spec.split("@")
+    spec, fps = spec_fps[0], (spec_fps[1] if len(spec_fps) > 1 else "")
     part, latency, *rest = spec.split(":")
     fault = rest[0] if rest and rest[0] else ""
     kill = len(rest) > 1 and rest[1] == "kill"
-    d = work / spec.replace(":", "_")
+    d = work / (spec.replace(":", "_") + (f"_{fps}fps" if fps else ""))
     d.mkdir(parents=True)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    ts = [sys.executable, "-m", "torchseam"]
+    ts = [sys.executable, "-m", "torchseam", *(_configs_at(fps, work) if fps else [])]
     part_file = str(REPO / "configs" / "parts" / f"{part}.yaml")
     common = ["--part", part_file, "--segments", "a", "--length-mm", f"{length:g}"]
     vc = subprocess.Popen([*ts, "virtual-cell", *common, "--camera-latency-ms", latency,
@@ -54,7 +79,8 @@ def run_case(spec: str, length: float, seed: int, work: Path) -> dict:
     wout, _ = weld.communicate(timeout=300)
     vout, _ = vc.communicate(timeout=120)
     wall = time.monotonic() - t0
-    row = {"case": spec, "weld_rc": weld.returncode, "wall_s": round(wall, 1)}
+    row = {"case": spec + (f"@{fps}" if fps else ""), "weld_rc": weld.returncode,
+           "wall_s": round(wall, 1)}
     try:
         s = json.loads((d / "V" / "summary.json").read_text())
     except OSError:
@@ -74,7 +100,9 @@ def run_case(spec: str, length: float, seed: int, work: Path) -> dict:
         late_frames=f"{s.get('camera_frames_late')}/{s.get('camera_frames_sent')}",
         weld_said=(w.get("segments_incomplete") or [{"reason": "welded"}])[0]["reason"][:70]
         if w else "(killed)",
-        p99_ms=w.get("latency_p99_ms"), late_replies=(w.get("link") or {}).get("late_replies"))
+        p99_ms=w.get("latency_p99_ms"), late_replies=(w.get("link") or {}).get("late_replies"),
+        frames=w.get("frames"), dropped=w.get("frames_dropped_by_weld"),
+        replies=(w.get("link") or {}).get("sent"))
     return row
 
 
@@ -92,7 +120,7 @@ def main() -> None:
             print(json.dumps(r), flush=True)
     keys = ["case", "weld_rc", "rmse", "max", "within", "unsafe", "still_s", "off_seam_s",
             "welded_mm", "outcome", "stall_arc_off_s", "stop_after_loss_s", "p99_ms",
-            "late_replies", "late_frames", "weld_said"]
+            "frames", "dropped", "replies", "late_replies", "late_frames", "weld_said"]
     print("\n| " + " | ".join(keys) + " |")
     print("|" + "---|" * len(keys))
     for r in rows:
