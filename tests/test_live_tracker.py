@@ -199,3 +199,14 @@ def test_train_live_fits_on_labelled_recordings(tmp_path, monkeypatch, capsys):
     m = json.loads((tmp_path / "runs" / "r" / "metrics.json").read_text())
     val = m["history"][0]["val"]["rec2"]
     assert np.isfinite(m["history"][1]["loss"]) and val["rmse"] < 1.5 and val["pct_lost"] == 0
+
+
+def test_the_trackers_say_the_frame_rate_their_model_was_fitted_at():
+    """The weld compares it with the camera's (a note when they differ): the live tracker and
+    EAKF-STC carry the model's frame rate, a tracker with nothing fitted per frame none."""
+    from torchseam.track.peers import make_tracker
+
+    fps = 1.0 / float(model_io.read_model(model_io.DEFAULT_MODEL)[0]["eakf_stc.eakf.dt"])
+    assert make_tracker("anchored", TIPM).fitted_fps == pytest.approx(fps)
+    assert make_tracker("eakf-stc", TIPM).fitted_fps == pytest.approx(fps)
+    assert make_tracker("tipm", TIPM).fitted_fps is None

@@ -241,6 +241,7 @@ class WeldRunner:
         self.calib = cell.calibration
         self.segments, self.length_mm = segments, length_mm
         self.tracker, self.model_path = tracker, model_path
+        self._fps_said = False
         self.observer, self.control = observer, control
         self.progress = progress
         self.connect_timeout_s, self.wait_rapid_s = connect_timeout_s, wait_rapid_s
@@ -464,9 +465,18 @@ class WeldRunner:
         gate = ReachGate(self.parts.robot, cell=self.calib, part=self.report.plan.part,
                          part_pose_mm=geo.part_pose)
         tipm = self.parts.tipm
-        loop = LiveLoop(self.calib, make_tracker(self.tracker, tipm, model_path=self.model_path),
-                        self.link, self.report.plan.plan_config(seg, self.parts.plan),
-                        self.parts.live, tipm, self.parts.ecal, nominal=geo.nominal)
+        trk = make_tracker(self.tracker, tipm, model_path=self.model_path)
+        fps = self.calib.process.frame_rate_hz
+        if trk.fitted_fps and abs(trk.fitted_fps - fps) > 1e-3 * fps and not self._fps_said:
+            self._fps_said = True   # said once, and kept in the report's messages
+            self.res.messages.append(
+                f"the camera runs at {fps:g} frames/s, the tracker's model was fitted at "
+                f"{trk.fitted_fps:g}: its motion per frame is the fit's (fit one at this rate "
+                "for the best accuracy)")
+            self.progress(f"weld: note: {self.res.messages[-1]}")
+        loop = LiveLoop(self.calib, trk, self.link,
+                        self.report.plan.plan_config(seg, self.parts.plan), self.parts.live,
+                        tipm, self.parts.ecal, nominal=geo.nominal)
         why = self._wait_guided(number, seg.name)
         if why:
             self.progress(f"weld: segment {seg.name}: {why}")

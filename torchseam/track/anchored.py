@@ -883,6 +883,7 @@ class AnchoredTracker(Tracker):
     def __init__(self, live: AnchoredModel, tipm: Tipm) -> None:
         self.live = live
         self.inner = LiteTracker(live.eakf_stc)
+        self.fitted_fps = self.inner.fitted_fps
         self.cfg = live.cfg
         self.values = live.fusion.values()   # the fitted values the filter runs with
         self.filter = AnchoredFilter(self.cfg, tipm, self.values)

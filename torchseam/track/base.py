@@ -83,6 +83,8 @@ class Tracker:
     frame's command is out). The defaults do nothing; a tracker overrides what it has."""
 
     name = ""
+    #: frames per second its motion model was fitted at (None: nothing fitted per frame)
+    fitted_fps: float | None = None
 
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
         raise NotImplementedError

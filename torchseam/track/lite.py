@@ -392,6 +392,7 @@ class LiteTracker(Tracker):
 
     def __init__(self, module: EAKFSTC) -> None:
         self.lite = LiteEAKFSTC.from_module(module)
+        self.fitted_fps = module.eakf.frame_rate
 
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
         self.lite.init(frame, uv)
