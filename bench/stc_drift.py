@@ -25,7 +25,7 @@ from torchseam.core.config import load_cell, load_noise, load_part
 from torchseam.core.report import error_stats, format_table
 from torchseam.sim.sequence import SequenceSpec, simulate_labelled
 from torchseam.track.anchored import fitted_eakf_stc
-from torchseam.track.lite import LiteTracker
+from torchseam.track.fusion import LiteTracker
 from torchseam.track.peers import run_tracker
 from torchseam.vision.tipm import load_tipm
 

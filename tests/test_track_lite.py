@@ -8,7 +8,7 @@ import torch
 
 from torchseam.track import EAKFSTC, TrackInputError, TrackStatus
 from torchseam.track.anchored import fitted_eakf_stc
-from torchseam.track.lite import LiteEAKFSTC, LiteTracker
+from torchseam.track.fusion import LiteEAKFSTC, LiteTracker
 from torchseam.track.peers import (
     grey_tensor,
     make_tracker,
@@ -202,9 +202,9 @@ def test_eakf_stc_tracker_is_the_twin_and_follows_a_heavy_arc_seam(cell, part, n
 def test_docstring_example_runs() -> None:
     import doctest
 
-    import torchseam.track.lite
+    import torchseam.track.fusion
 
-    result = doctest.testmod(torchseam.track.lite)
+    result = doctest.testmod(torchseam.track.fusion)
     assert result.failed == 0 and result.attempted > 0
 
 
@@ -245,7 +245,7 @@ def test_the_twins_transforms_are_scipy_ffts() -> None:
     as scipy.fft.rfft2 / irfft2, to the bit."""
     import scipy.fft
 
-    from torchseam.track.lite import _irfft2, _rfft2
+    from torchseam.track.fusion import _irfft2, _rfft2
 
     rng = np.random.default_rng(2)
     for scale in (1e-3, 1.0, 1e4):

@@ -19,8 +19,7 @@ if TYPE_CHECKING:
     from torchseam.track.base import TrackResult
     from torchseam.track.config import TrackerConfig
     from torchseam.track.eakf import EAKF, EAKFState, eakf_filter
-    from torchseam.track.fusion import EAKFSTC, DriftGuard, SequenceResult, TrackStatus
-    from torchseam.track.lite import LiteEAKFSTC
+    from torchseam.track.fusion import EAKFSTC, DriftGuard, LiteEAKFSTC, SequenceResult, TrackStatus
     from torchseam.track.stc import STC, STCState, extract_windows, locate_peak, peak_quality
 
 #: each exported name: (module, name there)
@@ -31,7 +30,7 @@ _LAZY = {
     **{n: ("torchseam.track.fusion", n)
        for n in ("EAKFSTC", "DriftGuard", "SequenceResult", "TrackStatus")},
     "TrackResult": ("torchseam.track.base", "TrackResult"),
-    "LiteEAKFSTC": ("torchseam.track.lite", "LiteEAKFSTC"),
+    "LiteEAKFSTC": ("torchseam.track.fusion", "LiteEAKFSTC"),
     **{n: ("torchseam.track.stc", n)
        for n in ("STC", "STCState", "extract_windows", "locate_peak", "peak_quality")},
 }

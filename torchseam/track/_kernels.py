@@ -7,7 +7,7 @@ of interpreter overhead a frame, compiled ~0.01 ms. The glare level (the median 
 of a 61 x 61 box) is counted in a 256-bin histogram instead of cutting, converting and
 partitioning the box. The signatures are given, so the kernels are compiled (or loaded from
 numba's on-disk cache) when this module is imported, which
-:class:`~torchseam.track.lite.LiteEAKFSTC` does when it is built, never in the middle of the
+:class:`~torchseam.track.fusion.LiteEAKFSTC` does when it is built, never in the middle of the
 live loop.
 """
 

@@ -55,8 +55,7 @@ from torchseam.core.errors import TorchseamError
 from torchseam.core.kernels import load_kernels
 from torchseam.track import model_file
 from torchseam.track.base import Fix, Tracker, TrackResult
-from torchseam.track.fusion import EAKFSTC, FusionState, TrackStatus
-from torchseam.track.lite import LiteTracker
+from torchseam.track.fusion import EAKFSTC, FusionState, LiteTracker, TrackStatus
 from torchseam.track.shallow import ShallowFix, shallow_corner
 from torchseam.vision.tipm import (
     SATURATED,
@@ -867,7 +866,7 @@ class AnchoredModel(nn.Module):
 
 class AnchoredTracker(Tracker):
     """The live tracker on one stream (the live loop's): EAKF-STC's numpy twin
-    (:class:`~torchseam.track.lite.LiteEAKFSTC`) and :class:`AnchoredFilter` on numpy, with the
+    (:class:`~torchseam.track.fusion.LiteEAKFSTC`) and :class:`AnchoredFilter` on numpy, with the
     fitted values of ``live`` (a :class:`AnchoredModel`: :func:`load_anchored_model` reads the
     shipped model file), its fixes found by ``tipm``.
 

@@ -10,10 +10,17 @@ these fields; it never probes a tracker for optional attributes.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import IntEnum
 
 import numpy as np
 
-from torchseam.track.fusion import TrackStatus
+
+class TrackStatus(IntEnum):
+    """Per-frame status codes (int64 tensors hold these values)."""
+
+    TRACKED = 0
+    COASTING = 1
+    LOST = 2
 
 
 @dataclass(frozen=True)

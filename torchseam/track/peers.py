@@ -30,8 +30,7 @@ from torchseam.track.anchored import (
     load_anchored_model,
 )
 from torchseam.track.base import Tracker
-from torchseam.track.fusion import TrackStatus
-from torchseam.track.lite import LiteTracker
+from torchseam.track.fusion import LiteTracker, TrackStatus
 from torchseam.track.names import TRACKERS
 from torchseam.track.stc import STC
 from torchseam.vision.tipm import (
