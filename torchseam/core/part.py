@@ -176,15 +176,22 @@ class Joint:
     def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 
-    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    def _branch_quadric(self, o: np.ndarray, d: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Rays ``o + t d`` against the branch's axis: ``(qa, da, A, B, qq)``, the origin's and
+        the direction's parts along the axis and the quadratic ``A t^2 + B t + qq`` of the
+        squared distance from the axis (across it, in the branch's own cross-section)."""
         q = o - self.o
         qa, da = q @ self.d, d @ self.d
         qp = self._across(q - qa[:, None] * self.d, self._un)
         dp = self._across(d - da[:, None] * self.d, self._un)
         A = np.einsum("ij,ij->i", dp, dp)
         B = 2 * np.einsum("ij,ij->i", qp, dp)
-        C = np.einsum("ij,ij->i", qp, qp) - self.r**2
-        t = _entry_root(A, B, C)
+        return qa, da, A, B, np.einsum("ij,ij->i", qp, qp)
+
+    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        qa, da, A, B, qq = self._branch_quadric(o, d)
+        t = _entry_root(A, B, qq - self.r**2)
         h = qa + t * da  # height of the hit along the branch axis: where the branch exists
         return np.where((h > self.branch_bottom) & (h < self.branch_top), t, np.inf)
 
@@ -447,13 +454,7 @@ class BevelledJoint(Joint):
         cylinder above the shoulder, else the first point of its path through the wall's shell
         (outer cylinder to bore) that lies above the bevel face (marched, then bisected)."""
         n = len(d)
-        q = o - self.o
-        qa, da = q @ self.d, d @ self.d
-        qp = self._across(q - qa[:, None] * self.d, self._un)
-        dp = self._across(d - da[:, None] * self.d, self._un)
-        A = np.einsum("ij,ij->i", dp, dp)
-        B = 2 * np.einsum("ij,ij->i", qp, dp)
-        qq = np.einsum("ij,ij->i", qp, qp)
+        qa, da, A, B, qq = self._branch_quadric(o, d)
         t_out = _roots(A, B, qq - self.r**2)
         t_in = _roots(A, B, qq - self.r_in**2)
         start = np.maximum(t_out[0], 0.0)
