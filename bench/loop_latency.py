@@ -85,15 +85,23 @@ def _record(args: argparse.Namespace) -> None:
           f"{res.summary['latency_p50_ms']:.2f} / {res.summary['latency_p99_ms']:.2f} ms")
 
 
+def _started(cell, parts, frame: np.ndarray):
+    """A seam locator with the live tracker, started on ``frame`` (a segment's first)."""
+    from torchseam.live.locate import SeamLocator
+    from torchseam.track.peers import make_tracker
+
+    loc = SeamLocator(cell, make_tracker("anchored", parts.tipm), parts.tipm, parts.ecal)
+    loc.start(frame)
+    return loc
+
+
 def _pct(a: np.ndarray) -> str:
     return " / ".join(f"{np.percentile(a, q):.3f}" for q in (50, 90, 99))
 
 
 def _replay(args: argparse.Namespace) -> None:
     from torchseam.core.config import load_cell
-    from torchseam.live.locate import SeamLocator
     from torchseam.live.parts import load_live_parts
-    from torchseam.track.peers import make_tracker
 
     d = np.load(args.recording)
     frames, poses, seg = d["frame"], d["T_B_F"], d["seg"]
@@ -105,9 +113,7 @@ def _replay(args: argparse.Namespace) -> None:
         loc = None
         for k in range(len(frames)):
             if k == 0 or seg[k] != seg[k - 1]:
-                loc = SeamLocator(cell, make_tracker("anchored", parts.tipm), parts.tipm,
-                                  parts.ecal)
-                loc.start(frames[k])
+                loc = _started(cell, parts, frames[k])
                 continue
             assert loc is not None
             t0 = time.perf_counter()
@@ -149,9 +155,7 @@ def _arm_angle(p: np.ndarray, q: np.ndarray, seam: np.ndarray, arms: np.ndarray)
 
 def _score(args: argparse.Namespace) -> None:
     from torchseam.core.config import load_cell
-    from torchseam.live.locate import SeamLocator
     from torchseam.live.parts import load_live_parts
-    from torchseam.track.peers import make_tracker
 
     d = np.load(args.recording)
     frames, poses, seg = d["frame"], d["T_B_F"], d["seg"]
@@ -179,9 +183,7 @@ def _score(args: argparse.Namespace) -> None:
     loc = None
     for k in range(len(frames)):
         if k == 0 or seg[k] != seg[k - 1]:
-            loc = SeamLocator(cell, make_tracker("anchored", parts.tipm), parts.tipm,
-                              parts.ecal)
-            loc.start(frames[k])
+            loc = _started(cell, parts, frames[k])
             continue
         assert loc is not None
         seen = loc._expect(poses[k])  # what step() hands the tracker first
