@@ -470,3 +470,21 @@ def test_an_internal_error_leaves_a_report_and_no_traceback(tmp_path, monkeypatc
         "a", "b"]
     assert "RuntimeError" in (out / "error.txt").read_text()
     assert not (out / "RUNNING").exists()
+
+
+@pytest.mark.parametrize("cmd", [["weld", "--part", str(PART)], ["calibrate", "latency"]])
+def test_a_cell_file_that_never_comes_is_one_line_after_the_wait(tmp_path, capsys, cmd):
+    """`weld` and `calibrate latency` both wait for the cell file a virtual cell started just
+    before writes (as the README runs them), saying so, then give up with one line, exit 2."""
+    from torchseam.cli import main
+
+    missing = tmp_path / "V" / "cell.yaml"
+    t0 = time.monotonic()
+    rc = main([*cmd, "--cell", str(missing), "--wait-cell", "0.5"])
+    waited = time.monotonic() - t0
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err
+    assert 0.5 <= waited < 5.0
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert "is not there yet: waiting up to 0.5 s" in lines[0]
+    assert lines[-1].endswith(f"{missing}: no cell file after 0.5 s"), lines

@@ -32,7 +32,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "routine; `torchseam virtual-cell --program latency`), the sensor moves "
                     "up and down along the torch axis over the part, and the stripe's motion "
                     "in the image is matched to the fed-back motion.")
-    q.add_argument("--cell", type=Path, required=True, help="the cell file to measure and update")
+    q.add_argument("--cell", type=Path, required=True,
+                   help="the cell file to measure and update; waited for up to --wait-cell s "
+                        "when it is not there yet (a virtual cell started just before)")
+    q.add_argument("--wait-cell", type=_positive, default=60.0, metavar="S",
+                   help="wait this long for a cell file that is not there yet (default 60)")
     q.add_argument("--duration", type=_positive, default=10.0, metavar="S",
                    help="how long the sensor moves (default 10 s)")
     q.add_argument("--amplitude-mm", type=_positive, default=2.0,
@@ -49,15 +53,14 @@ def run_latency(args: argparse.Namespace) -> int:
     import torch
 
     from torchseam.core.report import format_table
-    from torchseam.live.cellfile import load_weld_cell, save_weld_cell
+    from torchseam.live.cellfile import load_weld_cell, save_weld_cell, wait_for_cell
     from torchseam.live.latency import measure_latency
     from torchseam.live.parts import load_live_parts
     from torchseam.live.weld import WeldRunner
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
-    if not args.cell.exists():
-        raise TorchseamError(f"{args.cell}: no such cell file")
+    wait_for_cell(args.cell, args.wait_cell, "calibrate latency")
     cell = load_weld_cell(args.cell)
     if 2 * math.pi * args.amplitude_mm / args.period_s > cell.calibration.process.weld_speed_mm_s:
         raise TorchseamError("--amplitude-mm / --period-s: the sine's top speed "

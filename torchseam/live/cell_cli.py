@@ -138,32 +138,20 @@ def run_virtual_cell_cmd(args: argparse.Namespace) -> int:
     return run_virtual_cell(args)
 
 
-def _wait_for(path: Path, seconds: float) -> None:
-    if path.exists():
-        return
-    print(f"torchseam weld: {path} is not there yet: waiting up to {seconds:g} s (a virtual "
-          "cell writes it when it is ready)", file=sys.stderr, flush=True)
-    end = time.monotonic() + seconds
-    while not path.exists():
-        if time.monotonic() > end:
-            raise TorchseamError(f"{path}: no cell file after {seconds:g} s")
-        time.sleep(0.1)
-
-
 def run_weld_cmd(args: argparse.Namespace) -> int:
     import cv2
     import torch
 
     from torchseam.core.config import load_part
     from torchseam.core.report import format_table, prepare_out_dir, write_json_atomic
-    from torchseam.live.cellfile import load_weld_cell
+    from torchseam.live.cellfile import load_weld_cell, wait_for_cell
     from torchseam.live.parts import load_live_parts
     from torchseam.live.weld import WeldRunner, exit_code, weld_summary, write_weld_files
     from torchseam.plan.preflight import preflight
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
-    _wait_for(args.cell, args.wait_cell)
+    wait_for_cell(args.cell, args.wait_cell, "weld")
     cell = load_weld_cell(args.cell)
     part = load_part(args.part)
     parts = load_live_parts()

@@ -28,6 +28,8 @@ one for the virtual cell; for a real cell copy it and edit it)::
 from __future__ import annotations
 
 import os
+import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -82,6 +84,22 @@ class WeldCell:
     calibration: CellConfig
     camera: CameraLink
     controller: ControllerLink
+
+
+def wait_for_cell(path: Path, seconds: float, command: str) -> None:
+    """Wait up to ``seconds`` for the cell file ``path`` (a virtual cell started just before
+    writes it once it is ready), saying so on stderr; ``TorchseamError`` when it never comes."""
+    from torchseam.core.errors import TorchseamError
+
+    if path.exists():
+        return
+    print(f"torchseam {command}: {path} is not there yet: waiting up to {seconds:g} s (a "
+          "virtual cell writes it when it is ready)", file=sys.stderr, flush=True)
+    end = time.monotonic() + seconds
+    while not path.exists():
+        if time.monotonic() > end:
+            raise TorchseamError(f"{path}: no cell file after {seconds:g} s")
+        time.sleep(0.1)
 
 
 def load_weld_cell(path: str | os.PathLike[str]) -> WeldCell:
