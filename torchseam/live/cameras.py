@@ -10,19 +10,19 @@
   and its exposure is taken ``camera.latency_ms`` before that (``torchseam calibrate latency``
   measures it for such a camera too).
 
-Each yields :class:`~torchseam.live.framestream.StampedFrame` through ``get(timeout_s)``, with
-``dropped``, ``received``, ``error`` and ``close()``.
+Each is a :class:`~torchseam.live.framestream.QueuedCamera`: it yields
+:class:`~torchseam.live.framestream.StampedFrame` through ``get(timeout_s)``, with ``dropped``,
+``received``, ``error`` and ``close()``.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from typing import Any
 
 from torchseam.live.framestream import (
     FrameStreamError,
-    NewestFrames,
+    QueuedCamera,
     StampedFrame,
     StreamCamera,
 )
@@ -35,7 +35,7 @@ def is_camera_source(text: str) -> bool:
     return text.startswith(("tcp://", "aravis://", *OPENCV_PREFIXES))
 
 
-class OpenCVCamera:
+class OpenCVCamera(QueuedCamera):
     """A camera OpenCV opens, read on a thread into a bounded queue (oldest dropped), each
     frame stamped on the PC's monotonic clock as it is read (exposure and arrival alike: the
     weld's clock offset then puts the exposure ``camera.latency_ms`` earlier)."""
@@ -55,11 +55,7 @@ class OpenCVCamera:
             self._src = CameraSource(dev, size=size, fps=fps)
         except FrameError as e:
             raise FrameStreamError(str(e)) from None
-        self.url = source
-        self._frames = NewestFrames(maxsize)
-        self.received = 0
-        self.error: str | None = None
-        self._stop = threading.Event()
+        super().__init__(source, maxsize)
         self._thread = threading.Thread(target=self._read, name="opencv-read", daemon=True)
         self._thread.start()
 
@@ -74,13 +70,6 @@ class OpenCVCamera:
         except Exception as e:  # noqa: BLE001 - the weld reads the reason
             self.error = f"camera source {self.url}: {e}"
 
-    @property
-    def dropped(self) -> int:
-        return self._frames.dropped
-
-    def get(self, timeout_s: float) -> StampedFrame | None:
-        return self._frames.get(timeout_s)
-
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2.0)
@@ -88,7 +77,7 @@ class OpenCVCamera:
 
 
 def open_camera(source: str, size: tuple[int, int], fps: float,
-                connect_timeout_s: float = 30.0) -> Any:
+                connect_timeout_s: float = 30.0) -> QueuedCamera:
     """The camera input for ``source`` (see the module); FrameStreamError naming it."""
     if source.startswith("tcp://"):
         return StreamCamera(source, connect_timeout_s=connect_timeout_s)

@@ -220,7 +220,39 @@ def _read_exact(sock: socket.socket, n: int, buf: bytearray | None = None) -> by
     return out
 
 
-class StreamCamera:
+class QueuedCamera:
+    """What the weld reads a camera through: a reader thread (``_thread``, started by the
+    subclass) puts frames into a bounded queue that drops the *oldest* when the weld falls
+    behind (counted in :attr:`dropped`), so the weld always gets the newest frame and memory
+    stays bounded; :attr:`error` says why the frames ended. :class:`StreamCamera`,
+    :class:`~torchseam.live.cameras.OpenCVCamera` and
+    :class:`~torchseam.live.genicam.AravisCamera` are its kinds."""
+
+    _thread: threading.Thread
+
+    def __init__(self, url: str, maxsize: int) -> None:
+        self.url = url
+        self._frames = NewestFrames(maxsize)
+        self.received = 0
+        self.error: str | None = None
+        self._stop = threading.Event()
+
+    @property
+    def dropped(self) -> int:
+        """Frames the weld did not take in time (the oldest dropped)."""
+        return self._frames.dropped
+
+    def get(self, timeout_s: float) -> StampedFrame | None:
+        """The next frame, or None when none came within ``timeout_s`` (or the frames ended:
+        :attr:`error` says why)."""
+        return self._frames.get(timeout_s)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+
+class StreamCamera(QueuedCamera):
     """The weld's end: connects to ``tcp://HOST:PORT`` and reads frames on a thread into a
     bounded queue that drops the *oldest* when the weld falls behind (counted in
     :attr:`dropped`): the weld always gets the newest frame and memory stays bounded.
@@ -238,13 +270,9 @@ class StreamCamera:
 
     def __init__(self, url: str, connect_timeout_s: float = 30.0, maxsize: int = 2,
                  max_pixels: int = MAX_PIXELS) -> None:
-        self.url = url
+        super().__init__(url, maxsize)
         self.host, self.port = parse_url(url)
         self.max_pixels = max_pixels
-        self._frames = NewestFrames(maxsize)
-        self.received = 0
-        self.error: str | None = None
-        self._stop = threading.Event()
         self._sock = self._connect(connect_timeout_s)
         self._thread = threading.Thread(target=self._read, name="frame-stream-read", daemon=True)
         self._thread.start()
@@ -307,20 +335,6 @@ class StreamCamera:
             if not self._stop.is_set():
                 self.error = str(e) if isinstance(e, FrameStreamError) else (
                     f"camera source {self.url}: {e}")
-
-    @property
-    def dropped(self) -> int:
-        """Frames the weld did not take in time (the oldest dropped)."""
-        return self._frames.dropped
-
-    def get(self, timeout_s: float) -> StampedFrame | None:
-        """The next frame, or None when none came within ``timeout_s`` (or the stream ended:
-        :attr:`error` says why)."""
-        return self._frames.get(timeout_s)
-
-    @property
-    def alive(self) -> bool:
-        return self._thread.is_alive()
 
     def __iter__(self) -> Iterator[StampedFrame]:
         while self.alive or not self._frames.empty():

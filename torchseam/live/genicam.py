@@ -24,7 +24,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from torchseam.live.framestream import FrameStreamError, NewestFrames, StampedFrame
+from torchseam.live.framestream import FrameStreamError, QueuedCamera, StampedFrame
 
 N_BUFFERS = 8
 
@@ -72,7 +72,7 @@ def _to_image(buf: Any, fmt: str) -> np.ndarray:
                            "Bayer*8)")
 
 
-class AravisCamera:
+class AravisCamera(QueuedCamera):
     """A GenICam camera through Aravis, read on a thread into a bounded queue that drops the
     oldest frame when the weld falls behind (the same interface as
     :class:`~torchseam.live.framestream.StreamCamera`).
@@ -87,7 +87,7 @@ class AravisCamera:
     def __init__(self, url: str, frame_rate_hz: float | None = None,
                  size: tuple[int, int] | None = None, maxsize: int = 2) -> None:
         Aravis = load_aravis()
-        self.url = url
+        super().__init__(url, maxsize)
         try:
             self.camera = Aravis.Camera.new(device_of(url))
         except Exception as e:  # noqa: BLE001 - GLib.Error
@@ -103,11 +103,7 @@ class AravisCamera:
         for _ in range(N_BUFFERS):
             self._stream.push_buffer(Aravis.Buffer.new_allocate(payload))
         self._ok = Aravis.BufferStatus.SUCCESS
-        self._frames = NewestFrames(maxsize)
-        self.received = 0
         self.incomplete = 0
-        self.error: str | None = None
-        self._stop = threading.Event()
         self.camera.start_acquisition()
         self._thread = threading.Thread(target=self._read, name="aravis-read", daemon=True)
         self._thread.start()
@@ -134,17 +130,6 @@ class AravisCamera:
                 self._frames.put(f)
         except Exception as e:  # noqa: BLE001 - the weld reads the reason
             self.error = f"camera source {self.url}: {e}"
-
-    @property
-    def dropped(self) -> int:
-        return self._frames.dropped
-
-    def get(self, timeout_s: float) -> StampedFrame | None:
-        return self._frames.get(timeout_s)
-
-    @property
-    def alive(self) -> bool:
-        return self._thread.is_alive()
 
     def close(self) -> None:
         self._stop.set()
