@@ -22,13 +22,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchseam.core.transforms import matrix_to_quat, quat_to_matrix, rotvec, slerp
+from torchseam.core.kernels import load_kernels
+from torchseam.core.transforms import matrix_to_quat, quat_to_matrix, slerp
 from torchseam.robot.egm import EgmError, SimControllerConfig
 from torchseam.robot.kinematics import arm_forward
 
 _ROT_WEIGHT = 200.0    # mm per rad: makes orientation and position errors comparable
 _DAMPING = 1e-3        # damped least squares, keeps the step bounded near singularities
-_PER_DEG = math.pi / 180.0  # the Jacobian per controller degree (joint steps are in degrees)
 
 
 def straight_path(start: np.ndarray, direction: np.ndarray, length_mm: float,
@@ -106,10 +106,13 @@ class ArmModel:
     def __init__(self, robot: Any, tool: np.ndarray, sim: SimControllerConfig, mode: str,
                  path: np.ndarray | None = None) -> None:
         self.robot = robot
-        self.tool = np.asarray(tool, float)
+        self.tool = np.ascontiguousarray(tool, dtype=float)
         self.sim = sim
         self.mode = mode
-        self._geometry = robot.geometry
+        self._geometry = g = robot.geometry
+        self._g = np.array([g.a1, g.d1, g.a2, g.a3, g.d4, g.d6], dtype=float)
+        self._R0 = np.ascontiguousarray(g.R0, dtype=float)
+        self._kernel = load_kernels(__package__).newton_step
         self._speed = np.asarray(sim.joint_speed_deg_s, float)
         self.q = np.asarray(sim.home_joints_deg, float).copy()
         start = self.tcp_pose()
@@ -171,15 +174,14 @@ class ArmModel:
         return q_now, T_now, T_des, lag
 
     def _newton_step(self, T_des: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One damped Newton step towards ``T_des``: (joint step deg, TCP pose now)."""
-        T, J = arm_forward(np, self._geometry, self.q[None], self.tool)
-        T0, J = T[0], J[0] * _PER_DEG
-        J[3:] *= _ROT_WEIGHT
-        R0t = T0[:3, :3].T
-        err = np.concatenate([T_des[:3, 3] - T0[:3, 3],
-                              rotvec(T_des[:3, :3] @ R0t) * _ROT_WEIGHT])
-        dq = np.linalg.solve(J.T @ J + _DAMPING * np.eye(6), J.T @ err)
-        return dq, T0
+        """One damped Newton step towards ``T_des``: (joint step deg, TCP pose now).
+
+        With the TCP Jacobian ``J`` per degree of :func:`arm_forward` (its angular rows times
+        ``_ROT_WEIGHT``) and the error ``e`` (position; rotation vector of ``T_des R^T`` times
+        ``_ROT_WEIGHT``): ``(J^T J + _DAMPING I) dq = J^T e``, compiled on one pose
+        (``_kernels.newton_step``)."""
+        return self._kernel(self._g, self._R0, self.tool, self.q,
+                            np.ascontiguousarray(T_des, dtype=float), _ROT_WEIGHT, _DAMPING)
 
     def _limit(self, dq: np.ndarray, dt: float) -> np.ndarray:
         """Scale a joint step so that no axis exceeds its speed limit (path shape kept)."""
