@@ -104,7 +104,8 @@ def run_case(spec: str, length: float, seed: int, work: Path, noise: str = "") -
         if w else "(killed)",
         p99_ms=w.get("latency_p99_ms"), late_replies=(w.get("link") or {}).get("late_replies"),
         frames=w.get("frames"), dropped=w.get("frames_dropped_by_weld"),
-        replies=(w.get("link") or {}).get("sent"))
+        replies=(w.get("link") or {}).get("sent"),
+        reply_p99_ms=(w.get("link") or {}).get("reply_p99_ms"))
     return row
 
 
@@ -124,7 +125,8 @@ def main() -> None:
             print(json.dumps(r), flush=True)
     keys = ["case", "weld_rc", "rmse", "max", "within", "unsafe", "still_s", "off_seam_s",
             "welded_mm", "outcome", "stall_arc_off_s", "stop_after_loss_s", "p99_ms",
-            "frames", "dropped", "replies", "late_replies", "late_frames", "weld_said"]
+            "frames", "dropped", "replies", "late_replies", "reply_p99_ms", "late_frames",
+            "weld_said"]
     print("\n| " + " | ".join(keys) + " |")
     print("|" + "---|" * len(keys))
     for r in rows:
