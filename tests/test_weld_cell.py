@@ -408,6 +408,9 @@ def test_the_cell_file_names_its_camera(tmp_path):
                                    controller_port=6511))
     save_weld_cell(cell, tmp_path / "cell.yaml")
     assert load_weld_cell(tmp_path / "cell.yaml").camera.source == "camera:0"
+    # `--write-cell V/cell.yaml` from an empty folder: the folder is made
+    save_weld_cell(cell, tmp_path / "V" / "cell.yaml")
+    assert load_weld_cell(tmp_path / "V" / "cell.yaml").camera.latency_ms == 30.0
     data = to_dict(cell)
     data["camera"]["source"] = "/dev/video0"
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(data))

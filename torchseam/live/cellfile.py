@@ -108,11 +108,13 @@ def load_weld_cell(path: str | os.PathLike[str]) -> WeldCell:
 
 
 def save_weld_cell(cell: WeldCell, path: str | os.PathLike[str], header: str = "") -> None:
-    """Write a cell file atomically (a reader never sees half of it)."""
+    """Write a cell file atomically (a reader never sees half of it), its folder made when it
+    is not there yet (``--write-cell V/cell.yaml`` from an empty folder)."""
     p = Path(path)
     text = header + yaml.safe_dump(to_dict(cell), sort_keys=False)
     tmp = p.with_name(f".{p.name}.tmp")
     try:
+        p.parent.mkdir(parents=True, exist_ok=True)
         tmp.write_text(text)
         os.replace(tmp, p)
     except OSError as e:
