@@ -491,3 +491,38 @@ def test_a_cell_file_that_never_comes_is_one_line_after_the_wait(tmp_path, capsy
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert "is not there yet: waiting up to 0.5 s" in lines[0]
     assert lines[-1].endswith(f"{missing}: no cell file after 0.5 s"), lines
+
+
+def test_ctrl_c_during_the_latency_motion_aborts_it_and_holds_the_sensor():
+    """calibrate latency used to ignore SIGINT until its motion ended (and then wrote the
+    file): the motion now checks the signal every frame; on it the sensor goes back to its
+    start, RAPID is told ABORT, and the interruption goes up (exit 130, the file untouched)."""
+    from types import SimpleNamespace
+
+    from torchseam.live.latency import measure_latency
+    from torchseam.live.weld import Interrupted
+    from torchseam.robot.egm import rapid_data as rd
+
+    T0 = np.eye(4)
+    T0[:3, 3] = [900.0, 0.0, 400.0]
+    targets, replies, checks = [], [], []
+
+    class Runner:
+        wait_rapid_s = 5.0
+        view = SimpleNamespace(rapid=SimpleNamespace(phase=rd.RapidPhase.GUIDED, segment=1),
+                               poses=SimpleNamespace(newest=(0.0, T0)))
+        link = SimpleNamespace(set_target=lambda p, q, measured_at: targets.append(p.copy()))
+        cam = SimpleNamespace(get=lambda timeout: time.sleep(0.01))
+        reply = SimpleNamespace(set=lambda arc, seg, state: replies.append((arc, seg, state)))
+
+        def check_signal(self):
+            checks.append(1)
+            if len(checks) > 20:
+                raise Interrupted("SIGINT")
+
+    with pytest.raises(Interrupted):
+        measure_latency(Runner(), 10.0, 2.0, 2.0, progress=lambda m: None)
+    assert len(checks) == 21                        # it stopped at the signal, not at 10 s
+    assert replies[-1] == (False, 1, rd.SensorState.ABORT)
+    np.testing.assert_allclose(targets[-1], T0[:3, 3])   # the sensor back at its start
+    assert any(np.linalg.norm(t - T0[:3, 3]) > 1e-3 for t in targets)  # it had moved

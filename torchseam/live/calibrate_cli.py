@@ -56,7 +56,7 @@ def run_latency(args: argparse.Namespace) -> int:
     from torchseam.live.cellfile import load_weld_cell, save_weld_cell, wait_for_cell
     from torchseam.live.latency import measure_latency
     from torchseam.live.parts import load_live_parts
-    from torchseam.live.weld import WeldRunner
+    from torchseam.live.weld import Interrupted, WeldRunner
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -72,6 +72,10 @@ def run_latency(args: argparse.Namespace) -> int:
     try:
         runner.open()
         res = measure_latency(runner, args.duration, args.amplitude_mm, args.period_s)
+    except Interrupted as e:
+        print(f"torchseam calibrate latency: interrupted by {e}: the motion aborted towards "
+              f"RAPID, nothing measured, {args.cell} left as it is", file=sys.stderr)
+        return 130 if str(e) == "SIGINT" else 143
     finally:
         if hasattr(runner, "link"):
             runner.close()

@@ -118,6 +118,7 @@ def measure_latency(runner: Any, duration_s: float, amplitude_mm: float, period_
     view, link, cam = runner.view, runner.link, runner.cam
     deadline = time.monotonic() + runner.wait_rapid_s
     while True:
+        runner.check_signal()   # Ctrl-C: nothing moved yet
         r = view.rapid
         if r is not None and r.phase == rd.RapidPhase.GUIDED:
             break
@@ -140,18 +141,26 @@ def measure_latency(runner: Any, duration_s: float, amplitude_mm: float, period_
     exposed: list[float] = []
     rows: list[float] = []
     t0 = time.monotonic()
-    while time.monotonic() - t0 < duration_s:
-        f = cam.get(1.0)
-        now = time.monotonic()
-        phase = (now - t0) / period_s
-        # the sine ramps in over its first period (no jump at the start)
-        a = amplitude_mm * min(1.0, phase) * math.sin(2 * math.pi * phase)
-        link.set_target(T0[:3, 3] + a * z0, q0, measured_at=now)
-        if f is None:
-            continue
-        times.append(f.t_arrival_s)
-        exposed.append(f.t_exp_s)
-        rows.append(stripe_row(f.image))
+    try:
+        while time.monotonic() - t0 < duration_s:
+            runner.check_signal()
+            f = cam.get(1.0)
+            now = time.monotonic()
+            phase = (now - t0) / period_s
+            # the sine ramps in over its first period (no jump at the start)
+            a = amplitude_mm * min(1.0, phase) * math.sin(2 * math.pi * phase)
+            link.set_target(T0[:3, 3] + a * z0, q0, measured_at=now)
+            if f is None:
+                continue
+            times.append(f.t_arrival_s)
+            exposed.append(f.t_exp_s)
+            rows.append(stripe_row(f.image))
+    except BaseException:
+        # interrupted (Ctrl-C, SIGTERM) or failed mid-motion: the sensor back where it
+        # started, the motion aborted towards RAPID, and the reason on up
+        link.set_target(T0[:3, 3], q0, measured_at=time.monotonic())
+        runner.reply.set(False, number, rd.SensorState.ABORT)
+        raise
     link.set_target(T0[:3, 3], q0, measured_at=time.monotonic())
     time.sleep(0.5)
     runner.reply.set(False, number, rd.SensorState.DONE)

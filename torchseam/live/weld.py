@@ -280,7 +280,8 @@ class WeldRunner:
         if self._raise_on_signal:   # blocked in a connect or a compile: leave it now
             raise Interrupted(signal.Signals(signum).name)
 
-    def _check_signal(self) -> None:
+    def check_signal(self) -> None:
+        """Raise :class:`Interrupted` once SIGINT / SIGTERM came (loops that wait call it)."""
         if self._signal:
             raise Interrupted(signal.Signals(self._signal).name)
 
@@ -334,7 +335,7 @@ class WeldRunner:
             self._raise_on_signal = False
             todo = [s for s in self.report.plan.segments if s.name in self.segments]
             for seg in todo:
-                self._check_signal()
+                self.check_signal()
                 self.res.segments.append(self._segment(seg))
         except Interrupted as e:
             self._raise_on_signal = False
@@ -373,7 +374,7 @@ class WeldRunner:
         """Until the controller's datagrams arrive; says whether RAPID's data comes with them."""
         deadline = time.monotonic() + self.connect_timeout_s
         while self.view.datagrams < 5:
-            self._check_signal()
+            self.check_signal()
             if time.monotonic() > deadline:
                 raise TorchseamError(
                     f"no EGM datagram from the controller at {self.cell.controller.controller_host}"
@@ -401,7 +402,7 @@ class WeldRunner:
         if self.old_schema:
             return self._wait_at_start(number, name, deadline)
         while True:
-            self._check_signal()
+            self.check_signal()
             r = self.view.rapid
             if r is not None and r.phase == rd.RapidPhase.GUIDED and r.segment == number:
                 return ""
@@ -423,7 +424,7 @@ class WeldRunner:
         approach = self.calib.process.look_ahead_mm + self.parts.plan.approach_mm
         T0 = self.report.plan.nominal_tcp(seg, np.array([s0 - approach]))[0]
         while True:
-            self._check_signal()
+            self.check_signal()
             newest = self.view.poses.newest
             if newest is not None:
                 t, T = newest
@@ -619,7 +620,7 @@ class _CellInterfaces:
 
     def guided(self) -> str:
         w = self.w
-        w._check_signal()
+        w.check_signal()
         phase = w._guided(self.number)
         if phase:
             return (f"RAPID took the segment back ({phase}) after "
