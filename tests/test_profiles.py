@@ -2,6 +2,7 @@
 (torchseam/vision/axis.py): a real V-groove frame against hand-measured reference points, and
 drawn frames of every profile whose feature points are known exactly."""
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -176,15 +177,48 @@ def test_butt_gap_centre_and_width(how):
     assert res.width_px == pytest.approx(width, abs=2.0 if width else 3.0)
 
 
-def test_lap_edge_and_root():
-    # the upper plate (nearer the sensor: higher in the view) ends at its edge at u = 330;
-    # its edge face is dark, the lower plate's stripe starts below it
+@pytest.mark.parametrize("far_side", ["down", "up"])
+def test_lap_edge_and_root(far_side):
+    # two plates' stripes, the step at u = 330, the near plate's edge face dark: which end is
+    # the root (the far plate's) follows the sensor's far side
     pieces = [((0, 200), (330, 204), 200), ((331, 236), (639, 240), 200)]
-    res = finder("lap")(draw(pieces))
+    cfg = dataclasses.replace(CFG, far_side=far_side)
+    res = ProfileFinder(TIPM, cfg, "lap")(draw(pieces))
     assert res.ok, res.status
-    near(res, {"edge": (330, 204), "root": (331, 236)}, 1.5)
+    upper, lower = (330, 204), (331, 236)
+    near(res, {"edge": upper, "root": lower} if far_side == "down"
+         else {"edge": lower, "root": upper}, 1.5)
     np.testing.assert_allclose(res.aim, res.points["root"])
     assert res.width_px == pytest.approx(32.0, abs=1.0)
+
+
+def _lap_z(angle_deg: float) -> tuple[list, np.ndarray, np.ndarray]:
+    """A lap whose edge face is lit: the far plate's stripe, the face, the near plate's, the
+    whole stripe turned by ``angle_deg`` about (320, 240) (a sensor tilted to the joint); the
+    root (the far plate's end, upper in the view) and the edge (the near plate's end)."""
+    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+
+    def turn(p):
+        x, y = p[0] - 320.0, p[1] - 240.0
+        return (320.0 + c * x - s * y, 240.0 + s * x + c * y)
+
+    root, edge = (300.0, 230.0), (330.0, 262.0)   # the face: 30 px along, 32 down
+    pieces = [(turn((0.0, 230.0)), turn(root), 200), (turn(root), turn(edge), 120),
+              (turn(edge), turn((639.0, 262.0)), 200)]
+    return pieces, np.array(turn(root)), np.array(turn(edge))
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, -30.0, 25.0])
+def test_lap_with_a_lit_edge_face_across_the_view(angle_deg):
+    """The stripe runs down the lit edge face (a Z), across the view at a slope: the root and
+    the edge are where the face's line meets the plates' (the stripe's own direction, not the
+    rows, tells the plates' offset)."""
+    pieces, root, edge = _lap_z(angle_deg)
+    res = finder("lap")(draw(pieces))
+    assert res.ok, res.status
+    assert np.linalg.norm(res.points["root"] - root) <= 1.5, res.points
+    assert np.linalg.norm(res.points["edge"] - edge) <= 1.5, res.points
+    np.testing.assert_allclose(res.aim, res.points["root"])
 
 
 def test_a_bright_edge_beside_the_stripe_is_no_part_of_it():

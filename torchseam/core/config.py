@@ -157,7 +157,7 @@ class CellConfig:
 
 #: The kinds of part (``kind:`` in ``configs/parts/*.yaml``): what the branch pipe is set on
 #: (see :mod:`torchseam.core.part`).
-PART_KINDS = ("pipe", "offset", "plate", "sphere")
+PART_KINDS = ("pipe", "offset", "plate", "sphere", "inline")
 #: the joint profiles a part's ``joint:`` names (:mod:`torchseam.vision.profiles`): what the
 #: stripe shows at its seam and where the torch aims
 JOINT_PROFILES = ("fillet", "v_groove", "butt", "lap")
@@ -175,9 +175,11 @@ class PartConfig:
 
     ``kind`` says what the branch pipe is set on (:mod:`torchseam.core.part`): ``pipe`` (the
     default: a main pipe, METHOD.md section 0), ``offset`` (a main pipe with the branch axis
-    ``design_offset_mm`` off its axis by design), ``plate`` (a flat plate) or ``sphere`` (a
+    ``design_offset_mm`` off its axis by design), ``plate`` (a flat plate), ``sphere`` (a
     spherical head of ``sphere_radius_mm``; ``design_offset_mm`` there puts a hillside nozzle
-    off the centre). ``main_od_mm`` and ``main_ovality`` belong to the pipe kinds only;
+    off the centre) or ``inline`` (a pipe of its own size on its own axis: a girth butt with
+    ``root_gap_mm`` between ends of wall ``branch_wall_mm``, or a lap under a sleeve of
+    ``sleeve_wall_mm``). ``main_od_mm`` and ``main_ovality`` belong to the pipe kinds only;
     ``branch_ovality``, ``branch_offset_mm``, the clamping error and the thermal drift apply
     to every kind. ``joint`` names the joint profile the seam shows the sensor
     (:data:`JOINT_PROFILES`; default ``fillet``, the corner of a set-on branch).
@@ -202,6 +204,8 @@ class PartConfig:
     bevel_deg: float = _f(lo=0.0, hi=60.0, default=0.0)
     branch_wall_mm: float = _f(lo=0.0, hi=100.0, default=0.0)
     root_gap_mm: float = _f(lo=0.0, hi=6.0, default=0.0)
+    # the inline kind's lap: the wall of the sleeve slipped over the pipe (the step's height)
+    sleeve_wall_mm: float = _f(lo=0.0, hi=50.0, default=0.0)
     placement: Pose = field(default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
     placement_error: Pose = field(
         default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
@@ -223,6 +227,15 @@ class PartConfig:
                 raise ValueError(f"{name}: a part of kind {kind} has none (leave it out)")
         r = self.branch_od_mm / 2 * (1 + self.branch_ovality)
         y = self.design_offset_mm + self.branch_offset_mm[1]
+        if kind == "inline":
+            self._check_inline()
+            return
+        if self.joint in ("butt", "lap"):
+            raise ValueError(f"joint: a {self.joint} joint is a part of kind inline (a pipe on "
+                             f"its own axis); a branch set on a {kind} is a fillet or a v_groove")
+        if self.sleeve_wall_mm != 0.0:
+            raise ValueError(f"sleeve_wall_mm: a part of kind {kind} has none (a lap of kind "
+                             "inline has)")
         self._check_bevel()
         if pipe:
             if self.main_od_mm <= 0.0:
@@ -247,6 +260,40 @@ class PartConfig:
                     "branch_od_mm: branch radius plus its offset from the sphere's centre must "
                     f"stay inside the sphere ({r + off:.1f} mm >= {self.sphere_radius_mm:.1f} mm)")
 
+
+    def _check_inline(self) -> None:
+        """A girth joint: the pipe on its own axis, a butt with a root gap between two square
+        ends of a given wall, or a lap under a sleeve."""
+        if self.intersection_angle_deg != 90.0:
+            raise ValueError("intersection_angle_deg: a part of kind inline continues the pipe "
+                             f"along its own axis: 90, got {self.intersection_angle_deg!r}")
+        if self.joint not in ("butt", "lap"):
+            raise ValueError(f"joint: a part of kind inline is a butt or a lap, got "
+                             f"{self.joint!r}")
+        if self.bevel_deg != 0.0:
+            raise ValueError("bevel_deg: a part of kind inline has square-cut ends (leave it out)")
+        r_min = self.branch_od_mm / 2 * (1 - self.branch_ovality)
+        if self.joint == "butt":
+            if self.root_gap_mm <= 0.0:
+                raise ValueError(_positive("root_gap_mm", self.root_gap_mm,
+                                           "a butt's gap between the pipes' ends"))
+            if not 0.0 < self.branch_wall_mm < r_min:
+                raise ValueError(f"branch_wall_mm: a butt's pipe wall must be > 0 and thinner "
+                                 f"than its radius ({r_min:.1f} mm), got {self.branch_wall_mm!r}")
+            if self.sleeve_wall_mm != 0.0:
+                raise ValueError("sleeve_wall_mm: a butt has no sleeve (leave it out)")
+            hilo = math.hypot(*self.branch_offset_mm)
+            if hilo >= self.branch_wall_mm:
+                raise ValueError(f"branch_offset_mm: the pipes' ends must overlap: their offset "
+                                 f"(hi-lo, {hilo:.1f} mm) must stay under the wall "
+                                 f"({self.branch_wall_mm!r} mm)")
+        else:
+            if self.sleeve_wall_mm <= 0.0:
+                raise ValueError(_positive("sleeve_wall_mm", self.sleeve_wall_mm,
+                                           "a lap's sleeve wall (the step)"))
+            if self.root_gap_mm != 0.0 or self.branch_wall_mm != 0.0:
+                name = "root_gap_mm" if self.root_gap_mm != 0.0 else "branch_wall_mm"
+                raise ValueError(f"{name}: a lap has none (leave it out)")
 
     def _check_bevel(self) -> None:
         """A bevel needs the wall it is cut across, and a root gap needs a bevel (a square

@@ -11,7 +11,9 @@ Every kind of part (``kind:`` in ``configs/parts/*.yaml``) is a branch pipe set 
 * ``offset``: the same with the branch axis ``design_offset_mm`` off the main axis by design
   (:class:`PipeJoint` with a design offset);
 * ``plate``: a flat plate, its top face the plane z = 0 (:class:`PlateJoint`);
-* ``sphere``: a sphere, a nozzle on a spherical head (:class:`SphereJoint`).
+* ``sphere``: a sphere, a nozzle on a spherical head (:class:`SphereJoint`);
+* ``inline``: a pipe of the branch's own size on the branch's axis, a girth joint: a butt with
+  a root gap, or a lap under a sleeve (:class:`InlineJoint`).
 
 Joint frame {T}: z up the branch (at the intersection angle ``beta`` from x in the x-z plane);
 the origin is on the branch axis: on the main axis under the branch axis (pipe), at the foot of
@@ -134,6 +136,14 @@ class Joint:
         n = self._across(n, self._grad)
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
+    def _polar(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(radius of the round branch, angle phi, height along the axis) of points (N, 3)."""
+        q = p - self.o
+        a = q @ self.d
+        u = (q @ self.e1) / self.k1
+        v = (q @ self.e2) / self.k2
+        return np.hypot(u, v), np.arctan2(v, u), a
+
     def _across(self, v: np.ndarray, c: tuple[float, float]) -> np.ndarray:
         """``v`` (N, 3, across the axis) with its e1 and e2 parts scaled by 1 + c (exact for
         c = 0)."""
@@ -149,7 +159,8 @@ class Joint:
 
     def main_solid(self) -> dict:
         """The main body for clearance checks: ``{"kind": "pipe" | "plate" | "sphere",
-        "origin": (3,) in {T}, ...}`` with its dimensions (see the subclasses)."""
+        "origin": (3,) in {T}, "rotation": (3, 3) its own axes in {T}, ...}`` with its
+        dimensions (see the subclasses)."""
         raise NotImplementedError
 
     # ------------------------------------------------------------------ ray casting
@@ -240,7 +251,7 @@ class PipeJoint(Joint):
         """``{"kind": "pipe", "origin": a point of the main axis, "a", "b"}`` (semi-axes along
         y and z)."""
         return {"kind": "pipe", "origin": np.array([0.0, -self.s, 0.0]), "a": self.a,
-                "b": self.b}
+                "b": self.b, "rotation": np.eye(3)}
 
 
 class PlateJoint(Joint):
@@ -276,7 +287,7 @@ class PlateJoint(Joint):
         """``{"kind": "plate", "origin": the top face's centre, "half": half side,
         "thickness"}``."""
         return {"kind": "plate", "origin": np.zeros(3), "half": PLATE_HALF_MM,
-                "thickness": PLATE_THICKNESS_MM}
+                "thickness": PLATE_THICKNESS_MM, "rotation": np.eye(3)}
 
 
 class SphereJoint(Joint):
@@ -316,7 +327,8 @@ class SphereJoint(Joint):
 
     def main_solid(self) -> dict:
         """``{"kind": "sphere", "origin": the centre, "radius"}``."""
-        return {"kind": "sphere", "origin": self.m.copy(), "radius": self.R}
+        return {"kind": "sphere", "origin": self.m.copy(), "radius": self.R,
+                "rotation": np.eye(3)}
 
 
 #: :class:`BevelledJoint`: how many points along a ray's path through the branch wall are
@@ -393,14 +405,6 @@ class BevelledJoint(Joint):
         c = self.o + rho * (cos * self._f1 + sin * self._f2)
         dc = rho * (-sin * self._f1 + cos * self._f2)
         return c, dc
-
-    def _polar(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(radius of the round branch, angle phi, height along the axis) of points (N, 3)."""
-        q = p - self.o
-        a = q @ self.d
-        u = (q @ self.e1) / self.k1
-        v = (q @ self.e2) / self.k2
-        return np.hypot(u, v), np.arctan2(v, u), a
 
     def root_height(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Height along the branch axis of the branch's root edge at angles ``phi`` (the inner
@@ -493,10 +497,164 @@ class BevelledJoint(Joint):
         return t
 
 
+#: The ``inline`` kind: how far the lower pipe (a butt) or the sleeve (a lap) reaches below the
+#: seam's plane, and the branch above it, mm
+INLINE_BELOW_MM = 300.0
+
+
+class InlineJoint(Joint):
+    """A pipe continued along its own axis (the ``inline`` kind): a girth joint, whose stripe is
+    straight across the seam (``joint: butt`` or ``lap`` in the part file).
+
+    {T}: z up the pipe (``intersection_angle_deg`` is 90), the origin on the design axis in the
+    seam's plane. The branch (the upper pipe) carries the part's offset and ovality as every
+    kind's branch does.
+
+    * ``butt``: two lengths of the branch's pipe (its diameter, wall ``branch_wall_mm``) end to
+      end, their square-cut ends ``root_gap_mm`` apart; the main body is the lower pipe, round
+      on the design axis, so the branch's offset is the joint's hi-lo. The seam is the **gap's
+      centre**, midway between the two pipes' edges at each angle (on no surface:
+      :attr:`seam_on_surface` False); the torch stands on the pipe's normal. Light that passes
+      through the gap into the bore is lost; the ends' faces in the gap are lit where a ray
+      reaches them.
+    * ``lap``: a sleeve of wall ``sleeve_wall_mm`` slipped over the pipe (a sleeve or socket
+      lap; the sleeve is the main body, coaxial with the pipe and oval like it), its end face in
+      the seam's plane. The seam is the corner of that face and the pipe, where the fillet goes;
+      the torch on its bisector, 45 degrees between the axis and the pipe's normal.
+
+    Surface ids of :meth:`raycast`: 1 the main body (its outside and its end face), 2 the
+    branch (the same).
+
+    Example:
+        >>> from torchseam.core.config import load_part
+        >>> joint = make_joint(load_part("configs/parts/pipe_butt.yaml"))
+        >>> bool(np.allclose(joint.seam(np.array([0.0])).point[0, 2], 0.0, atol=0.5))
+        True
+    """
+
+    kind = "inline"
+
+    def __init__(self, part: PartConfig) -> None:
+        super().__init__(part)
+        self.lap = part.joint == "lap"
+        self.main_name = "sleeve" if self.lap else "lower pipe"
+        self.seam_on_surface = self.lap
+        self.gap = float(part.root_gap_mm)
+        self.wall = float(part.branch_wall_mm)
+        self.sleeve = float(part.sleeve_wall_mm)
+        self.below = INLINE_BELOW_MM
+        self.branch_bottom = 0.0 if self.lap else 0.5 * self.gap
+        self.branch_top = INLINE_BELOW_MM
+
+    # ------------------------------------------------------------------ seam
+    def _height(self, c: np.ndarray, dc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(len(c)), np.zeros(len(c))   # the seam's plane through o
+
+    def _lower_edge(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The butt's lower pipe: its outer edge at angles ``phi`` (N, 3) and d / dphi."""
+        cos, sin = np.cos(phi)[:, None], np.sin(phi)[:, None]
+        c = self.r * (cos * self.e1 + sin * self.e2) - 0.5 * self.gap * self.d
+        return c, self.r * (-sin * self.e1 + cos * self.e2)
+
+    def seam(self, phi: np.ndarray) -> SeamSample:
+        """A lap: the corner of the sleeve's end face and the pipe (:meth:`Joint.seam`). A
+        butt: the gap's centre, midway between the two pipes' edges at angles ``phi``; tangent,
+        and each pipe's normal at its edge."""
+        if self.lap:
+            return super().seam(phi)
+        phi = np.asarray(phi, dtype=float).reshape(-1)
+        cb, dcb = self.branch_point(phi)
+        cb = cb + 0.5 * self.gap * self.d
+        cm, dcm = self._lower_edge(phi)
+        t = 0.5 * (dcb + dcm)
+        t /= np.linalg.norm(t, axis=1, keepdims=True)
+        return SeamSample(phi, 0.5 * (cb + cm), t, self.normal_main(cm), self.normal_branch(cb))
+
+    # ------------------------------------------------------------------ normals
+    def normal_main(self, p: np.ndarray) -> np.ndarray:
+        """The sleeve's (lap) or the lower pipe's (butt) outward normals: the end face's (up
+        the axis) at points in its plane inside the outer wall, else the outside's."""
+        if self.lap:
+            n = super().normal_branch(p)   # the sleeve is coaxial with the pipe, oval like it
+            face = (p - self.o) @ self.d > -1e-6
+        else:
+            q = p - (p @ self.d)[:, None] * self.d
+            n = q / np.linalg.norm(q, axis=1, keepdims=True)
+            face = ((p @ self.d > -0.5 * self.gap - 1e-6)
+                    & (np.linalg.norm(q, axis=1) < self.r * (1.0 - 1e-9)))
+        return np.where(face[:, None], self.d, n)
+
+    def normal_branch(self, p: np.ndarray) -> np.ndarray:
+        """The upper pipe's outward normals: its end face's (down the axis, a butt) at points
+        in that plane inside the outer wall, else the outside's."""
+        n = super().normal_branch(p)
+        if self.lap:
+            return n
+        rho, _, h = self._polar(p)
+        face = (h < 0.5 * self.gap + 1e-6) & (rho < self.r * (1.0 - 1e-9))
+        return np.where(face[:, None], -self.d, n)
+
+    # ------------------------------------------------------------------ ray casting
+    def _end_face(self, qa: np.ndarray, da: np.ndarray, A: np.ndarray, B: np.ndarray,
+                  qq: np.ndarray, at: float, r0: float, r1: float) -> np.ndarray:
+        """Rays (their parts along an axis, ``qa + t da``, and across it, squared distance
+        ``A t^2 + B t + qq``) against the annulus ``r0 <= radius <= r1`` in the plane at
+        height ``at`` (lit from the side the ray comes from)."""
+        ok = np.abs(da) > 1e-12
+        t = np.where(ok, (at - qa) / np.where(ok, da, 1.0), np.inf)
+        rho2 = A * t * t + B * t + qq
+        hit = ok & (t > 0) & (rho2 >= r0 * r0) & (rho2 <= r1 * r1)
+        return np.where(hit, t, np.inf)
+
+    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        if self.lap:   # the sleeve: coaxial with the pipe, outer radius r + sleeve wall
+            qa, da, A, B, qq = self._branch_quadric(o, d)
+            r1 = self.r + self.sleeve
+            t = _entry_root(A, B, qq - r1**2)
+            h = qa + t * da
+            t = np.where((h < 0.0) & (h > -self.below), t, np.inf)
+            return np.minimum(t, self._end_face(qa, da, A, B, qq, 0.0, self.r, r1))
+        # the lower pipe: round, on the design axis, its end at -gap / 2
+        qa, da = o @ self.d, d @ self.d
+        qp, dp = o - qa[:, None] * self.d, d - da[:, None] * self.d
+        A = np.einsum("ij,ij->i", dp, dp)
+        B = 2 * np.einsum("ij,ij->i", qp, dp)
+        qq = np.einsum("ij,ij->i", qp, qp)
+        top = -0.5 * self.gap
+        t = _entry_root(A, B, qq - self.r**2)
+        h = qa + t * da
+        t = np.where((h < top) & (h > top - self.below), t, np.inf)
+        return np.minimum(t, self._end_face(qa, da, A, B, qq, top, self.r - self.wall, self.r))
+
+    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        t = super()._hit_branch(o, d)
+        if self.lap:   # its end is inside the sleeve
+            return t
+        qa, da, A, B, qq = self._branch_quadric(o, d)
+        face = self._end_face(qa, da, A, B, qq, self.branch_bottom, self.r - self.wall, self.r)
+        return np.minimum(t, face)
+
+    def main_solid(self) -> dict:
+        """``{"kind": "pipe", "origin", "a", "b", "rotation", "half_length"}``: the lower pipe
+        (butt) or the sleeve (lap) as a pipe whose own axes in {T} are ``rotation``'s columns
+        (x: the branch's axis), its middle ``below / 2`` under the seam's plane."""
+        if self.lap:
+            r = self.r + self.sleeve
+            a, b, centre = r * self.k2, r * self.k1, self.o - 0.5 * self.below * self.d
+        else:
+            a = b = self.r
+            centre = -(0.5 * self.gap + 0.5 * self.below) * self.d
+        rotation = np.stack([self.d, self.e2, np.cross(self.d, self.e2)], axis=1)
+        return {"kind": "pipe", "origin": centre, "a": a, "b": b, "rotation": rotation,
+                "half_length": 0.5 * self.below}
+
+
 def make_joint(part: PartConfig) -> Joint:
     """The joint of ``part``'s kind (``pipe`` and ``offset``: :class:`PipeJoint`; ``plate``:
-    :class:`PlateJoint`; ``sphere``: :class:`SphereJoint`); a bevelled branch
-    (``bevel_deg`` > 0) is the :class:`BevelledJoint` on it."""
+    :class:`PlateJoint`; ``sphere``: :class:`SphereJoint`; ``inline``: :class:`InlineJoint`);
+    a bevelled branch (``bevel_deg`` > 0) is the :class:`BevelledJoint` on it."""
+    if part.kind == "inline":
+        return InlineJoint(part)
     cls = {"pipe": PipeJoint, "offset": PipeJoint, "plate": PlateJoint,
            "sphere": SphereJoint}[part.kind]
     base = cls(part)

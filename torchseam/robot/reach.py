@@ -544,11 +544,11 @@ def _part_solids(part: PartConfig, pose: np.ndarray | None, main_length: float) 
     R, p = P[:3, :3], P[:3, 3]
     main = joint.main_solid()
     kind = main["kind"]
-    dims = {"pipe": lambda: (main["a"], main["b"], main_length / 2),
+    dims = {"pipe": lambda: (main["a"], main["b"], main.get("half_length", main_length / 2)),
             "plate": lambda: (main["half"], main["half"], main["thickness"]),
             "sphere": lambda: (main["radius"], main["radius"], 0.0)}[kind]()
     main_a, main_b, half_length = (float(v) for v in dims)
-    return _PartSolids(R @ main["origin"] + p, R.copy(), main_a, main_b, half_length,
+    return _PartSolids(R @ main["origin"] + p, R @ main["rotation"], main_a, main_b, half_length,
                        R @ (joint.o + joint.branch_bottom * joint.d) + p,
                        R @ (joint.o + joint.branch_top * joint.d) + p,
                        float(joint.r * max(joint.k1, joint.k2)), kind,

@@ -83,6 +83,7 @@ class ProfileConfig:
     fit_px: float = config_field(lo=2.0)
     shoulder_ratio: float = config_field(lo=1.0)
     arm_px: float = config_field(lo=2.0)
+    far_side: str = config_field(choices=("up", "down"))
 
 
 def load_profile_config(path: str | Path | None = None) -> ProfileConfig:
@@ -195,6 +196,32 @@ def split_two_lines(p: np.ndarray, min_points: int) -> int:
     total = sums[:, -1:]
     k = np.arange(min_points, n - min_points + 1)
     return int(k[np.argmin(_tls_error(sums[:, k - 1]) + _tls_error(total - sums[:, k - 1]))])
+
+
+def split_three_lines(p: np.ndarray, min_points: int, near: int, reach: int
+                      ) -> tuple[int, int]:
+    """Where points (N, 2), ordered along the stripe, are best explained as three straight
+    pieces, the middle one short (a lap's edge face; empty where it is dark): ``(i0, i1)``,
+    the middle piece ``p[i0:i1]``, both ends within ``reach`` points of ``near`` and the outer
+    pieces at least ``min_points`` each (total-least-squares errors from cumulative sums, as
+    :func:`split_two_lines`)."""
+    n = len(p)
+    q = p - p.mean(axis=0)
+    u, v = q[:, 0], q[:, 1]
+    sums = np.concatenate([np.zeros((6, 1)), np.cumsum(
+        np.stack([np.ones(n), u, v, u * u, v * v, u * v]), axis=1)], axis=1)  # (6, N + 1)
+
+    def err(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        s = sums[:, b] - sums[:, a]
+        return np.where(s[0] >= 2, _tls_error(np.where(s[0] >= 2, s, 1.0)), 0.0)
+
+    ks = np.arange(max(min_points, near - reach), min(n - min_points, near + reach) + 1)
+    a, b = np.meshgrid(ks, ks, indexing="ij")
+    ok = b >= a
+    a, b = a[ok], b[ok]
+    total = err(np.zeros_like(a), a) + err(a, b) + err(b, np.full_like(b, n))
+    i = int(np.argmin(total))
+    return int(a[i]), int(b[i])
 
 
 def _tls_error(s: np.ndarray) -> np.ndarray:
@@ -486,26 +513,83 @@ class ProfileFinder:
         return ProfileResult("butt", True, (le + re) / 2, {"left_edge": le, "right_edge": re},
                              how, float(abs(re[0] - le[0])), centre=pts)
 
-    def _lap(self, pts: np.ndarray, resp: np.ndarray) -> ProfileResult:
+    def _plates(self, left: np.ndarray, right: np.ndarray) -> tuple[Line, Line] | str:
+        """A lap's two plates, their points (N, 2) from the joint outward: their lines next
+        to the joint (``fit_px``), straight and parallel; or why not."""
         cfg = self.cfg
-        # the step: where the row jumps most between neighbouring centre points (across a
-        # break too: the upper plate's edge face may be dark)
-        j = int(np.argmax(np.abs(np.diff(pts[:, 1]))))
-        sides = self._two_plates(pts, resp, j)
-        if isinstance(sides, str):
-            return _fail("lap", f"no step: {sides}", pts)
-        a, b, le, re = sides
-        u = (le[0] + re[0]) / 2
-        step = b.v_at(u) - a.v_at(u)
-        if not abs(step) >= cfg.min_step_px:
-            return _fail("lap", f"no step: the plates are {abs(step):.1f} px apart at the joint",
-                         pts)
-        # the upper (nearer) plate's stripe lies higher in the view (smaller v) in a sensor
-        # looking down the torch at the stripe ahead; its edge is the corner, the lower
-        # plate's end the root where the fillet goes
-        edge, root = (re, le) if step < 0 else (le, re)
+        m = cfg.min_points
+        if min(len(left), len(right)) < m:
+            return f"a plate has only {min(len(left), len(right))} points"
+        for side in (left, right):   # a plate is one smooth curve all along (no shoulder)
+            curve = _curve_rms(side)
+            if curve > cfg.max_rms_px:
+                return f"a plate is no smooth curve (residual {curve:.2f} px)"
+            k = split_two_lines(side, m)
+            if k > 0:
+                p, q = fit_line(side[:k]), fit_line(side[k:])
+                if (bend_deg(p, q) >= cfg.min_bend_deg
+                        and curve > cfg.shoulder_ratio * max(p.rms, q.rms, 0.25)):
+                    return f"a plate bends by {bend_deg(p, q):.1f} deg (a groove's shoulder?)"
+        a = fit_line(left[:self._near(left)])
+        b = fit_line(right[:self._near(right)])
+        if max(a.rms, b.rms) > cfg.max_rms_px:
+            return f"plate fit residual {max(a.rms, b.rms):.2f} px"
+        if bend_deg(a, b) >= cfg.min_bend_deg:
+            return f"the plates are {bend_deg(a, b):.1f} deg apart (not parallel)"
+        return a, b
+
+    def _lap(self, pts: np.ndarray, resp: np.ndarray) -> ProfileResult:
+        """Two parallel plates, one nearer the sensor, the step between them: the near plate's
+        edge face lit (the stripe runs down it: a Z) or dark (a break). Read along the
+        stripe's own direction, so a stripe across the view at any slope is read as one along
+        the rows: the offset across it jumps (or ramps, over the lit face) by the step. The
+        root, where the fillet goes, is the far plate's end (``far_side``); the edge the near
+        plate's."""
+        cfg = self.cfg
+        m = cfg.min_points
+        # the stripe's direction: the median of its local directions (the plates' own, the
+        # face being short beside them); the offsets across it
+        w = min(5, len(pts) - 1)
+        step_d = pts[w:] - pts[:-w]
+        ang = float(np.median(np.arctan2(step_d[:, 1], step_d[:, 0])))
+        across = np.array([-np.sin(ang), np.cos(ang)])   # the down side of the stripe
+        n = (pts - pts[0]) @ across
+        # where the offset jumps: the split into a before and an after that explains the
+        # offsets best (each side at least min_points)
+        k = np.arange(m, len(pts) - m + 1)
+        c1 = np.concatenate([[0.0], np.cumsum(n)])
+        c2 = np.concatenate([[0.0], np.cumsum(n * n)])
+        sse = ((c2[k] - c1[k] ** 2 / k)
+               + (c2[-1] - c2[k] - (c1[-1] - c1[k]) ** 2 / (len(pts) - k)))
+        j = int(k[np.argmin(sse)])
+        offset = float(np.median(n[j:]) - np.median(n[:j]))   # the after plate's, down
+        jump = abs(offset)
+        if jump < cfg.min_step_px:
+            return _fail("lap", f"no step: the plates are {jump:.1f} px apart", pts)
+        # the plates and the edge face between them: three straight pieces round the jump
+        i0, i1 = split_three_lines(pts, m, j, int(4 * cfg.fit_px))
+        lit = self._plates(pts[:i0][::-1], pts[i1:])
+        face = pts[i0:i1]
+        f = fit_line(face) if len(face) >= 3 else None
+        if (not isinstance(lit, str) and f is not None
+                and float(np.linalg.norm(face[-1] - face[0])) >= cfg.min_step_px
+                and min(bend_deg(lit[0], f), bend_deg(lit[1], f)) >= cfg.min_bend_deg):
+            a, b = lit   # the lit edge face: the corners where its line meets the plates'
+            le, re = meet(a, f), meet(b, f)
+            assert le is not None and re is not None   # not parallel: they bend
+        else:            # a dark face (no third piece across the plates): their ends
+            left, right = pts[:j][::-1], pts[j:]
+            dark = self._plates(left, right)
+            if isinstance(dark, str):
+                return _fail("lap", f"no step: {dark}", pts)
+            a, b = dark
+            le = self._end(left, response_at(self._ridge, left), a)
+            re = self._end(right, response_at(self._ridge, right), b)
+        # the far plate shows on the far side of the other: its end is the root
+        before_far = (offset > 0.0) == (cfg.far_side == "up")
+        root, edge = (le, re) if before_far else (re, le)
         return ProfileResult("lap", True, root.copy(), {"edge": edge, "root": root},
-                             width_px=float(abs(step)), centre=pts)
+                             width_px=jump, centre=pts)
 
 
 #: :meth:`ProfileFinder._end`'s step along a line when it follows the stripe to its end (px)
