@@ -13,7 +13,13 @@ from torchseam.robot.egm import load_egm_config
 from torchseam.robot.egm.messages import EgmRobot, EgmSensor
 from torchseam.robot.kinematics import load_irb1410
 from torchseam.robot.sim_controller import SimController
-from torchseam.robot.sim_controller.arm import ArmModel, ProgrammedPath, straight_path
+from torchseam.robot.sim_controller.arm import (
+    ArmModel,
+    ProgrammedPath,
+    QuatCache,
+    step_towards,
+    straight_path,
+)
 from torchseam.robot.sim_controller.faults import Fault, FaultPlan
 from torchseam.robot.sim_controller.messages import RobotMessages, sensor_command
 
@@ -170,3 +176,37 @@ def test_messages_number_and_read_commands():
                                atol=1e-12)
     c.orient.u0 = c.orient.u1 = c.orient.u2 = c.orient.u3 = 0.0
     assert sensor_command(reply, "pose") is None
+
+
+def test_the_cycles_caches_give_the_numbers_of_a_fresh_conversion(robot):
+    """The arm's quaternion cache and the controller's last command are the conversions'
+    own numbers (looked up by the rotation's / the reply's bytes), bounded and read-only."""
+    cache = QuatCache()
+    rots = [rotation_about(np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0]), a)
+            for a in np.linspace(-3.0, 3.0, 3 * QuatCache.SIZE)]
+    for R in rots + rots[::-1] + rots:
+        q = cache(R)
+        assert np.array_equal(q, matrix_to_quat(R)) and not q.flags.writeable
+        assert cache(R.copy()) is q           # by value: a copy hits
+    assert len(cache._quats) <= QuatCache.SIZE
+    T, target = np.eye(4), np.eye(4)
+    target[:3, :3], target[:3, 3] = rots[5], [3.0, -2.0, 1.0]
+    assert np.array_equal(step_towards(T, target, 1.0, 0.01, cache),
+                          step_towards(T, target, 1.0, 0.01))
+
+    ctrl = SimController(CFG, robot=robot, tool=TOOL, mode="pose",
+                         bind_address=("127.0.0.1", 0))
+    try:
+        reply = EgmSensor()
+        c = reply.planned.cartesian
+        for k, R in enumerate(rots[:4] + rots[:1]):
+            c.pos.x, c.pos.y, c.pos.z = 900.0 + k, 10.0, 600.0
+            c.orient.u0, c.orient.u1, c.orient.u2, c.orient.u3 = matrix_to_quat(R).tolist()
+            for seqno in (1, 2):   # the header changes every cycle, the pose does not
+                reply.header.seqno = seqno
+                got = ctrl._command(reply)
+                assert got is not None and np.array_equal(got, sensor_command(reply, "pose"))
+        c.orient.u0 = c.orient.u1 = c.orient.u2 = c.orient.u3 = 0.0
+        assert ctrl._command(reply) is None
+    finally:
+        ctrl.stop()

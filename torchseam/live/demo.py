@@ -173,6 +173,7 @@ class _WireTap:
     def __init__(self, link: EgmLink) -> None:
         self.link = link
         self.poses: list[tuple[np.ndarray, np.ndarray]] = []
+        self._last: tuple[float, ...] | None = None   # the last reply's pose, as floats
 
     def handle_datagram(self, data: bytes, sender) -> bytes | None:
         reply = self.link.handle_datagram(data, sender)
@@ -180,11 +181,12 @@ class _WireTap:
             msg = EgmSensor()
             msg.ParseFromString(reply)
             c = msg.planned.cartesian
-            p = np.array([c.pos.x, c.pos.y, c.pos.z])
-            q = np.array([c.orient.u0, c.orient.u1, c.orient.u2, c.orient.u3])
-            if not self.poses or not (np.array_equal(p, self.poses[-1][0])
-                                      and np.array_equal(q, self.poses[-1][1])):
-                self.poses.append((p, q))
+            pq = (c.pos.x, c.pos.y, c.pos.z, c.orient.u0, c.orient.u1, c.orient.u2,
+                  c.orient.u3)
+            # (compared value by value, as np.array_equal of the two arrays would)
+            if self._last is None or any(a != b for a, b in zip(pq, self._last, strict=True)):
+                self.poses.append((np.array(pq[:3]), np.array(pq[3:])))
+            self._last = pq
         return reply
 
     def __getattr__(self, name: str):

@@ -72,14 +72,40 @@ class ProgrammedPath:
         return T
 
 
+class QuatCache:
+    """:func:`~torchseam.core.transforms.matrix_to_quat` of the few rotations a cycle meets
+    again: the planned pose is converted by the cycle that plans it (its ``EgmRobot``) and by
+    the next (:func:`step_towards`), the target by every cycle until the next command, and a
+    robot at rest feeds back the same pose. A rotation is looked up by its bytes, so a hit
+    returns the quaternion its own conversion gave (the same numbers); the quaternions are
+    read-only. Bounded: a few entries."""
+
+    SIZE = 8
+
+    def __init__(self) -> None:
+        self._quats: dict[bytes, np.ndarray] = {}
+
+    def __call__(self, R: np.ndarray) -> np.ndarray:
+        """The quaternion (w, x, y, z) of the (3, 3) rotation ``R``, w >= 0."""
+        key = np.ascontiguousarray(R, dtype=float).tobytes()
+        q = self._quats.get(key)
+        if q is None:
+            if len(self._quats) >= self.SIZE:
+                self._quats.pop(next(iter(self._quats)))  # the oldest entry
+            q = self._quats[key] = matrix_to_quat(R)
+            q.setflags(write=False)
+        return q
+
+
 def step_towards(T: np.ndarray, target: np.ndarray, max_mm: float,
-                 max_rad: float) -> np.ndarray:
-    """Pose moved from ``T`` towards ``target`` by at most ``max_mm`` and ``max_rad``."""
+                 max_rad: float, quat=matrix_to_quat) -> np.ndarray:
+    """Pose moved from ``T`` towards ``target`` by at most ``max_mm`` and ``max_rad``.
+    ``quat``: the rotation -> quaternion conversion (a :class:`QuatCache`: the same numbers)."""
     out = np.eye(4)
     d = target[:3, 3] - T[:3, 3]
     n = float(np.linalg.norm(d))
     out[:3, 3] = target[:3, 3] if n <= max_mm else T[:3, 3] + d * (max_mm / n)
-    q0, q1 = matrix_to_quat(T[:3, :3]), matrix_to_quat(target[:3, :3])
+    q0, q1 = quat(T[:3, :3]), quat(target[:3, :3])
     ang = 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
     u = 1.0 if ang <= max_rad else max_rad / ang
     out[:3, :3] = quat_to_matrix(slerp(q0, q1, u))
@@ -114,6 +140,8 @@ class ArmModel:
         self._R0 = np.ascontiguousarray(g.R0, dtype=float)
         self._kernel = load_kernels(__package__).newton_step
         self._speed = np.asarray(sim.joint_speed_deg_s, float)
+        #: the rotations' quaternions of the last cycles (this arm's and its messages')
+        self.quats = QuatCache()
         self.q = np.asarray(sim.home_joints_deg, float).copy()
         start = self.tcp_pose()
         if path is None:
@@ -164,7 +192,7 @@ class ArmModel:
             T_des[:3, 3] += T_des[:3, :3] @ self.corr
         elif self.target is not None:
             T_des = step_towards(self.planned, self.target, self.sim.tcp_speed_mm_s * dt,
-                                 math.radians(self.sim.tcp_rot_speed_deg_s) * dt)
+                                 math.radians(self.sim.tcp_rot_speed_deg_s) * dt, self.quats)
         else:
             T_des = self.planned
         dq, T_now = self._newton_step(T_des)

@@ -88,7 +88,7 @@ class SimController:
         self._max_reply = self.config.link.max_datagram_bytes
         self.arm = ArmModel(self.robot, self.tool, self.sim, self.mode, path)
         self.faults = FaultPlan(2 * self.config.link.max_datagram_bytes, seed)
-        self._messages = RobotMessages(self.period)
+        self._messages = RobotMessages(self.period, self.arm.quats)
 
         self._lock = threading.Lock()
         self._stats = SimStats()
@@ -98,6 +98,8 @@ class SimController:
         self._thread: threading.Thread | None = None
         self.realtime = False  # whether the cycle thread got its real-time priority
         self._pending_ns: int | None = None  # send time of the last cycle still unanswered
+        # pose mode: the last reply's planned pose (wire bytes) and its command
+        self._last_command: tuple[bytes, np.ndarray | None] = (b"", None)
         self._sock, self._tx_stamps = _open_socket(
             bind_address or (net.controller_host, net.controller_port))
 
@@ -134,8 +136,22 @@ class SimController:
                        compute_s: float) -> Any:
         return self._messages.build(q, T, self.arm.q, T_plan, self.arm.running, compute_s)
 
+    def _command(self, msg: Any) -> np.ndarray | None:
+        """:func:`sensor_command` of a reply; in pose mode the same pose as the last reply's
+        (its ``planned`` the same bytes: the sensor repeats its command every cycle until the
+        next) gives the last reply's command again, unconverted (the same numbers, read-only)."""
+        if self.mode != "pose":
+            return sensor_command(msg, self.mode)
+        key = msg.planned.SerializeToString()
+        if key != self._last_command[0]:
+            command = sensor_command(msg, self.mode)
+            if command is not None:
+                command.setflags(write=False)
+            self._last_command = (key, command)
+        return self._last_command[1]
+
     def _apply_reply(self, msg: Any) -> None:
-        command = sensor_command(msg, self.mode)
+        command = self._command(msg)
         if command is None:
             with self._lock:
                 self._stats.rejected["zero_quaternion"] += 1

@@ -33,10 +33,14 @@ class RobotMessages:
 
     Args:
         period_s: the control cycle, s (utilisation is compute time over it).
+        quat: the (3, 3) rotation -> quaternion conversion of the poses (default
+            :func:`~torchseam.core.transforms.matrix_to_quat`; the simulated controller gives
+            its arm's :class:`~torchseam.robot.sim_controller.arm.QuatCache`).
     """
 
-    def __init__(self, period_s: float) -> None:
+    def __init__(self, period_s: float, quat=matrix_to_quat) -> None:
         self.period = period_s
+        self._quat = quat   # rotation -> quaternion (the arm's QuatCache: the same numbers)
         self._seqno = 0
         self._t0 = time.perf_counter()
 
@@ -47,8 +51,8 @@ class RobotMessages:
         stamped by :meth:`stamp` when it is sent."""
         msg = EgmRobot()
         for part, joints, pose in ((msg.feedBack, q, T), (msg.planned, q_plan, T_plan)):
-            part.joints.joints.extend(float(x) for x in joints)
-            fill_pose(part.cartesian, pose)
+            part.joints.joints.extend(np.asarray(joints, dtype=float).tolist())
+            fill_pose(part.cartesian, pose, self._quat)
         msg.motorState.state = EgmMotorState.MOTORS_ON
         msg.mciState.state = EgmMCIState.MCI_RUNNING
         msg.mciConvergenceMet = bool(np.linalg.norm(T[:3, 3] - T_plan[:3, 3]) < _CONVERGED_MM)
@@ -71,16 +75,17 @@ class RobotMessages:
         return msg.SerializeToString()
 
 
-def fill_pose(pose: Any, T: np.ndarray) -> None:
-    """Position (mm), quaternion (w, x, y, z) and ABB EulerZYX angles (deg) of a 4x4 pose."""
-    pose.pos.x, pose.pos.y, pose.pos.z = (float(v) for v in T[:3, 3])
-    q = matrix_to_quat(T[:3, :3])
-    pose.orient.u0, pose.orient.u1, pose.orient.u2, pose.orient.u3 = (float(v) for v in q)
-    R = T[:3, :3]
+def fill_pose(pose: Any, T: np.ndarray, quat=matrix_to_quat) -> None:
+    """Position (mm), quaternion (w, x, y, z) and ABB EulerZYX angles (deg) of a 4x4 pose
+    (``quat``: the rotation -> quaternion conversion)."""
+    pose.pos.x, pose.pos.y, pose.pos.z = np.asarray(T[:3, 3], dtype=float).tolist()
+    pose.orient.u0, pose.orient.u1, pose.orient.u2, pose.orient.u3 = np.asarray(
+        quat(T[:3, :3]), dtype=float).tolist()
+    R = np.asarray(T[:3, :3], dtype=float).tolist()
     # R = Rz(z) Ry(y) Rx(x) (ABB EulerZYX); plain math: scipy objects cost more per cycle
-    pose.euler.y = math.degrees(math.asin(max(-1.0, min(1.0, -float(R[2, 0])))))
-    pose.euler.z = math.degrees(math.atan2(float(R[1, 0]), float(R[0, 0])))
-    pose.euler.x = math.degrees(math.atan2(float(R[2, 1]), float(R[2, 2])))
+    pose.euler.y = math.degrees(math.asin(max(-1.0, min(1.0, -R[2][0]))))
+    pose.euler.z = math.degrees(math.atan2(R[1][0], R[0][0]))
+    pose.euler.x = math.degrees(math.atan2(R[2][1], R[2][2]))
 
 
 def sensor_command(msg: Any, mode: str) -> np.ndarray | None:
