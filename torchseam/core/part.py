@@ -601,7 +601,7 @@ class InlineJoint(Joint):
         ``A t^2 + B t + qq``) against the annulus ``r0 <= radius <= r1`` in the plane at
         height ``at`` (lit from the side the ray comes from)."""
         ok = np.abs(da) > 1e-12
-        t = np.where(ok, (at - qa) / np.where(ok, da, 1.0), np.inf)
+        t = (at - qa) / np.where(ok, da, 1.0)
         rho2 = A * t * t + B * t + qq
         hit = ok & (t > 0) & (rho2 >= r0 * r0) & (rho2 <= r1 * r1)
         return np.where(hit, t, np.inf)

@@ -1,0 +1,118 @@
+"""Girth joints (issue 37): the ``inline`` kind's butt and lap (core/part.py InlineJoint), their
+checks, the simulator's frames of them and their truth, against the butt and lap profiles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torchseam.core.config import CONFIG_DIR, ConfigError, load_cell, load_noise, load_part
+from torchseam.core.part import InlineJoint, make_joint, torch_frames
+from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.vision.profiles import ProfileFinder, load_profile_config
+from torchseam.vision.tipm import load_tipm
+
+BUTT = CONFIG_DIR / "parts" / "pipe_butt.yaml"
+LAP = CONFIG_DIR / "parts" / "pipe_lap.yaml"
+PHI = np.linspace(0.0, 2.0 * np.pi, 37)
+
+
+def _radial(j: InlineJoint, p: np.ndarray) -> np.ndarray:
+    """Unit directions out from the branch's axis at points p (N, 3)."""
+    q = p - j.o - np.outer((p - j.o) @ j.d, j.d)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def test_butt_seam_is_the_middle_of_the_gap():
+    part = load_part(BUTT)
+    j = make_joint(part)
+    assert isinstance(j, InlineJoint) and not j.seam_on_surface
+    s = j.seam(PHI)
+    g = part.root_gap_mm
+    # inside the outer walls (the hi-lo puts them 0.5 mm apart), along the axis: the upper
+    # pipe's end face half the gap up (surface 2), the lower pipe's half the gap down (1)
+    inner = s.point - 1.0 * _radial(j, s.point)
+    t, surf = j.raycast(inner, np.tile(j.d, (len(PHI), 1)))
+    assert np.allclose(t, g / 2, atol=0.02) and np.all(surf == 2)
+    t, surf = j.raycast(inner, np.tile(-j.d, (len(PHI), 1)))
+    assert np.allclose(t, g / 2, atol=0.02) and np.all(surf == 1)
+    # the end faces look along the axis; the torch stands on the pipe's normal
+    face_up = j.normal_main(inner + np.outer(np.full(len(PHI), -g / 2), j.d))
+    assert np.allclose(face_up, j.d)
+    z = torch_frames(s)[:, :3, 2]
+    assert np.allclose(z @ j.d, 0.0, atol=0.02)                     # the hi-lo tilts it a hair
+    assert np.all(np.einsum("ij,ij->i", z, _radial(j, s.point)) < -0.999)
+    # a ray straight into the gap from outside goes into the bore: lost
+    out = s.point + 5.0 * _radial(j, s.point)
+    t, _ = j.raycast(out, -_radial(j, s.point))
+    assert np.all(np.isinf(t))
+
+
+def test_lap_seam_is_the_corner_of_the_sleeve_and_the_pipe():
+    part = load_part(LAP)
+    j = make_joint(part)
+    assert j.seam_on_surface
+    s = j.seam(PHI)
+    assert np.allclose((s.point - j.o) @ j.d, 0.0, atol=1e-9)       # in the end face's plane
+    # down the axis from just above, just out from the pipe: the sleeve's end face (1)
+    start = s.point + 0.5 * _radial(j, s.point) + 0.3 * j.d
+    t, surf = j.raycast(start, np.tile(-j.d, (len(PHI), 1)))
+    assert np.allclose(t, 0.3, atol=1e-9) and np.all(surf == 1)
+    # in from beyond the sleeve just above its face: the pipe (2); just below: the sleeve (1)
+    for dz, sid, depth in ((0.3, 2, part.sleeve_wall_mm + 5.0), (-0.3, 1, 5.0)):
+        o = s.point + (part.sleeve_wall_mm + 5.0) * _radial(j, s.point) + dz * j.d
+        t, surf = j.raycast(o, -_radial(j, s.point))
+        assert np.all(surf == sid) and np.allclose(t, depth, atol=0.1), (dz, t[:3])
+    # the torch bisects the end face and the pipe: 45 degrees off the axis
+    z = torch_frames(s)[:, :3, 2]
+    assert np.allclose(np.degrees(np.arccos(z @ -j.d)), 45.0, atol=0.5)
+
+
+def test_main_solid_is_the_pipe_on_the_branch_axis():
+    for path in (BUTT, LAP):
+        j = make_joint(load_part(path))
+        m = j.main_solid()
+        assert np.allclose(m["rotation"][:, 0], j.d)                  # its own x: the axis
+        assert np.allclose(m["rotation"].T @ m["rotation"], np.eye(3))
+        assert m["origin"] @ j.d < 0 and m["half_length"] > 0
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"joint": "fillet"}, "joint: a part of kind inline is a butt or a lap"),
+    ({"root_gap_mm": 0.0}, "root_gap_mm: a butt's gap"),
+    ({"branch_offset_mm": [6.0, 4.0]}, "branch_offset_mm: the pipes' ends must overlap"),
+    ({"intersection_angle_deg": 80.0}, "intersection_angle_deg: a part of kind inline"),
+    ({"sleeve_wall_mm": 3.0}, "sleeve_wall_mm: a butt has no sleeve"),
+    ({"kind": "pipe", "main_od_mm": 203.0}, "joint: a butt joint is a part of kind inline"),
+])
+def test_bad_girth_parts_are_named(tmp_path, change, message):
+    import yaml
+
+    data = yaml.safe_load(BUTT.read_text())
+    data.update(change)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=message):
+        load_part(path)
+    lap = yaml.safe_load(LAP.read_text())
+    lap["root_gap_mm"] = 1.0
+    path.write_text(yaml.safe_dump(lap))
+    with pytest.raises(ConfigError, match="root_gap_mm: a lap has none"):
+        load_part(path)
+
+
+@pytest.mark.parametrize("path, family", [(BUTT, "sim"), (BUTT, "thin"), (LAP, "sim"),
+                                          (LAP, "smoke")])
+def test_rendered_girth_joint_shows_its_aim_point(path, family):
+    """Clean frames of each girth joint along its seam: the profile on the whole frame puts
+    the aim point within a pixel of the simulator's truth (the gap's centre; the lap's
+    corner), the held-out families included."""
+    part, noise = load_part(path), load_noise()
+    finder = ProfileFinder(load_tipm(), load_profile_config(), part.joint)
+    errs = []
+    for img, truth in simulate(load_cell(), part, noise, SequenceSpec(
+            n_frames=8, start_mm=60.0, level=0.0, seed=3, family=family)):
+        res = finder(img)
+        assert truth.visible and res.ok, res.status
+        errs.append(float(np.linalg.norm(res.aim - truth.uv)))
+    assert max(errs) <= 1.0, errs
