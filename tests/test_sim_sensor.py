@@ -2,6 +2,7 @@
 
 import cv2
 import numpy as np
+import pytest
 import torch
 
 from torchseam.core.camera import intrinsics, laser_plane_tensor, pixels_to_plane, project_points
@@ -142,6 +143,36 @@ def test_compiled_finish_pass_is_numpys_to_the_bit():
         np.testing.assert_array_equal(out, ref)
 
 
+def test_fused_colour_mix_and_finish_pass_is_the_two_calls_to_the_bit():
+    """The renderer's colour mix (cv2.transform of the merged stripe, glare and spatter
+    layers) and its last pass, compiled in one pass (``_kernels.mix_finish``), give the two
+    calls' light and frame exactly where the renderer uses it (``_fused_mix_agrees``: OpenCV's
+    AVX2 path, this machine); a whole rendered frame is the same either way."""
+    from torchseam.core.config import load_cell, load_noise, load_part
+    from torchseam.sim.sequence import COLOUR_MIX, SensorRenderer, _fused_mix_agrees
+
+    cell = load_cell()
+    w, h = cell.camera.width, cell.camera.height
+    if not _fused_mix_agrees(COLOUR_MIX, w, h):
+        pytest.skip("this OpenCV's cv2.transform is not the kernel's arithmetic: the renderer "
+                    "makes the two calls here")
+    for size in ((96, 64), (640, 480), (w, h)):
+        assert _fused_mix_agrees(COLOUR_MIX * np.float32(0.7), *size)
+    scene = Scene(load_part(), 0.0)
+    noise = load_noise()
+    fused = SensorRenderer(cell, scene, noise, 1.0, 3)
+    calls = SensorRenderer(cell, scene, noise, 1.0, 3)
+    assert fused._fused
+    calls._fused = False
+    s0 = 30.0
+    for k in range(6):
+        T = scene.nominal_tcp(np.array([s0 + 0.4 * k]))[0]
+        a, ta = fused.render(T, 0.04 * k, arc_on=k > 1, force_flash=k == 4)
+        b, tb = calls.render(T, 0.04 * k, arc_on=k > 1, force_flash=k == 4)
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(ta.uv, tb.uv)
+
+
 def test_roots_refined_in_lockstep_are_each_brackets_own():
     """The sensor's arm points: two roots refined together (one call of the function per
     round) are the roots each search finds alone, to the bit; a bracket without a sign change
@@ -166,6 +197,11 @@ def test_roots_refined_in_lockstep_are_each_brackets_own():
         alone.append(float(lo - ylo * (hi - lo) / (yhi - ylo)) if yhi != ylo else float(lo))
     assert together == alone
     assert [_refine_root(f, *b) for b in brackets] == alone
+    calls = []
+    _refine_roots(lambda x: calls.append(len(x)) or f(x), brackets)
+    # four rounds, the interpolation on values the rounds computed (the bracket without a
+    # root is evaluated in the first round only)
+    assert calls == [99, 66, 66, 66]
     assert abs(f(np.array([together[0]]))[0]) < 1e-12
 
 

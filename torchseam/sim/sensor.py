@@ -168,28 +168,33 @@ class LaserSensor:
         bright = 0.35 + 0.65 * inc
 
         seam_C = (seam_T - c) @ R
-        if seam_ok:
-            seam_uv = self.project(seam_C[None])[0]
-            t_seam = t_cam[len(P):]
-            # The seam lies on both surfaces: its line of sight may graze one of them.
-            visible = bool(t_seam[0] >= np.linalg.norm(seam_T - c) - 0.05
-                           and self.in_image(seam_uv) and seam_C[2] > 1.0)
-        else:
-            seam_uv, visible = np.full(2, np.nan), False
-
         # Insert the exact seam point where the fan passes from one surface to the other, so
         # the imaged corner is sharp (not where the seam is the middle of a root gap: no
         # surface holds it, the stripe breaks there).
         order_P, order_s, order_b, order_seen = P, surf, bright, seen
         jump = np.nonzero(surf[1:] != surf[:-1])[0]
+        k_seam = None
         if len(jump) and joint.seam_on_surface:
             k = jump[np.argmin(np.linalg.norm(P[jump] - seam_T, axis=1))] + 1
             if np.linalg.norm(P[k] - seam_T) < 2.0:
+                k_seam = k
                 order_P = np.insert(P, k, seam_T, axis=0)
                 order_s = np.insert(surf, k, 3)
                 order_b = np.insert(bright, k, 0.5 * (bright[k - 1] + bright[k]))
-                order_seen = np.insert(seen, k, visible)
-        uv = self.project((order_P - c) @ R)
+        # the stripe and the seam point projected in one call (each point on its own)
+        X_order = (order_P - c) @ R
+        if seam_ok:
+            both = self.project(np.concatenate([X_order, seam_C[None]]))
+            uv, seam_uv = both[:-1], both[-1]
+            t_seam = t_cam[len(P):]
+            # The seam lies on both surfaces: its line of sight may graze one of them.
+            visible = bool(t_seam[0] >= np.linalg.norm(seam_T - c) - 0.05
+                           and self.in_image(seam_uv) and seam_C[2] > 1.0)
+        else:
+            uv = self.project(X_order)
+            seam_uv, visible = np.full(2, np.nan), False
+        if k_seam is not None:
+            order_seen = np.insert(seen, k_seam, visible)
         keep = order_seen & self.in_image(uv, margin=-20.0)
 
         a_T, b_T = R @ self._fan_ab[0], R @ self._fan_ab[1]
@@ -516,6 +521,10 @@ def _refine_roots(f, brackets: list[tuple[float, float]], n: int = 33, rounds: i
     ``f``, so each root is the one its own search finds, to the bit), the final interpolation
     once on every bracket's ends."""
     br = [(lo, hi) for lo, hi in brackets]
+    # f at each bracket's ends, once evaluated: a subdivision's first and last points are
+    # its bracket's ends (np.linspace), and f is element-wise, so the final interpolation
+    # takes the values the rounds computed instead of evaluating f there again
+    f_ends: list[tuple[float, float] | None] = [None] * len(br)
     active = list(range(len(br)))
     for _ in range(rounds):
         if not active:
@@ -528,12 +537,20 @@ def _refine_roots(f, brackets: list[tuple[float, float]], n: int = 33, rounds: i
             k = np.nonzero(np.sign(ym[1:]) != np.sign(ym[:-1]))[0]
             if len(k):
                 br[i] = (x[k[0]], x[k[0] + 1])
+                f_ends[i] = (ym[k[0]], ym[k[0] + 1])
                 still.append(i)
+            elif x[0] == br[i][0] and x[-1] == br[i][1]:
+                f_ends[i] = (ym[0], ym[-1])
         active = still
-    ends = f(np.array([v for b in br for v in b]))
+    todo = [i for i, e in enumerate(f_ends) if e is None]
+    if todo:
+        ends = f(np.array([v for i in todo for v in br[i]]))
+        for j, i in enumerate(todo):
+            f_ends[i] = (ends[2 * j], ends[2 * j + 1])
     out = []
-    for i, (lo, hi) in enumerate(br):
-        ylo, yhi = ends[2 * i], ends[2 * i + 1]
+    for (lo, hi), e in zip(br, f_ends, strict=True):
+        assert e is not None
+        ylo, yhi = e
         out.append(float(lo - ylo * (hi - lo) / (yhi - ylo)) if yhi != ylo else float(lo))
     return out
 

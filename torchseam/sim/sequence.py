@@ -104,6 +104,10 @@ class SensorRenderer:
                            for _ in range(4)]
         self._bufs: dict[tuple[str, int], np.ndarray] = {}
         self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
+        # the colour mix and the last pass in one compiled pass where that is cv2.transform's
+        # arithmetic (see _fused_mix_agrees); the camera stage works between the two
+        self._fused = not self._camera_on and _fused_mix_agrees(self.mix, w, h)
+        self._tail_from = _mix_tail_from(w * h)
         self.k = 0
 
     def _buf(self, name: str, channels: int, zero: bool = False) -> np.ndarray:
@@ -155,28 +159,39 @@ class SensorRenderer:
             if layers.haze is not None and look.haze.absorb > 0:
                 stripe *= 1.0 - look.haze.absorb * haze
             chans.append(haze)
-        # colour mixing of stripe, arc glare, spatter (and fume) light in one pass, into
-        # reused planes (frame-sized temporaries cost page faults on every frame)
-        img: np.ndarray = cv2.transform(cv2.merge(chans, self._buf("merged", len(chans))),
-                                        self.mix, self._buf("light", 3))
+        fused = self._fused and len(chans) == 3
+        if not fused:
+            # colour mixing of stripe, arc glare, spatter (and fume) light in one pass, into
+            # reused planes (frame-sized temporaries cost page faults on every frame)
+            img: np.ndarray = cv2.transform(cv2.merge(chans, self._buf("merged", len(chans))),
+                                            self.mix, self._buf("light", 3))
         dy, dx = rng.integers(0, 16, 2)
         sigma = src.sensor_sigma() if arc_on else self.sigma_clean
         if look.read_noise > 0:   # independent extra noise: adds in quadrature
             sigma = float(np.hypot(sigma, look.read_noise))
         frame = np.empty((h, w, 3), np.uint8)
-        if self._camera_on:
+        noise = self.read_noise[self.k % 4]
+        if fused:
+            # the colour mix and the last pass below in one compiled pass (the numbers of
+            # cv2.transform and finish_frame to the bit: torchseam.sim._kernels.mix_finish)
+            c = np.ascontiguousarray
+            self._k.mix_finish(c(stripe), c(layers.glare), c(layers.spatter), self.mix,
+                               self._tail_from, self.background.reshape(h, -1),
+                               noise.reshape(len(noise), -1),
+                               int(dy), int(dx) * 3, np.float32(sigma), frame.reshape(h, -1))
+        elif self._camera_on:
             img += self.background
             img = self._camera(img, layers.rows)
             # the background is in the light already: add nothing more
             background = self._buf("zero", 3, zero=True)
         else:
             background = self.background
-        # light + background + sigma * read noise, clipped and cast: one compiled pass, the
-        # numbers of numpy's passes to the bit (torchseam.sim._kernels.finish_frame)
-        noise = self.read_noise[self.k % 4]
-        self._k.finish_frame(np.ascontiguousarray(img).reshape(h, -1),
-                             background.reshape(h, -1), noise.reshape(len(noise), -1),
-                             int(dy), int(dx) * 3, np.float32(sigma), frame.reshape(h, -1))
+        if not fused:
+            # light + background + sigma * read noise, clipped and cast: one compiled pass,
+            # the numbers of numpy's passes to the bit (torchseam.sim._kernels.finish_frame)
+            self._k.finish_frame(np.ascontiguousarray(img).reshape(h, -1),
+                                 background.reshape(h, -1), noise.reshape(len(noise), -1),
+                                 int(dy), int(dx) * 3, np.float32(sigma), frame.reshape(h, -1))
         truth = FrameTruth(
             index=self.k, t_s=t_s, uv=view.seam_uv, visible=view.visible and laser_on,
             laser_on=laser_on, arc_on=arc_on, seam_B=apply(T_B_T, view.seam_T),
@@ -268,6 +283,50 @@ def simulate_labelled(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
         labels.append(truth.uv)
         arc.append(truth.arc_on)
     return frames, np.array(labels, dtype=float), np.array(arc, dtype=bool)
+
+
+_FUSED_AGREES: dict[tuple[bytes, int, int], bool] = {}
+
+
+def _mix_tail_from(n_pixels: int) -> int:
+    """The first pixel that ``cv2.transform`` (3 x 3, float32, AVX2) computes in its scalar
+    loop, of a continuous image of ``n_pixels``: the last 4 to 11 (found by trying; checked
+    on the frame's own size by :func:`_fused_mix_agrees`)."""
+    return max(0, 8 * ((n_pixels - 5) // 8) + 4)
+
+
+def _fused_mix_agrees(mix: np.ndarray, w: int, h: int) -> bool:
+    """Whether ``_kernels.mix_finish`` makes the (h, w) frame that ``cv2.transform`` (of the
+    merged layers by ``mix``) and ``_kernels.finish_frame`` make, to the bit, on this machine:
+    its light (``_kernels.mix_light``, the same arithmetic) against ``cv2.transform``'s on
+    random layers of that size (zeros, faint and bright light), and the frames; tried once per
+    matrix and size (a few ms). The kernel computes what OpenCV's AVX2 path does (fused
+    multiply-adds); an OpenCV without it (another CPU, another build) rounds differently, and
+    there the renderer makes the two calls."""
+    key = (mix.tobytes(), w, h)
+    ok = _FUSED_AGREES.get(key)
+    if ok is None:
+        k = load_kernels(__package__)
+        rng = np.random.default_rng(5)
+        layers = [(rng.random((h, w), dtype=np.float32) * 600.0).astype(np.float32)
+                  for _ in range(3)]
+        for i, layer in enumerate(layers):
+            layer[rng.random((h, w)) < 0.3] = 0.0
+            layer[i::3, ::5] *= np.float32(1e-3)
+        m32 = np.ascontiguousarray(mix, dtype=np.float32)
+        tail = _mix_tail_from(w * h)
+        mixed = cv2.transform(cv2.merge(layers), mix)
+        light = np.empty((h, 3 * w), np.float32)
+        k.mix_light(*layers, m32, tail, light)
+        bg = (rng.random((h, 3 * w), dtype=np.float32) * 9.0).astype(np.float32)
+        noise = rng.standard_normal((h + 2, 3 * (w + 2)), dtype=np.float32)
+        a, b = np.empty((h, 3 * w), np.uint8), np.empty((h, 3 * w), np.uint8)
+        sigma = np.float32(3.3)
+        k.finish_frame(np.ascontiguousarray(mixed).reshape(h, -1), bg, noise, 1, 3, sigma, a)
+        k.mix_finish(*layers, m32, tail, bg, noise, 1, 3, sigma, b)
+        ok = _FUSED_AGREES[key] = bool(np.array_equal(light, mixed.reshape(h, -1))
+                                       and np.array_equal(a, b))
+    return ok
 
 
 def _small_motion(dp_mm: np.ndarray, drot_deg: np.ndarray) -> np.ndarray:
