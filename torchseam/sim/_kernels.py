@@ -87,9 +87,9 @@ def _mix_row(stripe, glare, spatter, mix, y, tail_from, out):  # pragma: no cove
     for c in range(3):
         m0, m1, m2 = mix[c, 0], mix[c, 1], mix[c, 2]
         for x in range(xs):
-            out[3 * x + c] = _fma32(s_row[x], m0, _fma32(g_row[x], m1, p_row[x] * m2))
+            out[3 * x + c] = _fma32(s_row[x], m0, _fma32(g_row[x], m1, p_row[x] * m2))  # type: ignore[call-arg]
         for x in range(xs, w):
-            out[3 * x + c] = _fma32(p_row[x], m2, _fma32(s_row[x], m0, g_row[x] * m1))
+            out[3 * x + c] = _fma32(p_row[x], m2, _fma32(s_row[x], m0, g_row[x] * m1))  # type: ignore[call-arg]
 
 
 @numba.njit("void(f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], i8, f4[:, ::1], f4[:, ::1], "
