@@ -26,6 +26,12 @@ MERGE_MM = 0.1  # located points closer than this to the newest one are merged i
 MIN_MEASURED_ARMS = 3  # measured arms needed to outvote ECAL's guessed (fallback) ones
 MSAC_HYPOTHESES = 200  # point triples tried per robust fit
 WINDOW_MARGIN_MM = 1.0  # fit candidates reach this much past smooth_mm (outliers sit aside)
+#: where the located points round a point cover less than ``LOPSIDED`` smooth_mm of the seam
+#: on one side of it (the edge of a hole a blind stretch left), its tangent's fit reaches across
+#: the hole to the points beyond, within ``TANGENT_REACH`` smooth_mm of it
+#: (:meth:`LookAheadBuffer._wide_fit`)
+LOPSIDED = 0.5
+TANGENT_REACH = 3.0
 
 
 @dataclass(frozen=True)
@@ -166,13 +172,21 @@ class SeamFit:
     origin: np.ndarray | None = None
     d: np.ndarray | None = None
     span: tuple[float, float] = (0.0, 0.0)
+    #: the quadratic the tangent is the derivative of and its points' x range, where it is
+    #: not ``coef``: the wider fit of a lopsided window (see :meth:`LookAheadBuffer.seam_fit`)
+    tcoef: np.ndarray | None = None
+    tspan: tuple[float, float] = (0.0, 0.0)
+    #: how far from the fitted point the points it rests on may lie (``smooth_mm``; a lopsided
+    #: window's ``TANGENT_REACH smooth_mm``): a point pushed farther away changes nothing
+    reach_mm: float = 0.0
 
     def tangent_at(self, p: np.ndarray) -> np.ndarray | None:
         """Unit tangent of the fit at the position of ``p`` (3,) along it (None: no fit)."""
-        if self.coef is None:
+        coef, span = (self.coef, self.span) if self.tcoef is None else (self.tcoef, self.tspan)
+        if coef is None:
             return self.tangent
-        x = float(np.clip((p - self.origin) @ self.d, *self.span))
-        t = self.coef[1] + 2 * self.coef[2] * x
+        x = float(np.clip((p - self.origin) @ self.d, *span))
+        t = coef[1] + 2 * coef[2] * x
         return t / np.linalg.norm(t)
 
 
@@ -217,8 +231,9 @@ class LookAheadBuffer:
         self.version = 0
         self.flagged = 0  # points flagged as off the seam so far (reported, never silent)
         # next_command worked out ahead by prepare(): (cp, step, result, fitted points (n, 3),
-        # distance from cp to the nearest point then)
-        self._ready: tuple[np.ndarray, float, tuple, np.ndarray, float] | None = None
+        # distance from cp to the nearest point then, how far from each fitted point its fit
+        # reached (n,): SeamFit.reach_mm)
+        self._ready: tuple[np.ndarray, float, tuple, np.ndarray, float, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -231,8 +246,8 @@ class LookAheadBuffer:
         r = self._ready
         if r is not None and (
                 len(self.points) == self.points.maxlen
-                or np.min(np.linalg.norm(r[3] - p, axis=1))
-                <= self.smooth_mm + WINDOW_MARGIN_MM + MERGE_MM
+                or np.any(np.linalg.norm(r[3] - p, axis=1)
+                          <= r[5] + WINDOW_MARGIN_MM + MERGE_MM)
                 or np.linalg.norm(p - r[0]) <= r[4] + MERGE_MM):
             # the point may enter a fit the prepared command rests on, or become the point
             # nearest cp (which decides where the search starts)
@@ -276,7 +291,9 @@ class LookAheadBuffer:
         Points farther than ``outlier_mm`` from the fit are flagged (each point is judged by
         the fit centred nearest to it) and not used. The smoothed point is the fit at point
         ``k``'s position along the seam (smoothed over the inliers' order of arrival), the
-        tangent its derivative there, the arm directions the median over the inliers' unit arm
+        tangent its derivative there (where the window's points lie to one side of point
+        ``k``, at the edge of a hole, that of a fit reaching across the hole:
+        :meth:`_wide_fit`), the arm directions the median over the inliers' unit arm
         vectors. The tangent is None when fewer than
         4 points agree (the seam seen at one spot only, e.g. before the robot moves); the
         point is then point ``k`` itself.
@@ -321,10 +338,60 @@ class LookAheadBuffer:
         B = np.stack([np.ones(len(idx)), n_k, n_k * n_k], axis=1)[inl]
         xk = float(np.clip(np.linalg.lstsq(B, x[inl], rcond=None)[0][0], x.min(), x.max()))
         p = coef[0] + coef[1] * xk + coef[2] * xk * xk
-        tangent = coef[1] + 2 * coef[2] * xk
+        span = (float(x.min()), float(x.max()))
+        tcoef, tspan, reach = None, (0.0, 0.0), self.smooth_mm
+        cover = (xk - float(x[inl].min()), float(x[inl].max()) - xk)
+        if min(cover) < LOPSIDED * self.smooth_mm:
+            reach = TANGENT_REACH * self.smooth_mm
+            wide = self._wide_fit(P, pk, d, xk, cover)
+            if wide is not None:
+                tcoef, tspan = wide
+        c = coef if tcoef is None else tcoef
+        tangent = c[1] + 2 * c[2] * xk
         tangent = tangent / np.linalg.norm(tangent)
         return SeamFit(p, tangent, self._arms(pts, idx[inl]), int(inl.sum()),
-                       int((~inl).sum()), coef, pk, d, (float(x.min()), float(x.max())))
+                       int((~inl).sum()), coef, pk, d, span, tcoef, tspan, reach)
+
+    def _wide_fit(self, P: np.ndarray, pk: np.ndarray, d: np.ndarray, xk: float,
+                  cover: tuple[float, float]) -> tuple[np.ndarray, tuple[float, float]] | None:
+        """The quadratic (and its inliers' x range) for the tangent at ``xk`` (along ``d`` from
+        ``pk``) where the window's points cover less than ``LOPSIDED smooth_mm`` of the seam
+        on a side of it (``cover``: how far they reach behind and ahead): that side reaches on
+        across the hole, to ``smooth_mm`` past the first point seen beyond it, within
+        ``TANGENT_REACH smooth_mm``. None where nothing was seen beyond (the stripe's first or
+        newest points: the seam there is not known to bend as a quadratic over a longer
+        stretch) or too little fits.
+
+        A quadratic's slope at the end of the points it was fitted to has sixteen times the
+        variance of its slope at their middle: at the edges of a hole in the look-ahead buffer
+        (the arc's glare hid the bevel's root for ~20 frames after the arc struck) the located
+        points' scatter (~0.05 mm) pitched the tangent, and with it the torch frame's axis
+        (the arms are projected across the tangent), by up to 2.8 degrees. With the points
+        beyond the hole the tangent there is interpolated, not extrapolated. It judges no
+        point."""
+        reach = TANGENT_REACH * self.smooth_mm
+        cand = np.flatnonzero(np.linalg.norm(P - pk, axis=1) <= reach + WINDOW_MARGIN_MM)
+        x = (P[cand] - pk) @ d - xk
+        lo, hi = -self.smooth_mm, self.smooth_mm
+        wider = False
+        for sign, covered in ((-1.0, cover[0]), (1.0, cover[1])):
+            if covered >= LOPSIDED * self.smooth_mm:
+                continue
+            beyond = sign * x[(sign * x > self.smooth_mm) & (sign * x <= reach)]
+            if not len(beyond):
+                continue
+            edge = min(float(beyond.min()) + self.smooth_mm, reach)
+            lo, hi = (-edge, hi) if sign < 0 else (lo, edge)
+            wider = True
+        win = (x >= lo) & (x <= hi)
+        if not wider or win.sum() < 4:
+            return None
+        xw = x[win] + xk
+        coef, r = _msac_quadratic(xw, P[cand[win]], self.outlier_mm)
+        inl = r <= self.outlier_mm
+        if inl.sum() < 4:
+            return None
+        return coef, (float(xw[inl].min()), float(xw[inl].max()))
 
     @staticmethod
     def _arms(pts: list[Located], idx: np.ndarray) -> np.ndarray:
@@ -394,7 +461,8 @@ class LookAheadBuffer:
         """Work out :meth:`next_command` ``(cp, step_mm)`` now and keep it (the live loop does
         this between camera frames, so the frame that finds the torch at cp only sends).
         The kept answer is dropped as soon as a point is pushed within reach of a fit it
-        rests on (``smooth_mm`` and margins around each fitted point) or nearer cp than any
+        rests on (``smooth_mm`` and margins around each fitted point; ``TANGENT_REACH
+        smooth_mm`` round one whose window was lopsided) or nearer cp than any
         point was, when the full buffer drops its oldest, and when anything else searches or
         fits (:meth:`next_command` elsewhere, :meth:`fit`, :meth:`screen`), so
         :meth:`next_command` returns what it would compute itself. (One difference remains
@@ -411,14 +479,16 @@ class LookAheadBuffer:
         if out is not None:
             near = float(np.min(np.linalg.norm(np.stack([loc.p for loc in self.points]) - cp,
                                                axis=1)))
-            self._ready = (np.array(cp, float), step_mm, out, np.array(fitted).reshape(-1, 3),
-                           near)
+            self._ready = (np.array(cp, float), step_mm, out,
+                           np.array([f[0] for f in fitted]).reshape(-1, 3), near,
+                           np.array([f[1] for f in fitted]))
 
     def _next_command(self, cp: np.ndarray, step_mm: float
                       ) -> tuple[tuple[np.ndarray, np.ndarray | None, np.ndarray] | None,
-                                 list[np.ndarray]]:
-        """next_command's answer and the points whose fits it ran (see prepare)."""
-        fitted: list[np.ndarray] = []
+                                 list[tuple[np.ndarray, float]]]:
+        """next_command's answer and the points whose fits it ran, each with its fit's reach
+        (see prepare)."""
+        fitted: list[tuple[np.ndarray, float]] = []
         if not self.points:
             return None, fitted
         P = np.stack([loc.p for loc in self.points])
@@ -436,8 +506,8 @@ class LookAheadBuffer:
         for k in np.flatnonzero(dist >= step_mm):
             if k < j or self.points[k].flagged:
                 continue
-            fitted.append(P[k])
             f = self.seam_fit(int(k))
+            fitted.append((P[k], max(f.reach_mm, self.smooth_mm)))
             if self.points[k].flagged:
                 continue  # the candidate itself was off the seam: take the next one
             ip = ipi_step(cp, f.p, step_mm)
