@@ -352,3 +352,40 @@ def test_numpy_torch_frame_matches_the_torch_one():
     # collinear arms: no frame
     p = np.zeros(3)
     assert not frame_from_arms(p, p + [0, 1.0, 0], p + [0, 2.0, 0], np.array([1.0, 0, 0]))[1]
+
+
+def test_arms_in_one_line_give_the_frame_across_it_where_the_torch_faces():
+    """A butt's stripe runs on straight across its gap: no corner to bisect. With where the
+    torch points now (``facing``) the frame is the line's normal in the plane across the seam,
+    on that side (the surface's normal, into it); the numpy and torch frames agree; without
+    ``facing`` and for arms folded onto one side (not opposite) there is still no frame."""
+    import torch
+
+    from torchseam.geometry.torch_frame import frame_from_arms, torch_frame
+
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        # a surface through p with normal n, the seam along t in it, the stripe across
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        t = np.cross(n, rng.normal(size=3))
+        t /= np.linalg.norm(t)
+        line = np.cross(t, n)
+        p = rng.normal(size=3) * 300
+        a1 = 8.0 * line + 0.01 * rng.normal(size=3)          # opposite arms, within 1 degree
+        a2 = -6.0 * line + 0.01 * rng.normal(size=3)
+        facing = -n + 0.4 * rng.normal(size=3)                # the torch points into it, roughly
+        Rn, ok = frame_from_arms(p, p + a1, p + a2, t, facing)
+        assert ok
+        assert Rn[:, 2] @ -n > 0.9995                         # wz: into the surface
+        assert Rn[:, 0] @ t > 0.998                           # wx: along the travel
+        np.testing.assert_allclose(Rn.T @ Rn, np.eye(3), atol=1e-12)
+        assert np.linalg.det(Rn) > 0
+        P = torch.tensor(p)[None]
+        R, okt = torch_frame(P, P + torch.tensor(a1)[None], P + torch.tensor(a2)[None],
+                             tangent=torch.tensor(t)[None],
+                             facing=torch.tensor(facing)[None])
+        assert bool(okt[0])
+        np.testing.assert_allclose(Rn, R[0].numpy(), atol=1e-12)
+        assert not frame_from_arms(p, p + a1, p + a2, t)[1]    # no facing: no frame
+        assert not frame_from_arms(p, p + a1, p + 2 * a1, t, facing)[1]   # one side: none

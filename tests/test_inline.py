@@ -116,3 +116,38 @@ def test_rendered_girth_joint_shows_its_aim_point(path, family):
         assert truth.visible and res.ok, res.status
         errs.append(float(np.linalg.norm(res.aim - truth.uv)))
     assert max(errs) <= 1.0, errs
+
+
+@pytest.mark.parametrize("path, family", [(BUTT, "sim"), (BUTT, "wide"), (LAP, "sim")])
+def test_profile_tracker_is_honest_on_a_girth_joint_under_the_arc(path, family):
+    """The profile tracker along a girth joint under heavy arc light (the bench's set-up:
+    bench/profiles.py): the arc's glare eats a gap edge now and then, so the gap reads wider
+    and its centre moves off by half the loss; no frame may be ``tracked`` more than 3 px off
+    the simulator's truth; on the family the profiles were chosen on most frames are tracked
+    (the held-out wide family, its stripe wide and saturated, loses the butt's gap under the
+    arc's glare: docs/benchmarks.md; it may coast, never claim a wrong point)."""
+    from torchseam.track.fusion import TrackStatus
+    from torchseam.track.profile import ProfileTracker, load_profile_track_config
+
+    part, noise = load_part(path), load_noise()
+    tracker = ProfileTracker(ProfileFinder(load_tipm(), load_profile_config(), part.joint),
+                             load_profile_track_config())
+    seq = iter(simulate(load_cell(), part, noise, SequenceSpec(
+        n_frames=60, start_mm=100.0, level=noise.level("heavy"), seed=1000, family=family)))
+    img0, truth0 = next(seq)
+    res0 = tracker.find(img0)
+    assert res0.ok and np.linalg.norm(res0.aim - truth0.uv) < 1.0, res0.status
+    tracker.init(img0, res0.aim)
+    prev, tracked, frames = truth0.uv, [], 0
+    for k, (img, truth) in enumerate(seq, start=1):
+        tracker.expect(prev)        # the locator's prediction: here the truth a frame before
+        r = tracker.track(img)
+        prev = truth.uv
+        if k < noise.clean_lead_frames or not truth.visible:
+            continue
+        frames += 1
+        if r.status == TrackStatus.TRACKED:
+            tracked.append(float(np.linalg.norm(r.uv - truth.uv)))
+    assert max(tracked, default=0.0) <= 3.0, sorted(tracked)[-5:]
+    if family == "sim":
+        assert len(tracked) >= 0.6 * frames, (len(tracked), frames)

@@ -26,7 +26,8 @@ MIN_ARM_MM = 0.2  # an arm point this close to the weld point is coincident with
 
 
 def torch_frame(p: Tensor, q1: Tensor, q2: Tensor, travel: Tensor | None = None,
-                tangent: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                tangent: Tensor | None = None, facing: Tensor | None = None
+                ) -> tuple[Tensor, Tensor]:
     """Torch orientation at weld points from the three-point principle.
 
     Args:
@@ -38,6 +39,10 @@ def torch_frame(p: Tensor, q1: Tensor, q2: Tensor, travel: Tensor | None = None,
             plane leans on a curved seam (the saddle turns about 15 degrees over the 20 mm
             look-ahead), which tilts the arms' bisector off the joint's; across the seam, the
             bisector of the arms is the bisector of the joint.
+        facing: (..., 3) where the torch points now (its wz, roughly), with ``tangent``: arms
+            that run on in one line (a butt's straight stripe across its gap: no corner to
+            bisect) give wz perpendicular to that line in Omega, on this side (the surface's
+            normal, into it); without it they are degenerate.
 
     Returns:
         ``(R, valid)``: (..., 3, 3) rotation matrices with columns (wx, wy, wz), and (...,)
@@ -74,6 +79,20 @@ def torch_frame(p: Tensor, q1: Tensor, q2: Tensor, travel: Tensor | None = None,
         px = torch.where(flip, -px, px)
     pz = u1 / n1.clamp_min(1e-12) + u2 / n2.clamp_min(1e-12)                    # eq. 28
     pz = pz / pz.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    if facing is not None and tangent is not None:
+        # arms in one line (opposite): px the tangent, pz across the line in Omega, away
+        # from where the torch points
+        check_shape(facing, "... 3", "facing")
+        line = u1 / n1.clamp_min(1e-12) - u2 / n2.clamp_min(1e-12)
+        straight = ((sin <= MIN_SIN) & ((u1 * u2).sum(-1) < 0) & (n1.squeeze(-1) > MIN_ARM_MM)
+                    & (n2.squeeze(-1) > MIN_ARM_MM) & torch.isfinite(line).all(-1))
+        tx = torch.where((t * travel).sum(-1, keepdim=True) < 0, -t, t)
+        across = torch.cross(tx, line, dim=-1)
+        across = across / across.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        across = torch.where((across * facing).sum(-1, keepdim=True) > 0, -across, across)
+        px = torch.where(straight[..., None], tx, px)
+        pz = torch.where(straight[..., None], across, pz)
+        valid = valid | straight
     py = torch.cross(pz, px, dim=-1)
     R = torch.stack([px, -py, -pz], dim=-1)                                    # eq. 29
     eye = torch.eye(3, dtype=R.dtype, device=R.device).expand_as(R)
@@ -81,8 +100,8 @@ def torch_frame(p: Tensor, q1: Tensor, q2: Tensor, travel: Tensor | None = None,
     return R, valid
 
 
-def frame_from_arms(p: np.ndarray, q1: np.ndarray, q2: np.ndarray, tangent: np.ndarray
-                    ) -> tuple[np.ndarray, bool]:
+def frame_from_arms(p: np.ndarray, q1: np.ndarray, q2: np.ndarray, tangent: np.ndarray,
+                    facing: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
     """The torch frame of :func:`torch_frame` with a seam tangent (Omega perpendicular to the
     seam, px along the tangent), for one point in numpy: the live loop's twin of the batched
     torch version (which pays ~1.5 ms of per-call tensor overhead on 3-vectors, this one
@@ -91,10 +110,13 @@ def frame_from_arms(p: np.ndarray, q1: np.ndarray, q2: np.ndarray, tangent: np.n
     Args:
         p: (3,) weld point; q1, q2: (3,) a point on each stripe arm; tangent: (3,) the seam's
             direction of travel (need not be unit). All mm, base frame.
+        facing: (3,) where the torch points now: arms in one line (a butt) give the frame
+            across that line (:func:`torch_frame`'s ``facing``).
 
     Returns:
         ``(R, ok)``: (3, 3) rotation with columns (wx, wy, wz) and whether the points define a
-        frame (coincident or collinear arms: ``ok`` False and the identity).
+        frame (coincident or collinear arms without ``facing``: ``ok`` False and the
+        identity).
     """
     t = tangent / max(float(np.linalg.norm(tangent)), 1e-12)
     u1, u2 = q1 - p, q2 - p
@@ -104,6 +126,15 @@ def frame_from_arms(p: np.ndarray, q1: np.ndarray, q2: np.ndarray, tangent: np.n
     cross = cross3(u1, u2)
     nc = float(np.linalg.norm(cross))
     sin = nc / max(n1 * n2, 1e-12)
+    if (facing is not None and n1 > MIN_ARM_MM and n2 > MIN_ARM_MM and sin <= MIN_SIN
+            and float(u1 @ u2) < 0 and math.isfinite(nc)):
+        line = u1 / n1 - u2 / n2                      # arms in one line: across it in Omega
+        across = cross3(t, line)
+        across = across / max(float(np.linalg.norm(across)), 1e-12)
+        if across @ facing > 0:
+            across = -across
+        py = cross3(across, t)
+        return np.stack([t, -py, -across], axis=1), True
     if not (n1 > MIN_ARM_MM and n2 > MIN_ARM_MM and sin > MIN_SIN and math.isfinite(nc)):
         return np.eye(3), False
     px = cross / max(nc, 1e-12)                                        # eq. 27

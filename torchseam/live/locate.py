@@ -134,9 +134,10 @@ class SeamLocator:
         t1 = time.perf_counter()
         prof = self.tracker.result
         pix = [uv]
-        if status == TrackStatus.TRACKED and prof is not None and prof.arm_points is not None:
-            pix += [prof.points["left_root"], prof.arm_points[0], prof.points["right_root"],
-                    prof.arm_points[1]]
+        roots = None if prof is None else prof.arm_roots
+        if status == TrackStatus.TRACKED and prof is not None and roots is not None:
+            assert prof.arm_points is not None   # (arm_roots is None without them)
+            pix += [roots[0], prof.arm_points[0], roots[1], prof.arm_points[1]]
         X = self.tri(axis.to_camera(np.stack(pix)), T_B_F)
         if status == TrackStatus.TRACKED and np.all(np.isfinite(X[0])):
             self._seen.append(X[0])

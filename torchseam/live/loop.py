@@ -773,7 +773,8 @@ class LiveLoop:
                         f"{self.cfg.max_offset_mm:g} mm): tracking suspect")
         if not np.all(np.isfinite(arms)):
             return "no arm points (ECAL) near the target: no torch frame"
-        R, ok = frame_from_arms(ip, ip + arms[0], ip + arms[1], tangent)
+        facing = None if self.last_q is None else quat_to_matrix(self.last_q)[:, 2]
+        R, ok = frame_from_arms(ip, ip + arms[0], ip + arms[1], tangent, facing)
         if not ok:
             return "degenerate torch frame (arms collinear)"
         q = matrix_to_quat(R @ self._tilt)

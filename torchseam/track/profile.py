@@ -113,6 +113,9 @@ class ProfileTracker(Tracker):
         #: edges in their places
         self._dirs = (deque[float](maxlen=cfg.edge_history),
                       deque[float](maxlen=cfg.edge_history))
+        #: butt, lap: the vector from one end to the other (px) on the recent frames
+        self._pair = deque[np.ndarray](maxlen=cfg.edge_history)
+        self._stale_pair = 0
 
     def find(self, frame: np.ndarray) -> ProfileResult:
         """The profile on a whole frame (the start: no prediction yet)."""
@@ -125,6 +128,14 @@ class ProfileTracker(Tracker):
         for hist in (*self._edges, *self._dirs):
             hist.clear()
         self._stale = [0, 0]
+        self._pair.clear()
+        self._stale_pair = 0
+        # a butt's or a lap's span from the start frame (clean: the arc is not lit yet), so
+        # the first frames under the arc are checked too
+        if self.finder.joint in ("butt", "lap") and np.all(np.isfinite(self.uv)):
+            res = self._window(check_frame(frame), self.uv)
+            if res.ok and float(np.linalg.norm(res.aim - self.uv)) <= self.cfg.gate_px:
+                self._ends(res, self.uv)
 
     def expect(self, uv: np.ndarray | None) -> None:
         self.expected = None if uv is None else np.asarray(uv, float).copy()
@@ -157,7 +168,7 @@ class ProfileTracker(Tracker):
         # a prediction grows less certain with each frame without evidence
         gate = self.cfg.gate_px * min(1.0 + self.misses, MAX_GATE_GROWTH)
         if res.ok:
-            res = self._root_edges(res)
+            res = self._root_edges(res) if res.joint == "v_groove" else self._ends(res, pred)
         if res.ok and float(np.linalg.norm(res.aim - pred)) <= gate:
             uv = self.cfg.smooth * pred + (1.0 - self.cfg.smooth) * res.aim
             self.velocity = uv - self.uv if np.all(np.isfinite(self.uv)) else np.zeros(2)
@@ -247,6 +258,70 @@ class ProfileTracker(Tracker):
             reason=(res.reason + "; " if res.reason else "") + f"{which} root edge at its "
             "recent place",
             gap_px=float(np.linalg.norm(new[1] - new[0])))
+
+    def _ends(self, res: ProfileResult, pred: np.ndarray) -> ProfileResult:
+        """A butt's two gap edges, a lap's root and edge, checked against the recent frames'.
+        The vector from one end to the other (the gap across, the step) changes slowly along
+        the seam; an end is where the stripe stops, the profile's weakest reading: the arc's
+        glare eats the stripe's end (the gap reads wider), a spatter streak carries it on.
+
+        From the start frame's (:meth:`init`) and the recent values that agreed with their
+        median (the last ``edge_history``), a frame whose vector is more than ``edge_tol_px``
+        off that median has an end
+        off: the end nearer its expected place (the prediction, less or plus the median's
+        share) stays, within ``edge_tol_px`` of it, and the other is put back at the median
+        from it; no end there: no evidence (``ok`` False). A vector taken from its history on
+        more than ``edge_max_frames`` frames in a row is no longer known (its history starts
+        again from what the frames show; the gate on the prediction still holds)."""
+        names = ("left_edge", "right_edge") if res.joint == "butt" else ("root", "edge")
+        if not all(n in res.points for n in names):
+            return res
+        a, b = res.points[names[0]], res.points[names[1]]
+        d = b - a
+        hist = self._pair
+        if not hist:
+            hist.append(d)
+            return res
+        ref = np.median(np.array(hist), axis=0)
+        if float(np.linalg.norm(d - ref)) <= self.cfg.edge_tol_px:
+            hist.append(d)
+            self._stale_pair = 0
+            return res
+        self._stale_pair += 1
+        if self._stale_pair > self.cfg.edge_max_frames:
+            hist.clear()
+            self._stale_pair = 0
+            return dataclasses.replace(
+                res, ok=False, aim=np.full(2, np.nan),
+                reason=f"the {res.joint}'s ends off their recent span for "
+                       f"{self.cfg.edge_max_frames} frames")
+        share = 0.5 if res.joint == "butt" else 0.0   # the aim's place between the ends
+        exp_a = pred - share * ref
+        exp_b = exp_a + ref
+        off_a, off_b = float(np.linalg.norm(a - exp_a)), float(np.linalg.norm(b - exp_b))
+        if min(off_a, off_b) > self.cfg.edge_tol_px:
+            return dataclasses.replace(
+                res, ok=False, aim=np.full(2, np.nan),
+                reason=f"both ends off their expected places (span {np.linalg.norm(d):.1f} px, "
+                       f"recently {np.linalg.norm(ref):.1f})")
+        if off_a <= off_b:
+            a_new, b_new, moved = a, a + ref, names[1]
+        else:
+            a_new, b_new, moved = b - ref, b, names[0]
+        aim = a_new + share * ref
+        arms = res.arm_points
+        if arms is not None and res.joint == "butt":   # each plate's piece moves with its end
+            arms = arms + np.stack([a_new - a, b_new - b])
+        elif arms is not None:   # a lap: the plate's with the root, the face root to edge
+            face = b_new - a_new
+            reach = float(np.linalg.norm(arms[1] - a))
+            arms = np.stack([arms[0] + a_new - a,
+                             a_new + reach * face / max(float(np.linalg.norm(face)), 1e-9)])
+        return dataclasses.replace(
+            res, aim=aim, points=dict(res.points, **{names[0]: a_new, names[1]: b_new}),
+            arm_points=arms,
+            reason=(res.reason + "; " if res.reason else "") + f"{moved} at its recent span",
+            width_px=float(np.linalg.norm(ref)) if res.joint == "butt" else res.width_px)
 
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
         r = self.track(frame)

@@ -91,6 +91,11 @@ def load_profile_config(path: str | Path | None = None) -> ProfileConfig:
     return load_config(ProfileConfig, path or config_path("profiles.yaml"))
 
 
+#: the feature points each piece of :attr:`ProfileResult.arm_points` leaves, by profile
+ARM_ROOTS = {"v_groove": ("left_root", "right_root"), "butt": ("left_edge", "right_edge"),
+             "lap": ("root", "root")}
+
+
 @dataclass
 class ProfileResult:
     """Outcome of a joint profile on one frame.
@@ -111,7 +116,9 @@ class ProfileResult:
             it has no flank), along its tangent at the edge (a quadratic over ``arm_px`` of
             it: a bevel is a cone and a pipe a cylinder, and their laser cuts curve): with
             the root edges, the two faces' directions at the root (what the torch bisects);
-            None where not found.
+            butt: ``fit_px`` out along each plate from its gap edge (one line across the gap:
+            the torch stands across it); lap: along the far plate and along the edge face
+            from the root (:attr:`arm_roots`). None where not found.
     """
 
     joint: str
@@ -125,6 +132,16 @@ class ProfileResult:
     centre: np.ndarray | None = None
     tipm: TipmResult | None = None
     arm_points: np.ndarray | None = None
+
+    @property
+    def arm_roots(self) -> np.ndarray | None:
+        """(2, 2) where each of :attr:`arm_points`' pieces leaves the joint (a groove's root
+        edges, a butt's gap edges, a lap's root twice: its far plate and its edge face leave
+        it); None without arm points."""
+        names = ARM_ROOTS.get(self.joint)
+        if names is None or self.arm_points is None:
+            return None
+        return np.stack([self.points[n] for n in names])
 
     @property
     def status(self) -> str:
@@ -281,6 +298,7 @@ class ProfileFinder:
                                              min_area=0, dilate_px=0), tipm.centre_line)
         self._close = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * s.close_px + 1,) * 2)
         self._tall = np.ones((s.max_run_px + 1, 1), np.uint8)
+        self._across = np.ones((2 * s.side_px + 1, 1), np.uint8)
         self._dilate = tipm._kernel
         self._ridge = np.zeros((1, 1), np.uint8)  # the frame's stripe response (see _end)
 
@@ -317,7 +335,12 @@ class ProfileFinder:
         # a line is brighter than the light side_px rows above AND below it; a bright part or
         # table edge is not (its bright side stays bright), though its ridge is a band
         red = red_response(frame)
-        k = s.side_px
+        # beyond the stripe's whole width at least: a wide stripe saturated in R and G has a
+        # red excess of two ridges, its edges, side_px apart or less; each would fail the test
+        # on the other (its width: the median of the columns of its mask closed across)
+        cols = np.count_nonzero(cv2.morphologyEx(binary, cv2.MORPH_CLOSE, self._across),
+                                axis=0)
+        k = max(s.side_px, int(np.median(cols[cols > 0])) + 1 if cols.any() else 0)
         side = np.zeros_like(red)
         side[k:] = red[:-k]
         side[:-k] = np.maximum(side[:-k], red[k:])
@@ -503,15 +526,20 @@ class ProfileFinder:
                     return _fail("butt", f"no gap: {sides}", pts)
                 a, b = sides[0], sides[1]
                 le, re = a.project(pts[i0 - 1]), b.project(pts[i1])
+                arms = np.stack([le + self.cfg.fit_px * _outward(a, pts[i0 - 1::-1]),
+                                 re + self.cfg.fit_px * _outward(b, pts[i1:])])
                 return ProfileResult("butt", True, (le + re) / 2,
                                      {"left_edge": le, "right_edge": re}, "dip",
-                                     float(np.linalg.norm(re - le)), centre=pts)
+                                     float(np.linalg.norm(re - le)), centre=pts,
+                                     arm_points=arms)
         sides = self._two_plates(pts, resp, j)
         if isinstance(sides, str):
             return _fail("butt", f"no gap: {sides}", pts)
-        _, _, le, re = sides
+        a, b, le, re = sides
+        arms = np.stack([le + self.cfg.fit_px * _outward(a, pts[j::-1]),
+                         re + self.cfg.fit_px * _outward(b, pts[j + 1:])])
         return ProfileResult("butt", True, (le + re) / 2, {"left_edge": le, "right_edge": re},
-                             how, float(abs(re[0] - le[0])), centre=pts)
+                             how, float(abs(re[0] - le[0])), centre=pts, arm_points=arms)
 
     def _plates(self, left: np.ndarray, right: np.ndarray) -> tuple[Line, Line] | str:
         """A lap's two plates, their points (N, 2) from the joint outward: their lines next
@@ -587,9 +615,13 @@ class ProfileFinder:
             re = self._end(right, response_at(self._ridge, right), b)
         # the far plate shows on the far side of the other: its end is the root
         before_far = (offset > 0.0) == (cfg.far_side == "up")
-        root, edge = (le, re) if before_far else (re, le)
+        root, edge, plate, piece = ((le, re, a, pts[:j][::-1]) if before_far
+                                    else (re, le, b, pts[j:]))
+        face = edge - root
+        face_d = face / max(float(np.linalg.norm(face)), 1e-9)
+        arms = np.stack([root + cfg.fit_px * _outward(plate, piece), root + cfg.fit_px * face_d])
         return ProfileResult("lap", True, root.copy(), {"edge": edge, "root": root},
-                             width_px=jump, centre=pts)
+                             width_px=jump, centre=pts, arm_points=arms)
 
 
 #: :meth:`ProfileFinder._end`'s step along a line when it follows the stripe to its end (px)
