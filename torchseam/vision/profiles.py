@@ -218,27 +218,28 @@ def split_two_lines(p: np.ndarray, min_points: int) -> int:
 def split_three_lines(p: np.ndarray, min_points: int, near: int, reach: int
                       ) -> tuple[int, int]:
     """Where points (N, 2), ordered along the stripe, are best explained as three straight
-    pieces, the middle one short (a lap's edge face; empty where it is dark): ``(i0, i1)``,
-    the middle piece ``p[i0:i1]``, both ends within ``reach`` points of ``near`` and the outer
-    pieces at least ``min_points`` each (total-least-squares errors from cumulative sums, as
-    :func:`split_two_lines`)."""
+    pieces, the middle one short (a lap's edge face; empty where it is dark) and holding the
+    point ``near``: ``(i0, i1)``, the middle piece ``p[i0:i1]``, ``i0 <= near <= i1``, each
+    within ``reach`` points of ``near``, the outer pieces at least ``min_points`` each
+    (total-least-squares errors from cumulative sums, as :func:`split_two_lines`)."""
     n = len(p)
     q = p - p.mean(axis=0)
     u, v = q[:, 0], q[:, 1]
     sums = np.concatenate([np.zeros((6, 1)), np.cumsum(
         np.stack([np.ones(n), u, v, u * u, v * v, u * v]), axis=1)], axis=1)  # (6, N + 1)
 
-    def err(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        s = sums[:, b] - sums[:, a]
-        return np.where(s[0] >= 2, _tls_error(np.where(s[0] >= 2, s, 1.0)), 0.0)
+    def err(s: np.ndarray) -> np.ndarray:
+        """The TLS error of pieces from their sums (6, ...); 0 for fewer than two points."""
+        many = s[0] >= 2
+        return np.where(many, _tls_error(np.where(many, s, 1.0)), 0.0)
 
-    ks = np.arange(max(min_points, near - reach), min(n - min_points, near + reach) + 1)
-    a, b = np.meshgrid(ks, ks, indexing="ij")
-    ok = b >= a
-    a, b = a[ok], b[ok]
-    total = err(np.zeros_like(a), a) + err(a, b) + err(b, np.full_like(b, n))
-    i = int(np.argmin(total))
-    return int(a[i]), int(b[i])
+    near = min(max(near, min_points), n - min_points)
+    a = np.arange(max(min_points, near - reach), near + 1)            # first of the middle
+    b = np.arange(near, min(n - min_points, near + reach) + 1)       # first after it
+    outer = err(sums[:, a])[:, None] + err(sums[:, -1:] - sums[:, b])[None, :]
+    middle = err(sums[:, None, b] - sums[:, a, None])                 # (len a, len b)
+    i, k = np.unravel_index(int(np.argmin(outer + middle)), middle.shape)
+    return int(a[i]), int(b[k])
 
 
 def _tls_error(s: np.ndarray) -> np.ndarray:
@@ -595,7 +596,7 @@ class ProfileFinder:
         if jump < cfg.min_step_px:
             return _fail("lap", f"no step: the plates are {jump:.1f} px apart", pts)
         # the plates and the edge face between them: three straight pieces round the jump
-        i0, i1 = split_three_lines(pts, m, j, int(4 * cfg.fit_px))
+        i0, i1 = split_three_lines(pts, m, j, int(2 * cfg.fit_px))
         lit = self._plates(pts[:i0][::-1], pts[i1:])
         face = pts[i0:i1]
         f = fit_line(face) if len(face) >= 3 else None
