@@ -317,3 +317,40 @@ def test_part_joint_field(tmp_path):
     bad.write_text(text + "joint: tee\n")
     with pytest.raises(ConfigError, match=r"tee.yaml: joint: .*'tee'"):
         load_part(bad)
+
+
+def _saturated_butt(glare_below: float) -> np.ndarray:
+    """A colour frame of a butt's stripe at row 240, broken at columns 310-330, bright enough to
+    saturate R and G in its core (a wide stripe on arc light: its red excess is two ridges, its
+    edges), over a glare-lit background; ``glare_below`` more green under the stripe dims its
+    lower ridge."""
+    h, w = 480, 640
+    v = np.arange(h, dtype=float)[:, None]
+    core = np.exp(-((v - 240.0) ** 2) / (2 * 3.5**2)) * np.ones((1, w))
+    core[:, 310:331] = 0.0
+    img = np.zeros((h, w, 3))
+    img[..., 0] = 40.0
+    img[..., 1] = 90.0 + 330.0 * core + glare_below * (v > 240.0)
+    img[..., 2] = 140.0 + 420.0 * core
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("glare_below", [0.0, 60.0])
+def test_a_saturated_stripe_is_centred_on_its_saturated_run(glare_below):
+    """A stripe saturated in R and G has no red excess in its core: the profile's centre line
+    is the middle of the saturated run, not the stronger ridge (with the lower ridge dimmed
+    by glare it sat on the upper one, ~4 px off); the butt's gap centre follows."""
+    from torchseam.vision.profiles import SATURATED_WINDOW_PX, saturated_centre
+
+    img = _saturated_butt(glare_below)
+    res = finder("butt")(img)
+    assert res.ok, res.status
+    lit = (res.centre[:, 0] < 309) | (res.centre[:, 0] > 331)   # (the mask spills into the gap)
+    assert np.all(np.abs(res.centre[lit, 1] - 240.0) <= 0.6), res.centre[lit, 1].min()
+    assert abs(res.aim[0] - 320.0) <= 1.0 and abs(res.aim[1] - 240.0) <= 0.6, res.aim
+    # a saturated blob taller than the search (glare, not a stripe) moves no point
+    blob = img.copy()
+    blob[150:330, 100:200] = 255
+    pts = np.array([[150.0, 236.0], [400.0, 236.0]])
+    moved = saturated_centre(blob, pts, SATURATED_WINDOW_PX)
+    assert moved[0, 1] == 236.0 and abs(moved[1, 1] - 240.0) <= 0.5

@@ -315,7 +315,7 @@ class ProfileFinder:
         ridge, mask, why = self.stripe(frame)
         if why:
             return _fail(self.joint, why)
-        pts = self._low.centre(ridge, mask)
+        pts = saturated_centre(frame, self._low.centre(ridge, mask), SATURATED_WINDOW_PX)
         if len(pts) < 2 * self.cfg.min_points:
             return _fail(self.joint, f"no stripe found ({len(pts)} centre-line points)", pts)
         resp = response_at(ridge, pts)
@@ -693,6 +693,50 @@ def _dip(resp: np.ndarray, fraction: float) -> tuple[int, int] | None:
         return None
     k = int(np.argmax(np.where(inner, ends - starts, -1)))
     return int(starts[k]), int(ends[k])
+
+
+#: :func:`saturated_centre`: rows searched either side of a centre point for the stripe's
+#: saturated run
+SATURATED_WINDOW_PX = 12
+#: an 8-bit pixel at or above this is saturated
+SATURATED_LEVEL = 250
+
+
+def saturated_centre(frame: np.ndarray, pts: np.ndarray, window: int) -> np.ndarray:
+    """Centre points (N, 2) of a stripe moved to the middle of its saturated run where it has
+    one. A stripe bright enough to saturate R (and G with it, over arc light or a wide
+    stripe's bleed) has no red excess in its core: its response is two ridges, its edges, and
+    a centre line weighed on them sits on the stronger one when glare dims the other (3-6 px
+    off on a wide stripe). The run of saturated pixels (R in colour, the intensity in mono)
+    nearest each point, starting within ``window`` rows of it and within ``2 window`` rows
+    all of it (a taller saturated blob of glare is no stripe), gives the point its middle;
+    other points stay."""
+    if not len(pts):
+        return pts
+    plane = frame[..., 2] if frame.ndim == 3 else frame
+    h = plane.shape[0]
+    u = np.clip(np.rint(pts[:, 0]).astype(int), 0, plane.shape[1] - 1)
+    v0 = np.rint(pts[:, 1]).astype(int)
+    reach = 2 * window
+    rows = v0[:, None] + np.arange(-reach, reach + 1)[None, :]            # (N, M)
+    inside = (rows >= 0) & (rows < h)
+    sat = inside & (plane[np.clip(rows, 0, h - 1), u[:, None]] >= SATURATED_LEVEL)
+    has = sat.any(axis=1)
+    if not has.any():
+        return pts
+    starts = sat & ~np.concatenate([np.zeros((len(pts), 1), bool), sat[:, :-1]], axis=1)
+    run = np.cumsum(starts, axis=1) * sat                                  # run ids, 0 off
+    dist = np.abs(np.arange(rows.shape[1]) - reach)[None, :] + np.where(sat, 0, 10 * reach)
+    pick = np.argmin(dist, axis=1)
+    has &= dist[np.arange(len(pts)), pick] <= window
+    near = run[np.arange(len(pts)), pick]
+    mine = (run == near[:, None]) & sat
+    first = np.argmax(mine, axis=1)
+    last = rows.shape[1] - 1 - np.argmax(mine[:, ::-1], axis=1)
+    ok = has & (last > first) & (first > 0) & (last < rows.shape[1] - 1)
+    out = pts.copy()
+    out[ok, 1] = v0[ok] - reach + 0.5 * (first[ok] + last[ok])
+    return out
 
 
 def response_at(ridge: np.ndarray, pts: np.ndarray) -> np.ndarray:
