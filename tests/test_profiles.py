@@ -340,7 +340,7 @@ def test_a_saturated_stripe_is_centred_on_its_saturated_run(glare_below):
     """A stripe saturated in R and G has no red excess in its core: the profile's centre line
     is the middle of the saturated run, not the stronger ridge (with the lower ridge dimmed
     by glare it sat on the upper one, ~4 px off); the butt's gap centre follows."""
-    from torchseam.vision.profiles import SATURATED_WINDOW_PX, saturated_centre
+    from torchseam.vision.profiles import saturated_centre
 
     img = _saturated_butt(glare_below)
     res = finder("butt")(img)
@@ -351,6 +351,6 @@ def test_a_saturated_stripe_is_centred_on_its_saturated_run(glare_below):
     # a saturated blob taller than the search (glare, not a stripe) moves no point
     blob = img.copy()
     blob[150:330, 100:200] = 255
-    pts = np.array([[150.0, 236.0], [400.0, 236.0]])
-    moved = saturated_centre(blob, pts, SATURATED_WINDOW_PX)
-    assert moved[0, 1] == 236.0 and abs(moved[1, 1] - 240.0) <= 0.5
+    pts = np.array([[150.0, 234.0], [400.0, 234.0]])
+    moved = saturated_centre(blob, pts, CFG.stripe.max_run_px)
+    assert moved[0, 1] == 234.0 and abs(moved[1, 1] - 240.0) <= 0.5

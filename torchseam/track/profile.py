@@ -47,6 +47,9 @@ from torchseam.vision.tipm import Tipm
 #: the evidence gate after n frames without evidence: ``gate_px (1 + n)``, at most this many
 #: times ``gate_px``
 MAX_GATE_GROWTH = 4.0
+#: a profile found again after the track was lost keeps its width and root gap within this
+#: share of the last tracked frame's (:meth:`ProfileTracker._same_shape`)
+REFIND_SHARE = 0.5
 #: the sides of a groove, in the order of :meth:`ProfileTracker._root_edges`' arrays
 SIDES = ("left", "right")
 
@@ -116,6 +119,8 @@ class ProfileTracker(Tracker):
         #: butt, lap: the vector from one end to the other (px) on the recent frames
         self._pair = deque[np.ndarray](maxlen=cfg.edge_history)
         self._stale_pair = 0
+        #: (width, root gap) px of the last frame tracked (the start frame's at first)
+        self._shape = (float("nan"), float("nan"))
 
     def find(self, frame: np.ndarray) -> ProfileResult:
         """The profile on a whole frame (the start: no prediction yet)."""
@@ -130,12 +135,15 @@ class ProfileTracker(Tracker):
         self._stale = [0, 0]
         self._pair.clear()
         self._stale_pair = 0
-        # a butt's or a lap's span from the start frame (clean: the arc is not lit yet), so
-        # the first frames under the arc are checked too
-        if self.finder.joint in ("butt", "lap") and np.all(np.isfinite(self.uv)):
+        self._shape = (float("nan"), float("nan"))
+        # the profile's shape (and a butt's or a lap's span) from the start frame (clean: the
+        # arc is not lit yet), so the first frames under the arc are checked too
+        if np.all(np.isfinite(self.uv)):
             res = self._window(check_frame(frame), self.uv)
             if res.ok and float(np.linalg.norm(res.aim - self.uv)) <= self.cfg.gate_px:
-                self._ends(res, self.uv)
+                self._shape = (res.width_px, res.gap_px)
+                if res.joint != "v_groove":
+                    self._ends(res, self.uv)
 
     def expect(self, uv: np.ndarray | None) -> None:
         self.expected = None if uv is None else np.asarray(uv, float).copy()
@@ -169,15 +177,35 @@ class ProfileTracker(Tracker):
         gate = self.cfg.gate_px * min(1.0 + self.misses, MAX_GATE_GROWTH)
         if res.ok:
             res = self._root_edges(res) if res.joint == "v_groove" else self._ends(res, pred)
+        if res.ok and res.joint == "v_groove" and self.misses > self.cfg.lost_frames:
+            res = self._same_shape(res)
         if res.ok and float(np.linalg.norm(res.aim - pred)) <= gate:
             uv = self.cfg.smooth * pred + (1.0 - self.cfg.smooth) * res.aim
             self.velocity = uv - self.uv if np.all(np.isfinite(self.uv)) else np.zeros(2)
             self.uv, self.misses, self.result = uv, 0, res
+            self._shape = (res.width_px, res.gap_px)
             return TrackResult(uv.copy(), int(TrackStatus.TRACKED))
         self.misses += 1
         self.uv, self.velocity = pred, np.zeros(2)  # held, not extrapolated, while blind
         status = TrackStatus.LOST if self.misses > self.cfg.lost_frames else TrackStatus.COASTING
         return TrackResult(pred.copy(), int(status))
+
+    def _same_shape(self, res: ProfileResult) -> ProfileResult:
+        """After the track was lost (its gate grown :data:`MAX_GATE_GROWTH` times), a groove
+        found again is taken only with the shape it last had: its width and its root gap each
+        within :data:`REFIND_SHARE` of the last tracked frame's (the joint's cross-section
+        changes slowly along the seam; a structure the arc's glare and spatter make near the
+        prediction does not keep it), or no evidence. (A butt's and a lap's span is checked on
+        every frame, :meth:`_ends`; the glare eats a butt's two edges alike, and its centre
+        holds while its width does not.)"""
+        for name, now, then in (("width", res.width_px, self._shape[0]),
+                                ("root gap", res.gap_px, self._shape[1])):
+            if np.isfinite(now) and np.isfinite(then) and abs(now - then) > REFIND_SHARE * then:
+                return dataclasses.replace(
+                    res, ok=False, aim=np.full(2, np.nan),
+                    reason=f"found again with its {name} {now:.1f} px (last tracked "
+                           f"{then:.1f})")
+        return res
 
     def _root_edges(self, res: ProfileResult) -> ProfileResult:
         """A v_groove's root edges checked against the recent frames'. The stripe's end at a

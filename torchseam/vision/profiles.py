@@ -315,7 +315,7 @@ class ProfileFinder:
         ridge, mask, why = self.stripe(frame)
         if why:
             return _fail(self.joint, why)
-        pts = saturated_centre(frame, self._low.centre(ridge, mask), SATURATED_WINDOW_PX)
+        pts = saturated_centre(frame, self._low.centre(ridge, mask), self.cfg.stripe.max_run_px)
         if len(pts) < 2 * self.cfg.min_points:
             return _fail(self.joint, f"no stripe found ({len(pts)} centre-line points)", pts)
         resp = response_at(ridge, pts)
@@ -476,6 +476,9 @@ class ProfileFinder:
             if x is None:
                 return _fail("v_groove", "no groove: the flanks are parallel", pts)
             lr = rr = x
+        along = pts[-1] - pts[0]
+        if float((rr - lr) @ along) < -float(np.linalg.norm(along)):   # over 1 px the wrong way
+            return _fail("v_groove", "no groove: its root edges cross", pts)
         aim = (lr + rr) / 2
         top = rs - ls
         down = aim - ls
@@ -695,32 +698,36 @@ def _dip(resp: np.ndarray, fraction: float) -> tuple[int, int] | None:
     return int(starts[k]), int(ends[k])
 
 
-#: :func:`saturated_centre`: rows searched either side of a centre point for the stripe's
-#: saturated run
-SATURATED_WINDOW_PX = 12
+#: :func:`saturated_centre`: a point's saturated run starts at most this many rows from it (it
+#: sits on one of the run's edges)
+SATURATED_NEAR_PX = 3
 #: an 8-bit pixel at or above this is saturated
 SATURATED_LEVEL = 250
 
 
-def saturated_centre(frame: np.ndarray, pts: np.ndarray, window: int) -> np.ndarray:
+def saturated_centre(frame: np.ndarray, pts: np.ndarray, max_run: int) -> np.ndarray:
     """Centre points (N, 2) of a stripe moved to the middle of its saturated run where it has
     one. A stripe bright enough to saturate R (and G with it, over arc light or a wide
     stripe's bleed) has no red excess in its core: its response is two ridges, its edges, and
     a centre line weighed on them sits on the stronger one when glare dims the other (3-6 px
-    off on a wide stripe). The run of saturated pixels (R in colour, the intensity in mono)
-    nearest each point, starting within ``window`` rows of it and within ``2 window`` rows
-    all of it (a taller saturated blob of glare is no stripe), gives the point its middle;
-    other points stay."""
-    if not len(pts):
+    off on a wide stripe). The run of pixels saturated in R nearest each point, starting
+    within ``SATURATED_NEAR_PX`` rows of it (the point is on its edge), at most ``max_run``
+    rows tall (a taller saturated blob of glare is no stripe: the profiles' ``max_run_px``)
+    and saturated in G too somewhere (where the red excess splits; a stripe saturated in R
+    alone keeps its excess and its centre), gives the point its middle; other points stay.
+    Mono frames are left as they are (their response is the intensity: no split)."""
+    if not len(pts) or frame.ndim != 3:   # mono: the response is the intensity, no split
         return pts
-    plane = frame[..., 2] if frame.ndim == 3 else frame
+    plane, green = frame[..., 2], frame[..., 1]
     h = plane.shape[0]
     u = np.clip(np.rint(pts[:, 0]).astype(int), 0, plane.shape[1] - 1)
     v0 = np.rint(pts[:, 1]).astype(int)
-    reach = 2 * window
+    reach = max_run + SATURATED_NEAR_PX
     rows = v0[:, None] + np.arange(-reach, reach + 1)[None, :]            # (N, M)
     inside = (rows >= 0) & (rows < h)
-    sat = inside & (plane[np.clip(rows, 0, h - 1), u[:, None]] >= SATURATED_LEVEL)
+    at = (np.clip(rows, 0, h - 1), u[:, None])
+    sat = inside & (plane[at] >= SATURATED_LEVEL)
+    split = inside & sat & (green[at] >= SATURATED_LEVEL)   # no red excess there
     has = sat.any(axis=1)
     if not has.any():
         return pts
@@ -728,12 +735,13 @@ def saturated_centre(frame: np.ndarray, pts: np.ndarray, window: int) -> np.ndar
     run = np.cumsum(starts, axis=1) * sat                                  # run ids, 0 off
     dist = np.abs(np.arange(rows.shape[1]) - reach)[None, :] + np.where(sat, 0, 10 * reach)
     pick = np.argmin(dist, axis=1)
-    has &= dist[np.arange(len(pts)), pick] <= window
+    has &= dist[np.arange(len(pts)), pick] <= SATURATED_NEAR_PX
     near = run[np.arange(len(pts)), pick]
     mine = (run == near[:, None]) & sat
     first = np.argmax(mine, axis=1)
     last = rows.shape[1] - 1 - np.argmax(mine[:, ::-1], axis=1)
-    ok = has & (last > first) & (first > 0) & (last < rows.shape[1] - 1)
+    ok = (has & (last > first) & (first > 0) & (last < rows.shape[1] - 1)
+          & (last - first < max_run) & (mine & split).any(axis=1))
     out = pts.copy()
     out[ok, 1] = v0[ok] - reach + 0.5 * (first[ok] + last[ok])
     return out
