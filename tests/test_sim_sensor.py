@@ -237,3 +237,15 @@ def test_compiled_splat_sums_as_bincount_does():
         else:
             assert box is None
         np.testing.assert_array_equal(img, ref)
+
+
+def test_a_camera_that_sees_no_part_projects_nothing():
+    """OpenCV answers None to no points; a camera looking past the part (the virtual cell's
+    robot on its way to a girth joint's start: the laser misses the pipe) gets no points, and
+    the frame renders dark instead of the camera process dying."""
+    import numpy as np
+
+    from torchseam.core.config import load_cell
+    from torchseam.sim.sensor import LaserSensor
+
+    assert LaserSensor(load_cell()).project(np.zeros((0, 3))).shape == (0, 2)

@@ -526,3 +526,25 @@ def test_ctrl_c_during_the_latency_motion_aborts_it_and_holds_the_sensor():
     assert replies[-1] == (False, 1, rd.SensorState.ABORT)
     np.testing.assert_allclose(targets[-1], T0[:3, 3])   # the sensor back at its start
     assert any(np.linalg.norm(t - T0[:3, 3]) > 1e-3 for t in targets)  # it had moved
+
+
+def test_the_weld_follows_the_part_s_joint(tmp_path, capsys):
+    """``weld`` tracks what the part file's ``joint:`` says (a fillet: --tracker; a groove, a
+    butt or a lap: its profile, as ``demo`` does; it had taken the fillet's tracker for every
+    part): a tracker that cannot follow the part's profile is refused before the cell is
+    reached, one line, exit 2, nothing written."""
+    from torchseam.cli import main
+    from torchseam.core.config import CONFIG_DIR, load_cell
+    from torchseam.live.cellfile import CameraLink, ControllerLink, WeldCell, save_weld_cell
+
+    save_weld_cell(WeldCell(load_cell(), CameraLink(source="tcp://127.0.0.1:9", latency_ms=20.0),
+                            ControllerLink(host="127.0.0.1", port=0,
+                                           controller_host="127.0.0.1", controller_port=0)),
+                   tmp_path / "cell.yaml")
+    out = tmp_path / "W"
+    rc = main(["weld", "--cell", str(tmp_path / "cell.yaml"),
+               "--part", str(CONFIG_DIR / "parts" / "pipe_butt.yaml"), "--tracker", "kcf",
+               "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "a butt joint" in err[0], err
+    assert not out.exists()

@@ -155,10 +155,9 @@ def run_weld_cmd(args: argparse.Namespace) -> int:
     cell = load_weld_cell(args.cell)
     part = load_part(args.part)
     parts = load_live_parts()
-    if args.model is not None:
-        from torchseam.track.peers import make_tracker
-
-        make_tracker(args.tracker, parts.tipm, model_path=args.model)  # a bad file: refused now
+    # the part's joint decides what is tracked (a fillet: --tracker; else its profile): a
+    # tracker that cannot follow it, or a bad model file, is refused now
+    parts.tracker(args.tracker, part.joint, args.model)
     report = preflight(cell.calibration, part, config=parts.plan, robot=parts.robot,
                        part_name=str(args.part))
     print(report.text(), flush=True)

@@ -466,7 +466,10 @@ class WeldRunner:
         gate = ReachGate(self.parts.robot, cell=self.calib, part=self.report.plan.part,
                          part_pose_mm=geo.part_pose)
         tipm = self.parts.tipm
-        trk = make_tracker(self.tracker, tipm, model_path=self.model_path)
+        # the part's joint decides what is tracked (a fillet: the tracker; else its profile)
+        joint = self.report.plan.part.joint
+        trk = (make_tracker(self.tracker, tipm, model_path=self.model_path) if joint == "fillet"
+               else self.parts.tracker(self.tracker, joint, self.model_path))
         fps = self.calib.process.frame_rate_hz
         if trk.fitted_fps and abs(trk.fitted_fps - fps) > 1e-3 * fps and not self._fps_said:
             self._fps_said = True   # said once, and kept in the report's messages

@@ -117,6 +117,8 @@ class LaserSensor:
     def project(self, X_C: np.ndarray) -> np.ndarray:
         """(N, 3) points in {C} (mm) -> (N, 2) distorted pixels (OpenCV reference model)."""
         X = np.ascontiguousarray(X_C, dtype=np.float64).reshape(-1, 1, 3)
+        if not len(X):  # (OpenCV answers None to no points: a camera that sees no part)
+            return np.zeros((0, 2))
         uv, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), self.K, self.dist)
         return uv.reshape(-1, 2)
 
@@ -227,25 +229,33 @@ class LaserSensor:
         idx = np.flatnonzero(hit)
         n = len(self.psi)
         surf_hit = surf_all[idx]
-        anchors: list[tuple[int, int, int]] = []  # (lit ray, neighbour ray, previous lit ray)
-        for j, i in enumerate(idx):
-            for nb, back in ((i + 1, j - 1), (i - 1, j + 1)):
-                if not 0 <= nb < n or not 0 <= back < len(idx):
-                    continue
-                if abs(int(idx[back]) - int(i)) != 1:
-                    continue  # no neighbour on the lit side to continue the piece's line
-                gone = not hit[nb] or surf_all[nb] != surf_hit[j]
-                if not gone:
-                    k = int(np.searchsorted(idx, nb))
-                    gone = float(np.linalg.norm(P[k] - P[j])) > EDGE_JUMP_MM
-                if gone:
-                    anchors.append((j, int(nb), back))
-        if not anchors:
+        # anchors (lit ray j, its neighbour ray nb, the previous lit ray back), in the order
+        # of j, the neighbour after it first: each lit ray whose neighbour on one side is lost
+        # (a miss, another surface, or a jump) while the one on its other side is lit
+        m = len(idx)
+        js_all = np.arange(m)
+        cand = []
+        for order, step in ((0, 1), (1, -1)):
+            nb = idx + step
+            back = js_all - step
+            ok = (nb >= 0) & (nb < n) & (back >= 0) & (back < m)
+            bk = np.clip(back, 0, max(m - 1, 0))
+            ok &= np.abs(idx[bk] - idx) == 1   # a lit neighbour on the other side
+            nbc = np.clip(nb, 0, n - 1)
+            gone = ~hit[nbc] | (surf_all[nbc] != surf_hit)
+            k = np.clip(js_all + step, 0, max(m - 1, 0))   # nb's place among the lit rays
+            jump = np.linalg.norm(P[k] - P, axis=1) > EDGE_JUMP_MM
+            gone |= jump
+            sel = np.flatnonzero(ok & gone)
+            cand.append((2 * sel + order, sel, nb[sel], back[sel]))
+        key = np.concatenate([c[0] for c in cand])
+        if not len(key):
             return psi, P, surf_hit
-        js = np.array([a[0] for a in anchors])
+        order_ = np.argsort(key, kind="stable")
+        js = np.concatenate([c[1] for c in cand])[order_]
         lo = self.psi[idx[js]]
-        hi = self.psi[np.array([a[1] for a in anchors])]
-        p0, p_back = P[js], P[np.array([a[2] for a in anchors])]
+        hi = self.psi[np.concatenate([c[2] for c in cand])[order_]]
+        p0, p_back = P[js], P[np.concatenate([c[3] for c in cand])[order_]]
         sid = surf_hit[js]
         step = np.linalg.norm(p0 - p_back, axis=1)
         line = (p0 - p_back) / np.maximum(step, 1e-12)[:, None]
