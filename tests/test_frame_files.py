@@ -412,8 +412,12 @@ def test_replay_stops_at_the_fifo_or_the_bomb_with_one_line(seq, bomb, tmp_path)
 def _console(args: list[str], timeout: float) -> tuple[int | None, str, str]:
     """``torchseam console ARGS`` until it prints its address (then Ctrl-C) or exits:
     (exit code, stdout, stderr); rc None: neither within ``timeout`` (a hang)."""
+    # Ctrl-C as in a terminal: the console starts with SIGINT's default action (a pytest-xdist
+    # worker runs with SIGINT ignored, which a child inherits across exec; the console,
+    # started so, would rightly go on ignoring it, as a shell's background job does)
     p = subprocess.Popen([sys.executable, "-m", "torchseam", "console", "--port", "0", *args],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     out = ""
     try:
         end = time.monotonic() + timeout
