@@ -235,7 +235,7 @@ class LaserSensor:
         m = len(idx)
         js_all = np.arange(m)
         cand = []
-        for order, step in ((0, 1), (1, -1)):
+        for rank, step in ((0, 1), (1, -1)):
             nb = idx + step
             back = js_all - step
             ok = (nb >= 0) & (nb < n) & (back >= 0) & (back < m)
@@ -247,7 +247,7 @@ class LaserSensor:
             jump = np.linalg.norm(P[k] - P, axis=1) > EDGE_JUMP_MM
             gone |= jump
             sel = np.flatnonzero(ok & gone)
-            cand.append((2 * sel + order, sel, nb[sel], back[sel]))
+            cand.append((2 * sel + rank, sel, nb[sel], back[sel]))
         key = np.concatenate([c[0] for c in cand])
         if not len(key):
             return psi, P, surf_hit
