@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from torchseam.core.config import PartConfig
+from torchseam.core.kernels import load_kernels
 from torchseam.core.transforms import rotation_about
 
 BRANCH_LENGTH_MM = 400.0  # how far the branch pipe extends above the main axis (pipe kinds)
@@ -179,7 +180,7 @@ class Joint:
         direction = np.asarray(direction, dtype=float).reshape(-1, 3)
         o = np.broadcast_to(np.asarray(origin, dtype=float), direction.shape)
         t_main = self._hit_main(o, direction)
-        t_branch = self._hit_branch(o, direction)
+        t_branch = self._hit_branch(o, direction, t_main)
         t = np.minimum(t_main, t_branch)
         surface = np.where(np.isinf(t), 0, np.where(t_main <= t_branch, 1, 2)).astype(np.int8)
         return t, surface
@@ -200,7 +201,10 @@ class Joint:
         B = 2 * np.einsum("ij,ij->i", qp, dp)
         return qa, da, A, B, np.einsum("ij,ij->i", qp, qp)
 
-    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    def _hit_branch(self, o: np.ndarray, d: np.ndarray, t_max: np.ndarray) -> np.ndarray:
+        """(N,) distances to the branch's surface along rays ``o + t d`` (N, 3 each), ``inf``
+        for a miss; a hit beyond ``t_max`` (N,), the main body's, may be answered ``inf``
+        (the main body hides it)."""
         qa, da, A, B, qq = self._branch_quadric(o, d)
         t = _entry_root(A, B, qq - self.r**2)
         h = qa + t * da  # height of the hit along the branch axis: where the branch exists
@@ -376,6 +380,20 @@ class BevelledJoint(Joint):
         self.r_in = self.r - self.wall
         self.gap = float(part.root_gap_mm)
         self.tan_b = float(np.tan(np.deg2rad(part.bevel_deg)))
+        # the compiled ray cast (loaded now, not on the first ray cast) and its geometry
+        k = self._kernels = load_kernels(__package__)
+        if isinstance(base, PipeJoint):
+            self._base_kind, main = k.PIPE, [base.a, base.b, base.s, 0.0]
+        elif isinstance(base, PlateJoint):
+            self._base_kind, main = k.PLATE, [0.0] * 4
+        elif isinstance(base, SphereJoint):
+            self._base_kind, main = k.SPHERE, [base.R, *base.m]
+        else:
+            raise TypeError(f"a bevelled branch on a {type(base).__name__}")
+        self._geometry = np.concatenate([
+            self.o, self.d, self.e1, self.e2, self._f1, self._f2,
+            [self.k1, self.k2, self.r, self.r_in, self.gap, self.tan_b, self.branch_top], main])
+        self._march = np.linspace(0.0, 1.0, BEVEL_MARCH_POINTS)
 
     # ------------------------------------------------------------------ the main body
     def _height(self, c: np.ndarray, dc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -412,13 +430,6 @@ class BevelledJoint(Joint):
         h, dh = self.base._height(*self._generator(self.r_in, phi))
         return h + self.gap, dh
 
-    def _material(self, p: np.ndarray) -> np.ndarray:
-        """(N,) > 0 where points of the wall's shell (r_i <= radius <= r) lie in the wall's
-        material: above the bevel face and below the branch's top."""
-        rho, phi, a = self._polar(p)
-        base = self.root_height(phi)[0] + (rho - self.r_in) * self.tan_b
-        return np.minimum(a - base, self.branch_top - a)
-
     def _bevel_normal(self, rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
         """(N, 3) outward unit normals of the bevel face at radius ``rho``, angle ``phi``."""
         _, dh = self.root_height(phi)
@@ -453,48 +464,17 @@ class BevelledJoint(Joint):
         n_face = self._bevel_normal(np.full(len(phi), self.r_in), phi)
         return SeamSample(phi, p, t, n_main, n_face)
 
-    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    def _hit_branch(self, o: np.ndarray, d: np.ndarray, t_max: np.ndarray) -> np.ndarray:
         """First entry of rays into the wall's material: where a ray crosses the outer
         cylinder above the shoulder, else the first point of its path through the wall's shell
-        (outer cylinder to bore) that lies above the bevel face (marched, then bisected)."""
-        n = len(d)
-        qa, da, A, B, qq = self._branch_quadric(o, d)
-        t_out = _roots(A, B, qq - self.r**2)
-        t_in = _roots(A, B, qq - self.r_in**2)
-        start = np.maximum(t_out[0], 0.0)
-        # the shell's first stretch ends where the ray enters the bore, else where it leaves
-        end = np.where(np.isfinite(t_in[0]) & (t_in[0] > start), t_in[0], t_out[1])
-        ok = np.isfinite(t_out[0]) & (t_out[1] > 0.0) & (end > start)
-        # a ray along the axis crosses no cylinder: in the shell from its origin, if at all
-        axial = (A <= 1e-12) & (qq <= self.r**2) & (qq >= self.r_in**2)
-        start = np.where(axial, 0.0, start)
-        end = np.where(axial, 2.0 * (abs(self.branch_top) + np.abs(qa)) + 1.0, end)
-        ok |= axial
-        t = np.full(n, np.inf)
-        idx = np.flatnonzero(ok)
-        if not len(idx):
-            return t
-        s0, s1, oo, dd = start[idx], end[idx], o[idx], d[idx]
-        m = BEVEL_MARCH_POINTS
-        frac = np.linspace(0.0, 1.0, m)
-        ts = s0[:, None] + (s1 - s0)[:, None] * frac                        # (k, m)
-        pts = oo[:, None, :] + ts[..., None] * dd[:, None, :]
-        inside = self._material(pts.reshape(-1, 3)).reshape(len(idx), m) >= 0.0
-        first = np.argmax(inside, axis=1)
-        anyin = inside.any(axis=1)
-        at_entry = anyin & (first == 0)
-        t[idx[at_entry]] = s0[at_entry]     # the outer wall (or the origin is in the wall)
-        k = np.flatnonzero(anyin & (first > 0))
-        if len(k):
-            lo, hi = ts[k, first[k] - 1], ts[k, first[k]]
-            ok_, dk = oo[k], dd[k]
-            for _ in range(BEVEL_BISECT_STEPS):
-                mid = 0.5 * (lo + hi)
-                m_in = self._material(ok_ + mid[:, None] * dk) >= 0.0
-                hi = np.where(m_in, mid, hi)
-                lo = np.where(m_in, lo, mid)
-            t[idx[k]] = hi
-        return t
+        (outer cylinder to bore) that lies above the bevel face: tried at
+        ``BEVEL_MARCH_POINTS`` points along that stretch in order, then bisected
+        (``BEVEL_BISECT_STEPS``) before the first point in the material. A ray's march stops
+        past ``t_max`` (compiled: :func:`torchseam.core._kernels.bevel_hits`)."""
+        return self._kernels.bevel_hits(
+            np.ascontiguousarray(o), np.ascontiguousarray(d),
+            np.ascontiguousarray(t_max, dtype=float), self._geometry, self._base_kind,
+            self._march, BEVEL_BISECT_STEPS)
 
 
 #: The ``inline`` kind: how far the lower pipe (a butt) or the sleeve (a lap) reaches below the
@@ -626,8 +606,8 @@ class InlineJoint(Joint):
         t = np.where((h < top) & (h > top - self.below), t, np.inf)
         return np.minimum(t, self._end_face(qa, da, A, B, qq, top, self.r - self.wall, self.r))
 
-    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        t = super()._hit_branch(o, d)
+    def _hit_branch(self, o: np.ndarray, d: np.ndarray, t_max: np.ndarray) -> np.ndarray:
+        t = super()._hit_branch(o, d, t_max)
         if self.lap:   # its end is inside the sleeve
             return t
         qa, da, A, B, qq = self._branch_quadric(o, d)
@@ -659,15 +639,6 @@ def make_joint(part: PartConfig) -> Joint:
            "sphere": SphereJoint}[part.kind]
     base = cls(part)
     return BevelledJoint(base, part) if part.bevel_deg > 0.0 else base
-
-
-def _roots(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Both roots (smaller, larger) of A t^2 + B t + C = 0, ``inf`` where there are none."""
-    disc = B * B - 4 * A * C
-    ok = (disc >= 0) & (A > 1e-12)
-    sq = np.sqrt(np.where(ok, disc, 0.0))
-    den = np.where(ok, 2 * A, 1.0)
-    return (np.where(ok, (-B - sq) / den, np.inf), np.where(ok, (-B + sq) / den, np.inf))
 
 
 def _entry_root(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:

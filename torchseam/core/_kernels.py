@@ -1,0 +1,154 @@
+"""The part's compiled kernels (numba): the bevelled branch's ray cast.
+
+A ray's first entry into a bevelled branch's wall (``BevelledJoint._hit_branch`` in
+:mod:`torchseam.core.part`) is marched along its path through the wall's shell and bisected:
+up to some eighty evaluations of the wall's material per ray, each a few dozen float operations
+(the polar coordinates, the main body's height under the root edge). As numpy calls over all
+rays at once their interpreter overhead was most of a rendered frame's time, and every ray was
+marched to the end of its path; here each ray stops at its first sample in the material, or
+past ``t_max`` (where the main body already hides the branch). The entry point carries its
+signature, so it is compiled (or loaded from numba's on-disk cache) when this module is
+imported, which :class:`~torchseam.core.part.BevelledJoint` does when it is built. ``nogil``
+lets the caller's other threads run meanwhile.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numba import types
+
+#: the main body under the branch (``base_kind`` of :func:`bevel_hits`) and its four
+#: parameters at the end of the geometry (unused ones 0)
+PIPE = 0     # (a, b, s, 0): semi-axes along y and z, the main axis at y = -s
+PLATE = 1    # (0, 0, 0, 0): the plate's top face z = 0
+SPHERE = 2   # (R, m_x, m_y, m_z): radius and centre
+#: the length of the geometry of :func:`bevel_hits`
+GEOMETRY_SIZE = 29
+
+_RAYS = types.Array(types.float64, 2, "C", readonly=True)  # the caller's arrays, read only
+_ROW = types.Array(types.float64, 1, "C", readonly=True)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _material(p0, p1, p2, g, base_kind):  # pragma: no cover - compiled
+    """> 0 where the point ``(p0, p1, p2)`` of the wall's shell lies in the wall's material:
+    above the bevel face and below the branch's top (``BevelledJoint``'s polar coordinates
+    and root height; ``g`` and ``base_kind`` as :func:`bevel_hits`)."""
+    q0, q1, q2 = p0 - g[0], p1 - g[1], p2 - g[2]
+    a = q0 * g[3] + q1 * g[4] + q2 * g[5]            # along the axis
+    u = (q0 * g[6] + q1 * g[7] + q2 * g[8]) / g[18]  # the round branch's cross-section
+    v = (q0 * g[9] + q1 * g[10] + q2 * g[11]) / g[19]
+    rho = math.hypot(u, v)
+    cos, sin = (u / rho, v / rho) if rho > 0.0 else (1.0, 0.0)   # of the angle phi
+    # the inner generator at phi, where it meets the main body: the root edge's height
+    r_in = g[21]
+    c0 = g[0] + r_in * (cos * g[12] + sin * g[15])
+    c1 = g[1] + r_in * (cos * g[13] + sin * g[16])
+    c2 = g[2] + r_in * (cos * g[14] + sin * g[17])
+    if base_kind == PIPE:
+        y = c1 + g[27]
+        s = math.sqrt(max(1.0 - (y / g[25]) ** 2, 1e-12))
+        h = (g[26] * s - c2) / g[5]
+    elif base_kind == PLATE:
+        h = -c2 / g[5]
+    else:
+        w0, w1, w2 = c0 - g[26], c1 - g[27], c2 - g[28]
+        gd = w0 * g[3] + w1 * g[4] + w2 * g[5]
+        h = -gd + math.sqrt(max(gd * gd + g[25] ** 2 - (w0 * w0 + w1 * w1 + w2 * w2), 1e-12))
+    face = (h + g[22]) + (rho - r_in) * g[23]
+    return min(a - face, g[24] - a)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _roots(A, B, C):  # pragma: no cover - compiled
+    """Both roots (smaller, larger) of A t^2 + B t + C = 0, ``inf`` where there are none."""
+    disc = B * B - 4 * A * C
+    if not (disc >= 0 and A > 1e-12):
+        return np.inf, np.inf
+    sq = math.sqrt(disc)
+    return (-B - sq) / (2 * A), (-B + sq) / (2 * A)
+
+
+@numba.njit(types.float64[::1](_RAYS, _RAYS, _ROW, _ROW, types.int64, _ROW, types.int64),
+            cache=True, nogil=True)
+def bevel_hits(origin, direction, t_max, g, base_kind, frac,
+               bisect_steps):  # pragma: no cover - compiled
+    """First entry of rays into a bevelled branch's wall, ``inf`` for none (N,).
+
+    The ray ``origin + t direction`` (N, 3 each) crosses the outer cylinder of the branch above
+    the shoulder, or first meets the material on its path through the wall's shell (outer
+    cylinder to bore): tried at the fractions ``frac`` (M,) of that stretch in order, then
+    ``bisect_steps`` halvings of the bracket before the first sample inside. A ray's march
+    stops after its first sample beyond ``t_max`` (N,): an entry there lies beyond it.
+
+    ``g`` (:data:`GEOMETRY_SIZE`,): the branch axis's point ``o`` (3), its direction ``d``
+    (3), the directions ``e1``, ``e2`` (3 each) across it, the oval's semi-axes' directions
+    ``k1 e1``, ``k2 e2`` (3 each); ``k1``, ``k2`` (the ovality factors), ``r``, ``r_in`` (outer
+    and inner radius of the round branch), the root gap, tan of the bevel angle, the branch's
+    top (along the axis from ``o``); the main body's four parameters (``base_kind``:
+    :data:`PIPE`, :data:`PLATE` or :data:`SPHERE`).
+    """
+    n = origin.shape[0]
+    out = np.full(n, np.inf)
+    o0, o1, o2, d0, d1, d2 = g[0], g[1], g[2], g[3], g[4], g[5]
+    a0, a1, a2, b0, b1, b2 = g[6], g[7], g[8], g[9], g[10], g[11]
+    r, r_in, top = g[20], g[21], g[24]
+    # maps across the axis to the round branch's cross-section
+    un1, un2 = 1.0 / g[18] - 1.0, 1.0 / g[19] - 1.0
+    m = frac.shape[0]
+    for i in range(n):
+        p0, p1, p2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        v0, v1, v2 = direction[i, 0], direction[i, 1], direction[i, 2]
+        q0, q1, q2 = p0 - o0, p1 - o1, p2 - o2
+        qa, da = q0 * d0 + q1 * d1 + q2 * d2, v0 * d0 + v1 * d1 + v2 * d2
+        # the origin's and the direction's parts across the axis, in the round cross-section
+        x0, x1, x2 = q0 - qa * d0, q1 - qa * d1, q2 - qa * d2
+        y0, y1, y2 = v0 - da * d0, v1 - da * d1, v2 - da * d2
+        xa, xb = x0 * a0 + x1 * a1 + x2 * a2, x0 * b0 + x1 * b1 + x2 * b2
+        ya, yb = y0 * a0 + y1 * a1 + y2 * a2, y0 * b0 + y1 * b1 + y2 * b2
+        x0, x1, x2 = (x0 + un1 * xa * a0 + un2 * xb * b0, x1 + un1 * xa * a1 + un2 * xb * b1,
+                      x2 + un1 * xa * a2 + un2 * xb * b2)
+        y0, y1, y2 = (y0 + un1 * ya * a0 + un2 * yb * b0, y1 + un1 * ya * a1 + un2 * yb * b1,
+                      y2 + un1 * ya * a2 + un2 * yb * b2)
+        A = y0 * y0 + y1 * y1 + y2 * y2
+        B = 2 * (x0 * y0 + x1 * y1 + x2 * y2)
+        qq = x0 * x0 + x1 * x1 + x2 * x2
+        if A <= 1e-12:
+            # a ray along the axis crosses no cylinder: in the shell from its origin, if at all
+            if not (qq <= r * r and qq >= r_in * r_in):
+                continue
+            s0, s1 = 0.0, 2.0 * (abs(top) + abs(qa)) + 1.0
+        else:
+            out0, out1 = _roots(A, B, qq - r * r)
+            in0, _ = _roots(A, B, qq - r_in * r_in)
+            s0 = max(out0, 0.0)
+            # the shell's first stretch ends where the ray enters the bore, else where it leaves
+            s1 = in0 if (in0 < np.inf and in0 > s0) else out1
+            if not (out0 < np.inf and out1 > 0.0 and s1 > s0):
+                continue
+        first = -1
+        hi = s0
+        for j in range(m):
+            hi = s0 + (s1 - s0) * frac[j]
+            if _material(p0 + hi * v0, p1 + hi * v1, p2 + hi * v2, g, base_kind) >= 0.0:
+                first = j
+                break
+            if hi > t_max[i]:
+                break
+        if first < 0:
+            continue
+        if first == 0:
+            out[i] = s0   # the outer wall (or the origin is in the wall)
+            continue
+        lo = s0 + (s1 - s0) * frac[first - 1]
+        for _ in range(bisect_steps):
+            mid = 0.5 * (lo + hi)
+            if _material(p0 + mid * v0, p1 + mid * v1, p2 + mid * v2, g, base_kind) >= 0.0:
+                hi = mid
+            else:
+                lo = mid
+        out[i] = hi
+    return out
