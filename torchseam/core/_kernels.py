@@ -1,15 +1,15 @@
 """The part's compiled kernels (numba): the bevelled branch's ray cast.
 
-A ray's first entry into a bevelled branch's wall (``BevelledJoint._hit_branch`` in
-:mod:`torchseam.core.part`) is marched along its path through the wall's shell and bisected:
-up to some eighty evaluations of the wall's material per ray, each a few dozen float operations
-(the polar coordinates, the main body's height under the root edge). As numpy calls over all
-rays at once their interpreter overhead was most of a rendered frame's time, and every ray was
-marched to the end of its path; here each ray stops at its first sample in the material, or
-past ``t_max`` (where the main body already hides the branch). The entry point carries its
-signature, so it is compiled (or loaded from numba's on-disk cache) when this module is
-imported, which :class:`~torchseam.core.part.BevelledJoint` does when it is built. ``nogil``
-lets the caller's other threads run meanwhile.
+A ray's first entry into a bevelled branch's wall (:class:`~torchseam.core.part.BevelledJoint`)
+is marched along its path through the wall's shell and bisected: up to some eighty evaluations
+of the wall's material per ray, each a few dozen float operations (the polar coordinates, the
+main body's height under the root edge). As numpy calls over all rays at once their
+interpreter overhead was most of a rendered frame's time, and every ray was marched to the end
+of its path; here each ray stops at its first sample in the material, or past the main body's
+hit (which hides the branch beyond it), and the main body's hit is cast in the same pass. The
+entry point carries its signature, so it is compiled (or loaded from numba's on-disk cache)
+when this module is imported, which :class:`~torchseam.core.part.BevelledJoint` does when it
+is built. ``nogil`` lets the caller's other threads run meanwhile.
 """
 
 from __future__ import annotations
@@ -20,12 +20,12 @@ import numba
 import numpy as np
 from numba import types
 
-#: the main body under the branch (``base_kind`` of :func:`bevel_hits`) and its four
+#: the main body under the branch (``base_kind`` of :func:`bevel_raycast`) and its four
 #: parameters at the end of the geometry (unused ones 0)
 PIPE = 0     # (a, b, s, 0): semi-axes along y and z, the main axis at y = -s
-PLATE = 1    # (0, 0, 0, 0): the plate's top face z = 0
+PLATE = 1    # (half, 0, 0, 0): the plate's top face z = 0, |x|, |y| <= half
 SPHERE = 2   # (R, m_x, m_y, m_z): radius and centre
-#: the length of the geometry of :func:`bevel_hits`
+#: the length of the geometry of :func:`bevel_raycast`
 GEOMETRY_SIZE = 29
 
 _RAYS = types.Array(types.float64, 2, "C", readonly=True)  # the caller's arrays, read only
@@ -36,7 +36,7 @@ _ROW = types.Array(types.float64, 1, "C", readonly=True)
 def _material(p0, p1, p2, g, base_kind):  # pragma: no cover - compiled
     """> 0 where the point ``(p0, p1, p2)`` of the wall's shell lies in the wall's material:
     above the bevel face and below the branch's top (``BevelledJoint``'s polar coordinates
-    and root height; ``g`` and ``base_kind`` as :func:`bevel_hits`)."""
+    and root height; ``g`` and ``base_kind`` as :func:`bevel_raycast`)."""
     q0, q1, q2 = p0 - g[0], p1 - g[1], p2 - g[2]
     a = q0 * g[3] + q1 * g[4] + q2 * g[5]            # along the axis
     u = (q0 * g[6] + q1 * g[7] + q2 * g[8]) / g[18]  # the round branch's cross-section
@@ -72,17 +72,120 @@ def _roots(A, B, C):  # pragma: no cover - compiled
     return (-B - sq) / (2 * A), (-B + sq) / (2 * A)
 
 
-@numba.njit(types.float64[::1](_RAYS, _RAYS, _ROW, _ROW, types.int64, _ROW, types.int64),
-            cache=True, nogil=True)
-def bevel_hits(origin, direction, t_max, g, base_kind, frac,
-               bisect_steps):  # pragma: no cover - compiled
-    """First entry of rays into a bevelled branch's wall, ``inf`` for none (N,).
+@numba.njit(cache=True, nogil=True, inline="always")
+def _entry_root(A, B, C):  # pragma: no cover - compiled
+    """Smallest positive root of A t^2 + B t + C = 0 for a ray starting outside (C > 0), else
+    ``inf``."""
+    disc = B * B - 4 * A * C
+    if not (disc >= 0 and A > 1e-12 and C > 0):
+        return np.inf
+    t = (-B - math.sqrt(disc)) / (2 * A)
+    return t if t > 0 else np.inf
 
-    The ray ``origin + t direction`` (N, 3 each) crosses the outer cylinder of the branch above
-    the shoulder, or first meets the material on its path through the wall's shell (outer
-    cylinder to bore): tried at the fractions ``frac`` (M,) of that stretch in order, then
-    ``bisect_steps`` halvings of the bracket before the first sample inside. A ray's march
-    stops after its first sample beyond ``t_max`` (N,): an entry there lies beyond it.
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _main_hit(p0, p1, p2, v0, v1, v2, g, base_kind):  # pragma: no cover - compiled
+    """The ray ``p + t v``'s entry into the main body, ``inf`` for none or where the main body
+    is cut to the branch's bore (``g`` and ``base_kind`` as :func:`bevel_raycast`)."""
+    if base_kind == PIPE:   # ((y + s) / a)^2 + (z / b)^2 = 1
+        a, b = g[25], g[26]
+        y = p1 + g[27]
+        t = _entry_root((v1 / a) ** 2 + (v2 / b) ** 2,
+                        2 * (y * v1 / a**2 + p2 * v2 / b**2),
+                        (y / a) ** 2 + (p2 / b) ** 2 - 1.0)
+    elif base_kind == PLATE:   # the top face only: rays come from above the plate
+        if not (p2 > 0.0 and v2 < -1e-12):
+            return np.inf
+        t = -p2 / v2
+        if not (abs(p0 + t * v0) <= g[25] and abs(p1 + t * v1) <= g[25] and t > 0):
+            return np.inf
+    else:
+        w0, w1, w2 = p0 - g[26], p1 - g[27], p2 - g[28]
+        t = _entry_root(v0 * v0 + v1 * v1 + v2 * v2, 2 * (w0 * v0 + w1 * v1 + w2 * v2),
+                        (w0 * w0 + w1 * w1 + w2 * w2) - g[25] ** 2)
+    if t == np.inf:
+        return t
+    q0, q1, q2 = p0 + t * v0 - g[0], p1 + t * v1 - g[1], p2 + t * v2 - g[2]
+    u = (q0 * g[6] + q1 * g[7] + q2 * g[8]) / g[18]
+    v = (q0 * g[9] + q1 * g[10] + q2 * g[11]) / g[19]
+    return t if math.hypot(u, v) >= g[21] else np.inf
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _branch_hit(p0, p1, p2, v0, v1, v2, t_max, g, base_kind, frac,
+                bisect_steps):  # pragma: no cover - compiled
+    """The ray ``p + t v``'s first entry into the branch's wall, ``inf`` for none: where it
+    crosses the outer cylinder above the shoulder, or first meets the material on its path
+    through the wall's shell (outer cylinder to bore), tried at the fractions ``frac`` (M,) of
+    that stretch in order, then ``bisect_steps`` halvings of the bracket before the first
+    sample inside. The march stops after its first sample beyond ``t_max``: an entry there
+    lies beyond it."""
+    d0, d1, d2, a0, a1, a2 = g[3], g[4], g[5], g[6], g[7], g[8]
+    b0, b1, b2 = g[9], g[10], g[11]
+    r, r_in, top = g[20], g[21], g[24]
+    # maps across the axis to the round branch's cross-section
+    un1, un2 = 1.0 / g[18] - 1.0, 1.0 / g[19] - 1.0
+    q0, q1, q2 = p0 - g[0], p1 - g[1], p2 - g[2]
+    qa, da = q0 * d0 + q1 * d1 + q2 * d2, v0 * d0 + v1 * d1 + v2 * d2
+    # the origin's and the direction's parts across the axis, in the round cross-section
+    x0, x1, x2 = q0 - qa * d0, q1 - qa * d1, q2 - qa * d2
+    y0, y1, y2 = v0 - da * d0, v1 - da * d1, v2 - da * d2
+    xa, xb = x0 * a0 + x1 * a1 + x2 * a2, x0 * b0 + x1 * b1 + x2 * b2
+    ya, yb = y0 * a0 + y1 * a1 + y2 * a2, y0 * b0 + y1 * b1 + y2 * b2
+    x0, x1, x2 = (x0 + un1 * xa * a0 + un2 * xb * b0, x1 + un1 * xa * a1 + un2 * xb * b1,
+                  x2 + un1 * xa * a2 + un2 * xb * b2)
+    y0, y1, y2 = (y0 + un1 * ya * a0 + un2 * yb * b0, y1 + un1 * ya * a1 + un2 * yb * b1,
+                  y2 + un1 * ya * a2 + un2 * yb * b2)
+    A = y0 * y0 + y1 * y1 + y2 * y2
+    B = 2 * (x0 * y0 + x1 * y1 + x2 * y2)
+    qq = x0 * x0 + x1 * x1 + x2 * x2
+    if A <= 1e-12:
+        # a ray along the axis crosses no cylinder: in the shell from its origin, if at all
+        if not (qq <= r * r and qq >= r_in * r_in):
+            return np.inf
+        s0, s1 = 0.0, 2.0 * (abs(top) + abs(qa)) + 1.0
+    else:
+        out0, out1 = _roots(A, B, qq - r * r)
+        in0, _ = _roots(A, B, qq - r_in * r_in)
+        s0 = max(out0, 0.0)
+        # the shell's first stretch ends where the ray enters the bore, else where it leaves
+        s1 = in0 if (in0 < np.inf and in0 > s0) else out1
+        if not (out0 < np.inf and out1 > 0.0 and s1 > s0):
+            return np.inf
+    first = -1
+    hi = s0
+    for j in range(frac.shape[0]):
+        hi = s0 + (s1 - s0) * frac[j]
+        if _material(p0 + hi * v0, p1 + hi * v1, p2 + hi * v2, g, base_kind) >= 0.0:
+            first = j
+            break
+        if hi > t_max:
+            break
+    if first < 0:
+        return np.inf
+    if first == 0:
+        return s0   # the outer wall (or the origin is in the wall)
+    lo = s0 + (s1 - s0) * frac[first - 1]
+    for _ in range(bisect_steps):
+        mid = 0.5 * (lo + hi)
+        if _material(p0 + mid * v0, p1 + mid * v1, p2 + mid * v2, g, base_kind) >= 0.0:
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+@numba.njit(types.Tuple((types.float64[::1], types.int8[::1]))(
+    _RAYS, _RAYS, _ROW, types.int64, _ROW, types.int64), cache=True, nogil=True)
+def bevel_raycast(origin, direction, g, base_kind, frac,
+                  bisect_steps):  # pragma: no cover - compiled
+    """First hit of rays with a bevelled branch set on its main body: ``(t, surface)``, (N,)
+    distance along each ray (``inf`` for a miss) and (N,) surface id (0 none, 1 the main body,
+    2 the branch), as :meth:`~torchseam.core.part.Joint.raycast`.
+
+    ``origin`` (N, 3) or (1, 3), one for all rays; ``direction`` (N, 3) unit. The main body is
+    cut to the branch's bore; the branch is cast by :func:`_branch_hit` with the march's
+    fractions ``frac`` (M,) and ``bisect_steps``, its march stopping past the main body's hit.
 
     ``g`` (:data:`GEOMETRY_SIZE`,): the branch axis's point ``o`` (3), its direction ``d``
     (3), the directions ``e1``, ``e2`` (3 each) across it, the oval's semi-axes' directions
@@ -91,64 +194,18 @@ def bevel_hits(origin, direction, t_max, g, base_kind, frac,
     top (along the axis from ``o``); the main body's four parameters (``base_kind``:
     :data:`PIPE`, :data:`PLATE` or :data:`SPHERE`).
     """
-    n = origin.shape[0]
-    out = np.full(n, np.inf)
-    o0, o1, o2, d0, d1, d2 = g[0], g[1], g[2], g[3], g[4], g[5]
-    a0, a1, a2, b0, b1, b2 = g[6], g[7], g[8], g[9], g[10], g[11]
-    r, r_in, top = g[20], g[21], g[24]
-    # maps across the axis to the round branch's cross-section
-    un1, un2 = 1.0 / g[18] - 1.0, 1.0 / g[19] - 1.0
-    m = frac.shape[0]
+    n = direction.shape[0]
+    t = np.empty(n)
+    surface = np.zeros(n, np.int8)
+    one = origin.shape[0] == 1
     for i in range(n):
-        p0, p1, p2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        k = 0 if one else i
+        p0, p1, p2 = origin[k, 0], origin[k, 1], origin[k, 2]
         v0, v1, v2 = direction[i, 0], direction[i, 1], direction[i, 2]
-        q0, q1, q2 = p0 - o0, p1 - o1, p2 - o2
-        qa, da = q0 * d0 + q1 * d1 + q2 * d2, v0 * d0 + v1 * d1 + v2 * d2
-        # the origin's and the direction's parts across the axis, in the round cross-section
-        x0, x1, x2 = q0 - qa * d0, q1 - qa * d1, q2 - qa * d2
-        y0, y1, y2 = v0 - da * d0, v1 - da * d1, v2 - da * d2
-        xa, xb = x0 * a0 + x1 * a1 + x2 * a2, x0 * b0 + x1 * b1 + x2 * b2
-        ya, yb = y0 * a0 + y1 * a1 + y2 * a2, y0 * b0 + y1 * b1 + y2 * b2
-        x0, x1, x2 = (x0 + un1 * xa * a0 + un2 * xb * b0, x1 + un1 * xa * a1 + un2 * xb * b1,
-                      x2 + un1 * xa * a2 + un2 * xb * b2)
-        y0, y1, y2 = (y0 + un1 * ya * a0 + un2 * yb * b0, y1 + un1 * ya * a1 + un2 * yb * b1,
-                      y2 + un1 * ya * a2 + un2 * yb * b2)
-        A = y0 * y0 + y1 * y1 + y2 * y2
-        B = 2 * (x0 * y0 + x1 * y1 + x2 * y2)
-        qq = x0 * x0 + x1 * x1 + x2 * x2
-        if A <= 1e-12:
-            # a ray along the axis crosses no cylinder: in the shell from its origin, if at all
-            if not (qq <= r * r and qq >= r_in * r_in):
-                continue
-            s0, s1 = 0.0, 2.0 * (abs(top) + abs(qa)) + 1.0
-        else:
-            out0, out1 = _roots(A, B, qq - r * r)
-            in0, _ = _roots(A, B, qq - r_in * r_in)
-            s0 = max(out0, 0.0)
-            # the shell's first stretch ends where the ray enters the bore, else where it leaves
-            s1 = in0 if (in0 < np.inf and in0 > s0) else out1
-            if not (out0 < np.inf and out1 > 0.0 and s1 > s0):
-                continue
-        first = -1
-        hi = s0
-        for j in range(m):
-            hi = s0 + (s1 - s0) * frac[j]
-            if _material(p0 + hi * v0, p1 + hi * v1, p2 + hi * v2, g, base_kind) >= 0.0:
-                first = j
-                break
-            if hi > t_max[i]:
-                break
-        if first < 0:
-            continue
-        if first == 0:
-            out[i] = s0   # the outer wall (or the origin is in the wall)
-            continue
-        lo = s0 + (s1 - s0) * frac[first - 1]
-        for _ in range(bisect_steps):
-            mid = 0.5 * (lo + hi)
-            if _material(p0 + mid * v0, p1 + mid * v1, p2 + mid * v2, g, base_kind) >= 0.0:
-                hi = mid
-            else:
-                lo = mid
-        out[i] = hi
-    return out
+        t_main = _main_hit(p0, p1, p2, v0, v1, v2, g, base_kind)
+        t_branch = _branch_hit(p0, p1, p2, v0, v1, v2, t_main, g, base_kind, frac,
+                               bisect_steps)
+        t[i] = min(t_main, t_branch)
+        if t[i] < np.inf:
+            surface[i] = 1 if t_main <= t_branch else 2
+    return t, surface

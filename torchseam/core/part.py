@@ -180,7 +180,7 @@ class Joint:
         direction = np.asarray(direction, dtype=float).reshape(-1, 3)
         o = np.broadcast_to(np.asarray(origin, dtype=float), direction.shape)
         t_main = self._hit_main(o, direction)
-        t_branch = self._hit_branch(o, direction, t_main)
+        t_branch = self._hit_branch(o, direction)
         t = np.minimum(t_main, t_branch)
         surface = np.where(np.isinf(t), 0, np.where(t_main <= t_branch, 1, 2)).astype(np.int8)
         return t, surface
@@ -201,10 +201,7 @@ class Joint:
         B = 2 * np.einsum("ij,ij->i", qp, dp)
         return qa, da, A, B, np.einsum("ij,ij->i", qp, qp)
 
-    def _hit_branch(self, o: np.ndarray, d: np.ndarray, t_max: np.ndarray) -> np.ndarray:
-        """(N,) distances to the branch's surface along rays ``o + t d`` (N, 3 each), ``inf``
-        for a miss; a hit beyond ``t_max`` (N,), the main body's, may be answered ``inf``
-        (the main body hides it)."""
+    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         qa, da, A, B, qq = self._branch_quadric(o, d)
         t = _entry_root(A, B, qq - self.r**2)
         h = qa + t * da  # height of the hit along the branch axis: where the branch exists
@@ -365,8 +362,9 @@ class BevelledJoint(Joint):
 
     Surface ids of :meth:`raycast`: 1 the main body, 2 the branch (its outer wall above the
     shoulder and the bevel face alike); :meth:`normal_branch` tells them apart by the radius.
-    The main body's own geometry (``_height``, ``normal_main``, ``_hit_main``,
-    ``main_solid``) is the plain joint's of the same kind (``base``).
+    The main body's own geometry (``_height``, ``normal_main``, ``main_solid``) is the plain
+    joint's of the same kind (``base``); :meth:`raycast` casts it and the bevelled wall in one
+    compiled pass (:mod:`torchseam.core._kernels`).
     """
 
     seam_on_surface = False
@@ -385,7 +383,7 @@ class BevelledJoint(Joint):
         if isinstance(base, PipeJoint):
             self._base_kind, main = k.PIPE, [base.a, base.b, base.s, 0.0]
         elif isinstance(base, PlateJoint):
-            self._base_kind, main = k.PLATE, [0.0] * 4
+            self._base_kind, main = k.PLATE, [PLATE_HALF_MM, 0.0, 0.0, 0.0]
         elif isinstance(base, SphereJoint):
             self._base_kind, main = k.SPHERE, [base.R, *base.m]
         else:
@@ -401,14 +399,6 @@ class BevelledJoint(Joint):
 
     def normal_main(self, p: np.ndarray) -> np.ndarray:
         return self.base.normal_main(p)
-
-    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """The main body's surface, except inside the branch's bore (cut out: set-on)."""
-        t = self.base._hit_main(o, d)
-        hit = np.isfinite(t)
-        p = o + np.where(hit, t, 0.0)[:, None] * d
-        bore = self._polar(p)[0] < self.r_in
-        return np.where(hit & ~bore, t, np.inf)
 
     def main_solid(self) -> dict:
         return self.base.main_solid()
@@ -430,9 +420,9 @@ class BevelledJoint(Joint):
         h, dh = self.base._height(*self._generator(self.r_in, phi))
         return h + self.gap, dh
 
-    def _bevel_normal(self, rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
-        """(N, 3) outward unit normals of the bevel face at radius ``rho``, angle ``phi``."""
-        _, dh = self.root_height(phi)
+    def _bevel_normal(self, rho: np.ndarray, phi: np.ndarray, dh: np.ndarray) -> np.ndarray:
+        """(N, 3) outward unit normals of the bevel face at radius ``rho``, angle ``phi``
+        (``dh``: the root edge's height's derivative in phi there, :meth:`root_height`)."""
         cos, sin = np.cos(phi)[:, None], np.sin(phi)[:, None]
         d_rho = cos * self._f1 + sin * self._f2 + self.tan_b * self.d
         d_phi = rho[:, None] * (-sin * self._f1 + cos * self._f2) + dh[:, None] * self.d
@@ -447,7 +437,7 @@ class BevelledJoint(Joint):
         out = super().normal_branch(p)
         face = rho < self.r * (1.0 - 1e-9)
         if face.any():
-            out[face] = self._bevel_normal(rho[face], phi[face])
+            out[face] = self._bevel_normal(rho[face], phi[face], self.root_height(phi[face])[1])
         return out
 
     def seam(self, phi: np.ndarray) -> SeamSample:
@@ -461,20 +451,26 @@ class BevelledJoint(Joint):
         t = dc + dh[:, None] * self.d
         t /= np.linalg.norm(t, axis=1, keepdims=True)
         n_main = self.base.normal_main(c + h[:, None] * self.d)
-        n_face = self._bevel_normal(np.full(len(phi), self.r_in), phi)
+        n_face = self._bevel_normal(np.full(len(phi), self.r_in), phi, dh)
         return SeamSample(phi, p, t, n_main, n_face)
 
-    def _hit_branch(self, o: np.ndarray, d: np.ndarray, t_max: np.ndarray) -> np.ndarray:
-        """First entry of rays into the wall's material: where a ray crosses the outer
-        cylinder above the shoulder, else the first point of its path through the wall's shell
-        (outer cylinder to bore) that lies above the bevel face: tried at
-        ``BEVEL_MARCH_POINTS`` points along that stretch in order, then bisected
-        (``BEVEL_BISECT_STEPS``) before the first point in the material. A ray's march stops
-        past ``t_max`` (compiled: :func:`torchseam.core._kernels.bevel_hits`)."""
-        return self._kernels.bevel_hits(
-            np.ascontiguousarray(o), np.ascontiguousarray(d),
-            np.ascontiguousarray(t_max, dtype=float), self._geometry, self._base_kind,
-            self._march, BEVEL_BISECT_STEPS)
+    # ------------------------------------------------------------------ ray casting
+    def raycast(self, origin: np.ndarray, direction: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """First hit of rays with the solid union (:meth:`Joint.raycast`): the main body's
+        surface except inside the branch's bore (cut out: set-on), and the branch's wall,
+        first entered where a ray crosses the outer cylinder above the shoulder, else at the
+        first point of its path through the wall's shell (outer cylinder to bore) that lies
+        above the bevel face: tried at ``BEVEL_MARCH_POINTS`` points along that stretch in
+        order (up to the first past the main body's hit, which hides the branch beyond it),
+        then bisected (``BEVEL_BISECT_STEPS``) before the first point in the material.
+        Compiled: :func:`torchseam.core._kernels.bevel_raycast`."""
+        d = np.ascontiguousarray(direction, dtype=float).reshape(-1, 3)
+        o = np.ascontiguousarray(origin, dtype=float).reshape(-1, 3)
+        if len(o) not in (1, len(d)):
+            raise ValueError(f"raycast: {len(o)} origins for {len(d)} rays")
+        return self._kernels.bevel_raycast(o, d, self._geometry, self._base_kind, self._march,
+                                           BEVEL_BISECT_STEPS)
 
 
 #: The ``inline`` kind: how far the lower pipe (a butt) or the sleeve (a lap) reaches below the
@@ -606,8 +602,8 @@ class InlineJoint(Joint):
         t = np.where((h < top) & (h > top - self.below), t, np.inf)
         return np.minimum(t, self._end_face(qa, da, A, B, qq, top, self.r - self.wall, self.r))
 
-    def _hit_branch(self, o: np.ndarray, d: np.ndarray, t_max: np.ndarray) -> np.ndarray:
-        t = super()._hit_branch(o, d, t_max)
+    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        t = super()._hit_branch(o, d)
         if self.lap:   # its end is inside the sleeve
             return t
         qa, da, A, B, qq = self._branch_quadric(o, d)
