@@ -13,9 +13,12 @@ import base64
 import dataclasses
 import json
 import os
+import re
 import shutil
+import signal
 import socket
 import subprocess
+import sys
 import time
 import urllib.error
 import urllib.request
@@ -774,3 +777,57 @@ def test_a_camera_source_runs_and_its_end_is_reported(cfg, recorded, tmp_path):
     assert any("stream ended" in m[3] for m in con.session.messages)
     frames = con.session.delta(None)[0]["frames"]
     assert len(frames["t"]) >= 2   # the camera's frames went through the loop
+
+
+@pytest.mark.parametrize(("sig", "code", "welding"), [(signal.SIGTERM, 143, True),
+                                                     (signal.SIGINT, 130, True),
+                                                     (signal.SIGTERM, 143, False)])
+def test_a_signal_stops_the_weld_and_the_console_as_ctrl_c_does(sig, code, welding):
+    """SIGTERM (systemd, ``docker stop``, ``kill``) takes Ctrl-C's path: a running weld stops
+    at its next frame (its segment not completed, stopped by the signal, arc off), one line on
+    stderr says so, the exit code is 128 + the signal's number, and no process of the console
+    is left. The console runs in its own session (its process group: anything it started) with
+    SIGINT's default action, as a terminal starts it (a pytest-xdist worker ignores SIGINT,
+    and a child inherits that)."""
+    p = subprocess.Popen(
+        [sys.executable, "-m", "torchseam", "console", "--port", "0", "--segments", "a"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        line = p.stdout.readline()
+        m = re.search(r"http://127\.0\.0\.1:(\d+)/\?token=(\S+)", line)
+        assert m, (line, p.poll())
+        port, token = int(m.group(1)), m.group(2)
+
+        def ask(method: str, path: str, body: dict | None = None) -> tuple[int, dict]:
+            req = urllib.request.Request(
+                f"http://127.0.0.1:{port}{path}", method=method,
+                data=None if body is None else json.dumps(body).encode(),
+                headers={TOKEN_HEADER: token, "Content-Type": "application/json"})
+            with urllib.request.urlopen(req, timeout=10) as r:
+                return r.status, json.loads(r.read())
+
+        def weld_under_way() -> bool:
+            st = ask("GET", "/api/state")[1]["status"]
+            return st["state"] == "running" and bool(st["frame"]) and st["frame"]["t"] >= 1.0
+
+        if welding:   # 80 mm at 8 mm/s after the approach: still running when signalled
+            assert ask("POST", "/api/start", {**GOOD, "length_mm": 80})[0] == 200
+            wait_for(weld_under_way, timeout=90, what="the weld under way")
+        p.send_signal(sig)
+        _, err = p.communicate(timeout=90)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == code, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    said = f"torchseam console: interrupted by {sig.name}: "
+    if welding:
+        assert lines[0].startswith(said + "weld 1 stopped at t="), lines
+        assert f"arc off; not completed: segment a (stopped by {sig.name}" in lines[0], lines
+    else:
+        assert lines[0] == said + "no weld was running"
+    with pytest.raises(ProcessLookupError):   # nothing left in the console's process group
+        os.killpg(p.pid, 0)

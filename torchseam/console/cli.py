@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import signal
 import sys
 from pathlib import Path
 
 from torchseam.console.config import DEFAULT_HOST
 from torchseam.core.config import JOINT_PROFILES
 from torchseam.core.errors import TorchseamError
+from torchseam.core.signals import EXIT_SIGNAL, STOP_SIGNALS, SignalStop
 
 #: Named frame sources; any other ``--source`` is a recorded folder, a video file, or a
 #: camera (``camera:N``, a stream URL; see :func:`~torchseam.live.sources.open_source`).
@@ -107,8 +109,8 @@ def run(args: argparse.Namespace) -> int:
     except ParamError as e:
         raise TorchseamError(str(e)) from None
     console.allowed_hosts = tuple(args.allow_host)
-    asyncio.run(_serve(console, args.host, port, loopback=is_loopback(args.host)))
-    return 0
+    name = asyncio.run(_serve(console, args.host, port, loopback=is_loopback(args.host)))
+    return EXIT_SIGNAL.get(name, 1) if name else 0
 
 
 def _cell_console(args: argparse.Namespace, cfg, noise, parts, defaults):
@@ -133,7 +135,17 @@ def _cell_console(args: argparse.Namespace, cfg, noise, parts, defaults):
     return cell_console(cfg, cell, part, report, noise, parts, name, defaults=defaults)
 
 
-async def _serve(console, host: str, port: int, loopback: bool = True) -> None:
+#: how long a signal waits for the running weld to stop before the console ends without it
+STOP_WAIT_S = 30.0
+
+
+async def _serve(console, host: str, port: int, loopback: bool = True) -> str | None:
+    """Serve until SIGINT or SIGTERM (or the task is cancelled); the signal's name, None
+    without one. A signal stops a running weld as the page's Stop does (at its next frame:
+    arc off, the robot held; the log and the terminal say which signal), waits for it (at
+    most :data:`STOP_WAIT_S`), then closes the pages and the server; a second signal quits at
+    once (:class:`~torchseam.core.signals.SignalStop`, as ``torchseam demo``). A signal
+    ignored when the console started (a shell's background job's SIGINT) stays ignored."""
     try:
         await console.start(host, port)
     except OSError as e:
@@ -144,12 +156,61 @@ async def _serve(console, host: str, port: int, loopback: bool = True) -> None:
         print(f"torchseam console: warning: bound to {host}, not loopback: anyone who can "
               "reach this machine and has the token can start and stop the weld (pages are "
               f"answered as {host} or a --allow-host name)", file=sys.stderr, flush=True)
-    # the token is in the address, as a notebook server prints it: the page keeps it
-    print(f"torchseam console on {console.url()}  (Ctrl-C stops)", flush=True)
+    loop = asyncio.get_running_loop()
+    ended = asyncio.Event()
+    # the handler only wakes the loop; the weld is stopped from the loop (the session's lock)
+    stop = SignalStop(lambda _name: loop.call_soon_threadsafe(ended.set))
+    taken = [s for s in STOP_SIGNALS if signal.getsignal(s) is not signal.SIG_IGN]
+    session = console.session
+    with stop.installed(taken):
+        # the token is in the address, as a notebook server prints it: the page keeps it
+        print(f"torchseam console on {console.url()}  (Ctrl-C stops)", flush=True)
+        try:
+            await ended.wait()
+            weld = _stop_weld(session, stop.signal)
+            deadline = loop.time() + STOP_WAIT_S
+            while session.running and loop.time() < deadline:
+                await asyncio.sleep(0.05)   # the pages see it stop
+            print(f"torchseam console: interrupted by {stop.signal}: "
+                  f"{_weld_end(session, weld)}", file=sys.stderr, flush=True)
+        finally:
+            if session.running and stop.signal is None:   # cancelled, or an error
+                _stop_weld(session, None)
+                session.join(timeout=STOP_WAIT_S)
+            await console.close()
+    return stop.signal
+
+
+def _stop_weld(session, by: str | None) -> int | None:
+    """Stop the running weld as the page's Stop does, ``by`` named; its number (None: no weld
+    running)."""
+    if not session.running:
+        return None
     try:
-        await asyncio.Event().wait()
-    finally:
-        if console.session.running:
-            console.session.stop()
-            console.session.join(timeout=30)
-        await console.close()
+        session.stop(by)
+    except RuntimeError:
+        pass   # stopping already (the operator's Stop): it ends as it would
+    return session.weld_id
+
+
+def _weld_end(session, weld: int | None) -> str:
+    """What the terminal is told of the weld a signal stopped (``weld``: its number)."""
+    if weld is None:
+        return "no weld was running"
+    if session.running:
+        return (f"weld {weld} did not stop within {STOP_WAIT_S:g} s; the console ends without "
+                "it (a cell's controller stops the robot and the arc at its EGM "
+                "communication timeout)")
+    st = session.status()
+    if st["state"] == "failed":
+        return f"weld {weld} failed: {st['error']}"
+    s = st["summary"] or {}
+    lf = st["frame"]
+    where = f" at t={lf['t']:.2f} s" if lf and lf.get("t") is not None else ""
+    done = "stopped" if s.get("stopped") else "finished"
+    text = f"weld {weld} {done}{where} ({s.get('frames')} frames), arc off"
+    incomplete = s.get("segments_incomplete") or []
+    if incomplete:
+        text += "; not completed: " + "; ".join(
+            f"segment {i.get('segment')} ({i.get('reason')})" for i in incomplete)
+    return text

@@ -205,11 +205,13 @@ class WeldSession:
             self.state = RunState.RUNNING
         self.log("resumed by the operator")
 
-    def stop(self) -> None:
-        self._need_running("stop").stop()
+    def stop(self, by: str | None = None) -> None:
+        """Stop the weld at its next frame; ``by`` names who asked (``"SIGTERM"``: the
+        segments' reasons say "stopped by SIGTERM"; None: the operator)."""
+        self._need_running("stop").stop(by)
         with self.lock:
             self.state = RunState.STOPPING
-        self.log("stop requested by the operator")
+        self.log(f"stop requested by {by or 'the operator'}")
 
     def join(self, timeout: float | None = None) -> bool:
         """Wait for the weld thread; True when it has ended."""

@@ -4,12 +4,9 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
-import signal
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +21,7 @@ from torchseam.core.cliargs import (
 from torchseam.core.config import JOINT_PROFILES, load_cell, load_noise, load_part
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import ReportError, format_table
+from torchseam.core.signals import EXIT_SIGNAL, SignalStop
 from torchseam.live.names import FAULTS
 from torchseam.track.names import TRACKERS
 
@@ -221,9 +219,9 @@ MAX_START_ANGLE_DEG = 45.0
 
 #: ``torchseam demo``'s exit codes: every segment welded; a segment not welded (its end not
 #: reached, or a gap in its bead); bad input or a part the robot cannot weld; the report could
-#: not be written (a full disk, a permission); SIGINT / SIGTERM (128 + the signal's number)
+#: not be written (a full disk, a permission); SIGINT / SIGTERM: :data:`EXIT_SIGNAL` (128 + the
+#: signal's number)
 EXIT_OK, EXIT_INCOMPLETE, EXIT_BAD_INPUT, EXIT_REPORT = 0, 1, 2, 3
-EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
 
 
 def demo_exit_code(summary: dict) -> int:
@@ -234,35 +232,6 @@ def demo_exit_code(summary: dict) -> int:
     if summary.get("interrupted"):
         return EXIT_SIGNAL.get(summary["interrupted"], EXIT_INCOMPLETE)
     return EXIT_INCOMPLETE if summary.get("segments_incomplete") else EXIT_OK
-
-
-class _SignalStop:
-    """SIGINT / SIGTERM while the demo runs: the first stops the weld at the next frame
-    (``control.stop``; the report of what was done is then written, marked interrupted); a
-    second of the same run quits at once (SIGINT: KeyboardInterrupt, SIGTERM: exit 143),
-    leaving the folder with its RUNNING marker and no summary.json."""
-
-    def __init__(self, control: Any) -> None:
-        self.control = control
-        self.signal: str | None = None
-
-    def on_signal(self, signum: int, _frame: Any) -> None:
-        name = signal.Signals(signum).name
-        if self.signal is not None:
-            if signum == signal.SIGINT:
-                raise KeyboardInterrupt
-            raise SystemExit(EXIT_SIGNAL.get(name, 128 + signum))
-        self.signal = name
-        self.control.stop(name)
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[None]:
-        old = {s: signal.signal(s, self.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            yield
-        finally:
-            for s, h in old.items():
-                signal.signal(s, h)
 
 
 def _report_failed(e: ReportError) -> int:
@@ -336,7 +305,10 @@ def run(args: argparse.Namespace) -> int:
     # the run's own folder (an earlier report moved aside), marked RUNNING until its
     # summary.json is written
     control = DemoControl()
-    stop = _SignalStop(control)
+    # SIGINT / SIGTERM: the first stops the weld at the next frame (the report of what was
+    # done is then written, marked interrupted); a second quits at once, leaving the folder
+    # with its RUNNING marker and no summary.json
+    stop = SignalStop(control.stop)
     with stop.installed():
         try:
             out = prepare_out_dir(args.out, "torchseam demo")
