@@ -146,8 +146,10 @@ class Joint:
         return np.hypot(u, v), np.arctan2(v, u), a
 
     def _across(self, v: np.ndarray, c: tuple[float, float]) -> np.ndarray:
-        """``v`` (N, 3, across the axis) with its e1 and e2 parts scaled by 1 + c (exact for
-        c = 0)."""
+        """``v`` (N, 3, across the axis) with its e1 and e2 parts scaled by 1 + c (``v`` itself
+        for c = 0: a round branch)."""
+        if c == (0.0, 0.0):
+            return v
         return (v + c[0] * (v @ self.e1)[:, None] * self.e1
                 + c[1] * (v @ self.e2)[:, None] * self.e2)
 
