@@ -1,5 +1,6 @@
-"""The bevelled branch's compiled ray cast (torchseam.core._kernels) against the numpy march it
-replaced: the same hits (within 1e-6 mm) and the same misses, on every main body."""
+"""The joints' compiled ray casts (torchseam.core._kernels) against the numpy casts they
+replaced: the same surface for every ray, the same misses, hits within 1e-9 mm (a plain
+branch) and 1e-6 mm (a bevelled branch's march), on every main body."""
 
 from __future__ import annotations
 
@@ -12,7 +13,12 @@ from torchseam.core.config import load_part
 from torchseam.core.part import (
     BEVEL_BISECT_STEPS,
     BEVEL_MARCH_POINTS,
+    PLATE_HALF_MM,
     BevelledJoint,
+    Joint,
+    PipeJoint,
+    PlateJoint,
+    _entry_root,
     make_joint,
 )
 
@@ -89,12 +95,12 @@ def _part(kind: str):
                                branch_ovality=0.01)
 
 
-def _rays(j: BevelledJoint, rng: np.random.Generator, n: int
+def _rays(j: Joint, rng: np.random.Generator, n: int
           ) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) origins ~150-400 mm from the root edge, (N, 3) unit directions aimed at points
     near it (most rays cross the groove, the wall or the bore, some the main body; a tenth
-    come from below, through the main body into the wall), and a few along the branch
-    axis."""
+    come from below, through the main body into the wall), and a few along the branch axis
+    (in the wall's shell and in the bore)."""
     phi = rng.uniform(0.0, 2.0 * np.pi, n)
     seam = j.seam(phi).point
     target = seam + rng.normal(0.0, 1.0, (n, 3)) * np.array([6.0, 6.0, 6.0])
@@ -108,7 +114,7 @@ def _rays(j: BevelledJoint, rng: np.random.Generator, n: int
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     # a few rays straight down the axis, in the wall's shell and in the bore
     k = min(8, n)
-    rad = np.linspace(j.r_in - 2.0, j.r - 0.5, k)
+    rad = np.linspace(getattr(j, "r_in", j.r - 10.0) - 2.0, j.r - 0.5, k)
     ang = rng.uniform(0.0, 2.0 * np.pi, k)
     o[:k] = (j.o + rad[:, None] * (np.cos(ang)[:, None] * j._f1 + np.sin(ang)[:, None] * j._f2)
              + (j.branch_top - 50.0) * j.d)
@@ -116,15 +122,47 @@ def _rays(j: BevelledJoint, rng: np.random.Generator, n: int
     return o, d
 
 
-def numpy_raycast(j: BevelledJoint, o: np.ndarray, d: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The reference ``raycast``: the main body's hit (cut to the branch's bore) and the
-    marched branch, both over all rays, the nearer kept."""
-    t_main = j.base._hit_main(o, d)
-    hit = np.isfinite(t_main)
-    bore = j._polar(o + np.where(hit, t_main, 0.0)[:, None] * d)[0] < j.r_in
-    t_main = np.where(hit & ~bore, t_main, np.inf)
-    t_branch = numpy_hit_branch(j, o, d)
+def numpy_hit_main(j: Joint, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The reference: the main body's entry (a pipe, a plate's top face or a sphere)."""
+    base = j.base if isinstance(j, BevelledJoint) else j
+    if isinstance(base, PipeJoint):   # ((y + s)/a)^2 + (z/b)^2 = 1
+        a, b = base.a, base.b
+        y = o[:, 1] + base.s
+        A = (d[:, 1] / a) ** 2 + (d[:, 2] / b) ** 2
+        B = 2 * (y * d[:, 1] / a**2 + o[:, 2] * d[:, 2] / b**2)
+        return _entry_root(A, B, (y / a) ** 2 + (o[:, 2] / b) ** 2 - 1.0)
+    if isinstance(base, PlateJoint):   # the top face, from above
+        down = (o[:, 2] > 0.0) & (d[:, 2] < -1e-12)
+        t = np.where(down, -o[:, 2] / np.where(down, d[:, 2], -1.0), np.inf)
+        p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        inside = (np.abs(p[:, 0]) <= PLATE_HALF_MM) & (np.abs(p[:, 1]) <= PLATE_HALF_MM)
+        return np.where(down & inside & (t > 0), t, np.inf)
+    w = o - base.m
+    return _entry_root(np.einsum("ij,ij->i", d, d), 2 * np.einsum("ij,ij->i", w, d),
+                       np.einsum("ij,ij->i", w, w) - base.R**2)
+
+
+def numpy_hit_cylinder(j: Joint, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The reference: a plain branch's entry, its outer cylinder between bottom and top."""
+    qa, da, A, B, qq = j._branch_quadric(o, d)
+    t = _entry_root(A, B, qq - j.r**2)
+    h = qa + t * da
+    return np.where((h > j.branch_bottom) & (h < j.branch_top), t, np.inf)
+
+
+def numpy_raycast(j: Joint, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The reference ``raycast``: the main body's hit (cut to the branch's bore under a
+    bevelled branch) and the branch's (marched in a bevelled one), both over all rays, the
+    nearer kept."""
+    o = np.broadcast_to(o, d.shape)
+    t_main = numpy_hit_main(j, o, d)
+    if isinstance(j, BevelledJoint):
+        hit = np.isfinite(t_main)
+        bore = j._polar(o + np.where(hit, t_main, 0.0)[:, None] * d)[0] < j.r_in
+        t_main = np.where(hit & ~bore, t_main, np.inf)
+        t_branch = numpy_hit_branch(j, o, d)
+    else:
+        t_branch = numpy_hit_cylinder(j, o, d)
     t = np.minimum(t_main, t_branch)
     return t, np.where(np.isinf(t), 0, np.where(t_main <= t_branch, 1, 2)).astype(np.int8)
 
@@ -152,9 +190,30 @@ def test_compiled_cast_is_the_numpy_march(kind: str) -> None:
         assert np.isfinite(numpy_hit_branch(j, o, d)[s_ref == 1]).sum() > 20
 
 
-def test_one_origin_for_all_rays() -> None:
+@pytest.mark.parametrize("kind", ["pipe", "offset", "y_joint", "plate", "sphere"])
+def test_compiled_plain_cast_is_numpy_s(kind: str) -> None:
+    """A plain branch (no bevel) on each main body, oval and round: the same surface for
+    every ray, hits within 1e-9 mm."""
+    for ovality in (0.0, 0.01):
+        part = dataclasses.replace(_part(kind), bevel_deg=0.0, root_gap_mm=0.0,
+                                   branch_wall_mm=0.0, branch_ovality=ovality)
+        j = make_joint(part)
+        assert not isinstance(j, BevelledJoint)
+        o, d = _rays(j, np.random.default_rng(3), 4000)
+        t_ref, s_ref = numpy_raycast(j, o, d)
+        t, surface = j.raycast(o, d)
+        np.testing.assert_array_equal(surface, s_ref)
+        hit = s_ref > 0
+        np.testing.assert_allclose(t[hit], t_ref[hit], rtol=0.0, atol=1e-9)
+        assert (s_ref == 1).sum() > 300 and (s_ref == 2).sum() > 300
+
+
+@pytest.mark.parametrize("kind", ["pipe", "bevel"])
+def test_one_origin_for_all_rays(kind: str) -> None:
     """One origin (3,) for all rays, and directions in any layout, are cast as given."""
-    j = make_joint(_part("pipe"))
+    part = _part("pipe")
+    j = make_joint(part if kind == "bevel" else dataclasses.replace(
+        part, bevel_deg=0.0, root_gap_mm=0.0, branch_wall_mm=0.0))
     o, d = _rays(j, np.random.default_rng(2), 64)
     t, s = j.raycast(o[20], np.asfortranarray(d))
     t_ref, s_ref = j.raycast(np.repeat(o[20:21], 64, axis=0), np.ascontiguousarray(d))

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 
@@ -66,7 +67,8 @@ class Joint:
     """A branch pipe (oval, offset, tilted) set on a main body, as solids in {T}.
 
     Subclasses give the main body: :meth:`_height` (where a branch generator meets it, with
-    its derivative), :meth:`normal_main`, :meth:`_hit_main` and :meth:`main_solid`.
+    its derivative), :meth:`normal_main`, :meth:`main_solid` and :meth:`_main_body` (its kind
+    and parameters for the compiled ray cast, :mod:`torchseam.core._kernels`).
 
     Attributes:
         kind: the part kind (``configs/parts/*.yaml`` ``kind:``).
@@ -82,6 +84,7 @@ class Joint:
     #: the seam lies on both surfaces (a fillet's corner); False where the seam point is the
     #: middle of a root gap (:class:`BevelledJoint`), which no surface holds
     seam_on_surface = True
+    _cast_geometry: np.ndarray | None = None   # the compiled casts' (made on the first cast)
 
     def __init__(self, part: PartConfig) -> None:
         self.kind = part.kind
@@ -179,15 +182,38 @@ class Joint:
             ``(t, surface)``: (N,) distance along each ray (``inf`` for a miss) and (N,) int8
             surface id (0 none, 1 main body, 2 branch).
         """
-        direction = np.asarray(direction, dtype=float).reshape(-1, 3)
-        o = np.broadcast_to(np.asarray(origin, dtype=float), direction.shape)
-        t_main = self._hit_main(o, direction)
-        t_branch = self._hit_branch(o, direction)
-        t = np.minimum(t_main, t_branch)
-        surface = np.where(np.isinf(t), 0, np.where(t_main <= t_branch, 1, 2)).astype(np.int8)
-        return t, surface
+        d = np.ascontiguousarray(direction, dtype=float).reshape(-1, 3)
+        o = np.ascontiguousarray(origin, dtype=float).reshape(-1, 3)
+        if len(o) not in (1, len(d)):
+            raise ValueError(f"raycast: {len(o)} origins for {len(d)} rays")
+        return self._cast(o, d)
 
-    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    def _cast(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`raycast` of (N, 3) or (1, 3) origins ``o`` and (N, 3) directions ``d``, both
+        C-contiguous: compiled (:func:`torchseam.core._kernels.raycast`), its kernels loaded
+        on the first cast (commands that never cast need not load numba)."""
+        k = load_kernels(__package__)
+        return k.raycast(o, d, self._geometry(k), self._main_body(k)[0])
+
+    def _geometry(self, k: ModuleType) -> np.ndarray:
+        """The joint's geometry for the compiled ray casts (``k``: :mod:`torchseam.core._kernels`,
+        whose docstring gives the layout), made on the first cast."""
+        if self._cast_geometry is None:
+            g = np.concatenate([self.o, self.d, self.e1, self.e2, self._f1, self._f2,
+                                self._branch_shape(), self._main_body(k)[1]])
+            assert g.shape == (k.GEOMETRY_SIZE,)
+            self._cast_geometry = g
+        return self._cast_geometry
+
+    def _branch_shape(self) -> list[float]:
+        """The branch for the compiled ray casts: ``k1, k2, r, r_in``, the root gap, tan of the
+        bevel angle, its bottom and top (a plain branch: ``r_in = r``, no gap, no bevel)."""
+        return [self.k1, self.k2, self.r, self.r, 0.0, 0.0, self.branch_bottom,
+                self.branch_top]
+
+    def _main_body(self, k: ModuleType) -> tuple[int, list[float]]:
+        """The main body for the compiled ray casts: its kind (``k.PIPE``, ``k.PLATE``,
+        ``k.SPHERE`` of :mod:`torchseam.core._kernels`) and its four parameters."""
         raise NotImplementedError
 
     def _branch_quadric(self, o: np.ndarray, d: np.ndarray
@@ -203,11 +229,6 @@ class Joint:
         B = 2 * np.einsum("ij,ij->i", qp, dp)
         return qa, da, A, B, np.einsum("ij,ij->i", qp, qp)
 
-    def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        qa, da, A, B, qq = self._branch_quadric(o, d)
-        t = _entry_root(A, B, qq - self.r**2)
-        h = qa + t * da  # height of the hit along the branch axis: where the branch exists
-        return np.where((h > self.branch_bottom) & (h < self.branch_top), t, np.inf)
 
 
 class PipeJoint(Joint):
@@ -242,13 +263,9 @@ class PipeJoint(Joint):
                      axis=1)
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
-    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        # ((y + s)/a)^2 + (z/b)^2 = 1, entry root only.
-        y = o[:, 1] + self.s
-        A = (d[:, 1] / self.a) ** 2 + (d[:, 2] / self.b) ** 2
-        B = 2 * (y * d[:, 1] / self.a**2 + o[:, 2] * d[:, 2] / self.b**2)
-        C = (y / self.a) ** 2 + (o[:, 2] / self.b) ** 2 - 1.0
-        return _entry_root(A, B, C)
+    def _main_body(self, k: ModuleType) -> tuple[int, list[float]]:
+        # ((y + s)/a)^2 + (z/b)^2 = 1
+        return k.PIPE, [self.a, self.b, self.s, 0.0]
 
     def main_solid(self) -> dict:
         """``{"kind": "pipe", "origin": a point of the main axis, "a", "b"}`` (semi-axes along
@@ -278,13 +295,9 @@ class PlateJoint(Joint):
     def normal_main(self, p: np.ndarray) -> np.ndarray:
         return np.broadcast_to(np.array([0.0, 0.0, 1.0]), (len(p), 3)).copy()
 
-    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        # the top face only: rays come from above the plate
-        down = (o[:, 2] > 0.0) & (d[:, 2] < -1e-12)
-        t = np.where(down, -o[:, 2] / np.where(down, d[:, 2], -1.0), np.inf)
-        p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
-        inside = (np.abs(p[:, 0]) <= PLATE_HALF_MM) & (np.abs(p[:, 1]) <= PLATE_HALF_MM)
-        return np.where(down & inside & (t > 0), t, np.inf)
+    def _main_body(self, k: ModuleType) -> tuple[int, list[float]]:
+        # the top face only (rays come from above the plate), a square of half side
+        return k.PLATE, [PLATE_HALF_MM, 0.0, 0.0, 0.0]
 
     def main_solid(self) -> dict:
         """``{"kind": "plate", "origin": the top face's centre, "half": half side,
@@ -321,12 +334,8 @@ class SphereJoint(Joint):
         n = p - self.m
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
-    def _hit_main(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        w = o - self.m
-        A = np.einsum("ij,ij->i", d, d)
-        B = 2 * np.einsum("ij,ij->i", w, d)
-        C = np.einsum("ij,ij->i", w, w) - self.R**2
-        return _entry_root(A, B, C)
+    def _main_body(self, k: ModuleType) -> tuple[int, list[float]]:
+        return k.SPHERE, [self.R, *self.m]
 
     def main_solid(self) -> dict:
         """``{"kind": "sphere", "origin": the centre, "radius"}``."""
@@ -380,19 +389,6 @@ class BevelledJoint(Joint):
         self.r_in = self.r - self.wall
         self.gap = float(part.root_gap_mm)
         self.tan_b = float(np.tan(np.deg2rad(part.bevel_deg)))
-        # the compiled ray cast (loaded now, not on the first ray cast) and its geometry
-        k = self._kernels = load_kernels(__package__)
-        if isinstance(base, PipeJoint):
-            self._base_kind, main = k.PIPE, [base.a, base.b, base.s, 0.0]
-        elif isinstance(base, PlateJoint):
-            self._base_kind, main = k.PLATE, [PLATE_HALF_MM, 0.0, 0.0, 0.0]
-        elif isinstance(base, SphereJoint):
-            self._base_kind, main = k.SPHERE, [base.R, *base.m]
-        else:
-            raise TypeError(f"a bevelled branch on a {type(base).__name__}")
-        self._geometry = np.concatenate([
-            self.o, self.d, self.e1, self.e2, self._f1, self._f2,
-            [self.k1, self.k2, self.r, self.r_in, self.gap, self.tan_b, self.branch_top], main])
         self._march = np.linspace(0.0, 1.0, BEVEL_MARCH_POINTS)
 
     # ------------------------------------------------------------------ the main body
@@ -404,6 +400,13 @@ class BevelledJoint(Joint):
 
     def main_solid(self) -> dict:
         return self.base.main_solid()
+
+    def _main_body(self, k: ModuleType) -> tuple[int, list[float]]:
+        return self.base._main_body(k)
+
+    def _branch_shape(self) -> list[float]:
+        return [self.k1, self.k2, self.r, self.r_in, self.gap, self.tan_b, self.branch_bottom,
+                self.branch_top]
 
     # ------------------------------------------------------------------ the bevelled branch
     def _generator(self, rho: float | np.ndarray, phi: np.ndarray
@@ -457,22 +460,17 @@ class BevelledJoint(Joint):
         return SeamSample(phi, p, t, n_main, n_face)
 
     # ------------------------------------------------------------------ ray casting
-    def raycast(self, origin: np.ndarray, direction: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """First hit of rays with the solid union (:meth:`Joint.raycast`): the main body's
-        surface except inside the branch's bore (cut out: set-on), and the branch's wall,
-        first entered where a ray crosses the outer cylinder above the shoulder, else at the
-        first point of its path through the wall's shell (outer cylinder to bore) that lies
-        above the bevel face: tried at ``BEVEL_MARCH_POINTS`` points along that stretch in
-        order (up to the first past the main body's hit, which hides the branch beyond it),
-        then bisected (``BEVEL_BISECT_STEPS``) before the first point in the material.
-        Compiled: :func:`torchseam.core._kernels.bevel_raycast`."""
-        d = np.ascontiguousarray(direction, dtype=float).reshape(-1, 3)
-        o = np.ascontiguousarray(origin, dtype=float).reshape(-1, 3)
-        if len(o) not in (1, len(d)):
-            raise ValueError(f"raycast: {len(o)} origins for {len(d)} rays")
-        return self._kernels.bevel_raycast(o, d, self._geometry, self._base_kind, self._march,
-                                           BEVEL_BISECT_STEPS)
+    def _cast(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The main body's surface except inside the branch's bore (cut out: set-on), and the
+        branch's wall, first entered where a ray crosses the outer cylinder above the shoulder,
+        else at the first point of its path through the wall's shell (outer cylinder to bore)
+        that lies above the bevel face: tried at ``BEVEL_MARCH_POINTS`` points along that
+        stretch in order (up to the first past the main body's hit, which hides the branch
+        beyond it), then bisected (``BEVEL_BISECT_STEPS``) before the first point in the
+        material. Compiled: :func:`torchseam.core._kernels.bevel_raycast`."""
+        k = load_kernels(__package__)
+        return k.bevel_raycast(o, d, self._geometry(k), self._main_body(k)[0], self._march,
+                               BEVEL_BISECT_STEPS)
 
 
 #: The ``inline`` kind: how far the lower pipe (a butt) or the sleeve (a lap) reaches below the
@@ -573,6 +571,15 @@ class InlineJoint(Joint):
         return np.where(face[:, None], -self.d, n)
 
     # ------------------------------------------------------------------ ray casting
+    def _cast(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """In numpy: the main body's hit and the branch's, the nearer kept."""
+        o = np.broadcast_to(o, d.shape)
+        t_main = self._hit_main(o, d)
+        t_branch = self._hit_branch(o, d)
+        t = np.minimum(t_main, t_branch)
+        surface = np.where(np.isinf(t), 0, np.where(t_main <= t_branch, 1, 2)).astype(np.int8)
+        return t, surface
+
     def _end_face(self, qa: np.ndarray, da: np.ndarray, A: np.ndarray, B: np.ndarray,
                   qq: np.ndarray, at: float, r0: float, r1: float) -> np.ndarray:
         """Rays (their parts along an axis, ``qa + t da``, and across it, squared distance
@@ -605,10 +612,12 @@ class InlineJoint(Joint):
         return np.minimum(t, self._end_face(qa, da, A, B, qq, top, self.r - self.wall, self.r))
 
     def _hit_branch(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        t = super()._hit_branch(o, d)
+        qa, da, A, B, qq = self._branch_quadric(o, d)
+        t = _entry_root(A, B, qq - self.r**2)
+        h = qa + t * da  # height of the hit along the branch axis: where the branch exists
+        t = np.where((h > self.branch_bottom) & (h < self.branch_top), t, np.inf)
         if self.lap:   # its end is inside the sleeve
             return t
-        qa, da, A, B, qq = self._branch_quadric(o, d)
         face = self._end_face(qa, da, A, B, qq, self.branch_bottom, self.r - self.wall, self.r)
         return np.minimum(t, face)
 
