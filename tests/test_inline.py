@@ -9,7 +9,7 @@ import pytest
 from torchseam.core.config import CONFIG_DIR, ConfigError, load_cell, load_noise, load_part
 from torchseam.core.part import InlineJoint, make_joint, torch_frames
 from torchseam.sim.sequence import SequenceSpec, simulate
-from torchseam.vision.profiles import ProfileFinder, load_profile_config
+from torchseam.vision.profiles import LAP_DARK_FACE, ProfileFinder, load_profile_config
 from torchseam.vision.tipm import load_tipm
 
 BUTT = CONFIG_DIR / "parts" / "pipe_butt.yaml"
@@ -170,3 +170,61 @@ def test_closed_loop_welds_a_girth_joint(tmp_path, path):
     assert s["seam_rmse_mm"] <= 0.1 and s["seam_max_mm"] <= 0.3
     assert s["axis_max_deg"] <= 1.0 and s["axis_within_1deg"] >= 5
     assert s["unsafe_poses_sent"] == 0
+
+
+def _lap_tracker(note: str, frames: list[tuple[np.ndarray, np.ndarray]]):
+    """A profile tracker on a lap whose profile per frame is given ((root, edge) px, the note
+    :attr:`ProfileResult.reason` of the profile: LAP_DARK_FACE or none) in place of a finder's
+    reading of a frame; its results for frames 1 on, each with the prediction the locator
+    gives it (the first root: the seam stands still)."""
+    from torchseam.track.profile import ProfileTracker, load_profile_track_config
+    from torchseam.vision.profiles import ProfileResult
+
+    plate = np.array([-0.84, 0.54])   # the far plate from the root (image directions)
+    tracker = ProfileTracker(ProfileFinder(load_tipm(), load_profile_config(), "lap"),
+                             load_profile_track_config())
+    it = iter(frames)
+
+    def window(frame, centre):
+        root, edge = next(it)
+        face = (edge - root) / np.linalg.norm(edge - root)
+        return ProfileResult("lap", True, root.copy(), {"root": root, "edge": edge}, note,
+                             width_px=30.0, arm_points=np.stack([root + 40 * plate,
+                                                                 root + 40 * face]))
+
+    tracker._window = window
+    img = np.zeros((480, 640), np.uint8)
+    tracker.init(img, frames[0][0])
+    out = []
+    for _ in frames[1:]:
+        tracker.expect(frames[0][0])
+        out.append((tracker.track(img), tracker.result))
+    return out
+
+
+@pytest.mark.parametrize("dark", [False, True])
+def test_a_lap_step_off_its_span_is_put_back_only_where_its_ends_are_read_apart(dark):
+    """The arc's glare over a lap's lit edge face bends the face's centre line: the root and
+    the edge, where that one line meets the plates', both slide along their plates, the edge
+    less (it lies nearer the line's turn). The step reads off its recent span, and the edge,
+    still near its place, is no reading to put the root back from (it carried its own error
+    into the seam, the same way on every such frame): no evidence. Where the face is dark the
+    two ends are the plates' own ends, read apart: a root the glare ate is put back at the
+    span from the edge, as before."""
+    from torchseam.track.fusion import TrackStatus
+
+    root, edge = np.array([311.0, 230.0]), np.array([365.5, 264.8])
+    clean = [(root, edge)] * 6
+    if dark:    # the root eaten back along its plate, the edge where it is
+        off = (root + 4.0 * np.array([0.84, -0.54]), edge)
+    else:       # the face's line turned: the root 4.7 px down its plate, the edge 1.7 up its
+        off = (root + 4.7 * np.array([-0.84, 0.54]), edge + 1.7 * np.array([0.84, -0.54]))
+    results = _lap_tracker(LAP_DARK_FACE if dark else "", [*clean, off])
+    for r, _ in results[:-1]:
+        assert r.status == TrackStatus.TRACKED and np.allclose(r.uv, root)
+    r, res = results[-1]
+    if dark:
+        assert r.status == TrackStatus.TRACKED and np.allclose(r.uv, root), r.uv
+        assert "root at its recent span" in res.reason
+    else:
+        assert r.status == TrackStatus.COASTING and res is None, r.status

@@ -14,6 +14,7 @@ from torchseam.core.config import ConfigError, load_config
 from torchseam.vision.axis import stripe_axis
 from torchseam.vision.profiles import (
     JOINTS,
+    LAP_DARK_FACE,
     ProfileConfig,
     ProfileFinder,
     draw_profile,
@@ -190,6 +191,7 @@ def test_lap_edge_and_root(far_side):
          else {"edge": lower, "root": upper}, 1.5)
     np.testing.assert_allclose(res.aim, res.points["root"])
     assert res.width_px == pytest.approx(32.0, abs=1.0)
+    assert res.reason == LAP_DARK_FACE   # its two ends read apart (the tracker may put one back)
 
 
 def _lap_z(angle_deg: float) -> tuple[list, np.ndarray, np.ndarray]:
@@ -219,6 +221,7 @@ def test_lap_with_a_lit_edge_face_across_the_view(angle_deg):
     assert np.linalg.norm(res.points["root"] - root) <= 1.5, res.points
     assert np.linalg.norm(res.points["edge"] - edge) <= 1.5, res.points
     np.testing.assert_allclose(res.aim, res.points["root"])
+    assert res.reason == ""   # not LAP_DARK_FACE: both ends are on the face's line
 
 
 def test_a_bright_edge_beside_the_stripe_is_no_part_of_it():

@@ -37,6 +37,7 @@ from torchseam.track.peers import FrameTracker, make_tracker
 from torchseam.vision.axis import stripe_axis
 from torchseam.vision.profiles import (
     JOINTS,
+    LAP_DARK_FACE,
     ProfileConfig,
     ProfileFinder,
     ProfileResult,
@@ -300,7 +301,14 @@ class ProfileTracker(Tracker):
         share) stays, within ``edge_tol_px`` of it, and the other is put back at the median
         from it; no end there: no evidence (``ok`` False). A vector taken from its history on
         more than ``edge_max_frames`` frames in a row is no longer known (its history starts
-        again from what the frames show; the gate on the prediction still holds)."""
+        again from what the frames show; the gate on the prediction still holds).
+
+        A lap whose edge face is lit (not noted :data:`~torchseam.vision.profiles.LAP_DARK_FACE`)
+        has no end to keep: both are where the face's line meets the plates', and a span off
+        is that line off; no evidence. (The arc's glare bends the face's centre line, which
+        moves both ends the same way frame after frame: an end put back from the other
+        carried that into the seam, and a run of them turned the look-ahead's tangent, and
+        the torch axis with it.)"""
         names = ("left_edge", "right_edge") if res.joint == "butt" else ("root", "edge")
         if not all(n in res.points for n in names):
             return res
@@ -323,6 +331,15 @@ class ProfileTracker(Tracker):
                 res, ok=False, aim=np.full(2, np.nan),
                 reason=f"the {res.joint}'s ends off their recent span for "
                        f"{self.cfg.edge_max_frames} frames")
+        if res.joint == "lap" and res.reason != LAP_DARK_FACE:
+            # a lit edge face: root and edge are where the face's one line meets the plates'
+            # lines, not two readings; a span off is that line off (the arc's glare bends the
+            # face's centre line), which moves both ends, each along its plate: an end "in its
+            # place" is off too, and the other put back from it carried that into the seam
+            return dataclasses.replace(
+                res, ok=False, aim=np.full(2, np.nan),
+                reason=f"the lap's edge face off its recent span (span {np.linalg.norm(d):.1f} "
+                       f"px, recently {np.linalg.norm(ref):.1f}): both ends are on its line")
         share = 0.5 if res.joint == "butt" else 0.0   # the aim's place between the ends
         exp_a = pred - share * ref
         exp_b = exp_a + ref

@@ -94,6 +94,10 @@ def load_profile_config(path: str | Path | None = None) -> ProfileConfig:
 #: the feature points each piece of :attr:`ProfileResult.arm_points` leaves, by profile
 ARM_ROOTS = {"v_groove": ("left_root", "right_root"), "butt": ("left_edge", "right_edge"),
              "lap": ("root", "root")}
+#: a lap's note (:attr:`ProfileResult.reason`) where its edge face is dark: its root and edge
+#: are then the plates' own ends, two readings; where the face is lit both are where the face's
+#: one line meets the plates' (the profile tracker's span check tells the two apart)
+LAP_DARK_FACE = "dark edge face"
 
 
 @dataclass
@@ -576,7 +580,7 @@ class ProfileFinder:
         stripe's own direction, so a stripe across the view at any slope is read as one along
         the rows: the offset across it jumps (or ramps, over the lit face) by the step. The
         root, where the fillet goes, is the far plate's end (``far_side``); the edge the near
-        plate's."""
+        plate's. A dark face is noted (:data:`LAP_DARK_FACE`): its two ends are read apart."""
         cfg = self.cfg
         m = cfg.min_points
         # the stripe's direction: the median of its local directions (the plates' own, the
@@ -609,6 +613,7 @@ class ProfileFinder:
             a, b = lit   # the lit edge face: the corners where its line meets the plates'
             le, re = meet(a, f), meet(b, f)
             assert le is not None and re is not None   # not parallel: they bend
+            note = ""
         else:            # a dark face (no third piece across the plates): their ends
             left, right = pts[:j][::-1], pts[j:]
             dark = self._plates(left, right)
@@ -617,6 +622,7 @@ class ProfileFinder:
             a, b = dark
             le = self._end(left, response_at(self._ridge, left), a)
             re = self._end(right, response_at(self._ridge, right), b)
+            note = LAP_DARK_FACE
         # the far plate shows on the far side of the other: its end is the root
         before_far = (offset > 0.0) == (cfg.far_side == "up")
         root, edge, plate, piece = ((le, re, a, pts[:j][::-1]) if before_far
@@ -624,7 +630,7 @@ class ProfileFinder:
         face = edge - root
         face_d = face / max(float(np.linalg.norm(face)), 1e-9)
         arms = np.stack([root + cfg.fit_px * _outward(plate, piece), root + cfg.fit_px * face_d])
-        return ProfileResult("lap", True, root.copy(), {"edge": edge, "root": root},
+        return ProfileResult("lap", True, root.copy(), {"edge": edge, "root": root}, note,
                              width_px=jump, centre=pts, arm_points=arms)
 
 
