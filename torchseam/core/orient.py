@@ -9,8 +9,11 @@ opens needs no setting: TIPM's corner search and the trackers do not assume it.
 
 The same boundary picks the stripe response: a colour camera's red excess ``R - max(G, B)``
 (white arc light drops out) unless the stripe itself is overexposed into white (then the red
-excess collapses where the stripe is brightest, and the red channel's brightness is the better
-response, as a mono camera's is); see :func:`torchseam.vision.tipm.find_view`.
+excess collapses where the stripe is brightest, and its brightness is the better response, as a
+mono camera's is); see :func:`torchseam.vision.tipm.find_view`. The brightness of a colour frame
+is the mean of its three channels, not the red channel alone: such a stripe clips R first, and
+where arc glare clips R (and G) around it the stripe still shows in the channels that have not
+clipped, so the mean keeps a contrast where R has none.
 
 Pixel coordinates are (u, v) = (column, row) with pixel centres on integers, so the maps are
 exact. For a camera image of height ``H`` turned clockwise (``"columns"``)::
@@ -31,12 +34,17 @@ import numpy as np
 # command line's parsers read without importing OpenCV
 
 
+#: the brightness of a BGR frame (``cv2.transform``'s (1, 3) matrix): the channels' mean
+BRIGHTNESS = np.full((1, 3), 1.0 / 3.0, np.float32)
+
+
 @dataclass(frozen=True)
 class FrameView:
     """How TIPM and the trackers see a camera image of ``height`` rows: the stripe's
     direction, ``"rows"`` (as TIPM works) or ``"columns"`` (the frame is turned a quarter
     clockwise first), and its response, ``"red"`` (a colour frame as it is: TIPM takes the red
-    excess) or ``"intensity"`` (a colour frame's red channel alone, like a mono frame).
+    excess) or ``"intensity"`` (a colour frame's brightness, the mean of its channels, read
+    like a mono frame).
 
     Example:
         >>> ax = FrameView("columns", height=4)
@@ -63,7 +71,7 @@ class FrameView:
     def frame(self, img: np.ndarray) -> np.ndarray:
         """The frame (H, W[, 3]) as TIPM reads it (the same array when nothing changes)."""
         if self.response == "intensity" and img.ndim == 3:
-            img = cv2.extractChannel(img, 2)  # BGR: the red channel
+            img = cv2.transform(img, BRIGHTNESS)  # (B + G + R) / 3, rounded
         if not self.turned:
             return img
         if img.shape[0] != self.height:

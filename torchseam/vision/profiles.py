@@ -48,7 +48,7 @@ import numpy as np
 
 from torchseam.core.config import JOINT_PROFILES, config_field, config_path, load_config
 from torchseam.core.dataset import check_frame
-from torchseam.core.orient import FrameView
+from torchseam.core.orient import BRIGHTNESS, FrameView
 from torchseam.core.overlay import put_label
 from torchseam.vision.tipm import Tipm, TipmResult, red_response
 
@@ -316,6 +316,17 @@ class ProfileFinder:
                 return _fail("fillet", res.reason, res.centre)
             return ProfileResult("fillet", True, res.uv.copy(), {"corner": res.uv.copy()},
                                  centre=res.centre, tipm=res)
+        found = self._profile(frame)
+        if found.ok or frame.ndim != 3:
+            return found
+        # the red excess gives no profile: look at the frame's brightness as at a mono frame
+        # (Tipm.find says why: red glare clipped round the stripe, red-tinted fume)
+        grey = self._profile(cv2.transform(frame, BRIGHTNESS))
+        return grey if grey.ok else found
+
+    def _profile(self, frame: np.ndarray) -> ProfileResult:
+        """:meth:`__call__`'s profile of a checked frame read by one response: a colour
+        frame's red excess, a mono frame's intensity."""
         ridge, mask, why = self.stripe(frame)
         if why:
             return _fail(self.joint, why)

@@ -39,7 +39,7 @@ from torchseam.core.checks import InputError, check_shape
 from torchseam.core.config import config_field, config_path, load_config
 from torchseam.core.dataset import check_frame
 from torchseam.core.kernels import load_kernels
-from torchseam.core.orient import FrameView
+from torchseam.core.orient import BRIGHTNESS, FrameView
 from torchseam.core.overlay import put_label
 from torchseam.vision.axis import stripe_axis
 
@@ -249,6 +249,9 @@ class Tipm:
         self.centre_line = centre_line
         k = 2 * self.cfg.dilate_px + 1
         self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        # the brightest of the two pixels ridge_px // 2 rows above and below (see find)
+        self._sides = np.zeros((2 * (cfg.ridge_px // 2) + 1, 1), np.uint8)
+        self._sides[[0, -1]] = 1
         self._ws: dict[tuple, np.ndarray] = {}  # reused frame-sized planes (see _plane)
         self._stat_bufs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # see _stats
         # cv2.blur's mean of a sum of ridge_px uint8 values (an odd count: the nearest
@@ -492,18 +495,47 @@ class Tipm:
         threshold follows the stripe's own level, and the averaged mask only shortens the
         stripe next to gaps and lets dots of spatter through (docs/benchmarks.md). A frame
         saturated by arc light is not looked at again.
+
+        A colour frame in which the red excess gives no corner is then looked at by its
+        brightness (the mean of its channels, :data:`~torchseam.core.orient.BRIGHTNESS`), as
+        a mono frame is, where it is a line: brighter than the light ``ridge_px // 2`` rows
+        above and below it. Why: the red excess tells the stripe from white arc light, but it
+        fails where the light around the stripe is itself red: under glare that clips R (and
+        G) the stripe's excess is nil while it still shows, brighter, in the channels that
+        have not clipped; in red-tinted fume the background's excess matches the stripe's.
+        Brightness also shows the part's own lit faces, whose edges the ridge (a one-sided
+        step passes it) would take for a stripe's arms; an edge's bright side stays bright,
+        a line's two sides do not. The returned planes are the red excess's when this look
+        finds no corner either.
         """
         red, mask, why = self.stripe_mask(frame)
         res = _fail(why, mask) if why else self.corner(self.centre(red, mask), mask, prior)
         k = self.cfg.smooth_px
-        if res.ok or k <= 1 or why == SATURATED:
+        if res.ok:
             return res, red, mask
-        smooth = cv2.blur(red, (k, 1), dst=self._plane("smooth", red.shape))
-        mask2, why2 = self._mask(smooth, self._plane("binary", red.shape))
-        if why2:
-            return res, red, mask
-        res2 = self.corner(self.centre(red, mask2), mask2, prior)
-        return (res2, red, mask2) if res2.ok else (res, red, mask)
+        if k > 1 and why != SATURATED:
+            smooth = cv2.blur(red, (k, 1), dst=self._plane("smooth", red.shape))
+            mask2, why2 = self._mask(smooth, self._plane("binary", red.shape))
+            if not why2:
+                res2 = self.corner(self.centre(red, mask2), mask2, prior)
+                if res2.ok:
+                    return res2, red, mask2
+        if frame.ndim == 3:
+            # the red excess found no corner: look at the frame's brightness as at a mono frame
+            # (see find's docstring); the red excess's planes are kept for a failure
+            first = self._plane("first", red.shape)
+            np.copyto(first, red)
+            red = first
+            grey = (cv2.transform(frame, BRIGHTNESS, dst=self._plane("grey", frame.shape[:2]))
+                    if frame.dtype == np.uint8 else cv2.transform(frame, BRIGHTNESS))
+            # a line, not an edge: the ridge where the light ridge_px // 2 rows above AND
+            # below it is darker by half of it at least (an edge's bright side stays bright)
+            line = cv2.subtract(grey, cv2.dilate(grey, self._sides))
+            ridge = cv2.subtract(grey, cv2.blur(grey, (1, self.cfg.ridge_px)))
+            res3, red3, mask3 = self.find(cv2.min(ridge, cv2.add(line, line)), prior)
+            if res3.ok:
+                return res3, red3, mask3
+        return res, red, mask
 
     def corner(self, pts: np.ndarray, mask: np.ndarray | None = None,
                prior: np.ndarray | None = None) -> TipmResult:
