@@ -8,7 +8,8 @@ entry into it is marched along its path through the wall's shell and bisected, u
 eighty evaluations of the wall's material per ray, each a few dozen float operations; in numpy
 every ray was marched to the end of its path. Here each ray is cast on its own: its march stops
 at its first sample in the material, or past the main body's hit (which hides the branch beyond
-it). The entry points carry their signatures, so they are compiled (or loaded from numba's
+it), and the crossing is refined by regula falsi (a handful of evaluations, not thirty
+halvings). The entry points carry their signatures, so they are compiled (or loaded from numba's
 on-disk cache) when this module is imported, which a joint does on its first ray cast (the
 simulator's sensor, which alone casts rays, has loaded its own kernels by then, so this costs
 milliseconds). ``nogil`` lets the caller's other threads run meanwhile.
@@ -139,14 +140,16 @@ def _quadric(p0, p1, p2, v0, v1, v2, g):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _wall_hit(p0, p1, p2, v0, v1, v2, t_max, g, base_kind, frac,
-              bisect_steps):  # pragma: no cover - compiled
+def _wall_hit(p0, p1, p2, v0, v1, v2, t_max, g, base_kind, frac, steps,
+              tol):  # pragma: no cover - compiled
     """The ray ``p + t v``'s first entry into a bevelled branch's wall, ``inf`` for none:
     where it crosses the outer cylinder above the shoulder, or first meets the material on its
     path through the wall's shell (outer cylinder to bore), tried at the fractions ``frac``
-    (M,) of that stretch in order, then ``bisect_steps`` halvings of the bracket before the
-    first sample inside. The march stops after its first sample beyond ``t_max``: an entry
-    there lies beyond it."""
+    (M,) of that stretch in order; the bracket before the first sample inside is narrowed to
+    ``tol`` (mm along the ray) by at most ``steps`` steps of regula falsi (the Illinois
+    variant, which halves the value kept at an end that stays, so both ends close in; a
+    halving where a step would leave the bracket), and its end in the material answered. The
+    march stops after its first sample beyond ``t_max``: an entry there lies beyond it."""
     r, r_in, top = g[20], g[21], g[25]
     qa, _, A, B, qq = _quadric(p0, p1, p2, v0, v1, v2, g)
     if A <= 1e-12:
@@ -164,11 +167,14 @@ def _wall_hit(p0, p1, p2, v0, v1, v2, t_max, g, base_kind, frac,
             return np.inf
     first = -1
     hi = s0
+    f_lo = f_hi = 0.0
     for j in range(frac.shape[0]):
         hi = s0 + (s1 - s0) * frac[j]
-        if _material(p0 + hi * v0, p1 + hi * v1, p2 + hi * v2, g, base_kind) >= 0.0:
+        f_hi = _material(p0 + hi * v0, p1 + hi * v1, p2 + hi * v2, g, base_kind)
+        if f_hi >= 0.0:
             first = j
             break
+        f_lo = f_hi
         if hi > t_max:
             break
     if first < 0:
@@ -176,12 +182,24 @@ def _wall_hit(p0, p1, p2, v0, v1, v2, t_max, g, base_kind, frac,
     if first == 0:
         return s0   # the outer wall (or the origin is in the wall)
     lo = s0 + (s1 - s0) * frac[first - 1]
-    for _ in range(bisect_steps):
-        mid = 0.5 * (lo + hi)
-        if _material(p0 + mid * v0, p1 + mid * v1, p2 + mid * v2, g, base_kind) >= 0.0:
-            hi = mid
+    side = 0   # which end the last step moved: +1 the one in the material, -1 the other
+    for _ in range(steps):
+        if hi - lo <= tol:
+            break
+        mid = (lo * f_hi - hi * f_lo) / (f_hi - f_lo)
+        if not (lo < mid and mid < hi):
+            mid = 0.5 * (lo + hi)
+        f = _material(p0 + mid * v0, p1 + mid * v1, p2 + mid * v2, g, base_kind)
+        if f >= 0.0:
+            hi, f_hi = mid, f
+            if side == 1:
+                f_lo *= 0.5
+            side = 1
         else:
-            lo = mid
+            lo, f_lo = mid, f
+            if side == -1:
+                f_hi *= 0.5
+            side = -1
     return hi
 
 
@@ -213,14 +231,14 @@ def raycast(origin, direction, g, base_kind):  # pragma: no cover - compiled
     return t, surface
 
 
-@numba.njit(_CAST(_RAYS, _RAYS, _ROW, types.int64, _ROW, types.int64), cache=True,
-            nogil=True)
-def bevel_raycast(origin, direction, g, base_kind, frac,
-                  bisect_steps):  # pragma: no cover - compiled
+@numba.njit(_CAST(_RAYS, _RAYS, _ROW, types.int64, _ROW, types.int64, types.float64),
+            cache=True, nogil=True)
+def bevel_raycast(origin, direction, g, base_kind, frac, steps,
+                  tol):  # pragma: no cover - compiled
     """:func:`raycast` of a bevelled branch set on its main body with a root gap: the main
     body is cut to the branch's bore (a set-on branch), and the branch is its wall, cast by
-    :func:`_wall_hit` with the march's fractions ``frac`` (M,) and ``bisect_steps``, its march
-    stopping past the main body's hit."""
+    :func:`_wall_hit` with the march's fractions ``frac`` (M,), ``steps`` and ``tol``, its
+    march stopping past the main body's hit."""
     n = direction.shape[0]
     t = np.empty(n)
     surface = np.zeros(n, np.int8)
@@ -238,8 +256,8 @@ def bevel_raycast(origin, direction, g, base_kind, frac,
             v = (q0 * g[9] + q1 * g[10] + q2 * g[11]) / g[19]
             if math.hypot(u, v) < g[21]:
                 t_main = np.inf
-        t_branch = _wall_hit(p0, p1, p2, v0, v1, v2, t_main, g, base_kind, frac,
-                             bisect_steps)
+        t_branch = _wall_hit(p0, p1, p2, v0, v1, v2, t_main, g, base_kind, frac, steps,
+                             tol)
         t[i] = min(t_main, t_branch)
         if t[i] < np.inf:
             surface[i] = 1 if t_main <= t_branch else 2

@@ -344,9 +344,11 @@ class SphereJoint(Joint):
 
 
 #: :class:`BevelledJoint`: how many points along a ray's path through the branch wall are
-#: tried for its first entry into the wall's material, then bisection steps on the bracket
+#: tried for its first entry into the wall's material, then at most how many steps of regula
+#: falsi narrow the bracket to how wide (mm along the ray)
 BEVEL_MARCH_POINTS = 48
-BEVEL_BISECT_STEPS = 30
+BEVEL_REFINE_STEPS = 30
+BEVEL_REFINE_TOL_MM = 1e-10
 
 
 class BevelledJoint(Joint):
@@ -466,11 +468,12 @@ class BevelledJoint(Joint):
         else at the first point of its path through the wall's shell (outer cylinder to bore)
         that lies above the bevel face: tried at ``BEVEL_MARCH_POINTS`` points along that
         stretch in order (up to the first past the main body's hit, which hides the branch
-        beyond it), then bisected (``BEVEL_BISECT_STEPS``) before the first point in the
-        material. Compiled: :func:`torchseam.core._kernels.bevel_raycast`."""
+        beyond it), then the crossing before the first point in the material refined to
+        ``BEVEL_REFINE_TOL_MM`` (regula falsi, at most ``BEVEL_REFINE_STEPS`` steps).
+        Compiled: :func:`torchseam.core._kernels.bevel_raycast`."""
         k = load_kernels(__package__)
         return k.bevel_raycast(o, d, self._geometry(k), self._main_body(k)[0], self._march,
-                               BEVEL_BISECT_STEPS)
+                               BEVEL_REFINE_STEPS, BEVEL_REFINE_TOL_MM)
 
 
 #: The ``inline`` kind: how far the lower pipe (a butt) or the sleeve (a lap) reaches below the
