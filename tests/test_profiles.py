@@ -357,3 +357,45 @@ def test_a_saturated_stripe_is_centred_on_its_saturated_run(glare_below):
     pts = np.array([[150.0, 234.0], [400.0, 234.0]])
     moved = saturated_centre(blob, pts, CFG.stripe.max_run_px)
     assert moved[0, 1] == 234.0 and abs(moved[1, 1] - 240.0) <= 0.5
+
+
+def _glare_lap(face_glare: bool, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A colour frame of the lit-face lap of :func:`_lap_z` under the arc's glare, with its
+    root and edge: a round glow (sigma 35 px) that clips R over the joint, centred on the root
+    or on the face's middle (``face_glare``); the stripe raises R and, overexposed into white,
+    G and B too (0.35 and 0.28 of its R), as the simulator's white-cored stripe does."""
+    pieces, root, edge = _lap_z(0.0)
+    s = draw(pieces, seed=seed).astype(float)
+    y, x = np.mgrid[0:480, 0:640].astype(float)
+    c = (root + edge) / 2 + (0.5, 0.0) if face_glare else root
+    glow = 0.9 * np.exp(-((x - c[0]) ** 2 + (y - c[1]) ** 2) / (2 * 35.0**2))
+    img = np.stack([25 + 0.28 * s + 120 * glow, 30 + 0.35 * s + 150 * glow,
+                    50 + s + 260 * glow], axis=2)
+    return np.clip(img, 0, 255).astype(np.uint8), root, edge
+
+
+@pytest.mark.parametrize("face_glare", [False, True])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_lap_under_glare_that_clips_red_is_read_by_its_brightness(face_glare, seed):
+    """Glare clips R over the joint and the stripe is white there: its red excess dips at the
+    stripe, and its centre line runs where R drops out of clipping beside it or stops: the
+    face's line off, the root slid along the far plate (before: 2.6-9.8 px off, the lap
+    demo's seed 2 in segment a). The stripe within fit_px of the joint is white on more
+    than white_core_fraction of its centre line, so the frame is read by its brightness: the
+    root and the edge within 1 px. Without glare the red excess reads it, as before."""
+    img, root, edge = _glare_lap(face_glare, seed)
+    res = finder("lap")(img)
+    assert res.ok, res.status
+    assert res.reason == ""   # the lit face, not LAP_DARK_FACE
+    assert np.linalg.norm(res.points["root"] - root) <= 1.0, res.points
+    assert np.linalg.norm(res.points["edge"] - edge) <= 1.0, res.points
+    # no glare: nothing white, the red excess's profile as it is
+    pieces, _, _ = _lap_z(0.0)
+    s = draw(pieces, seed=seed).astype(float)
+    clean = np.clip(np.stack([25 + 0.1 * s, 30 + 0.1 * s, 50 + s], axis=2), 0, 255).astype(
+        np.uint8)
+    assert not np.any((clean[..., 2] >= 250) & (clean[..., :2].max(axis=2) > 125))
+    got, red = finder("lap")(clean), finder("lap")._profile(clean)
+    assert got.ok and red.ok
+    np.testing.assert_allclose(got.aim, red.aim)
+    assert np.linalg.norm(got.points["root"] - root) <= 1.0

@@ -50,7 +50,7 @@ from torchseam.core.config import JOINT_PROFILES, config_field, config_path, loa
 from torchseam.core.dataset import check_frame
 from torchseam.core.orient import BRIGHTNESS, FrameView
 from torchseam.core.overlay import put_label
-from torchseam.vision.tipm import Tipm, TipmResult, red_response
+from torchseam.vision.tipm import Tipm, TipmResult, red_response, white_core
 
 #: the joint profiles (``joint:`` of a part, ``--joint`` of the commands)
 JOINTS = JOINT_PROFILES
@@ -317,12 +317,34 @@ class ProfileFinder:
             return ProfileResult("fillet", True, res.uv.copy(), {"corner": res.uv.copy()},
                                  centre=res.centre, tipm=res)
         found = self._profile(frame)
-        if found.ok or frame.ndim != 3:
+        if frame.ndim != 3 or (found.ok and (frame.dtype != np.uint8
+                                             or not _any_white(frame))):
             return found
-        # the red excess gives no profile: look at the frame's brightness as at a mono frame
-        # (Tipm.find says why: red glare clipped round the stripe, red-tinted fume)
+        # the frame's brightness, looked at as a mono frame: where the red excess gives no
+        # profile (Tipm.find says why: red glare clipped round the stripe, red-tinted fume),
+        # and where the stripe at the joint is overexposed into white (white_core: R clipped,
+        # G or B above half; 8-bit levels) on more than white_core_fraction of its centre
+        # line within fit_px of the aim (the stretch the feature points are read from).
+        # There the red excess no longer tells the stripe: clipped R carries nothing, and
+        # R - max(G, B) dips where the stripe raises G and B; its centre line runs where R
+        # drops out of clipping beside the stripe (3-5 px off) or stops. The share is taken
+        # on the brightness's centre line (the red excess's is off the white or missing).
         grey = self._profile(cv2.transform(frame, BRIGHTNESS))
-        return grey if grey.ok else found
+        if not grey.ok:
+            return found
+        if not found.ok:
+            return grey
+        return grey if self._white_at_joint(frame, grey) > self.tipm.cfg.white_core_fraction \
+            else found
+
+    def _white_at_joint(self, frame: np.ndarray, res: ProfileResult) -> float:
+        """The share of a found profile's centre-line points within ``fit_px`` of its aim
+        where the stripe in the BGR ``frame`` is overexposed into white
+        (:func:`~torchseam.vision.tipm.white_core`)."""
+        if res.centre is None or not len(res.centre):
+            return 0.0
+        near = res.centre[np.linalg.norm(res.centre - res.aim, axis=1) <= self.cfg.fit_px]
+        return white_core(frame, TipmResult(True, res.aim, centre=near))
 
     def _profile(self, frame: np.ndarray) -> ProfileResult:
         """:meth:`__call__`'s profile of a checked frame read by one response: a colour
@@ -762,6 +784,16 @@ def saturated_centre(frame: np.ndarray, pts: np.ndarray, max_run: int) -> np.nda
     out = pts.copy()
     out[ok, 1] = v0[ok] - reach + 0.5 * (first[ok] + last[ok])
     return out
+
+
+def _any_white(frame: np.ndarray) -> bool:
+    """Whether a BGR uint8 frame has a pixel overexposed into white as
+    :func:`~torchseam.vision.tipm.white_core` counts one: R clipped (>= 250), G or B above
+    half of it (> 125)."""
+    b, g, r = cv2.split(frame)
+    clip = cv2.compare(r, 249, cv2.CMP_GT)  # type: ignore[call-overload]
+    lit = cv2.compare(cv2.max(g, b), 125, cv2.CMP_GT)  # type: ignore[call-overload]
+    return cv2.countNonZero(cv2.bitwise_and(clip, lit)) > 0
 
 
 def response_at(ridge: np.ndarray, pts: np.ndarray) -> np.ndarray:
