@@ -5,6 +5,8 @@ branch) and 1e-6 mm (a bevelled branch's march), on every main body."""
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -223,3 +225,21 @@ def test_one_origin_for_all_rays(kind: str) -> None:
     assert j.raycast(o[0], d[0])[0].shape == (1,)
     with pytest.raises(ValueError, match="origins"):
         j.raycast(o[:3], d[:5])
+
+
+def test_building_a_joint_loads_no_kernels() -> None:
+    """A joint loads its compiled casts on its first cast: commands that build joints and
+    never cast (the planner, the gate) do not import numba for them."""
+    code = """if True:
+        import sys
+        from torchseam.core.config import load_part
+        from torchseam.core.part import make_joint
+        j = make_joint(load_part(sys.argv[1]))
+        assert "torchseam.core._kernels" not in sys.modules
+        j.raycast(j.o + 500.0 * j.d, -j.d[None])
+        assert "torchseam.core._kernels" in sys.modules
+    """
+    for path in (BEVEL, "configs/parts/t_joint.yaml"):
+        r = subprocess.run([sys.executable, "-c", code, path], capture_output=True, text=True,
+                           timeout=120)
+        assert r.returncode == 0, r.stderr

@@ -230,7 +230,6 @@ class Joint:
         return qa, da, A, B, np.einsum("ij,ij->i", qp, qp)
 
 
-
 class PipeJoint(Joint):
     """Main pipe (oval, along x) and branch pipe (offset, tilted) as solids in {T}: the
     ``pipe`` kind, and the ``offset`` kind (the main axis at ``y = -design_offset_mm``).
