@@ -316,26 +316,31 @@ class ProfileFinder:
                 return _fail("fillet", res.reason, res.centre)
             return ProfileResult("fillet", True, res.uv.copy(), {"corner": res.uv.copy()},
                                  centre=res.centre, tipm=res)
+        if frame.ndim != 3:
+            return self._profile(frame)
+        # a colour frame is also looked at by its brightness, as a mono frame: where the red
+        # excess gives no profile (Tipm.find says why: red glare clipped round the stripe,
+        # red-tinted fume), and where the stripe at the joint is overexposed into white
+        # (white_core: R clipped, G or B above half; 8-bit levels) on more than
+        # white_core_fraction of its centre line within fit_px of the aim (the stretch the
+        # feature points are read from). There the red excess no longer tells the stripe:
+        # clipped R carries nothing, and R - max(G, B) dips where the stripe raises G and B;
+        # its centre line runs where R drops out of clipping beside the stripe (3-5 px off)
+        # or stops. The share is taken on the brightness's centre line (the red excess's is
+        # off the white or missing there); the brightness is read first where anything is
+        # white (the red excess is not needed when it wins: under the arc, most frames)
+        grey = None
+        if frame.dtype == np.uint8 and _any_white(frame):
+            grey = self._profile(cv2.transform(frame, BRIGHTNESS))
+            if grey.ok and (self._white_at_joint(frame, grey)
+                            > self.tipm.cfg.white_core_fraction):
+                return grey
         found = self._profile(frame)
-        if frame.ndim != 3 or (found.ok and (frame.dtype != np.uint8
-                                             or not _any_white(frame))):
+        if found.ok:
             return found
-        # the frame's brightness, looked at as a mono frame: where the red excess gives no
-        # profile (Tipm.find says why: red glare clipped round the stripe, red-tinted fume),
-        # and where the stripe at the joint is overexposed into white (white_core: R clipped,
-        # G or B above half; 8-bit levels) on more than white_core_fraction of its centre
-        # line within fit_px of the aim (the stretch the feature points are read from).
-        # There the red excess no longer tells the stripe: clipped R carries nothing, and
-        # R - max(G, B) dips where the stripe raises G and B; its centre line runs where R
-        # drops out of clipping beside the stripe (3-5 px off) or stops. The share is taken
-        # on the brightness's centre line (the red excess's is off the white or missing).
-        grey = self._profile(cv2.transform(frame, BRIGHTNESS))
-        if not grey.ok:
-            return found
-        if not found.ok:
-            return grey
-        return grey if self._white_at_joint(frame, grey) > self.tipm.cfg.white_core_fraction \
-            else found
+        if grey is None:
+            grey = self._profile(cv2.transform(frame, BRIGHTNESS))
+        return grey if grey.ok else found
 
     def _white_at_joint(self, frame: np.ndarray, res: ProfileResult) -> float:
         """The share of a found profile's centre-line points within ``fit_px`` of its aim
