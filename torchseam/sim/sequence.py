@@ -29,6 +29,7 @@ BACKGROUND_GREY = 6.0       # ambient light behind the band-pass filter
 WOBBLE_MM = 0.15            # robot path wobble (std, smooth)
 WOBBLE_DEG = 0.15
 ARC_LIFT_MM = 3.0           # the arc's light centre above the torch tip, along the torch axis
+FLASH_GREY = 400.0          # an injected arc flash (fault): grey levels in its weakest channel
 # (B, G, R) <- (stripe, glare, spatter) grey layers of the ``sim`` family
 COLOUR_MIX = np.stack([STRIPE_BGR, ARC_BGR, SPATTER_BGR], axis=1).astype(np.float32)
 
@@ -149,7 +150,10 @@ class SensorRenderer:
             gain = look.glare.glint * src.cfg.glare.peak * src.level * src.flicker
             layers.glare += np.float32(gain) * sensor.arc_glint(scene.true_joint, T_T_C, light)
         if force_flash:
-            layers.glare += 400.0
+            # light enough to clip the glare's weakest channel after the exposure: blinded
+            # in every response (the red excess and the brightness alike)
+            layers.glare += np.float32(
+                FLASH_GREY / (min(look.glare.bgr) * look.exposure.gain))
             layers.flags.flash = True
         stripe = (sensor.stripe_layer(view, rng, layers.gaps, look.stripe) if laser_on
                   else np.zeros((h, w), np.float32))
