@@ -113,8 +113,8 @@ class CameraConfig:
     #: how the laser stripe runs in the image (see torchseam.core.orient): along the rows,
     #: along the columns (sensor mounted at 90 degrees), or auto: found on the first clean frame
     stripe_axis: str = _f(default="auto", choices=STRIPE_AXES)
-    #: the stripe response of a colour camera: red excess, the red channel's intensity (a
-    #: stripe overexposed into white), or auto: chosen on the first clean frame
+    #: the stripe response of a colour camera: red excess, its brightness (the channels' mean:
+    #: a stripe overexposed into white), or auto: chosen on the first clean frame
     stripe_response: str = _f(default="auto", choices=STRIPE_RESPONSES)
 
     @property

@@ -128,7 +128,7 @@ def simulate_set(cell: CellConfig, part: PartConfig, noise: NoiseConfig,
                         stretches.append((start, int(length)))
                     frames, hidden = hide_corner(frames, labels, tuple(stretches))
                 # the view the live loop reads this camera in (cell config `auto`): found on
-                # the first, clean frame, e.g. the red channel where the stripe is so bright
+                # the first, clean frame, e.g. the brightness where the stripe is so bright
                 # that its red excess is gone (rows: the labels stay as they are)
                 view = find_view(frames[0], tipm, "rows", "auto")
                 if view is not None and view.response != "red":

@@ -64,7 +64,7 @@ def _common(p: argparse.ArgumentParser) -> None:
                         "90 degrees) or auto: found on the first frame (default)")
     p.add_argument("--stripe-response", choices=STRIPE_RESPONSES, default="auto",
                    help="a colour stream's stripe response: red (red excess), intensity (the "
-                        "red channel: a stripe overexposed into white) or auto: chosen on the "
+                        "channels' mean: a stripe overexposed into white) or auto: chosen on the "
                         "first frame (default)")
     p.add_argument("--threads", type=threads_arg, default=1, metavar="N",
                    help="torch and OpenCV threads (default 1: the live loop's setting)")

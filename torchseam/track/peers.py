@@ -176,7 +176,7 @@ def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None, tipm: Tip
         axis: how the stripe runs: ``rows``, ``columns`` (the tracker sees each frame turned,
             see :mod:`torchseam.core.orient`) or ``auto`` (found on frame 0).
         response: a colour frame's stripe response: ``red`` (red excess), ``intensity`` (the
-            red channel) or ``auto`` (found on frame 0, see :func:`find_view`).
+            channels' mean) or ``auto`` (found on frame 0, see :func:`find_view`).
 
     Returns:
         ``(uv (N, 2), status (N,), seconds (N,), idle_seconds (N,), init_note)``: points in

@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(sensor mounted at 90 degrees), or auto: found per frame (default)")
     p.add_argument("--stripe-response", choices=STRIPE_RESPONSES, default="auto",
                    help="a colour image's stripe response: red (red excess), intensity (the "
-                        "red channel: a stripe overexposed into white) or auto: per image "
+                        "channels' mean: a stripe overexposed into white) or auto: per image "
                         "(default)")
     p.add_argument("--joint", choices=JOINT_PROFILES, default="fillet",
                    help="the joint profile to find (configs/profiles.yaml): fillet (the corner "
