@@ -105,6 +105,9 @@ class SensorRenderer:
                            for _ in range(4)]
         self._bufs: dict[tuple[str, int], np.ndarray] = {}
         self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
+        # and the part's ray casts (their kernels load on the first cast: seconds on a fresh
+        # install, which a virtual camera's first frame would pay): one ray now
+        scene.true_joint.raycast(np.zeros(3), np.array([[0.0, 0.0, 1.0]]))
         # the colour mix and the last pass in one compiled pass where that is cv2.transform's
         # arithmetic (see _fused_mix_agrees); the camera stage works between the two
         self._fused = not self._camera_on and _fused_mix_agrees(self.mix, w, h)
