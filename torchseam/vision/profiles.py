@@ -50,7 +50,7 @@ from torchseam.core.config import JOINT_PROFILES, config_field, config_path, loa
 from torchseam.core.dataset import check_frame
 from torchseam.core.orient import BRIGHTNESS, FrameView
 from torchseam.core.overlay import put_label
-from torchseam.vision.tipm import Tipm, TipmResult, red_response, white_core
+from torchseam.vision.tipm import Tipm, TipmResult, red_response
 
 #: the joint profiles (``joint:`` of a part, ``--joint`` of the commands)
 JOINTS = JOINT_PROFILES
@@ -306,6 +306,9 @@ class ProfileFinder:
         self._across = np.ones((2 * s.side_px + 1, 1), np.uint8)
         self._dilate = tipm._kernel
         self._ridge = np.zeros((1, 1), np.uint8)  # the frame's stripe response (see _end)
+        #: the stripe's whole width (rows) on the frame last read: side_px, or its mask's
+        #: median height + 1 where taller (stripe(); glare_white)
+        self._width = cfg.stripe.side_px
 
     def __call__(self, frame: np.ndarray) -> ProfileResult:
         """The profile in one frame (H, W[, 3]), 8 or 16 bit, the stripe along the rows."""
@@ -320,36 +323,46 @@ class ProfileFinder:
             return self._profile(frame)
         # a colour frame is also looked at by its brightness, as a mono frame: where the red
         # excess gives no profile (Tipm.find says why: red glare clipped round the stripe,
-        # red-tinted fume), and where the stripe at the joint is overexposed into white
-        # (white_core: R clipped, G or B above half; 8-bit levels) on more than
-        # white_core_fraction of its centre line within fit_px of the aim (the stretch the
-        # feature points are read from). There the red excess no longer tells the stripe:
-        # clipped R carries nothing, and R - max(G, B) dips where the stripe raises G and B;
-        # its centre line runs where R drops out of clipping beside the stripe (3-5 px off)
-        # or stops. The share is taken on the brightness's centre line (the red excess's is
-        # off the white or missing there); the brightness is read first where anything is
-        # white (the red excess is not needed when it wins: under the arc, most frames)
+        # red-tinted fume), and where glare clips R round the stripe at the joint on more
+        # than white_core_fraction of its centre line within fit_px of the aim (the stretch
+        # the feature points are read from; glare_white). There the red excess no longer
+        # tells the stripe: clipped R carries nothing, and R - max(G, B) dips where the
+        # stripe raises G and B; its centre line runs where R drops out of clipping beside
+        # the stripe (3-5 px off) or stops, and its feature points move with it. The share
+        # is taken on the brightness's centre line (the red excess's is off the white or
+        # missing there), and the brightness's profile is taken only where the red excess
+        # gives none or reads the same joint, its aim within the stripe's width of the
+        # brightness's (moved by the light clipped beside the stripe). Farther apart they
+        # read different things, and glare at one says not which is right: the brightness
+        # also shows the arc's white light, which the red excess tells from the stripe (a
+        # groove under the arc: its brightness put the root 33-39 px off, the red excess
+        # within 1 px; a lap's red excess 9-10 px off with the glow on its face stays)
         grey = None
         if frame.dtype == np.uint8 and _any_white(frame):
             grey = self._profile(cv2.transform(frame, BRIGHTNESS))
-            if grey.ok and (self._white_at_joint(frame, grey)
-                            > self.tipm.cfg.white_core_fraction):
+            width = self._width   # the stripe's, in the brightness
+            glare = grey.ok and (self._white_at_joint(frame, grey, width)
+                                 > self.tipm.cfg.white_core_fraction)
+            found = self._profile(frame)
+            if glare and (not found.ok or float(np.linalg.norm(found.aim - grey.aim))
+                          <= width):
                 return grey
-        found = self._profile(frame)
+        else:
+            found = self._profile(frame)
         if found.ok:
             return found
         if grey is None:
             grey = self._profile(cv2.transform(frame, BRIGHTNESS))
         return grey if grey.ok else found
 
-    def _white_at_joint(self, frame: np.ndarray, res: ProfileResult) -> float:
+    def _white_at_joint(self, frame: np.ndarray, res: ProfileResult, width: int) -> float:
         """The share of a found profile's centre-line points within ``fit_px`` of its aim
-        where the stripe in the BGR ``frame`` is overexposed into white
-        (:func:`~torchseam.vision.tipm.white_core`)."""
+        where glare clips R round the stripe (``width`` rows wide) in the BGR ``frame``
+        (:func:`glare_white`)."""
         if res.centre is None or not len(res.centre):
             return 0.0
         near = res.centre[np.linalg.norm(res.centre - res.aim, axis=1) <= self.cfg.fit_px]
-        return white_core(frame, TipmResult(True, res.aim, centre=near))
+        return float(np.mean(glare_white(frame, near, width))) if len(near) else 0.0
 
     def _profile(self, frame: np.ndarray) -> ProfileResult:
         """:meth:`__call__`'s profile of a checked frame read by one response: a colour
@@ -384,6 +397,7 @@ class ProfileFinder:
         cols = np.count_nonzero(cv2.morphologyEx(binary, cv2.MORPH_CLOSE, self._across),
                                 axis=0)
         k = max(s.side_px, int(np.median(cols[cols > 0])) + 1 if cols.any() else 0)
+        self._width = k
         side = np.zeros_like(red)
         side[k:] = red[:-k]
         side[:-k] = np.maximum(side[:-k], red[k:])
@@ -793,12 +807,36 @@ def saturated_centre(frame: np.ndarray, pts: np.ndarray, max_run: int) -> np.nda
 
 def _any_white(frame: np.ndarray) -> bool:
     """Whether a BGR uint8 frame has a pixel overexposed into white as
-    :func:`~torchseam.vision.tipm.white_core` counts one: R clipped (>= 250), G or B above
-    half of it (> 125)."""
+    :func:`~torchseam.vision.tipm.white_core` counts one: R clipped, G or B above half."""
     b, g, r = cv2.split(frame)
-    clip = cv2.compare(r, 249, cv2.CMP_GT)  # type: ignore[call-overload]
-    lit = cv2.compare(cv2.max(g, b), 125, cv2.CMP_GT)  # type: ignore[call-overload]
+    clip = cv2.compare(r, SATURATED_LEVEL, cv2.CMP_GE)  # type: ignore[call-overload]
+    lit = cv2.compare(cv2.max(g, b), SATURATED_LEVEL // 2, cv2.CMP_GT)  # type: ignore[call-overload]
     return cv2.countNonZero(cv2.bitwise_and(clip, lit)) > 0
+
+
+def glare_white(frame: np.ndarray, pts: np.ndarray, width: int) -> np.ndarray:
+    """(N,) bool: at which centre points (N, 2) of a BGR uint8 ``frame`` glare clips R round
+    the stripe, so that its red excess no longer tells it: the stripe is white there
+    (:func:`~torchseam.vision.tipm.white_core`'s test: R clipped, G or B above half) and R
+    stays clipped beyond the stripe's own core, more than ``width / 2`` rows from the point
+    on one side at least (``width``: the stripe's whole width, as :meth:`ProfileFinder.stripe`
+    measures it, side_px at least: a stripe saturated in R and G has its red excess, two
+    ridges at its edges, within it, and :func:`saturated_centre` centres between them). A
+    stripe white in its own core keeps its excess at its edges; glare that clips R beside it
+    leaves the excess a ridge where R drops out of clipping, off the stripe by the clipped
+    light's reach, or none."""
+    if not len(pts):
+        return np.zeros(0, bool)
+    h, w = frame.shape[:2]
+    u = np.clip(np.rint(pts[:, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.rint(pts[:, 1]).astype(int), 0, h - 1)
+    px = frame[v, u].astype(int)
+    white = (px[:, 2] >= SATURATED_LEVEL) & (px[:, :2].max(axis=1) > SATURATED_LEVEL // 2)
+    reach = int(width) // 2 + 1
+    rows = v[:, None] + np.arange(-reach, reach + 1)[None, :]                # (N, 2 reach + 1)
+    clip = ((rows >= 0) & (rows < h)
+            & (frame[np.clip(rows, 0, h - 1), u[:, None], 2] >= SATURATED_LEVEL))
+    return white & (clip[:, :reach + 1].all(axis=1) | clip[:, reach:].all(axis=1))
 
 
 def response_at(ridge: np.ndarray, pts: np.ndarray) -> np.ndarray:
