@@ -170,19 +170,28 @@ def numpy_raycast(j: Joint, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, n
     return t, np.where(np.isinf(t), 0, np.where(t_main <= t_branch, 1, 2)).astype(np.int8)
 
 
+def _same_cast(j, seed: int, n: int, atol: float):
+    """``n`` random rays cast compiled and by the numpy reference: the same surface for every
+    ray, hits within ``atol`` mm, misses at infinity. Returns the rays (o, d), the compiled
+    distances and the reference's surfaces."""
+    o, d = _rays(j, np.random.default_rng(seed), n)
+    t_ref, s_ref = numpy_raycast(j, o, d)
+    t, surface = j.raycast(o, d)
+    np.testing.assert_array_equal(surface, s_ref)
+    hit = s_ref > 0
+    np.testing.assert_allclose(t[hit], t_ref[hit], rtol=0.0, atol=atol)
+    assert np.isinf(t[~hit]).all()
+    return o, d, t, s_ref
+
+
 @pytest.mark.parametrize("kind", ["pipe", "offset", "y_joint", "plate", "sphere"])
 def test_compiled_cast_is_the_numpy_march(kind: str) -> None:
     """The same surface for every ray (the same misses), hits within 1e-6 mm: on the bevel
     face (refined), the outer wall, the main body, past the root gap into the bore."""
     j = make_joint(_part(kind))
     assert isinstance(j, BevelledJoint)
-    o, d = _rays(j, np.random.default_rng(11), 6000)
-    t_ref, s_ref = numpy_raycast(j, o, d)
-    t, surface = j.raycast(o, d)
-    np.testing.assert_array_equal(surface, s_ref)
+    o, d, t, s_ref = _same_cast(j, 11, 6000, 1e-6)
     hit = s_ref > 0
-    np.testing.assert_allclose(t[hit], t_ref[hit], rtol=0.0, atol=1e-6)
-    assert np.isinf(t[~hit]).all()
     # every kind of answer is among them
     p = o[hit] + t[hit, None] * d[hit]
     face = (s_ref[hit] == 2) & (j._polar(p)[0] < j.r - 1e-3)
@@ -202,12 +211,7 @@ def test_compiled_plain_cast_is_numpy_s(kind: str) -> None:
                                    branch_wall_mm=0.0, branch_ovality=ovality)
         j = make_joint(part)
         assert not isinstance(j, BevelledJoint)
-        o, d = _rays(j, np.random.default_rng(3), 4000)
-        t_ref, s_ref = numpy_raycast(j, o, d)
-        t, surface = j.raycast(o, d)
-        np.testing.assert_array_equal(surface, s_ref)
-        hit = s_ref > 0
-        np.testing.assert_allclose(t[hit], t_ref[hit], rtol=0.0, atol=1e-9)
+        s_ref = _same_cast(j, 3, 4000, 1e-9)[3]
         assert (s_ref == 1).sum() > 300 and (s_ref == 2).sum() > 300
 
 
