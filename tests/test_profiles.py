@@ -18,6 +18,7 @@ from torchseam.vision.profiles import (
     ProfileConfig,
     ProfileFinder,
     draw_profile,
+    fit_line,
     groove_area,
     load_profile_config,
 )
@@ -404,3 +405,44 @@ def test_a_lap_under_glare_that_clips_red_is_read_by_its_brightness(seed):
     got, red = finder("butt")(core), finder("butt")._profile(core)
     assert got.ok and red.ok
     np.testing.assert_allclose(got.aim, red.aim)
+
+
+def _fit_line_reference(p: np.ndarray, robust: bool = True
+                        ) -> tuple[np.ndarray, np.ndarray, float]:
+    """fit_line as numpy states it: the scatter matrix's eigenvector of the larger eigenvalue,
+    refitted once on the points within 3 sigma (MAD) of the first fit."""
+    c = p.mean(axis=0)
+    _, vec = np.linalg.eigh(np.cov((p - c).T, bias=True))
+    d = vec[:, 1]
+    r = (p - c) @ np.array([-d[1], d[0]])
+    if robust and len(p) >= 6:
+        dev = np.abs(r - np.median(r))
+        keep = dev <= max(3 * 1.4826 * np.median(dev), 1.0)
+        if 2 <= keep.sum() < len(p):
+            return _fit_line_reference(p[keep], robust=False)
+    return c, (d if d[0] >= 0 else -d), float(np.sqrt(np.mean(r * r)))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_line_fit_is_the_numpy_one(seed: int) -> None:
+    """The compiled fit (closed-form direction, one median pass) gives numpy's line on noisy
+    pieces with spatter dots, at any slope and on reversed (strided) views, and the true
+    line within its noise."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(6, 200))
+    ang = rng.uniform(-np.pi, np.pi)
+    d_true = np.array([np.cos(ang), np.sin(ang)])
+    t = np.sort(rng.uniform(-60, 60, n))
+    p = rng.uniform(0, 400, 2) + t[:, None] * d_true + rng.normal(0, 0.4, (n, 1)) * np.array(
+        [-d_true[1], d_true[0]])
+    p[rng.choice(n, n // 10, replace=False)] += rng.normal(0, 15, (n // 10, 2))  # spatter
+    for pts in (p, p[::-1]):
+        for robust in (True, False):
+            line = fit_line(pts, robust)
+            c, d, rms = _fit_line_reference(np.ascontiguousarray(pts), robust)
+            np.testing.assert_allclose(line.c, c, atol=1e-9)
+            np.testing.assert_allclose(line.d, d, atol=1e-9)
+            assert line.rms == pytest.approx(rms, abs=1e-9)
+        assert line.d[0] >= 0
+    clean = fit_line(p)
+    assert abs(float(clean.d @ d_true)) > np.cos(np.radians(1.0))

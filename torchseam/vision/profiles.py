@@ -48,6 +48,7 @@ import numpy as np
 
 from torchseam.core.config import JOINT_PROFILES, config_field, config_path, load_config
 from torchseam.core.dataset import check_frame
+from torchseam.core.kernels import load_kernels
 from torchseam.core.orient import BRIGHTNESS, FrameView
 from torchseam.core.overlay import put_label
 from torchseam.vision.tipm import Tipm, TipmResult, red_response
@@ -190,17 +191,10 @@ class Line:
 def fit_line(p: np.ndarray, robust: bool = True) -> Line:
     """Total-least-squares line through points (N, 2), N >= 2; ``robust``: refitted once on
     the points within 3 sigma (MAD) of the first fit, so a spatter dot on a piece does not
-    tilt it."""
-    c = p.mean(axis=0)
-    w, vec = np.linalg.eigh(np.cov((p - c).T, bias=True))
-    d = vec[:, 1]
-    r = (p - c) @ np.array([-d[1], d[0]])
-    if robust and len(p) >= 6:
-        keep = np.abs(r - np.median(r)) <= max(3 * 1.4826 * np.median(np.abs(r - np.median(r))),
-                                               1.0)
-        if 2 <= keep.sum() < len(p):
-            return fit_line(p[keep], robust=False)
-    return Line(c, d if d[0] >= 0 else -d, float(np.sqrt(np.mean(r * r))))
+    tilt it (compiled: ``_kernels.fit_line``)."""
+    # the kernels are loaded (compiled) when the finder's Tipm is built: the same package's
+    cx, cy, dx, dy, rms = load_kernels(__package__).fit_line(np.asarray(p, np.float64), robust)
+    return Line(np.array([cx, cy]), np.array([dx, dy]), rms)
 
 
 def split_two_lines(p: np.ndarray, min_points: int) -> int:
@@ -332,28 +326,29 @@ class ProfileFinder:
         # is taken on the brightness's centre line (the red excess's is off the white or
         # missing there), and the brightness's profile is taken only where the red excess
         # gives none or reads the same joint, its aim within the stripe's width of the
-        # brightness's (moved by the light clipped beside the stripe). Farther apart they
-        # read different things, and glare at one says not which is right: the brightness
-        # also shows the arc's white light, which the red excess tells from the stripe (a
-        # groove under the arc: its brightness put the root 33-39 px off, the red excess
-        # within 1 px; a lap's red excess 9-10 px off with the glow on its face stays)
-        grey = None
-        if frame.dtype == np.uint8 and _any_white(frame):
+        # brightness's (moved by the light clipped beside the stripe; max_run_px + 1 at
+        # most). Farther apart they read different things, and glare at one says not which
+        # is right: the brightness also shows the arc's white light, which the red excess
+        # tells from the stripe (a groove under the arc: its brightness put the root 33-39 px
+        # off, the red excess within 1 px; a lap's red excess 9-10 px off with the glow on
+        # its face stays)
+        found = self._profile(frame)
+        if not found.ok:
             grey = self._profile(cv2.transform(frame, BRIGHTNESS))
-            width = self._width   # the stripe's, in the brightness
-            glare = grey.ok and (self._white_at_joint(frame, grey, width)
-                                 > self.tipm.cfg.white_core_fraction)
-            found = self._profile(frame)
-            if glare and (not found.ok or float(np.linalg.norm(found.aim - grey.aim))
-                          <= width):
-                return grey
-        else:
-            found = self._profile(frame)
-        if found.ok:
+            return grey if grey.ok else found
+        # no white pixel within fit_px of any aim the brightness's could be taken at (a
+        # stripe's width of this one's; a stripe is no wider than max_run_px + 1: a taller
+        # run is a blob, stripe()): no glare at the joint, and no need to read the brightness
+        reach = self.cfg.stripe.max_run_px + 1
+        if frame.dtype != np.uint8 or not _any_white(
+                _around(frame, found.aim, int(self.cfg.fit_px) + reach + 2)):
             return found
-        if grey is None:
-            grey = self._profile(cv2.transform(frame, BRIGHTNESS))
-        return grey if grey.ok else found
+        grey = self._profile(cv2.transform(frame, BRIGHTNESS))
+        width = self._width   # the stripe's, in the brightness
+        if (grey.ok and float(np.linalg.norm(found.aim - grey.aim)) <= min(width, reach)
+                and self._white_at_joint(frame, grey, width) > self.tipm.cfg.white_core_fraction):
+            return grey
+        return found
 
     def _white_at_joint(self, frame: np.ndarray, res: ProfileResult, width: int) -> float:
         """The share of a found profile's centre-line points within ``fit_px`` of its aim
@@ -408,12 +403,22 @@ class ProfileFinder:
         binary = cv2.subtract(binary, cv2.morphologyEx(binary, cv2.MORPH_OPEN, self._tall))
         # pieces are measured grown by close_px (a speckled flank breaks into short dashes)
         grown = cv2.dilate(binary, self._close)
-        n, lab, st, _ = cv2.connectedComponentsWithStats(grown, connectivity=8)
-        keep = np.zeros(n, np.uint8)
-        keep[1:][st[1:, cv2.CC_STAT_AREA] >= s.min_area] = 255
+        # labelled in the box that holds anything (the stripe is a thin band)
+        bx, by, bw, bh = cv2.boundingRect(grown)
+        if bw == 0:
+            return ridge, np.zeros_like(ridge), "no stripe found (only small blobs)"
+        box = (slice(by, by + bh), slice(bx, bx + bw))
+        n, lab, st, _ = cv2.connectedComponentsWithStats(grown[box], connectivity=8,
+                                                         ltype=cv2.CV_16U)
+        keep = np.zeros(max(n, 256), np.uint8)
+        keep[1:n][st[1:, cv2.CC_STAT_AREA] >= s.min_area] = 255
         if not keep.any():
             return ridge, np.zeros_like(ridge), "no stripe found (only small blobs)"
-        return ridge, cv2.dilate(cv2.bitwise_and(keep[lab], binary), self._dilate), ""
+        kept = np.zeros_like(binary)
+        # cv2.LUT takes 8-bit labels; with <= 256 labels (nearly always) it is 5x np.take
+        kept[box] = (cv2.LUT(lab.astype(np.uint8), keep[:256]) if n <= 256
+                     else np.take(keep, lab))  # type: ignore[arg-type]  # CV_16U labels
+        return ridge, cv2.dilate(cv2.bitwise_and(kept, binary), self._dilate), ""
 
     # ------------------------------------------------------------------ pieces
     def _end(self, piece: np.ndarray, resp: np.ndarray, line: Line) -> np.ndarray:
@@ -436,8 +441,8 @@ class ProfileFinder:
         ds = END_STEP_PX
         n = int(4 * self.cfg.min_gap_px / ds)
         along = end + (ds * np.arange(n + 1))[:, None] * step                  # (n + 1, 2)
-        val = np.max([_bilinear(self._ridge, along + o * normal) for o in (-1.0, 0.0, 1.0)],
-                     axis=0)
+        val = _bilinear(self._ridge, (along[None] + np.array([-1.0, 0.0, 1.0])[:, None, None]
+                                      * normal).reshape(-1, 2)).reshape(3, -1).max(axis=0)
         below = np.flatnonzero(val < level)
         if not len(below) or below[0] == 0:  # bright throughout, or dim where it starts
             return along[-1] if not len(below) else end
@@ -698,9 +703,9 @@ def _bilinear(img: np.ndarray, p: np.ndarray) -> np.ndarray:
     u0 = np.clip(np.floor(u).astype(int), 0, w - 2)
     v0 = np.clip(np.floor(v).astype(int), 0, h - 2)
     fu, fv = np.clip(u - u0, 0, 1), np.clip(v - v0, 0, 1)
-    f = img.astype(float)
-    val = ((1 - fu) * (1 - fv) * f[v0, u0] + fu * (1 - fv) * f[v0, u0 + 1]
-           + (1 - fu) * fv * f[v0 + 1, u0] + fu * fv * f[v0 + 1, u0 + 1])
+    f00, f01 = img[v0, u0].astype(float), img[v0, u0 + 1].astype(float)
+    f10, f11 = img[v0 + 1, u0].astype(float), img[v0 + 1, u0 + 1].astype(float)
+    val = (1 - fu) * (1 - fv) * f00 + fu * (1 - fv) * f01 + (1 - fu) * fv * f10 + fu * fv * f11
     return np.where(inside, val, 0.0)
 
 
@@ -808,10 +813,21 @@ def saturated_centre(frame: np.ndarray, pts: np.ndarray, max_run: int) -> np.nda
 def _any_white(frame: np.ndarray) -> bool:
     """Whether a BGR uint8 frame has a pixel overexposed into white as
     :func:`~torchseam.vision.tipm.white_core` counts one: R clipped, G or B above half."""
+    if not frame.size:
+        return False
     b, g, r = cv2.split(frame)
     clip = cv2.compare(r, SATURATED_LEVEL, cv2.CMP_GE)  # type: ignore[call-overload]
     lit = cv2.compare(cv2.max(g, b), SATURATED_LEVEL // 2, cv2.CMP_GT)  # type: ignore[call-overload]
     return cv2.countNonZero(cv2.bitwise_and(clip, lit)) > 0
+
+
+def _around(frame: np.ndarray, at: np.ndarray, r: int) -> np.ndarray:
+    """The square of half side ``r`` of ``frame`` round the point ``at`` (2,) (u, v), cut at
+    the frame's edges (a contiguous copy)."""
+    h, w = frame.shape[:2]
+    u, v = int(round(float(at[0]))), int(round(float(at[1])))
+    return np.ascontiguousarray(frame[max(v - r, 0):max(min(v + r + 1, h), 0),
+                                      max(u - r, 0):max(min(u + r + 1, w), 0)])
 
 
 def glare_white(frame: np.ndarray, pts: np.ndarray, width: int) -> np.ndarray:

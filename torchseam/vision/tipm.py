@@ -362,10 +362,13 @@ class Tipm:
         h, w = binary.shape
         roi = (slice(max(by - d, 0), min(by + bh + d, h)),
                slice(max(bx - d, 0), min(bx + bw + d, w)))
+        mask = np.zeros_like(binary)
+        if cfg.min_area <= 0:  # every blob is kept: nothing to label (the profiles' Tipm)
+            mask[roi] = cv2.dilate(binary[roi], self._kernel) if d else binary[roi]
+            return mask, ""
         n, lab, blobs, _ = cv2.connectedComponentsWithStats(binary[roi], connectivity=8,
                                                             ltype=cv2.CV_16U)
         keep = np.nonzero(blobs[1:, cv2.CC_STAT_AREA] >= cfg.min_area)[0] + 1
-        mask = np.zeros_like(binary)
         if len(keep) == 0:
             return mask, "no stripe found (only small blobs)"
         if len(keep) == n - 1:
