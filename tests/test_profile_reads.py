@@ -1,0 +1,82 @@
+"""A colour frame's two readings (the red excess and the brightness): the finder reads the
+brightness beside a found profile only where it could be taken (white pixels within ``fit_px``
+of an aim a stripe's width off), and that saving changes no result."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from torchseam.core.config import load_cell, load_noise, load_part
+from torchseam.core.orient import BRIGHTNESS
+from torchseam.sim.sequence import SequenceSpec, simulate
+from torchseam.vision import profiles as P
+from torchseam.vision.profiles import ProfileFinder, ProfileResult, load_profile_config
+from torchseam.vision.tipm import load_tipm
+
+PARTS = Path(__file__).resolve().parents[1] / "configs" / "parts"
+WINDOW = 180  # configs/profile_track.yaml window_px
+
+
+def _both_read(finder: ProfileFinder, frame: np.ndarray) -> tuple[ProfileResult, bool]:
+    """The finder's rule with both readings made on every colour frame with a white pixel
+    (as before the saving): the result, and whether the brightness's was taken beside a found
+    red-excess profile."""
+    grey = None
+    if P._any_white(frame):
+        grey = finder._profile(cv2.transform(frame, BRIGHTNESS))
+        width = finder._width
+        glare = grey.ok and (finder._white_at_joint(frame, grey, width)
+                             > finder.tipm.cfg.white_core_fraction)
+        found = finder._profile(frame)
+        if glare and (not found.ok or float(np.linalg.norm(found.aim - grey.aim)) <= width):
+            return grey, found.ok
+    else:
+        found = finder._profile(frame)
+    if found.ok:
+        return found, False
+    if grey is None:
+        grey = finder._profile(cv2.transform(frame, BRIGHTNESS))
+    return (grey if grey.ok else found), False
+
+
+@pytest.mark.parametrize("part, family, level", [("pipe_lap", "wide", "heavy"),
+                                                 ("t_joint_bevel", "sim", "heavy")])
+def test_the_brightness_is_read_only_where_it_could_be_taken(part, family, level):
+    cfg = load_part(PARTS / f"{part}.yaml")
+    noise = load_noise()
+    finder = ProfileFinder(load_tipm(), load_profile_config(), cfg.joint)
+    calls = {"n": 0}
+    inner = finder._profile
+
+    def counted(frame):
+        calls["n"] += 1
+        return inner(frame)
+
+    same = taken = saved = 0
+    for img, truth in simulate(load_cell(), cfg, noise, SequenceSpec(
+            n_frames=40, start_mm=100, level=noise.level(level), seed=1000, family=family)):
+        if not truth.arc_on:
+            continue
+        u, v = np.rint(truth.uv).astype(int)
+        win = np.ascontiguousarray(img[max(v - WINDOW, 0):v + WINDOW + 1,
+                                       max(u - WINDOW, 0):u + WINDOW + 1])
+        want, beside = _both_read(finder, win)
+        finder._profile = counted
+        calls["n"] = 0
+        got = finder(win)
+        finder._profile = inner
+        assert got.ok == want.ok and got.joint == want.joint
+        if got.ok:
+            np.testing.assert_array_equal(got.aim, want.aim)
+        same += 1
+        taken += beside
+        saved += calls["n"] == 1 and P._any_white(win)
+    assert same >= 25
+    if part == "pipe_lap":   # glare whitens the joint: the brightness is still taken there
+        assert taken > 0
+    else:                    # white pixels away from the joint: those frames are read once
+        assert saved > 0
