@@ -74,3 +74,26 @@ def test_aravis_url_that_names_no_camera_is_one_clear_error():
 
     with pytest.raises(FrameStreamError, match="Aravis cannot open it"):
         AravisCamera("aravis://No-Such-Camera-0000")
+
+
+def test_aravis_camera_takes_the_cell_files_exposure_time(fake_camera):
+    """The weld sets camera.exposure_us on a GenICam camera, and reads back what it took."""
+    from torchseam.live.genicam import AravisCamera
+
+    with AravisCamera(fake_camera, frame_rate_hz=25.0, exposure_us=1500.0) as cam:
+        assert cam.exposure_us == pytest.approx(1500.0)
+        assert cam.camera.get_exposure_time() == pytest.approx(1500.0)
+        assert cam.get(3.0) is not None              # and it streams
+
+
+@pytest.mark.parametrize("us, fps, message", [
+    (5e7, None, r"camera.exposure_us 5e\+07 is outside what the camera takes \(10 .. 1e\+07 us\)"),
+    (50_000.0, 25.0, r"longer than the frame period at 25 frames/s \(40000 us\)")])
+def test_aravis_exposure_the_camera_cannot_take_is_one_clear_error(fake_camera, us, fps,
+                                                                   message):
+    """The fake camera, like some real ones, stores any number it is sent: the bounds and the
+    frame period are checked before it is."""
+    from torchseam.live.genicam import AravisCamera
+
+    with pytest.raises(FrameStreamError, match=message):
+        AravisCamera(fake_camera, frame_rate_hz=fps, exposure_us=us)

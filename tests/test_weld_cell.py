@@ -548,3 +548,39 @@ def test_the_weld_follows_the_part_s_joint(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "a butt joint" in err[0], err
     assert not out.exists()
+
+
+def test_an_exposure_time_only_a_genicam_camera_takes_is_refused_elsewhere(tmp_path):
+    """camera.exposure_us is set on a GenICam camera; a frame stream or an OpenCV camera takes
+    none from the weld, and the weld says so rather than weld at an exposure nobody set."""
+    import yaml
+
+    from torchseam.core.config import ConfigError, load_cell, to_dict
+    from torchseam.live.cameras import open_camera
+    from torchseam.live.cellfile import (
+        CameraLink,
+        ControllerLink,
+        WeldCell,
+        load_weld_cell,
+        save_weld_cell,
+    )
+    from torchseam.live.framestream import FrameStreamError
+
+    for source in ("tcp://127.0.0.1:7000", "camera:0"):
+        with pytest.raises(FrameStreamError, match=r"camera.exposure_us is set, but (a frame "
+                           r"stream|an OpenCV camera) takes no exposure time from the weld"):
+            open_camera(source, (656, 492), 25.0, 0.1, exposure_us=2000.0)
+    cell = WeldCell(load_cell(), CameraLink(source="camera:0", latency_ms=30.0,
+                                            exposure_us=2000.0),
+                    ControllerLink(host="127.0.0.1", port=6510, controller_host="127.0.0.1",
+                                   controller_port=6511))
+    save_weld_cell(cell, tmp_path / "cell.yaml")
+    assert load_weld_cell(tmp_path / "cell.yaml").camera.exposure_us == 2000.0
+    data = to_dict(cell)
+    del data["camera"]["exposure_us"]          # left out: as the camera is set
+    (tmp_path / "old.yaml").write_text(yaml.safe_dump(data))
+    assert load_weld_cell(tmp_path / "old.yaml").camera.exposure_us is None
+    data["camera"]["exposure_us"] = 0.0
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"bad.yaml: camera.exposure_us"):
+        load_weld_cell(tmp_path / "bad.yaml")

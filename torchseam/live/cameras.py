@@ -77,14 +77,22 @@ class OpenCVCamera(QueuedCamera):
 
 
 def open_camera(source: str, size: tuple[int, int], fps: float,
-                connect_timeout_s: float = 30.0) -> QueuedCamera:
-    """The camera input for ``source`` (see the module); FrameStreamError naming it."""
-    if source.startswith("tcp://"):
-        return StreamCamera(source, connect_timeout_s=connect_timeout_s)
+                connect_timeout_s: float = 30.0,
+                exposure_us: float | None = None) -> QueuedCamera:
+    """The camera input for ``source`` (see the module), with the exposure time
+    ``exposure_us`` set on it (a GenICam camera only: the others take none from the weld, and
+    asking is refused rather than ignored); FrameStreamError naming it."""
     if source.startswith("aravis://"):
         from torchseam.live.genicam import AravisCamera
 
-        return AravisCamera(source, frame_rate_hz=fps, size=size)
+        return AravisCamera(source, frame_rate_hz=fps, size=size, exposure_us=exposure_us)
+    if exposure_us is not None and is_camera_source(source):
+        kind = "a frame stream" if source.startswith("tcp://") else "an OpenCV camera"
+        raise FrameStreamError(
+            f"camera source {source}: camera.exposure_us is set, but {kind} takes no exposure "
+            "time from the weld: set it on the camera's side and leave camera.exposure_us out")
+    if source.startswith("tcp://"):
+        return StreamCamera(source, connect_timeout_s=connect_timeout_s)
     if source.startswith(OPENCV_PREFIXES):
         return OpenCVCamera(source, size=size, fps=fps)
     raise FrameStreamError(f"camera source {source!r}: expected tcp://HOST:PORT, "

@@ -13,6 +13,10 @@ one for the virtual cell; for a real cell copy it and edit it)::
                                      # (OpenCV): torchseam.live.cameras
       latency_ms: 20.0               # exposure -> arrival at the PC (torchseam calibrate latency)
       stall_frames: 2.0              # no frame for this many periods: hold, arc off
+      exposure_us: 2000.0            # optional: the exposure time set on a GenICam camera (us;
+                                     # left out: as the camera is set). Short enough that the
+                                     # arc does not clip the stripe's band (a mono band-pass
+                                     # camera has one band: docs/benchmarks.md, "Exposure")
     controller:           # the EGM link (configs/egm.yaml's network section)
       host: 127.0.0.1                # where the weld listens (the UdpUc device's remote address)
       port: 6510
@@ -64,6 +68,9 @@ class CameraLink:
     source: str = _f(convert=_camera_url)
     latency_ms: float = _f(lo=0.0, hi=1000.0)
     stall_frames: float = _f(default=2.0, lo=1.0, hi=50.0)
+    #: the exposure time (microseconds) the weld sets on a GenICam camera when it opens it
+    #: (None: as the camera is set); a frame stream or an OpenCV camera takes none from the weld
+    exposure_us: float | None = _f(default=None, lo=1.0, hi=1e7)
 
 
 @dataclass(frozen=True)

@@ -235,6 +235,9 @@ class QueuedCamera:
         self._frames = NewestFrames(maxsize)
         self.received = 0
         self.error: str | None = None
+        #: the exposure time the weld set on the camera (us, as the camera took it); None
+        #: where it set none
+        self.exposure_us: float | None = None
         self._stop = threading.Event()
 
     @property

@@ -82,10 +82,15 @@ class AravisCamera(QueuedCamera):
         frame_rate_hz: set on the camera when given (AcquisitionFrameRate).
         size: (width, height) region set on the camera when given.
         maxsize: frames queued at most.
+        exposure_us: the exposure time set on the camera when given (ExposureTime, auto
+            exposure off), microseconds; refused (FrameStreamError) outside the camera's
+            bounds or longer than the frame period. ``self.exposure_us``: as the camera took
+            it (its own step), None when not set.
     """
 
     def __init__(self, url: str, frame_rate_hz: float | None = None,
-                 size: tuple[int, int] | None = None, maxsize: int = 2) -> None:
+                 size: tuple[int, int] | None = None, maxsize: int = 2,
+                 exposure_us: float | None = None) -> None:
         Aravis = load_aravis()
         super().__init__(url, maxsize)
         try:
@@ -94,6 +99,8 @@ class AravisCamera(QueuedCamera):
             raise FrameStreamError(f"camera source {url}: Aravis cannot open it ({e})") from None
         if size is not None:
             self.camera.set_region(0, 0, int(size[0]), int(size[1]))
+        if exposure_us is not None:
+            self.exposure_us = self._set_exposure(Aravis, float(exposure_us), frame_rate_hz)
         if frame_rate_hz is not None:
             self.camera.set_frame_rate(float(frame_rate_hz))
         self.pixel_format = self.camera.get_pixel_format_as_string()
@@ -107,6 +114,25 @@ class AravisCamera(QueuedCamera):
         self.camera.start_acquisition()
         self._thread = threading.Thread(target=self._read, name="aravis-read", daemon=True)
         self._thread.start()
+
+    def _set_exposure(self, Aravis: Any, us: float, frame_rate_hz: float | None) -> float:
+        """Set the exposure time ``us`` (before the frame rate: a long exposure bounds it);
+        the time the camera took. Refused where the camera has none, outside its bounds (a
+        camera may store any number it is sent) or over the frame period."""
+        where = f"camera source {self.url}: camera.exposure_us {us:g}"
+        if not self.camera.is_exposure_time_available():
+            raise FrameStreamError(f"{where}: the camera has no exposure time to set")
+        lo, hi = self.camera.get_exposure_time_bounds()
+        if not lo <= us <= hi:
+            raise FrameStreamError(f"{where} is outside what the camera takes ({lo:g} .. "
+                                   f"{hi:g} us)")
+        if frame_rate_hz is not None and us > 1e6 / frame_rate_hz:
+            raise FrameStreamError(f"{where} is longer than the frame period at "
+                                   f"{frame_rate_hz:g} frames/s ({1e6 / frame_rate_hz:g} us)")
+        if self.camera.is_exposure_auto_available():
+            self.camera.set_exposure_time_auto(Aravis.Auto.OFF)
+        self.camera.set_exposure_time(us)
+        return float(self.camera.get_exposure_time())
 
     def _read(self) -> None:
         try:

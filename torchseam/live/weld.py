@@ -302,7 +302,10 @@ class WeldRunner:
 
         cam = self.calib.camera
         self.cam = open_camera(self.cell.camera.source, (cam.width, cam.height),
-                               self.calib.process.frame_rate_hz, self.connect_timeout_s)
+                               self.calib.process.frame_rate_hz, self.connect_timeout_s,
+                               self.cell.camera.exposure_us)
+        if self.cam.exposure_us is not None:
+            self.progress(f"weld: the camera's exposure time set to {self.cam.exposure_us:g} us")
         self._wait_controller()
 
     def warm(self) -> None:
