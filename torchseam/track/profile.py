@@ -117,9 +117,13 @@ class ProfileTracker(Tracker):
         #: edges in their places
         self._dirs = (deque[float](maxlen=cfg.edge_history),
                       deque[float](maxlen=cfg.edge_history))
-        #: butt, lap: the vector from one end to the other (px) on the recent frames
+        #: butt, lap: the vector from one end to the other (px) on the recent frames that
+        #: were evidence with their ends as read (:meth:`_ends`)
         self._pair = deque[np.ndarray](maxlen=cfg.edge_history)
         self._stale_pair = 0
+        #: the span of the frame in hand where its ends were taken as read: it joins the
+        #: history only if the frame is evidence (:meth:`_learn`)
+        self._span: np.ndarray | None = None
         #: (width, root gap) px of the last frame tracked (the start frame's at first)
         self._shape = (float("nan"), float("nan"))
 
@@ -145,6 +149,7 @@ class ProfileTracker(Tracker):
                 self._shape = (res.width_px, res.gap_px)
                 if res.joint != "v_groove":
                     self._ends(res, self.uv)
+                    self._learn()
 
     def expect(self, uv: np.ndarray | None) -> None:
         self.expected = None if uv is None else np.asarray(uv, float).copy()
@@ -171,6 +176,7 @@ class ProfileTracker(Tracker):
         pred = self.expected if self.expected is not None else self.uv + self.velocity
         self.expected = None
         self.result = None
+        self._span = None
         if not np.all(np.isfinite(pred)):
             return TrackResult(np.full(2, np.nan), int(TrackStatus.LOST))
         res = self._window(frame, pred)
@@ -185,6 +191,7 @@ class ProfileTracker(Tracker):
             self.velocity = uv - self.uv if np.all(np.isfinite(self.uv)) else np.zeros(2)
             self.uv, self.misses, self.result = uv, 0, res
             self._shape = (res.width_px, res.gap_px)
+            self._learn()
             return TrackResult(uv.copy(), int(TrackStatus.TRACKED))
         self.misses += 1
         self.uv, self.velocity = pred, np.zeros(2)  # held, not extrapolated, while blind
@@ -294,12 +301,19 @@ class ProfileTracker(Tracker):
         the seam; an end is where the stripe stops, the profile's weakest reading: the arc's
         glare eats the stripe's end (the gap reads wider), a spatter streak carries it on.
 
-        From the start frame's (:meth:`init`) and the recent values that agreed with their
-        median (the last ``edge_history``), a frame whose vector is more than ``edge_tol_px``
-        off that median has an end
-        off: the end nearer its expected place (the prediction, less or plus the median's
-        share) stays, within ``edge_tol_px`` of it, and the other is put back at the median
-        from it; no end there: no evidence (``ok`` False). A vector taken from its history on
+        The history: the start frame's vector (:meth:`init`) and those of the recent frames
+        that were evidence with their ends as read (the last ``edge_history``): agreeing with
+        the history's median, or both off alike (below). A frame whose vector is more than
+        ``edge_tol_px`` off that median is read three ways: its first end as read and the
+        second put back at the median from it, the second as read and the first put back, or
+        (ends in their order) both off alike, the aim as read: the arc's glare stands on the
+        seam, where the torch is, and eats the two edges alike as often as one (an end "in
+        its place" beside one eaten as far carried half the excess into the seam); and the
+        gap under the arc need not read as it did on the clean start frame (a wide stripe's
+        bleed narrows it there). The way whose aim lies nearest the prediction is taken,
+        within ``edge_tol_px`` of it; none there: no evidence (``ok`` False). A frame the
+        gate refuses (some other structure, whose span may agree by chance) neither joins the
+        history nor counts as a span in place (:meth:`_learn`). A vector off its history on
         more than ``edge_max_frames`` frames in a row is no longer known (its history starts
         again from what the frames show; the gate on the prediction still holds).
 
@@ -315,13 +329,12 @@ class ProfileTracker(Tracker):
         a, b = res.points[names[0]], res.points[names[1]]
         d = b - a
         hist = self._pair
-        if not hist:
-            hist.append(d)
+        if not hist:   # the first span (the start frame's, or after the history ran stale)
+            self._span = d
             return res
         ref = np.median(np.array(hist), axis=0)
         if float(np.linalg.norm(d - ref)) <= self.cfg.edge_tol_px:
-            hist.append(d)
-            self._stale_pair = 0
+            self._span = d   # joins the history if the frame is evidence (_learn)
             return res
         self._stale_pair += 1
         if self._stale_pair > self.cfg.edge_max_frames:
@@ -341,18 +354,27 @@ class ProfileTracker(Tracker):
                 reason=f"the lap's edge face off its recent span (span {np.linalg.norm(d):.1f} "
                        f"px, recently {np.linalg.norm(ref):.1f}): both ends are on its line")
         share = 0.5 if res.joint == "butt" else 0.0   # the aim's place between the ends
-        exp_a = pred - share * ref
-        exp_b = exp_a + ref
-        off_a, off_b = float(np.linalg.norm(a - exp_a)), float(np.linalg.norm(b - exp_b))
-        if min(off_a, off_b) > self.cfg.edge_tol_px:
+        # where the ends truly are, read three ways: end a as read and b off (eaten by glare,
+        # carried on by spatter), b as read and a off, or, where the ends are in their order,
+        # both off alike (the arc's glare stands on the seam, where the torch is, and eats the
+        # two edges alike as often as one: an end "in its place" beside an end eaten as far
+        # carried half the excess into the seam; and the span read under the arc need not be
+        # the one read before it, which a wide stripe's bleed narrows): the span's centre as
+        # read, the span kept
+        norm = max(float(np.linalg.norm(ref)), 1e-9)
+        ways = [(a, a + ref, names[1]), (b - ref, b, names[0])]
+        if float(d @ ref) > 0.0:
+            ways.append((a + 0.5 * (d - ref), b - 0.5 * (d - ref), "both ends"))
+        off = [float(np.linalg.norm(w[0] + share * ref - pred)) for w in ways]
+        k = int(np.argmin(off))
+        if off[k] > self.cfg.edge_tol_px:
             return dataclasses.replace(
                 res, ok=False, aim=np.full(2, np.nan),
                 reason=f"both ends off their expected places (span {np.linalg.norm(d):.1f} px, "
-                       f"recently {np.linalg.norm(ref):.1f})")
-        if off_a <= off_b:
-            a_new, b_new, moved = a, a + ref, names[1]
-        else:
-            a_new, b_new, moved = b - ref, b, names[0]
+                       f"recently {norm:.1f})")
+        a_new, b_new, moved = ways[k]
+        if k == 2:   # the span as read, both ends off alike: it joins the history (_learn)
+            self._span = d
         aim = a_new + share * ref
         arms = res.arm_points
         if arms is not None and res.joint == "butt":   # each plate's piece moves with its end
@@ -362,11 +384,21 @@ class ProfileTracker(Tracker):
             reach = float(np.linalg.norm(arms[1] - a))
             arms = np.stack([arms[0] + a_new - a,
                              a_new + reach * face / max(float(np.linalg.norm(face)), 1e-9)])
+        note = (f"{moved} at its recent span" if k < 2
+                else "both ends off alike: the span's centre as read")
         return dataclasses.replace(
             res, aim=aim, points=dict(res.points, **{names[0]: a_new, names[1]: b_new}),
-            arm_points=arms,
-            reason=(res.reason + "; " if res.reason else "") + f"{moved} at its recent span",
-            width_px=float(np.linalg.norm(ref)) if res.joint == "butt" else res.width_px)
+            arm_points=arms, reason=(res.reason + "; " if res.reason else "") + note,
+            width_px=norm if res.joint == "butt" else res.width_px)
+
+    def _learn(self) -> None:
+        """The span of the frame in hand (:meth:`_ends`) joins the history: the frame is
+        evidence. (A frame whose aim the gate refuses is some other structure, whose span
+        may agree by chance: it neither joins the history nor counts as a span in place.)"""
+        if self._span is not None:
+            self._pair.append(self._span)
+            self._stale_pair = 0
+            self._span = None
 
     def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
         r = self.track(frame)

@@ -338,17 +338,46 @@ class ProfileFinder:
             return grey if grey.ok else found
         # no white pixel within fit_px of any aim the brightness's could be taken at (a
         # stripe's width of this one's; a stripe is no wider than max_run_px + 1: a taller
-        # run is a blob, stripe()): no glare at the joint, and no need to read the brightness
+        # run is a blob, stripe()), nor in a break of the red excess's centre line: no glare
+        # at the joint or where the red excess is blind, and no need to read the brightness
         reach = self.cfg.stripe.max_run_px + 1
-        if frame.dtype != np.uint8 or not _any_white(
-                _around(frame, found.aim, int(self.cfg.fit_px) + reach + 2)):
+        if frame.dtype != np.uint8 or not (
+                _any_white(_around(frame, found.aim, int(self.cfg.fit_px) + reach + 2))
+                or self._white_break(frame, found.centre)):
             return found
         grey = self._profile(cv2.transform(frame, BRIGHTNESS))
         width = self._width   # the stripe's, in the brightness
-        if (grey.ok and float(np.linalg.norm(found.aim - grey.aim)) <= min(width, reach)
-                and self._white_at_joint(frame, grey, width) > self.tipm.cfg.white_core_fraction):
+        if not grey.ok or (self._white_at_joint(frame, grey, width)
+                           <= self.tipm.cfg.white_core_fraction):
+            return found
+        # the two read the same joint; or the red excess is blind at the brightness's (its
+        # centre line has no point within fit_px of its aim, where glare clips R round the
+        # stripe): it cannot read that joint, and what it read elsewhere says not that the
+        # joint is not there (a lap's white step under the arc: the red excess's step 30-230
+        # px off, on a break beside it; the brightness's within 1 px)
+        if float(np.linalg.norm(found.aim - grey.aim)) <= min(width, reach) or (
+                found.centre is not None and len(found.centre) and float(np.min(
+                    np.linalg.norm(found.centre - grey.aim, axis=1))) > self.cfg.fit_px):
             return grey
         return found
+
+    def _white_break(self, frame: np.ndarray, pts: np.ndarray | None) -> bool:
+        """Whether glare whitens the stripe in a break of a centre line (N, 2) (ordered along
+        the rows): a white pixel (:func:`_any_white`) in the box over a break at least
+        ``min_gap_px`` wide, a stripe's reach (``max_run_px + 1``) above and below the
+        line's ends there. The red excess sees nothing where glare clips R round the stripe:
+        its centre line breaks there, and the joint may lie in the break."""
+        if pts is None or len(pts) < 2:
+            return False
+        r = self.cfg.stripe.max_run_px + 1
+        h, w = frame.shape[:2]
+        for i in np.flatnonzero(np.diff(pts[:, 0]) >= self.cfg.min_gap_px):
+            (u0, v0), (u1, v1) = pts[i], pts[i + 1]
+            box = frame[max(int(min(v0, v1)) - r, 0):min(int(max(v0, v1)) + r + 1, h),
+                        max(int(u0), 0):min(int(u1) + 1, w)]
+            if _any_white(np.ascontiguousarray(box)):
+                return True
+        return False
 
     def _white_at_joint(self, frame: np.ndarray, res: ProfileResult, width: int) -> float:
         """The share of a found profile's centre-line points within ``fit_px`` of its aim
@@ -597,10 +626,38 @@ class ProfileFinder:
                                      {"left_edge": le, "right_edge": re}, "dip",
                                      float(np.linalg.norm(re - le)), centre=pts,
                                      arm_points=arms)
-        sides = self._two_plates(pts, resp, j)
-        if isinstance(sides, str):
-            return _fail("butt", f"no gap: {sides}", pts)
+        along = pts[-1] - pts[0]
+        along = along / max(float(np.linalg.norm(along)), 1e-9)
+        if how == "break":
+            # the gap is the widest break as the stripe's ends read it, not as the centre line
+            # breaks: a glint streak over the stripe makes its columns' runs tall and drops
+            # them from the centre line, though the stripe is lit there (its ends, followed
+            # along the line, meet across such a break)
+            best: tuple[float, int, tuple[Line, Line, np.ndarray, np.ndarray]] | None = None
+            why = ""
+            for i in np.flatnonzero(du >= cfg.min_gap_px):
+                got = self._two_plates(pts, resp, int(i))
+                if isinstance(got, str):
+                    why = why or got
+                    continue
+                width = float((got[3] - got[2]) @ along)
+                if best is None or width > best[0]:
+                    best = (width, int(i), got)
+            if best is None:
+                return _fail("butt", f"no gap: {why}", pts)
+            width, j, sides = best
+        else:
+            got = self._two_plates(pts, resp, j)
+            if isinstance(got, str):
+                return _fail("butt", f"no gap: {got}", pts)
+            sides = got
+            width = float((sides[3] - sides[2]) @ along)
         a, b, le, re = sides
+        if width < -1.0:   # over 1 px the wrong way
+            # each end followed on along the stripe past the other: no gap read (a stripe
+            # overexposed into white has no red excess in its core, two ridges at its edges:
+            # its response along the centre line is no brightness to find an end by)
+            return _fail("butt", "no gap: its edges cross", pts)
         arms = np.stack([le + self.cfg.fit_px * _outward(a, pts[j::-1]),
                          re + self.cfg.fit_px * _outward(b, pts[j + 1:])])
         return ProfileResult("butt", True, (le + re) / 2, {"left_edge": le, "right_edge": re},
