@@ -22,28 +22,31 @@ WINDOW = 180  # configs/profile_track.yaml window_px
 
 
 def _both_read(finder: ProfileFinder, frame: np.ndarray) -> tuple[ProfileResult, bool]:
-    """The finder's rule with both readings made on every colour frame with a white pixel
-    (as before the saving): the result, and whether the brightness's was taken beside a found
-    red-excess profile."""
-    grey = None
-    if P._any_white(frame):
+    """The finder's rule with both readings made on every colour frame with a white pixel:
+    the result, and whether the brightness's was taken beside a found red-excess profile (where
+    glare whitens the stripe at the brightness's joint, and the two read the same joint or the
+    red excess's centre line has no point within fit_px of it)."""
+    found = finder._profile(frame)
+    if not found.ok or not P._any_white(frame):
+        if found.ok:
+            return found, False
         grey = finder._profile(cv2.transform(frame, BRIGHTNESS))
-        width = finder._width
-        glare = grey.ok and (finder._white_at_joint(frame, grey, width)
-                             > finder.tipm.cfg.white_core_fraction)
-        found = finder._profile(frame)
-        if glare and (not found.ok or float(np.linalg.norm(found.aim - grey.aim)) <= width):
-            return grey, found.ok
-    else:
-        found = finder._profile(frame)
-    if found.ok:
+        return (grey if grey.ok else found), False
+    grey = finder._profile(cv2.transform(frame, BRIGHTNESS))
+    width = finder._width
+    reach = finder.cfg.stripe.max_run_px + 1
+    if not grey.ok or (finder._white_at_joint(frame, grey, width)
+                       <= finder.tipm.cfg.white_core_fraction):
         return found, False
-    if grey is None:
-        grey = finder._profile(cv2.transform(frame, BRIGHTNESS))
-    return (grey if grey.ok else found), False
+    if float(np.linalg.norm(found.aim - grey.aim)) <= min(width, reach) or (
+            found.centre is not None and len(found.centre) and float(np.min(
+                np.linalg.norm(found.centre - grey.aim, axis=1))) > finder.cfg.fit_px):
+        return grey, True
+    return found, False
 
 
 @pytest.mark.parametrize("part, family, level", [("pipe_lap", "wide", "heavy"),
+                                                 ("pipe_lap", "wide", "extreme"),
                                                  ("t_joint_bevel", "sim", "heavy")])
 def test_the_brightness_is_read_only_where_it_could_be_taken(part, family, level):
     cfg = load_part(PARTS / f"{part}.yaml")
