@@ -263,3 +263,26 @@ def test_shallow_kink_under_glare_is_weak_evidence_not_tracked():
         trk.idle()
         assert res.fix is None or not res.fix.shallow
         assert np.linalg.norm(res.uv - uv) < 1.0
+
+
+@pytest.mark.parametrize("radius_px", [25.0, 35.0, 45.0])
+def test_shallow_corner_is_not_read_off_a_clipped_glare_core(radius_px):
+    """The corner hidden under a saturated glare core, the frame read by its brightness (a
+    mono camera, or a colour one's intensity view): the ridge passes the core's rim (bright
+    inside, darker outside) as a stripe, and the shallow corner was read off the rim, the
+    core's radius away from the corner (the `wide` family's coasting error at `beyond`,
+    3.49 -> 5.50 px with the intensity view of 81104e2). Points whose ridge reaches into the
+    clipped light are left out: what is left, the two arms, places it (colour: as before)."""
+    import cv2
+
+    from torchseam.core.orient import BRIGHTNESS
+    from torchseam.sim.variants import glare_over_corner
+    from torchseam.track.anchored import load_anchor_config, observe
+    tipm, cfg = load_tipm(), load_anchor_config()
+    uv = np.array([320.0, 240.0])
+    colour = glare_over_corner(_v_frame(uv, (0.35, -0.3)), uv, radius_px=radius_px)
+    for frame in (colour, cv2.transform(colour, BRIGHTNESS)):
+        obs = observe(tipm, frame, uv, None, cfg)
+        assert obs.res is None  # nothing of the corner to see: TIPM gives none
+        assert obs.shallow is not None
+        assert np.linalg.norm(obs.shallow.uv - uv) < 1.0, (frame.ndim, obs.shallow.uv - uv)

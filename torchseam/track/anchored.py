@@ -62,6 +62,7 @@ from torchseam.vision.tipm import (
     Tipm,
     TipmResult,
     arm_shape,
+    beside_clipped,
     power_sums,
     quad_normal_adjugate,
     red_response,
@@ -344,7 +345,13 @@ def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | No
         # TIPM's arm fits there lean on the prior's slopes, which a flattening kink no
         # longer has (a biased corner, its covariance too small); read it from the whole
         # arms instead
-        _observe_shallow(obs, res.centre, (x0, y0), prior, tipm, cfg)
+        centre = res.centre
+        if roi.ndim == 2:
+            # read by its brightness: the points whose ridge reaches into clipped light are
+            # that light's edge (a saturated glare core's rim), not the stripe; the shallow
+            # corner takes what is left (the red excess of a colour frame has no such rim)
+            centre = centre[~beside_clipped(roi, centre, tipm.cfg.ridge_px // 2)]
+        _observe_shallow(obs, centre, (x0, y0), prior, tipm, cfg)
     return obs
 
 

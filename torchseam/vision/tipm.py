@@ -225,6 +225,38 @@ class TipmResult:
 
 #: the failure reason of a frame blinded by arc light
 SATURATED = "frame saturated by arc light"
+#: a pixel at or above this (uint8) is clipped: the level of the saturation rules of
+#: :meth:`Tipm.stripe_mask` (white arc light: G of a colour frame, a mono frame's intensity)
+CLIPPED = 250
+
+
+def beside_clipped(frame: np.ndarray, pts: np.ndarray, reach: int) -> np.ndarray:
+    """(N,) bool: centre-line points ``pts`` (N, 2) (u, v) of a frame read by its brightness
+    (``frame`` (H, W) uint8: a mono camera's, or a colour camera's intensity view) whose column
+    is clipped (at or above :data:`CLIPPED`) ``reach`` rows above or below them, or whose
+    ``reach`` leaves the frame. There the ridge (the response less its vertical mean over
+    ``2 reach + 1`` rows, :meth:`Tipm.stripe_mask`, ``reach = ridge_px // 2``) takes in light
+    of unknown level, and a clipped region's edge passes it as a line: the rim of a saturated
+    glare core (bright inside, darker outside) is read as a stripe. (A colour frame's red
+    excess has no such rim: white clipped light has no red excess.) The same reason leaves
+    out the columns next to the frame's top and bottom rows (:meth:`Tipm.centre`). A colour
+    ``frame`` (H, W, 3) is judged by its G, the plane of the saturation rule.
+
+    Example:
+        >>> f = np.zeros((40, 10), np.uint8); f[:12] = 255          # a clipped blob above
+        >>> beside_clipped(f, np.array([[5.0, 14.0], [5.0, 30.0]]), 5).tolist()
+        [True, False]
+    """
+    plane = frame[..., 1] if frame.ndim == 3 else frame
+    h = plane.shape[0]
+    u = np.clip(np.rint(pts[:, 0]).astype(np.intp), 0, plane.shape[1] - 1)
+    v = np.rint(pts[:, 1]).astype(np.intp)
+    up, down = v - reach, v + reach
+    out = (up < 0) | (down >= h)
+    inside = ~out
+    out[inside] = ((plane[up[inside], u[inside]] >= CLIPPED)
+                   | (plane[down[inside], u[inside]] >= CLIPPED))
+    return out
 
 
 def _fail(reason: str, mask: np.ndarray | None = None, centre: np.ndarray | None = None
