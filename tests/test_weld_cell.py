@@ -570,7 +570,7 @@ def test_an_exposure_time_only_a_genicam_camera_takes_is_refused_elsewhere(tmp_p
         with pytest.raises(FrameStreamError, match=r"camera.exposure_us is set, but (a frame "
                            r"stream|an OpenCV camera) takes no exposure time from the weld"):
             open_camera(source, (656, 492), 25.0, 0.1, exposure_us=2000.0)
-    cell = WeldCell(load_cell(), CameraLink(source="camera:0", latency_ms=30.0,
+    cell = WeldCell(load_cell(), CameraLink(source="aravis://TS0001", latency_ms=30.0,
                                             exposure_us=2000.0),
                     ControllerLink(host="127.0.0.1", port=6510, controller_host="127.0.0.1",
                                    controller_port=6511))
@@ -584,3 +584,9 @@ def test_an_exposure_time_only_a_genicam_camera_takes_is_refused_elsewhere(tmp_p
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match=r"bad.yaml: camera.exposure_us"):
         load_weld_cell(tmp_path / "bad.yaml")
+    # the cell file names the mistake before anything opens
+    data["camera"].update(source="camera:0", exposure_us=2000.0)
+    (tmp_path / "opencv.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"opencv.yaml: camera.exposure_us: set, but camera:0 "
+                       r"takes no exposure time from the weld"):
+        load_weld_cell(tmp_path / "opencv.yaml")

@@ -72,6 +72,12 @@ class CameraLink:
     #: (None: as the camera is set); a frame stream or an OpenCV camera takes none from the weld
     exposure_us: float | None = _f(default=None, lo=1.0, hi=1e7)
 
+    def _check(self) -> None:
+        if self.exposure_us is not None and not self.source.startswith("aravis://"):
+            raise ValueError(f"exposure_us: set, but {self.source} takes no exposure time from "
+                             "the weld (only an aravis:// GenICam camera does): set it on the "
+                             "camera's side and leave exposure_us out")
+
 
 @dataclass(frozen=True)
 class ControllerLink(EgmNetwork):
