@@ -1,6 +1,6 @@
 """A colour frame's two readings (the red excess and the brightness): the finder reads the
-brightness beside a found profile only where it could be taken (white pixels within ``fit_px``
-of an aim a stripe's width off), and that saving changes no result."""
+brightness beside a found profile only where white light lies near its joint or in a break of
+its centre line, and on frames under the arc that saving changes no result."""
 
 from __future__ import annotations
 

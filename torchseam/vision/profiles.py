@@ -336,10 +336,13 @@ class ProfileFinder:
         if not found.ok:
             grey = self._profile(cv2.transform(frame, BRIGHTNESS))
             return grey if grey.ok else found
-        # no white pixel within fit_px of any aim the brightness's could be taken at (a
-        # stripe's width of this one's; a stripe is no wider than max_run_px + 1: a taller
-        # run is a blob, stripe()), nor in a break of the red excess's centre line: no glare
-        # at the joint or where the red excess is blind, and no need to read the brightness
+        # the brightness is read beside a found profile only where white light lies within
+        # fit_px of an aim it could be taken at as the same joint (a stripe's width of this
+        # one's; a stripe is no wider than max_run_px + 1: a taller run is a blob, stripe())
+        # or in a break of the red excess's centre line (where it is blind); elsewhere the red
+        # excess's profile stands, and most frames under the arc cost one reading (a
+        # brightness joint beside a red centre line that runs elsewhere, with no break, is
+        # not looked for)
         reach = self.cfg.stripe.max_run_px + 1
         if frame.dtype != np.uint8 or not (
                 _any_white(_around(frame, found.aim, int(self.cfg.fit_px) + reach + 2))
