@@ -155,9 +155,10 @@ class CellConfig:
     process: ProcessConfig
 
 
-#: The kinds of part (``kind:`` in ``configs/parts/*.yaml``): what the branch pipe is set on
-#: (see :mod:`torchseam.core.part`).
-PART_KINDS = ("pipe", "offset", "plate", "sphere", "inline")
+#: The kinds of part (``kind:`` in ``configs/parts/*.yaml``): what the branch pipe is set on,
+#: or (``coupon``) two flat plates butted along a straight, open seam (see
+#: :mod:`torchseam.core.part`).
+PART_KINDS = ("pipe", "offset", "plate", "sphere", "inline", "coupon")
 #: the joint profiles a part's ``joint:`` names (:mod:`torchseam.vision.profiles`): what the
 #: stripe shows at its seam and where the torch aims
 JOINT_PROFILES = ("fillet", "v_groove", "butt", "lap")
@@ -183,14 +184,23 @@ class PartConfig:
     ``branch_ovality``, ``branch_offset_mm``, the clamping error and the thermal drift apply
     to every kind. ``joint`` names the joint profile the seam shows the sensor
     (:data:`JOINT_PROFILES`; default ``fillet``, the corner of a set-on branch).
+
+    ``coupon`` is no pipe: two flat plates ``plate_thickness_mm`` thick, square edges
+    ``root_gap_mm`` apart, butted along a straight seam welded over ``seam_length_mm`` (an open
+    seam: it has two ends, the positioner does not turn the part); ``branch_offset_mm`` is the
+    second plate off its design place, across the seam (a wider gap where > 0) and up (the
+    hi-lo). It has no branch pipe: ``branch_od_mm`` and ``intersection_angle_deg`` are left
+    out (the other kinds must give them).
     """
 
     kind: str = _f(default="pipe", choices=PART_KINDS)
     joint: str = _f(default="fillet", choices=JOINT_PROFILES)
     # 0 (the default): none (plate, sphere); a pipe kind's must be > 0 (_check says so)
     main_od_mm: float = _f(hi=MAX_PIPE_OD_MM, default=0.0)
-    branch_od_mm: float = _f(lo=MIN_PIPE_OD_MM, hi=MAX_PIPE_OD_MM)
-    intersection_angle_deg: float = _f(lo=60.0, hi=90.0)
+    # 0 / 90 (the defaults) only for a coupon, which has no branch pipe; the other kinds must
+    # give both (_check_given says so)
+    branch_od_mm: float = _f(lo=MIN_PIPE_OD_MM, hi=MAX_PIPE_OD_MM, default=0.0)
+    intersection_angle_deg: float = _f(lo=60.0, hi=90.0, default=90.0)
     design_offset_mm: float = _f(lo=-MAX_PIPE_OD_MM, hi=MAX_PIPE_OD_MM, default=0.0)
     sphere_radius_mm: float = _f(hi=MAX_PIPE_OD_MM, default=0.0)  # 0: no sphere (as main_od_mm)
     branch_offset_mm: tuple[float, ...] = _f(2, lo=-100.0, hi=100.0)
@@ -206,6 +216,9 @@ class PartConfig:
     root_gap_mm: float = _f(lo=0.0, hi=6.0, default=0.0)
     # the inline kind's lap: the wall of the sleeve slipped over the pipe (the step's height)
     sleeve_wall_mm: float = _f(lo=0.0, hi=50.0, default=0.0)
+    # the coupon kind: the welded length of its straight seam and its plates' thickness
+    seam_length_mm: float = _f(lo=0.0, hi=2000.0, default=0.0)
+    plate_thickness_mm: float = _f(lo=0.0, hi=100.0, default=0.0)
     placement: Pose = field(default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
     placement_error: Pose = field(
         default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
@@ -214,10 +227,18 @@ class PartConfig:
         """A size the kind needs, left out of the file (its default 0 means none)."""
         if self.kind in ("pipe", "offset") and "main_od_mm" not in given:
             raise ValueError("main_od_mm: missing (the main pipe's outer diameter)")
+        if self.kind != "coupon":
+            for name in ("branch_od_mm", "intersection_angle_deg"):
+                if name not in given:
+                    raise ValueError(f"{name}: missing")
+        elif "branch_od_mm" in given or "intersection_angle_deg" in given:
+            name = "branch_od_mm" if "branch_od_mm" in given else "intersection_angle_deg"
+            raise ValueError(f"{name}: a part of kind coupon has no branch pipe (leave it out)")
         if self.kind == "sphere" and "sphere_radius_mm" not in given:
             raise ValueError("sphere_radius_mm: missing (the sphere's radius)")
 
-    def _check(self) -> None:
+    def _check_fields(self) -> None:
+        """A size given to a kind that has none."""
         kind = self.kind
         pipe = kind in ("pipe", "offset")
         for name, applies in (("main_od_mm", pipe), ("main_ovality", pipe),
@@ -225,6 +246,20 @@ class PartConfig:
                               ("design_offset_mm", kind in ("offset", "sphere"))):
             if not applies and getattr(self, name) != 0.0:
                 raise ValueError(f"{name}: a part of kind {kind} has none (leave it out)")
+        for name in ("seam_length_mm", "plate_thickness_mm"):
+            if kind != "coupon" and getattr(self, name) != 0.0:
+                raise ValueError(f"{name}: a part of kind {kind} has none (a coupon has)")
+
+    def _check(self) -> None:
+        kind = self.kind
+        pipe = kind in ("pipe", "offset")
+        self._check_fields()
+        if kind == "coupon":
+            self._check_coupon()
+            return
+        if self.branch_od_mm < MIN_PIPE_OD_MM:
+            raise ValueError(f"branch_od_mm: expected a number >= {MIN_PIPE_OD_MM}, got "
+                             f"{self.branch_od_mm!r}")
         r = self.branch_od_mm / 2 * (1 + self.branch_ovality)
         y = self.design_offset_mm + self.branch_offset_mm[1]
         if kind == "inline":
@@ -294,6 +329,29 @@ class PartConfig:
             if self.root_gap_mm != 0.0 or self.branch_wall_mm != 0.0:
                 name = "root_gap_mm" if self.root_gap_mm != 0.0 else "branch_wall_mm"
                 raise ValueError(f"{name}: a lap has none (leave it out)")
+
+    def _check_coupon(self) -> None:
+        """Two flat plates butted with a root gap along a straight seam."""
+        if self.joint != "butt":
+            raise ValueError(f"joint: a part of kind coupon is a butt (two plates edge to edge), "
+                             f"got {self.joint!r}")
+        for name, what in (("seam_length_mm", "the welded length of the seam"),
+                           ("plate_thickness_mm", "the plates' thickness"),
+                           ("root_gap_mm", "a butt's gap between the plates' edges")):
+            if getattr(self, name) <= 0.0:
+                raise ValueError(_positive(name, getattr(self, name), what))
+        for name in ("branch_ovality", "bevel_deg", "branch_wall_mm", "sleeve_wall_mm"):
+            if getattr(self, name) != 0.0:
+                raise ValueError(f"{name}: a part of kind coupon has none (leave it out)")
+        across, up = self.branch_offset_mm
+        if self.root_gap_mm + across <= 0.0:
+            raise ValueError(f"branch_offset_mm: the second plate {-across:g} mm towards the "
+                             f"first closes the {self.root_gap_mm:g} mm gap (the plates would "
+                             "overlap)")
+        if abs(up) >= self.plate_thickness_mm:
+            raise ValueError(f"branch_offset_mm: the plates' faces must overlap: their hi-lo "
+                             f"({abs(up):g} mm) must stay under their thickness "
+                             f"({self.plate_thickness_mm:g} mm)")
 
     def _check_bevel(self) -> None:
         """A bevel needs the wall it is cut across, and a root gap needs a bevel (a square

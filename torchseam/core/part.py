@@ -15,6 +15,13 @@ Every kind of part (``kind:`` in ``configs/parts/*.yaml``) is a branch pipe set 
 * ``inline``: a pipe of the branch's own size on the branch's axis, a girth joint: a butt with
   a root gap, or a lap under a sleeve (:class:`InlineJoint`).
 
+One kind is no branch pipe: ``coupon``, two flat plates butted along a straight seam
+(:class:`CouponJoint`). Its seam is **open** (:attr:`Joint.closed` False): it has two ends, the
+plates run on past them (the run-on and run-off tabs), the positioner does not turn it, and
+``phi`` is then its seam parameter, proportional to the length along the seam (0 and 2 pi at the
+weld's two ends, beyond them on the tabs). :func:`seam_interp` maps between the seam parameter
+and the arc length for both: round a closed ring, straight on past an open seam's ends.
+
 Joint frame {T}: z up the branch (at the intersection angle ``beta`` from x in the x-z plane);
 the origin is on the branch axis: on the main axis under the branch axis (pipe), at the foot of
 the common perpendicular of the two axes (offset: the main axis runs along x at
@@ -81,6 +88,8 @@ class Joint:
 
     kind = "pipe"
     main_name = "main pipe"   # what the main body is called in messages
+    #: the seam is a ring (phi wraps round); False for an open seam (:class:`CouponJoint`)
+    closed = True
     #: the seam lies on both surfaces (a fillet's corner); False where the seam point is the
     #: middle of a root gap (:class:`BevelledJoint`), which no surface holds
     seam_on_surface = True
@@ -155,6 +164,24 @@ class Joint:
             return v
         return (v + c[0] * (v @ self.e1)[:, None] * self.e1
                 + c[1] * (v @ self.e2)[:, None] * self.e2)
+
+    def phi_span(self) -> tuple[float, float]:
+        """The seam parameter's range over the part: the ring's [0, 2 pi] (an open seam: its
+        tabs included)."""
+        return 0.0, 2.0 * np.pi
+
+    def dense_seam(self, n: int = 20001) -> SeamSample:
+        """The seam sampled densely for distance look-ups: ``n`` points round a ring (an open
+        seam: as densely, over its span, tabs included: the line runs on past its ends)."""
+        lo, hi = self.phi_span()
+        if self.closed:
+            return self.seam(np.linspace(lo, hi, n))
+        return self.seam(np.linspace(lo, hi, int((n - 1) * (hi - lo) / (2 * np.pi)) + 1))
+
+    def phi_near(self, p: np.ndarray) -> float:
+        """The seam parameter nearest a point ``p`` (3,) in {T} (roughly: a hint where to look
+        for the seam): its angle about the branch axis."""
+        return float(np.arctan2(p[1], p[0]))
 
     def arc_length_table(self, n: int = 4096) -> tuple[np.ndarray, np.ndarray]:
         """(phi, s): cumulative seam arc length (mm) over phi in [0, 2 pi], n + 1 samples."""
@@ -638,12 +665,148 @@ class InlineJoint(Joint):
                 "half_length": 0.5 * self.below}
 
 
+#: The coupon kind: how far its plates run on past each end of the welded seam (the run-on and
+#: run-off tabs: the approach starts on one, the sensor looks ahead onto the other) and each
+#: plate's width across the seam, mm.
+COUPON_TAB_MM = 100.0
+COUPON_PLATE_WIDTH_MM = 100.0
+
+
+class CouponJoint(Joint):
+    """Two flat plates butted along a straight seam (the ``coupon`` kind): an open seam.
+
+    {T}: x along the seam, the weld from x = 0 to ``seam_length_mm``; z up, the first plate's
+    top face z = 0; y across, the first plate (surface 1, the "main body") at y < 0, the second
+    (surface 2) at y > 0. Their square edges stand ``root_gap_mm`` apart; the second plate is
+    off its design place by ``branch_offset_mm`` (across the seam: a wider gap; up: the hi-lo).
+    Each plate is ``plate_thickness_mm`` thick, ``COUPON_PLATE_WIDTH_MM`` wide, and runs
+    ``COUPON_TAB_MM`` past both ends of the weld. Nothing is under them: light that passes
+    through the gap is lost; the edges' faces in the gap are lit where a ray reaches them.
+
+    The seam is the gap's centre, midway between the plates' top edges (on no surface: as a
+    girth butt's, :attr:`seam_on_surface` False); the torch stands on the plates' normal. The
+    seam parameter ``phi`` runs along x: ``x = seam_length_mm * phi / (2 pi)``.
+
+    Example:
+        >>> from torchseam.core.config import load_part
+        >>> joint = make_joint(load_part("configs/parts/plate_butt.yaml"))
+        >>> joint.closed, joint.seam(np.array([np.pi])).point[0, 0] == joint.length / 2
+        (False, True)
+    """
+
+    kind = "coupon"
+    main_name = "plates"
+    closed = False
+    seam_on_surface = False
+
+    def __init__(self, part: PartConfig) -> None:
+        super().__init__(part)
+        self.length = float(part.seam_length_mm)
+        self.gap = float(part.root_gap_mm)
+        self.thickness = float(part.plate_thickness_mm)
+        self.across, self.up = (float(v) for v in part.branch_offset_mm)
+        x0, x1 = -COUPON_TAB_MM, self.length + COUPON_TAB_MM
+        g, w, t = 0.5 * self.gap, COUPON_PLATE_WIDTH_MM, self.thickness
+        self._boxes = (
+            (np.array([x0, -g - w, -t]), np.array([x1, -g, 0.0])),
+            (np.array([x0, g + self.across, self.up - t]),
+             np.array([x1, g + self.across + w, self.up])))
+        # no branch pipe (r 0: robot.reach checks the torch against the plates alone)
+        self.r, self.k1, self.k2 = 0.0, 1.0, 1.0
+        self.d = np.array([0.0, 0.0, 1.0])
+        self.o = np.array([0.5 * (x0 + x1), 0.0, -0.5 * t])
+        self.branch_bottom = self.branch_top = 0.0
+
+    # ------------------------------------------------------------------ seam
+    def phi_span(self) -> tuple[float, float]:
+        k = 2.0 * np.pi / self.length
+        return -COUPON_TAB_MM * k, (self.length + COUPON_TAB_MM) * k
+
+    def phi_near(self, p: np.ndarray) -> float:
+        return float(2.0 * np.pi * p[0] / self.length)
+
+    def seam(self, phi: np.ndarray) -> SeamSample:
+        phi = np.asarray(phi, dtype=float).reshape(-1)
+        n = len(phi)
+        p = np.zeros((n, 3))
+        p[:, 0] = self.length * phi / (2.0 * np.pi)
+        p[:, 1], p[:, 2] = 0.5 * self.across, 0.5 * self.up
+        x = np.broadcast_to(np.array([1.0, 0.0, 0.0]), (n, 3)).copy()
+        z = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (n, 3)).copy()
+        return SeamSample(phi, p, x, z, z.copy())
+
+    def _face_normal(self, p: np.ndarray, which: int) -> np.ndarray:
+        """Outward normals of plate ``which`` (0 the first, 1 the second) at its surface points
+        ``p``: its edge face's (towards the other plate) below its top, else its top's."""
+        lo, hi = self._boxes[which]
+        edge_y, sign = (hi[1], 1.0) if which == 0 else (lo[1], -1.0)
+        on_edge = (np.abs(p[:, 1] - edge_y) < 1e-6) & (p[:, 2] < hi[2] - 1e-6)
+        n = np.zeros((len(p), 3))
+        n[:, 2] = 1.0
+        n[on_edge] = (0.0, sign, 0.0)
+        return n
+
+    def normal_main(self, p: np.ndarray) -> np.ndarray:
+        return self._face_normal(np.asarray(p, float).reshape(-1, 3), 0)
+
+    def normal_branch(self, p: np.ndarray) -> np.ndarray:
+        return self._face_normal(np.asarray(p, float).reshape(-1, 3), 1)
+
+    # ------------------------------------------------------------------ ray casting
+    def _cast(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """In numpy: each plate's box by slabs, the nearer hit kept."""
+        o = np.broadcast_to(o, d.shape)
+        t1, t2 = (_box_entry(o, d, lo, hi) for lo, hi in self._boxes)
+        t = np.minimum(t1, t2)
+        surface = np.where(np.isinf(t), 0, np.where(t1 <= t2, 1, 2)).astype(np.int8)
+        return t, surface
+
+    def main_solid(self) -> dict:
+        """``{"kind": "plate", "origin", "half", "half_y", "thickness", "rotation"}``: one box
+        round both plates (the gap is left out: the torch stands over it), its top face's
+        centre the origin, at the higher plate's top."""
+        (lo0, hi0), (lo1, hi1) = self._boxes
+        lo, hi = np.minimum(lo0, lo1), np.maximum(hi0, hi1)
+        return {"kind": "plate", "origin": np.array([0.5 * (lo[0] + hi[0]),
+                                                     0.5 * (lo[1] + hi[1]), hi[2]]),
+                "half": 0.5 * (hi[0] - lo[0]), "half_y": 0.5 * (hi[1] - lo[1]),
+                "thickness": hi[2] - lo[2], "rotation": np.eye(3)}
+
+
+def _box_entry(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Rays ``o + t d`` ((N, 3) each) against the axis-aligned box [lo, hi]: where they enter
+    it (``inf``: a miss, or an origin inside)."""
+    flat = d == 0.0
+    safe = np.where(flat, 1.0, d)
+    t1, t2 = (lo - o) / safe, (hi - o) / safe
+    inside = (o >= lo) & (o <= hi)
+    t_in = np.where(flat, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=1)
+    t_out = np.where(flat, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=1)
+    return np.where((t_in <= t_out) & (t_in > 0.0), t_in, np.inf)
+
+
+def seam_interp(closed: bool, x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """``np.interp`` of a seam table (``xp`` increasing, from the ring's start to its end: the
+    arc length against the seam parameter, or back): round a closed seam (``x`` taken modulo
+    the table's span), straight on past an open seam's ends (the end intervals' slopes)."""
+    x = np.asarray(x, dtype=float)
+    if closed:
+        return np.interp(np.mod(x - xp[0], xp[-1] - xp[0]) + xp[0], xp, fp)
+    y = np.interp(x, xp, fp)
+    lo, hi = x < xp[0], x > xp[-1]
+    y = np.where(lo, fp[0] + (x - xp[0]) * (fp[1] - fp[0]) / (xp[1] - xp[0]), y)
+    return np.where(hi, fp[-1] + (x - xp[-1]) * (fp[-1] - fp[-2]) / (xp[-1] - xp[-2]), y)
+
+
 def make_joint(part: PartConfig) -> Joint:
     """The joint of ``part``'s kind (``pipe`` and ``offset``: :class:`PipeJoint`; ``plate``:
-    :class:`PlateJoint`; ``sphere``: :class:`SphereJoint`; ``inline``: :class:`InlineJoint`);
-    a bevelled branch (``bevel_deg`` > 0) is the :class:`BevelledJoint` on it."""
+    :class:`PlateJoint`; ``sphere``: :class:`SphereJoint`; ``inline``: :class:`InlineJoint`;
+    ``coupon``: :class:`CouponJoint`); a bevelled branch (``bevel_deg`` > 0) is the
+    :class:`BevelledJoint` on it."""
     if part.kind == "inline":
         return InlineJoint(part)
+    if part.kind == "coupon":
+        return CouponJoint(part)
     cls = {"pipe": PipeJoint, "offset": PipeJoint, "plate": PlateJoint,
            "sphere": SphereJoint}[part.kind]
     base = cls(part)
@@ -714,12 +877,13 @@ class SegmentGeometry:
         self.seam_length_mm = float(self._s_tab[-1])
 
     def phi_at(self, s_mm: np.ndarray) -> np.ndarray:
-        """Nominal seam angle at arc length ``s_mm`` (wraps around the ring)."""
-        return np.interp(np.mod(s_mm, self.seam_length_mm), self._s_tab, self._phi_tab)
+        """Nominal seam angle at arc length ``s_mm`` (wraps around a ring; an open seam's
+        runs on past its ends)."""
+        return seam_interp(self.nominal_joint.closed, s_mm, self._s_tab, self._phi_tab)
 
     def s_at(self, phi: np.ndarray) -> np.ndarray:
         """Nominal seam arc length at angle ``phi``."""
-        return np.interp(np.mod(phi, 2 * np.pi), self._phi_tab, self._s_tab)
+        return seam_interp(self.nominal_joint.closed, phi, self._phi_tab, self._s_tab)
 
     def nominal_tcp(self, s_mm: np.ndarray) -> np.ndarray:
         """Nominal torch poses in {B} at seam arc lengths ``s_mm`` (N,), (N, 4, 4)."""

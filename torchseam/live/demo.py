@@ -973,14 +973,16 @@ class _SeamRef:
 
     def __init__(self, scene: Scene) -> None:
         self.scene = scene
-        self.curve = scene.true_joint.seam(np.linspace(0, 2 * np.pi, 20001)).point
+        self.curve = scene.true_joint.dense_seam().point
+        self.closed = scene.true_joint.closed
         self.k: int | None = None
 
     def distance(self, t: float, p: np.ndarray) -> float:
         p_T = apply(invert(self.scene.part_pose(t)), p)
         if self.k is None:
             self.k = int(np.argmin(np.linalg.norm(self.curve - p_T, axis=1)))
-        idx = (self.k + np.arange(-200, 201)) % len(self.curve)
+        idx = self.k + np.arange(-200, 201)
+        idx = idx % len(self.curve) if self.closed else idx[(idx >= 0) & (idx < len(self.curve))]
         d = np.linalg.norm(self.curve[idx] - p_T, axis=1)
         self.k = int(idx[np.argmin(d)])
         return float(d.min())

@@ -108,8 +108,12 @@ def run_ring(cell: CellConfig, part: PartConfig, noise: NoiseConfig, level: floa
                             start_mm=s0 - approach, rotation_deg=seg.rotation_deg,
                             arc_on_frame=arc_on, t0_s=t0)
         run = SegmentRun(seg, scene=scene, report=report)
-        locator = SeamLocator(cell, make_tracker(tracker, parts.tipm, model_path=model_path),
-                              parts.tipm, parts.ecal)
+        # the part's joint decides what is tracked (a fillet: ``tracker``; else its profile),
+        # as in the closed loop
+        frame_tracker = (make_tracker(tracker, parts.tipm, model_path=model_path)
+                         if part.joint == "fillet"
+                         else parts.tracker(tracker, part.joint, model_path))
+        locator = SeamLocator(cell, frame_tracker, parts.tipm, parts.ecal)
         buf = LookAheadBuffer(maxlen=plan.buffer_points, smooth_mm=plan.smooth_mm,
                               outlier_mm=plan.outlier_mm)
         T_F_C_inv = invert(cell.hand_eye.matrix())
@@ -179,7 +183,13 @@ def _plan_segment(run: SegmentRun, buf: LookAheadBuffer, cell: CellConfig, s0: f
         return
     P = torch.tensor(np.array(ips))
     A = torch.tensor(np.array(arms))
-    R, ok = torch_frame(P, P + A[:, 0], P + A[:, 1], tangent=torch.tensor(np.array(tangents)))
+    # where the torch points on the nominal path (open loop: the robot follows it): arms in
+    # one line (a butt's straight stripe) give the frame across that line on this side
+    steps = np.linalg.norm(np.diff(np.array(ips), axis=0), axis=1)
+    along = np.concatenate([[0.0], np.cumsum(steps)])
+    facing = torch.tensor(scene.nominal_tcp(s0 + along)[:, :3, 2])
+    R, ok = torch_frame(P, P + A[:, 0], P + A[:, 1], tangent=torch.tensor(np.array(tangents)),
+                        facing=facing)
     work, travel, roll = run.segment.angles
     R = tilt(R, work, travel)
     if roll:
@@ -206,7 +216,7 @@ def torch_axis_errors(scene: Scene, p: np.ndarray, R: np.ndarray, t_s: np.ndarra
     does (a roll about the torch axis does not move it). ``seam``: the true seam densely
     sampled (default: 20 001 points round it)."""
     if seam is None:
-        seam = scene.true_joint.seam(np.linspace(0, 2 * np.pi, 20001))
+        seam = scene.true_joint.dense_seam()
     frames = torch.tensor(torch_frames(seam)[:, :3, :3])
     z_T = tilt(frames, *angles)[:, :, 2].numpy()
     angle, dist = np.full(len(p), np.nan), np.full(len(p), np.nan)
@@ -243,7 +253,7 @@ def ring_errors(runs: list[SegmentRun]) -> dict[str, np.ndarray]:
             used.append(e is not None and not e.flagged)
         if not run.commands:
             continue
-        s = scene.true_joint.seam(np.linspace(0, 2 * np.pi, 20001))
+        s = scene.true_joint.dense_seam()
         # the part as it was when the stripe saw each point
         ax, dist = torch_axis_errors(scene, np.array(run.commands), np.array(run.rotations),
                                      np.array(run.command_t), s, angles=run.segment.angles[:2])

@@ -66,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
 
     def row(name: str, v: np.ndarray, unit: str) -> list:
         f = v[np.isfinite(v)]
+        if not len(f):   # every one missing (nothing located, no torch frame): say so
+            return [name, unit, len(v), len(v), "-", "-", "-"]
         return [name, unit, len(v), len(v) - len(f), float(np.sqrt(np.mean(f**2))),
                 float(f.max()), float(np.median(f))]
 
@@ -99,8 +101,10 @@ def run(args: argparse.Namespace) -> int:
     print("largest quaternion step between 2 mm points per segment: "
           + ", ".join(f"{r.segment.name} {j:.4f}" for r, j in zip(runs, jumps, strict=True)))
     quaternion_plot([(r.segment.name, r.quats) for r in runs], args.out / "quaternions.png")
-    summary = {r[0]: {"unit": r[1], "n": r[2], "missing": r[3], "rmse": r[4], "max": r[5],
-                      "median": r[6]} for r in rows}
+    summary = {r[0]: {"unit": r[1], "n": r[2], "missing": r[3],
+                      **{k: (None if v == "-" else v)
+                         for k, v in zip(("rmse", "max", "median"), r[4:], strict=True)}}
+               for r in rows}
     summary["located_not_used"] = {"n": int(off.sum()), "of": int(np.isfinite(loc).sum()),
                                    "over_0.3mm": int((off & (loc > 0.3)).sum()),
                                    "over_0.3mm_of": int((loc > 0.3).sum())}

@@ -594,7 +594,7 @@ def summarise(log: ProgramLog, jobs: list[SegmentJob], scenes: list[Any], gate_f
     num_to_i = {j.number: i for i, j in enumerate(jobs)}
     curves = {}
     for i, sc in enumerate(scenes):
-        curves[i] = sc.true_joint.seam(np.linspace(0, 2 * np.pi, 20001)).point
+        curves[i] = sc.true_joint.dense_seam().point
     for k in range(1, len(cyc)):
         c, p = cyc[k], cyc[k - 1]
         if not c.arc or c.seg not in num_to_i:

@@ -103,16 +103,18 @@ class Segment:
     rotation_deg: float
 
 
-def six_segments(start_phi: float) -> list[Segment]:
+def six_segments(start_phi: float, closed: bool = True) -> list[Segment]:
     """The six segments a..f of the ring, starting at branch angle ``start_phi`` (rad; the
     configured one is ``radians(PlanConfig.segment_start_deg)``).
 
     Segment k is welded with the part turned by ``-60 k`` degrees, which brings it to where
-    segment a was.
+    segment a was. An open seam (``closed`` False: a coupon) is cut into six equal lengths from
+    its start (``start_phi`` 0) and not turned: the robot follows it along.
     """
     step = 2 * np.pi / SEGMENTS
+    turn = -60.0 if closed else 0.0
     return [Segment(SEGMENT_NAMES[k], k, start_phi + k * step, start_phi + (k + 1) * step,
-                    -60.0 * k) for k in range(SEGMENTS)]
+                    turn * k) for k in range(SEGMENTS)]
 
 
 def ipi_step(cp: np.ndarray, np_: np.ndarray, step_mm: float) -> np.ndarray:

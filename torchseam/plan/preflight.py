@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from torchseam.core.config import CellConfig, PartConfig
+from torchseam.core.part import SegmentGeometry, make_joint
 from torchseam.plan.path import PlanConfig
 from torchseam.plan.weld import (
     SINGULARITY_AXIS,
@@ -80,18 +81,23 @@ class PlanReport:
         if verdicts is None:
             raise ValueError("the configured plan is the plan: table() shows it")
         rows = []
+        geo = SegmentGeometry(plan.part)
+        # where along the seam: degrees of branch angle round a ring, mm along an open seam
+        along = ((lambda deg: deg % 360, "deg", "branch deg") if geo.nominal_joint.closed else
+                 (lambda deg: float(geo.s_at(np.radians(deg))), "mm", "seam mm"))
         for seg, v in zip(plan.segments, verdicts, strict=True):
-            a, b = np.degrees(seg.phi_start) % 360, np.degrees(seg.phi_end) % 360
+            a, b = along[0](np.degrees(seg.phi_start)), along[0](np.degrees(seg.phi_end))
             if v.passed:
                 verdict = f"margin {v.margin_deg:.1f} deg ({_margin_name(v.margin_axis)})"
             else:
-                where = f"pose {v.first_refused} at {v.phi_deg[v.first_refused]:.0f} deg"
+                where = (f"pose {v.first_refused} at "
+                         f"{along[0](v.phi_deg[v.first_refused]):.0f} {along[1]}")
                 counts = ", ".join(f"{k} {n}" for k, n in v.counts.items())
                 verdict = f"REFUSED {v.poses - v.ok} ({counts}), first {where}: {v.reason}"
             rows.append([seg.name, f"{a:.0f}-{b:.0f}", str(v.poses), str(v.ok),
                          f"{v.clearance_mm:.1f}", f"{seg.rotation_deg + 0.0:.0f}",
                          "/".join(f"{x + 0.0:g}" for x in seg.angles), verdict])
-        return _table(["segment", "branch deg", "poses", "reachable", "clearance mm",
+        return _table(["segment", along[2], "poses", "reachable", "clearance mm",
                        "turn deg", "work/travel/roll deg", "worst joint margin or reason"], rows)
 
     def refused_line(self) -> str:
@@ -123,9 +129,11 @@ class PlanReport:
                     + ", ".join(self.refused)]
         out += [f"  placement: {p.placement.describe()} (joint frame at ({pos}) mm, quaternion "
                 f"({quat}))",
-                f"  segment a starts at {p.segment_start_deg:g} deg of branch angle"
-                + ("" if p.segment_start_deg == c.segment_start_deg
-                   else f" (configured {c.segment_start_deg:g})"),
+                (f"  segment a starts at {p.segment_start_deg:g} deg of branch angle"
+                 + ("" if p.segment_start_deg == c.segment_start_deg
+                    else f" (configured {c.segment_start_deg:g})"))
+                if make_joint(p.part).closed else
+                "  an open seam: six segments from its start to its end, the part not turned",
                 self.table()]
         if self.ok:
             out.append(f"plan OK: {sum(v.poses for v in self.verdicts)} poses, worst joint margin "

@@ -52,7 +52,7 @@ import numpy as np
 import torch
 
 from torchseam.core.config import CellConfig, PartConfig, Pose
-from torchseam.core.part import SegmentGeometry, make_joint, nominal_part, torch_frames
+from torchseam.core.part import SegmentGeometry, make_joint, nominal_part, seam_interp, torch_frames
 from torchseam.core.transforms import matrix_to_quat, rotation_about
 from torchseam.plan.path import SEGMENT_NAMES, SEGMENTS, PlanConfig, Segment
 from torchseam.robot.kinematics import IRB1410, arm_forward, checked_values
@@ -226,13 +226,15 @@ class WeldPlan:
         }
 
 
-def make_segments(start_deg: float, angles: list[tuple[float, float, float]]
-                  ) -> tuple[SegmentPlan, ...]:
-    """The six segments from ``start_deg`` (as :func:`~torchseam.plan.path.six_segments`)."""
+def make_segments(start_deg: float, angles: list[tuple[float, float, float]],
+                  closed: bool = True) -> tuple[SegmentPlan, ...]:
+    """The six segments from ``start_deg`` (as :func:`~torchseam.plan.path.six_segments`; an
+    open seam's, ``closed`` False, are not turned)."""
     step = 2 * np.pi / SEGMENTS
     phi0 = float(np.radians(start_deg))
+    turn = -60.0 if closed else 0.0
     return tuple(SegmentPlan(SEGMENT_NAMES[k], k, phi0 + k * step, phi0 + (k + 1) * step,
-                             -60.0 * k, *angles[k]) for k in range(SEGMENTS))
+                             turn * k, *angles[k]) for k in range(SEGMENTS))
 
 
 # --------------------------------------------------------------------------- evaluation
@@ -253,7 +255,8 @@ class SegmentVerdict:
             none).
         clearance_mm: the smallest torch-to-pipe clearance.
         first_refused: index of the first refused pose (-1: none) and its reason.
-        phi_deg: (poses,) branch angle of each pose, degrees, in [0, 360).
+        phi_deg: (poses,) branch angle of each pose, degrees, in [0, 360) (an open seam's
+            parameter in degrees, not wrapped: < 0 on the run-on tab).
         result: the gate's full result.
     """
 
@@ -322,8 +325,9 @@ class PlanEvaluator:
         key = (round(seg.phi_start, 9), round(seg.phi_end, 9), stride)
         if key not in self._frames:
             proc = self.cell.process
-            s_of = lambda phi: float(np.interp(np.mod(phi, 2 * np.pi), self._phi_tab,  # noqa: E731
-                                               self._s_tab))
+            closed = self.joint.closed
+            s_of = lambda phi: float(seam_interp(closed, phi, self._phi_tab,  # noqa: E731
+                                                 self._s_tab))
             s0 = s_of(seg.phi_start)
             seg_len = (s_of(seg.phi_end) - s0) % self._length
             if seg_len < 1e-6:
@@ -333,7 +337,7 @@ class PlanEvaluator:
             if stride > 1:  # keep the first and the last pose
                 idx = np.unique(np.r_[np.arange(0, len(s), stride), len(s) - 1])
                 s = s[idx]
-            phi = np.interp(np.mod(s, self._length), self._s_tab, self._phi_tab)
+            phi = seam_interp(closed, s, self._s_tab, self._phi_tab)
             self._frames[key] = (torch_frames(self.joint.seam(phi)), phi)
         return self._frames[key]
 
@@ -384,7 +388,7 @@ class PlanEvaluator:
         return SegmentVerdict(len(code), int(ok.sum()), int((~counted).sum()), margin, axis,
                               float(r.clearance_mm.min()), first,
                               r.reasons[first] if first >= 0 else "", counts,
-                              np.degrees(np.mod(phi, 2 * np.pi)), r)
+                              np.degrees(np.mod(phi, 2 * np.pi) if self.joint.closed else phi), r)
 
     def check_plan(self, plan: WeldPlan, stride: int = 1) -> list[SegmentVerdict]:
         return [self.check(plan.placement, seg, stride) for seg in plan.segments]
@@ -461,7 +465,8 @@ class _Search:
     # ---- layout (placement and segment start)
     def _change(self, placement: Placement, start_deg: float) -> float:
         s = self.s
-        return (_circular(start_deg, self.cfg.segment_start_deg) / s.segment_start_step_deg
+        return (_circular(start_deg, configured_start(self.ev.part, self.cfg))
+                / s.segment_start_step_deg
                 + abs(placement.yaw_deg) / s.yaw_step_deg
                 + abs(placement.tilt_deg) / s.tilt_step_deg
                 + sum(abs(v) for v in placement.shift_mm) / s.shift_step_mm)
@@ -479,7 +484,7 @@ class _Search:
         """Check one layout on every ``stride``-th pose (default: screen); None when it is
         already worse than ``bound`` (the best key so far) on the refused fraction."""
         stride = self.stride if stride is None else stride
-        segs = make_segments(start_deg, [self.angles0] * SEGMENTS)
+        segs = make_segments(start_deg, [self.angles0] * SEGMENTS, self.ev.joint.closed)
         total = sum(len(self.ev.frames(seg, stride)[1]) for seg in segs)
         verdicts = []
         other = 0
@@ -497,6 +502,8 @@ class _Search:
         return _Layout(placement, start_deg, key, verdicts, stride == 1)
 
     def starts(self, around: float | None = None, window: int | None = None) -> list[float]:
+        if not self.ev.joint.closed:
+            return [0.0]   # an open seam starts at its start
         step = self.s.segment_start_step_deg
         n = int(round(360.0 / step))
         base = self.cfg.segment_start_deg if around is None else around
@@ -635,12 +642,19 @@ class _Layouts:
         return min(done, key=lambda lay: lay.key) if done else self.best()
 
 
+def configured_start(part: PartConfig, cfg: PlanConfig) -> float:
+    """Where segment a starts as configured (degrees of the seam parameter): ``cfg``'s
+    ``segment_start_deg`` round a ring; an open seam's start (0)."""
+    return cfg.segment_start_deg if make_joint(part).closed else 0.0
+
+
 def configured_plan(part: PartConfig, cfg: PlanConfig) -> WeldPlan:
-    """The plan as configured: the part file's placement, ``segment_start_deg`` and the work
-    and travel angles of ``cfg`` (the planning settings), no roll."""
+    """The plan as configured: the part file's placement, ``segment_start_deg`` (an open seam:
+    its start) and the work and travel angles of ``cfg`` (the planning settings), no roll."""
     angles = (cfg.work_angle_deg, cfg.travel_angle_deg, 0.0)
-    return WeldPlan(part, Placement(), cfg.segment_start_deg,
-                    make_segments(cfg.segment_start_deg, [angles] * SEGMENTS))
+    start = configured_start(part, cfg)
+    return WeldPlan(part, Placement(), start,
+                    make_segments(start, [angles] * SEGMENTS, make_joint(part).closed))
 
 
 def plan_weld(ev: PlanEvaluator, *, configured: list[SegmentVerdict] | None = None
@@ -663,7 +677,7 @@ def plan_weld(ev: PlanEvaluator, *, configured: list[SegmentVerdict] | None = No
     n0 = ev.evaluations
     search = _Search(ev)
     lay = search.search_layout()
-    segs = list(make_segments(lay.start_deg, [search.angles0] * SEGMENTS))
+    segs = list(make_segments(lay.start_deg, [search.angles0] * SEGMENTS, ev.joint.closed))
     full = lay.verdicts if lay.verified else [ev.check(lay.placement, seg) for seg in segs]
     for k, v in enumerate(full):
         # (nothing the torch's angles could turn: no pose of it within the arm's reach)

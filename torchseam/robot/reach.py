@@ -471,7 +471,7 @@ class ReachGate:
                                           r0=r0, r1=r1)
         if s.main_kind == "plate":
             return _segment_convex_distance(a_m, b_m, lambda x, y, z: _box_distance(
-                x, y, z, s.main_a, s.main_half_length), r0=r0, r1=r1)
+                x, y, z, s.main_a, s.main_b, s.main_half_length), r0=r0, r1=r1)
         if np.array_equal(r0, r1):
             return _point_segment_distance(np.zeros(3), a_m, b_m) - s.main_a - r0
         return _segment_convex_distance(a_m, b_m, lambda x, y, z: np.sqrt(
@@ -482,6 +482,8 @@ class ReachGate:
         """Clearance of torch pieces along a-b to the branch (a capsule)."""
         s = self._pipes
         assert s is not None, "the clearance is measured only with a part"
+        if not s.has_branch:
+            return np.full(len(a), np.inf)
         A, B = s.branch_A, s.branch_B
         if np.array_equal(r0, r1):
             return _segment_distance(a, b, A[None], B[None]) - s.branch_r - r0
@@ -525,13 +527,14 @@ class _PartSolids:
     main_origin: np.ndarray     # (3,) on the main pipe's axis / the plate's top / the centre
     main_rotation: np.ndarray   # (3, 3) joint frame axes (x: main pipe axis)
     main_a: float               # main pipe semi-axis along the joint frame's y (sphere: radius;
-    main_b: float               # ... along its z                             plate: half side)
+    main_b: float               # ... along its z         plate: half side along x, then along y)
     main_half_length: float     # (plate: its thickness)
     branch_A: np.ndarray        # (3,) branch axis ends (a capsule: the low end is inside the main
     branch_B: np.ndarray        # body, the high end at the branch's top)
     branch_r: float
     main_kind: str = "pipe"     # "pipe", "plate" or "sphere"
     names: tuple[str, str] = ("main pipe", "branch pipe")
+    has_branch: bool = True     # False: a part with no branch pipe (two plates, a coupon)
 
 
 def _part_solids(part: PartConfig, pose: np.ndarray | None, main_length: float) -> _PartSolids:
@@ -545,14 +548,15 @@ def _part_solids(part: PartConfig, pose: np.ndarray | None, main_length: float) 
     main = joint.main_solid()
     kind = main["kind"]
     dims = {"pipe": lambda: (main["a"], main["b"], main.get("half_length", main_length / 2)),
-            "plate": lambda: (main["half"], main["half"], main["thickness"]),
+            "plate": lambda: (main["half"], main.get("half_y", main["half"]),
+                              main["thickness"]),
             "sphere": lambda: (main["radius"], main["radius"], 0.0)}[kind]()
     main_a, main_b, half_length = (float(v) for v in dims)
     return _PartSolids(R @ main["origin"] + p, R @ main["rotation"], main_a, main_b, half_length,
                        R @ (joint.o + joint.branch_bottom * joint.d) + p,
                        R @ (joint.o + joint.branch_top * joint.d) + p,
                        float(joint.r * max(joint.k1, joint.k2)), kind,
-                       (joint.main_name, "branch pipe"))
+                       (joint.main_name, "branch pipe"), joint.r > 0.0)
 
 
 def _oval_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray, a: float, b: float,
@@ -580,11 +584,12 @@ def _oval_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray, a: float, b: flo
             + np.hypot(np.maximum(radial, 0.0), np.maximum(axial, 0.0)))
 
 
-def _box_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray, half: float, thickness: float
-                  ) -> np.ndarray:
+def _box_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray, half: float, half_y: float,
+                  thickness: float) -> np.ndarray:
     """Signed distance (mm, negative inside) of points (x, y, z) in the plate's frame from the
-    plate: ``|x|, |y| <= half``, ``-thickness <= z <= 0``."""
-    q = np.stack([np.abs(x) - half, np.abs(y) - half, np.abs(z + thickness / 2) - thickness / 2])
+    plate: ``|x| <= half``, ``|y| <= half_y``, ``-thickness <= z <= 0``."""
+    q = np.stack([np.abs(x) - half, np.abs(y) - half_y,
+                  np.abs(z + thickness / 2) - thickness / 2])
     outside = np.linalg.norm(np.maximum(q, 0.0), axis=0)
     return outside + np.minimum(q.max(axis=0), 0.0)
 

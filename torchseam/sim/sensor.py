@@ -292,7 +292,8 @@ class LaserSensor:
             raise ValueError("the laser plane does not cross the seam")
         mid = 0.5 * (phi[idx] + phi[idx + 1])
         if phi_hint is not None:
-            i = idx[np.argmin(np.abs(np.angle(np.exp(1j * (mid - phi_hint)))))]
+            off = mid - phi_hint
+            i = idx[np.argmin(np.abs(np.angle(np.exp(1j * off)) if joint.closed else off))]
         else:
             i = idx[np.argmin(np.linalg.norm(joint.seam(mid).point - c, axis=1))]
         root = _refine_root(lambda x: joint.seam(x).point @ n - d, phi[i], phi[i + 1])
@@ -504,18 +505,23 @@ _GRID_PHI = np.linspace(0.0, 2 * np.pi, 721)
 
 
 def _seam_grid(joint: Joint) -> tuple[np.ndarray, np.ndarray]:
-    """The seam sampled every half degree, (721,) angles and (721, 3) points, computed once per
-    joint (a joint does not change) and kept on it."""
-    grid = _SEAM_GRIDS.get(joint)
-    if grid is None:
-        grid = joint.seam(_GRID_PHI).point
+    """The seam sampled every half degree of its parameter over its span (a ring: (721,)
+    angles and (721, 3) points; an open seam: its tabs included), computed once per joint (a
+    joint does not change) and kept on it."""
+    got = _SEAM_GRIDS.get(joint)
+    if got is None:
+        lo, hi = joint.phi_span()
+        phi = _GRID_PHI if (lo, hi) == (0.0, 2 * np.pi) else np.linspace(
+            lo, hi, int(np.ceil((hi - lo) / (_GRID_PHI[1] - _GRID_PHI[0]))) + 1)
+        grid = joint.seam(phi).point
         grid.setflags(write=False)
-        _SEAM_GRIDS[joint] = grid
-    return _GRID_PHI, grid
+        got = _SEAM_GRIDS[joint] = (phi, grid)
+    return got
 
 
 #: :func:`_seam_grid`'s cache: joint -> its seam grid, kept while the joint lives
-_SEAM_GRIDS: weakref.WeakKeyDictionary[Joint, np.ndarray] = weakref.WeakKeyDictionary()
+_SEAM_GRIDS: weakref.WeakKeyDictionary[Joint, tuple[np.ndarray, np.ndarray]] = \
+    weakref.WeakKeyDictionary()
 
 
 def _refine_root(f, lo: float, hi: float, n: int = 33, rounds: int = 4) -> float:

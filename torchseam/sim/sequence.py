@@ -139,7 +139,7 @@ class SensorRenderer:
         T_T_C = invert(T_B_T) @ T_B_C
         if phi_hint is None:
             p_T = apply(invert(T_B_T), T_B_W[:3, 3])
-            phi_hint = float(np.arctan2(p_T[1], p_T[0]))
+            phi_hint = scene.true_joint.phi_near(p_T)
         view = sensor.view(scene.true_joint, T_T_C, phi_hint)
         # the arc burns at the torch tip
         arc_uv = sensor.project(apply(invert(T_B_C), T_B_W[:3, 3])[None])[0]
