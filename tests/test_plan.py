@@ -77,6 +77,33 @@ def test_buffer_tangent_is_the_seams_at_the_commanded_point():
     assert max(errs) < 0.25  # at the aimed-at point instead: up to 1.6 degrees
 
 
+@pytest.mark.parametrize("seen_mm", [0.9, 1.5, 2.1, 3.0, 10.0])
+def test_buffer_gives_no_tangent_from_a_stub_of_seam(seen_mm):
+    """The first points after the robot starts where it stood (after a seam search): a
+    straight seam along x located every 0.3 mm with 0.03 mm of noise across it, over
+    ``seen_mm``; the fit in their middle. A quadratic's slope over 0.9-2.1 mm of them was off by
+    4-7 degrees (0.9 mm), up to 4 (1.5 mm) and 2.3 (2.1 mm): it swung the torch, and the camera
+    20 mm ahead by ~0.7 mm across the seam, and the profile tracker lost the coupon's gap (the
+    search ended in a blind hold). Under half a window (``smooth_mm`` / 2) there is no tangent
+    (the torch keeps its direction); over it the seam's own, within 1.5 degrees at 3 mm and
+    0.5 at 10 mm (ten noise draws each)."""
+    errs = []
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        buf = LookAheadBuffer(maxlen=1000, smooth_mm=5.0, outlier_mm=OUTLIER_MM)
+        n = int(round(seen_mm / 0.3)) + 1
+        for k in range(n):
+            buf.push(np.array([0.3 * k, *rng.normal(0.0, 0.03, 2)]), np.full((2, 3), np.nan), k)
+        f = buf.seam_fit(n // 2)
+        if seen_mm < 2.5:
+            assert f.tangent is None, (seed, f.tangent)
+        else:
+            assert f.tangent is not None
+            errs.append(np.degrees(np.arccos(min(1.0, abs(float(f.tangent[0]))))))
+    if errs:
+        assert max(errs) < (1.5 if seen_mm < 5.0 else 0.5), errs
+
+
 def test_buffer_tangent_at_the_edge_of_a_hole_is_the_seams():
     """The seam tangent where the located points lie to one side (the edges of the hole a
     blind stretch leaves: the arc's glare over the bevel's root for ~20 frames after it

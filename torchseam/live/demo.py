@@ -47,7 +47,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -101,7 +101,7 @@ from torchseam.sim.scene import Scene
 from torchseam.sim.sequence import SensorRenderer
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import make_tracker
-from torchseam.vision.tipm import Tipm
+from torchseam.vision.profiles import ProfileFinder
 
 FAULT_FRAMES = 30          # how long each fault lasts, frames (1.2 s); packet loss: the segment
 POSES_CSV_HEADER = "t,x,y,z,q1,q2,q3,q4"  # poses.csv: what ``torchseam robot check`` reads
@@ -598,7 +598,7 @@ class _SegmentWeld:
             self.seg.name, scfg, start.T, start.lift, start.across, run.start_offset_mm,
             run.start_angle_deg, self.gate, self.simcell, self.renderer, self.tap, run.clock,
             run.dt, self.commands, run.res, run.cell, self.ref, run.writer, self.nominal,
-            self._programmed, run.plan.approach_mm, run.parts.tipm)
+            self._programmed, run.plan.approach_mm, _seam_detector(run.parts, run.part.joint))
         self.welding += [False] * (len(self.commands) - len(self.welding))
         if not found["found"]:
             self.search_failed = found["reason"]
@@ -725,19 +725,45 @@ class _Seen:
     status: int
 
 
+class _Found(NamedTuple):
+    """What a seam search sees in a frame: whether the joint's feature is there, and where."""
+
+    ok: bool
+    uv: np.ndarray
+
+
+def _seam_detector(parts: LiveParts, joint: str) -> Callable[[np.ndarray], _Found]:
+    """What a seam search looks for in a whole frame: TIPM's corner (a fillet), else the
+    joint profile's aim point (the gap of a butt, the root of a groove, the step of a lap)."""
+    if joint == "fillet":
+        tipm = parts.tipm
+
+        def corner(frame: np.ndarray) -> _Found:
+            r = tipm(frame)
+            return _Found(bool(r.ok), r.uv)
+        return corner
+    finder = ProfileFinder(parts.tipm, parts.profiles, joint)
+
+    def aim(frame: np.ndarray) -> _Found:
+        r = finder(frame)
+        return _Found(bool(r.ok), r.aim)
+    return aim
+
+
 def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, lift: float, across,
                  offset_mm: float, angle_deg: float, gate: ReachGate, simcell: LockstepCell,
                  renderer: SensorRenderer, link, clock: SimClock, dt: float,
                  commands: list[Command], res: DemoResult, cell: CellConfig, ref: _SeamRef,
                  writer: _VideoThread | None, nominal: np.ndarray,
-                 programmed: Callable[[float], np.ndarray], max_along_mm: float, tipm: Tipm
-                 ) -> dict:
+                 programmed: Callable[[float], np.ndarray], max_along_mm: float,
+                 detect: Callable[[np.ndarray], _Found]) -> dict:
     """Search for the seam from ``T_start`` (the robot is there), arc off, then approach the
     seam point it found; every pose through ``gate`` (and, off the seam, the tip's clearance)
     and handed to ``link`` (kept in ``commands``). Each frame is recorded (state ``search``,
-    then ``approach``) and goes to the video.
+    then ``approach``) and goes to the video. ``detect``: what is looked for in a frame
+    (:func:`_seam_detector`: TIPM's corner, or the joint profile's aim point).
 
-    The corner TIPM confirmed is triangulated with the cell's calibration from the flange
+    The corner (or aim point) confirmed is triangulated with the cell's calibration from the flange
     pose of its frame (as the live loop does) and placed against the programmed path
     (``nominal``, (N, 3) base mm, from the programmed start on): ``u`` mm along it, offset
     from it by ``shift``. The approach goes over that point at the stand-off ``lift`` and down
@@ -764,11 +790,11 @@ def _search_seam(seg: str, cfg: SearchConfig, T_start: np.ndarray, lift: float, 
 
     def record(state: str, uv=None, message: str = "") -> tuple:
         """Render the frame where the robot is, record it (arc off) and queue it for the
-        video; returns TIPM's result (None when ``uv`` is given), the TCP pose and the
+        video; returns what ``detect`` saw (None when ``uv`` is given), the TCP pose and the
         simulator's truth of the frame."""
         T_now = simcell.tcp_pose()
         frame, truth = renderer.render(T_now, clock.t, arc_on=False)
-        r = tipm(frame) if uv is None else None
+        r = detect(frame) if uv is None else None
         seen = r.uv if r is not None and r.ok else (uv if uv is not None else nan2)
         status = int(TrackStatus.TRACKED) if r is not None and r.ok else int(TrackStatus.LOST)
         res.frames.append(FrameRecord(seg, clock.t, False, np.asarray(seen, float), truth.uv,

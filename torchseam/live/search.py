@@ -258,7 +258,7 @@ class SeamSearch:
         self.reason = (f"seam not found: {why}; the search covered up to "
                        f"{self.extent[0]:.1f} mm and {self.extent[1]:.1f} deg of the "
                        f"{c.max_extent_mm:g} mm / {c.max_angle_deg:g} deg bound around the "
-                       f"start in {self.elapsed_s:.1f} s (no stripe corner on "
+                       f"start in {self.elapsed_s:.1f} s (the seam not seen on "
                        f"{c.confirm_frames} consecutive frames)")
 
     def step(self) -> np.ndarray | None:

@@ -341,6 +341,13 @@ class LookAheadBuffer:
         xk = float(np.clip(np.linalg.lstsq(B, x[inl], rcond=None)[0][0], x.min(), x.max()))
         p = coef[0] + coef[1] * xk + coef[2] * xk * xk
         span = (float(x.min()), float(x.max()))
+        if float(x[inl].max() - x[inl].min()) < LOPSIDED * self.smooth_mm:
+            # the seam seen over less than half a window (the first points after the robot
+            # starts where it stood, e.g. after a seam search): a quadratic's slope over 1-2 mm
+            # of points 0.03 mm apart across the seam swings by degrees; no tangent (the torch
+            # keeps its travel direction) rather than a guess
+            return SeamFit(p, None, self._arms(pts, idx[inl]), int(inl.sum()),
+                           int((~inl).sum()))
         tcoef, tspan, reach = None, (0.0, 0.0), self.smooth_mm
         cover = (xk - float(x[inl].min()), float(x[inl].max()) - xk)
         if min(cover) < LOPSIDED * self.smooth_mm:
