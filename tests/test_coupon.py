@@ -218,3 +218,23 @@ def test_seam_search_finds_the_coupons_gap(tmp_path):
     assert rc == 0 and s["segments_incomplete"] == [], s["hold_reasons"]
     assert s["seam_rmse_mm"] <= 0.1 and s["seam_max_mm"] <= 0.3
     assert s["axis_max_deg"] <= 1.0 and s["unsafe_poses_sent"] == 0
+
+
+def test_a_coupon_out_of_reach_is_placed_by_the_search(tmp_path):
+    """The coupon set 450 mm further out and 400 mm higher than shipped: every pose of the
+    configured plan out of reach; the planner's search finds a placement the robot can weld
+    (it tilts the part) and keeps the open seam's plan: from its start, no positioner turn."""
+    from torchseam.plan.preflight import preflight
+    from torchseam.robot.kinematics import load_irb1410
+
+    data = _numbers()
+    data["placement"]["position_mm"] = [1350.0, -150.0, 780.0]
+    path = tmp_path / "far.yaml"
+    path.write_text(yaml.safe_dump(data))
+    part = load_part(path)
+    report = preflight(load_cell(), part, config=load_plan_config(), robot=load_irb1410())
+    assert report.configured is not None and not any(v.passed for v in report.configured)
+    assert report.ok, report.text()
+    assert report.plan.segment_start_deg == 0.0
+    assert [s.rotation_deg for s in report.plan.segments] == [0.0] * 6
+    assert "segment a from the seam's start" in report.text()

@@ -117,8 +117,10 @@ class PlanReport:
         out = [f"pre-flight of {self.part_name}: every pose of the six segments (approach "
                f"included) through the reachability gate ({self.elapsed_s:.1f} s)"]
         if self.configured is not None:
+            start = (f"{c.segment_start_deg:g} deg" if make_joint(c.part).closed
+                     else "the seam's start")
             out += ["", f"configured plan (placement as in the part file, segment a from "
-                    f"{c.segment_start_deg:g} deg): refused on segment(s) "
+                    f"{start}): refused on segment(s) "
                     + ", ".join(s.name for s, v in zip(c.segments, self.configured, strict=True)
                                 if not v.passed), self.table(configured=True), "",
                     f"searched plan ({p.candidates} candidates screened in {p.search_s:.1f} s):"]
