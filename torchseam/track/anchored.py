@@ -307,6 +307,8 @@ class Observation:
             ``shallow_max_along_px`` and set to that cap below ``shallow_min_deg`` of kink
             (a straight stripe says where the line is, not where along it the corner is).
         shallow_seen: both arms have centre-line points next to the shallow corner.
+        shallow_outside: none of the shallow corner's centre-line points lies in the glare
+            box (``glare_px`` round the prediction).
     """
 
     glare: float
@@ -317,6 +319,7 @@ class Observation:
     seen: bool = False
     shallow: ShallowFix | None = None
     shallow_seen: bool = False
+    shallow_outside: bool = False
 
 
 def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | None,
@@ -356,11 +359,18 @@ def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | No
             # into clipped light are that light's edge (a saturated glare core's rim), not
             # the stripe; the shallow corner takes what is left (the red excess of a colour
             # frame has no such rim)
-            centre = clipped_centre(tipm, roi, centre if res.reason != SATURATED else None)
+            centre, clipped = clipped_centre(tipm, roi,
+                                             centre if res.reason != SATURATED else None)
             if centre is not None:
-                centre = centre[~beside_clipped(roi, centre, tipm.cfg.ridge_px // 2)]
+                keep = ~beside_clipped(roi, centre, tipm.cfg.ridge_px // 2)
+                centre, clipped = centre[keep], clipped[keep]
+        else:
+            clipped = None
         if centre is not None:
-            _observe_shallow(obs, centre, (x0, y0), prior, tipm, cfg)
+            _observe_shallow(obs, centre, (x0, y0), prior, tipm, cfg, clipped)
+            if obs.shallow is not None:
+                near = np.abs(centre + (x0 - cu, y0 - cv)) <= cfg.glare_px
+                obs.shallow_outside = not bool(np.any(near[:, 0] & near[:, 1]))
     return obs
 
 
@@ -371,7 +381,7 @@ def _unblinded(cfg: TipmConfig) -> Tipm:
 
 
 def clipped_centre(tipm: Tipm, roi: np.ndarray, centre: np.ndarray | None
-                   ) -> np.ndarray | None:
+                   ) -> tuple[np.ndarray | None, np.ndarray]:
     """The centre line (N, 2) of a window ``roi`` (H, W) read by its brightness, with the
     stripe where it runs clipped over glare: ``centre``, TIPM's centre line of the window
     (None: TIPM refused it as blinded), where the window holds no thin clipped run
@@ -382,20 +392,29 @@ def clipped_centre(tipm: Tipm, roi: np.ndarray, centre: np.ndarray | None
     stripe's centre). Why: under a clipped glare core the stripe's arms run clipped over the
     bright halo round it, a few grey levels of ridge, and a window more than
     ``max_saturated_fraction`` clipped is refused whole, while the arms are still in view
-    outside the core (docs/benchmarks.md, issue 35). None: no centre line."""
+    outside the core (docs/benchmarks.md, issue 35). Returns ``(centre or None, clipped
+    (N,) bool: the points on a clipped run)``."""
     thin = thin_clipped_runs(roi, tipm.cfg.ridge_px // 2, tipm.cfg.min_area)
     if centre is not None and not thin.any():
-        return centre
+        return centre, np.zeros(len(centre), bool)
     t = _unblinded(tipm.cfg)
     red, mask, _ = t.stripe_mask(roi)
-    return t.centre(cv2.max(red, thin), cv2.max(mask, thin))
+    pts = t.centre(cv2.max(red, thin), cv2.max(mask, thin))
+    h, w = thin.shape
+    u = np.clip(np.rint(pts[:, 0]).astype(np.intp), 0, w - 1)
+    v = np.clip(np.rint(pts[:, 1]).astype(np.intp), 0, h - 1)
+    return pts, thin[v, u] > 0
 
 
 def _observe_shallow(obs: Observation, centre: np.ndarray, corner: tuple[int, int],
-                     prior: np.ndarray | None, tipm: Tipm, cfg: AnchorConfig) -> None:
+                     prior: np.ndarray | None, tipm: Tipm, cfg: AnchorConfig,
+                     clipped: np.ndarray | None = None) -> None:
     """The shallow corner of the window's centre line ``centre`` (N, 2) (window px, its
     corner at ``corner`` in the frame) into ``obs``: the arms' curvatures pulled toward the
-    arm prior's (they do not change as the kink flattens; the slopes do)."""
+    arm prior's (they do not change as the kink flattens; the slopes do). ``clipped`` (N,)
+    marks the points read off clipped runs (:func:`clipped_centre`): they place the arms but
+    are no support for seeing the corner (a clipped cross-section is symmetric only where
+    the light round it is even, and next to a glare-lit corner it is not)."""
     curv, w_c = (None, 0.0) if prior is None else (prior[:, 1], float(prior[0, 3]))
     sf = shallow_corner(centre, tipm.cfg.min_points_per_arm, curvature=curv,
                         curvature_weight=w_c, max_along_px=cfg.shallow_max_along_px)
@@ -409,6 +428,8 @@ def _observe_shallow(obs: Observation, centre: np.ndarray, corner: tuple[int, in
     sf = dataclasses.replace(sf, uv=sf.uv + corner)
     obs.shallow = sf
     d = centre[:, 0] + corner[0] - sf.uv[0]
+    if clipped is not None:
+        d = d[~clipped]
     obs.shallow_seen = bool(np.sum((d < 0) & (d >= -cfg.support_px)) >= cfg.support_points
                             and np.sum((d > 0) & (d <= cfg.support_px)) >= cfg.support_points)
 
@@ -700,9 +721,9 @@ class AnchoredFilter:
             cov = (c.shallow_noise ** 2) * sf.cov
             # the glare term weighs what the light round the prediction does to the points
             # a fix is read from; where that box is mostly clipped (its median at the
-            # clipping level: a glare core over the corner) no point is read in it (see
-            # observe), the fix is the arms' outside it, and its own fit says how well
-            g = 1.0 if obs.glare >= CLIPPED else inflate
+            # clipping level: a glare core over the corner) and no point of the fit lies in
+            # it, the fix is the arms' outside it, and its own fit says how well
+            g = 1.0 if obs.glare >= CLIPPED and obs.shallow_outside else inflate
             taken = self._measure(o.const(sf.uv), g * o.const(cov), p["fix_gate"])
             # evidence only when the image places it within the evidence radius; firm (a
             # located point for the robot's expected pixel) when its std along the stripe,
