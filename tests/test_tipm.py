@@ -685,3 +685,23 @@ def test_the_intensity_view_reads_a_white_stripe_where_glare_clips_red():
     assert not load_tipm()(np.ascontiguousarray(img[..., 2])).ok  # R alone: nothing
     res = load_tipm()(plane)
     assert res.ok and np.linalg.norm(res.uv - (210.0, 150.0)) < 1.0, (res.reason, res.uv)
+
+
+def test_thin_clipped_runs_take_a_clipped_line_not_a_core_or_specks():
+    """A stripe clipped over a bright halo is its clipped runs (their middle its centre);
+    a glare core's tall runs and the specks of noise round the clipping level are not (nor
+    is the stripe in a column the specks share: no cross-section can be told there)."""
+    from torchseam.vision.tipm import thin_clipped_runs
+    rng = np.random.default_rng(3)
+    plane = np.full((100, 200), 240, np.uint8)
+    plane[47:54] = 255                                  # the stripe, clipped, 7 rows
+    yy, xx = np.mgrid[0:100, 0:200]
+    plane[(xx - 100) ** 2 + (yy - 50) ** 2 <= 30 ** 2] = 255   # the core
+    specks = (yy >= 75) & (yy < 95) & (xx >= 160) & (rng.random(plane.shape) < 0.5)
+    plane[specks] = 250
+    m = thin_clipped_runs(plane, 10, 60) > 0
+    rows = np.nonzero(m[:, 20])[0]
+    assert rows.tolist() == list(range(47, 54))
+    assert not m[:, 80:121].any()                       # the core's columns
+    assert not m[70:, :].any()                          # the specks
+    assert m[:, :65].any(axis=0).all() and m[:, 136:160].any(axis=0).all()

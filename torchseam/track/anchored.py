@@ -45,6 +45,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor, nn
@@ -58,14 +59,17 @@ from torchseam.track.base import Fix, Tracker, TrackResult
 from torchseam.track.fusion import EAKFSTC, FusionState, LiteTracker, TrackStatus
 from torchseam.track.shallow import ShallowFix, shallow_corner
 from torchseam.vision.tipm import (
+    CLIPPED,
     SATURATED,
     Tipm,
+    TipmConfig,
     TipmResult,
     arm_shape,
     beside_clipped,
     power_sums,
     quad_normal_adjugate,
     red_response,
+    thin_clipped_runs,
 )
 
 __all__ = ["FITTED", "AnchorConfig", "AnchoredFilter", "AnchoredModel", "AnchoredParams",
@@ -303,6 +307,8 @@ class Observation:
             ``shallow_max_along_px`` and set to that cap below ``shallow_min_deg`` of kink
             (a straight stripe says where the line is, not where along it the corner is).
         shallow_seen: both arms have centre-line points next to the shallow corner.
+        shallow_outside: none of the shallow corner's centre-line points lies in the glare
+            box (``glare_px`` round the prediction).
     """
 
     glare: float
@@ -313,6 +319,7 @@ class Observation:
     seen: bool = False
     shallow: ShallowFix | None = None
     shallow_seen: bool = False
+    shallow_outside: bool = False
 
 
 def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | None,
@@ -340,26 +347,74 @@ def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | No
         obs.res, obs.z = res, res.uv + (x0, y0)
         obs.shape_cov = corner_cov_shape(res, prior, (t.corner_gap_px, t.fit_window_px))
         obs.seen = seen
-    elif shallow and res.reason != SATURATED and res.centre is not None:
+    elif shallow and (res.centre is not None or roi.ndim == 2):
         # no corner, or a shallow one extrapolated over arms that stop short (glare on it):
         # TIPM's arm fits there lean on the prior's slopes, which a flattening kink no
         # longer has (a biased corner, its covariance too small); read it from the whole
         # arms instead
         centre = res.centre
         if roi.ndim == 2:
-            # read by its brightness: the points whose ridge reaches into clipped light are
-            # that light's edge (a saturated glare core's rim), not the stripe; the shallow
-            # corner takes what is left (the red excess of a colour frame has no such rim)
-            centre = centre[~beside_clipped(roi, centre, tipm.cfg.ridge_px // 2)]
-        _observe_shallow(obs, centre, (x0, y0), prior, tipm, cfg)
+            # read by its brightness: the arms where they run clipped over glare, also in a
+            # window refused as blinded (see clipped_centre); the points whose ridge reaches
+            # into clipped light are that light's edge (a saturated glare core's rim), not
+            # the stripe; the shallow corner takes what is left (the red excess of a colour
+            # frame has no such rim)
+            centre, clipped = clipped_centre(tipm, roi,
+                                             centre if res.reason != SATURATED else None)
+            if centre is not None:
+                keep = ~beside_clipped(roi, centre, tipm.cfg.ridge_px // 2)
+                centre, clipped = centre[keep], clipped[keep]
+        else:
+            clipped = None
+        if centre is not None:
+            _observe_shallow(obs, centre, (x0, y0), prior, tipm, cfg, clipped)
+            if obs.shallow is not None:
+                near = np.abs(centre + (x0 - cu, y0 - cv)) <= cfg.glare_px
+                obs.shallow_outside = not bool(np.any(near[:, 0] & near[:, 1]))
     return obs
 
 
+@functools.lru_cache(maxsize=4)
+def _unblinded(cfg: TipmConfig) -> Tipm:
+    """A :class:`Tipm` of ``cfg`` that does not refuse a window as blinded."""
+    return Tipm(dataclasses.replace(cfg, max_saturated_fraction=1.0))
+
+
+def clipped_centre(tipm: Tipm, roi: np.ndarray, centre: np.ndarray | None
+                   ) -> tuple[np.ndarray | None, np.ndarray]:
+    """The centre line (N, 2) of a window ``roi`` (H, W) read by its brightness, with the
+    stripe where it runs clipped over glare: ``centre``, TIPM's centre line of the window
+    (None: TIPM refused it as blinded), where the window holds no thin clipped run
+    (:func:`~torchseam.vision.tipm.thin_clipped_runs`: at most ``ridge_px // 2`` rows tall,
+    a line the ridge filter would pass, in areas of ``min_area`` px at least); otherwise the
+    stripe path (:meth:`Tipm.centre`) over TIPM's mask, the window not refused as blinded,
+    with those runs added and weighed as the brightest response (their middle is the
+    stripe's centre). Why: under a clipped glare core the stripe's arms run clipped over the
+    bright halo round it, a few grey levels of ridge, and a window more than
+    ``max_saturated_fraction`` clipped is refused whole, while the arms are still in view
+    outside the core (docs/benchmarks.md, issue 35). Returns ``(centre or None, clipped
+    (N,) bool: the points on a clipped run)``."""
+    thin = thin_clipped_runs(roi, tipm.cfg.ridge_px // 2, tipm.cfg.min_area)
+    if centre is not None and not thin.any():
+        return centre, np.zeros(len(centre), bool)
+    t = _unblinded(tipm.cfg)
+    red, mask, _ = t.stripe_mask(roi)
+    pts = t.centre(cv2.max(red, thin), cv2.max(mask, thin))
+    h, w = thin.shape
+    u = np.clip(np.rint(pts[:, 0]).astype(np.intp), 0, w - 1)
+    v = np.clip(np.rint(pts[:, 1]).astype(np.intp), 0, h - 1)
+    return pts, thin[v, u] > 0
+
+
 def _observe_shallow(obs: Observation, centre: np.ndarray, corner: tuple[int, int],
-                     prior: np.ndarray | None, tipm: Tipm, cfg: AnchorConfig) -> None:
+                     prior: np.ndarray | None, tipm: Tipm, cfg: AnchorConfig,
+                     clipped: np.ndarray | None = None) -> None:
     """The shallow corner of the window's centre line ``centre`` (N, 2) (window px, its
     corner at ``corner`` in the frame) into ``obs``: the arms' curvatures pulled toward the
-    arm prior's (they do not change as the kink flattens; the slopes do)."""
+    arm prior's (they do not change as the kink flattens; the slopes do). ``clipped`` (N,)
+    marks the points read off clipped runs (:func:`clipped_centre`): they place the arms but
+    are no support for seeing the corner (a clipped cross-section is symmetric only where
+    the light round it is even, and next to a glare-lit corner it is not)."""
     curv, w_c = (None, 0.0) if prior is None else (prior[:, 1], float(prior[0, 3]))
     sf = shallow_corner(centre, tipm.cfg.min_points_per_arm, curvature=curv,
                         curvature_weight=w_c, max_along_px=cfg.shallow_max_along_px)
@@ -373,6 +428,8 @@ def _observe_shallow(obs: Observation, centre: np.ndarray, corner: tuple[int, in
     sf = dataclasses.replace(sf, uv=sf.uv + corner)
     obs.shallow = sf
     d = centre[:, 0] + corner[0] - sf.uv[0]
+    if clipped is not None:
+        d = d[~clipped]
     obs.shallow_seen = bool(np.sum((d < 0) & (d >= -cfg.support_px)) >= cfg.support_points
                             and np.sum((d > 0) & (d <= cfg.support_px)) >= cfg.support_points)
 
@@ -662,15 +719,20 @@ class AnchoredFilter:
             # errors correlated along the stripe); gated like a fix, never a restart
             sf = obs.shallow
             cov = (c.shallow_noise ** 2) * sf.cov
-            taken = self._measure(o.const(sf.uv), inflate * o.const(cov), p["fix_gate"])
+            # the glare term weighs what the light round the prediction does to the points
+            # a fix is read from; where that box is mostly clipped (its median at the
+            # clipping level: a glare core over the corner) and no point of the fit lies in
+            # it, the fix is the arms' outside it, and its own fit says how well
+            g = 1.0 if obs.glare >= CLIPPED and obs.shallow_outside else inflate
+            taken = self._measure(o.const(sf.uv), g * o.const(cov), p["fix_gate"])
             # evidence only when the image places it within the evidence radius; firm (a
             # located point for the robot's expected pixel) when its std along the stripe,
             # glare included, is within it
             along = sf.along_px
             seen = obs.shallow_seen and c.evidence_sigmas * along * c.shallow_noise \
                 <= c.evidence_px
-            firm = along * c.shallow_noise * math.sqrt(_num(inflate)) <= c.evidence_px
-            fix = Fix(sf.uv.copy(), cov, _num(inflate), taken, seen, shallow=True, firm=firm)
+            firm = along * c.shallow_noise * math.sqrt(_num(g)) <= c.evidence_px
+            fix = Fix(sf.uv.copy(), cov, _num(g), taken, seen, shallow=True, firm=firm)
         if inner_ok:
             self._measure(inner_uv, inflate * self.R_track, p["track_gate"])
         reanchor: Any = 0.0

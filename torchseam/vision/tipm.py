@@ -259,6 +259,54 @@ def beside_clipped(frame: np.ndarray, pts: np.ndarray, reach: int) -> np.ndarray
     return out
 
 
+def thin_clipped_runs(plane: np.ndarray, max_rows: int, min_area: int = 0) -> np.ndarray:
+    """(H, W) uint8 mask (255) of the column runs of clipped pixels (at or above
+    :data:`CLIPPED`) of ``plane`` (H, W) uint8 (a frame read by its brightness) at most
+    ``max_rows`` tall and bounded by unclipped pixels above and below (not the plane's edge),
+    in connected areas (8-connected) of ``min_area`` px at least: a line clipped across its
+    width, the stripe where it runs over bright glare. There its ridge (the response less its
+    vertical mean) is a few grey levels and passes no threshold, but its cross-section is
+    symmetric, so the clipped run's middle is its centre. A glare core's runs are taller than
+    a stripe is thick, except in the few columns at its sides; where noise clips a nearly
+    clipped halo in specks, a column holds several thin runs (none is kept there) and what is
+    left of them are areas smaller than ``min_area`` (TIPM's spatter rule).
+
+    Example:
+        >>> f = np.zeros((40, 6), np.uint8); f[10:14] = 255; f[20:38, :3] = 255
+        >>> m = thin_clipped_runs(f, 10); int(m[:, 0].sum() // 255), int(m[:, 5].sum() // 255)
+        (4, 4)
+    """
+    h, w = plane.shape
+    out = np.zeros((h, w), np.uint8)
+    clip = cv2.compare(plane, CLIPPED, cv2.CMP_GE)  # type: ignore[call-overload]
+    if cv2.countNonZero(clip) < max(min_area, 1):
+        return out
+    # +1 where a run starts (row r + 1), -1 where one ends (after row r), column by column
+    d = np.diff((clip.T > 0).view(np.int8), axis=1)
+    c0, r0 = np.nonzero(d == 1)
+    c1, r1 = np.nonzero(d == -1)
+    if not len(c0) or not len(c1):
+        return out
+    # a run that touches the top row has no start, one that touches the bottom no end: pair
+    # each start with the first end after it in its column (both sorted by column, row)
+    j = np.minimum(np.searchsorted(c1 * (h + 1) + r1, c0 * (h + 1) + r0), len(c1) - 1)
+    ok = (c1[j] == c0) & (r1[j] > r0) & (r1[j] - r0 <= max_rows)
+    # a column with more thin clipped runs than one is a speckled, nearly clipped halo (noise
+    # round the clipping level): no cross-section of the stripe can be told there
+    ok &= np.bincount(c0[ok], minlength=w)[c0] == 1
+    if not ok.any():
+        return out
+    cols, top, end = c0[ok], r0[ok] + 1, r1[j][ok] + 1  # one run a column now
+    rows = np.arange(h)[:, None]
+    out[:, cols] = ((rows >= top) & (rows < end)).view(np.uint8) * np.uint8(255)
+    if min_area > 1:
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(out, connectivity=8)
+        keep = (stats[:, cv2.CC_STAT_AREA] >= min_area).astype(np.uint8) * np.uint8(255)
+        keep[0] = 0
+        out = keep[labels]
+    return out
+
+
 def _fail(reason: str, mask: np.ndarray | None = None, centre: np.ndarray | None = None
           ) -> TipmResult:
     return TipmResult(False, np.full(2, np.nan), reason, centre=centre, mask=mask)
