@@ -310,8 +310,12 @@ class ProfileTracker(Tracker):
         seam, where the torch is, and eats the two edges alike as often as one (an end "in
         its place" beside one eaten as far carried half the excess into the seam); and the
         gap under the arc need not read as it did on the clean start frame (a wide stripe's
-        bleed narrows it there). The way whose aim lies nearest the prediction is taken,
-        within ``edge_tol_px`` of it; none there: no evidence (``ok`` False). A frame the
+        bleed narrows it there). A lap is read the first two ways only: its aim is one of its
+        ends (the root, the corner the torch stands on), and the glare round it eats the root
+        and the edge, the face's length away, unlike each other: the root moved by half the
+        span's excess is no reading of it (a dark face read with its root 15.6 px and its edge
+        9.1 px short was taken so, 3.17 px off). The way whose aim lies nearest the prediction
+        is taken, within ``edge_tol_px`` of it; none there: no evidence (``ok`` False). A frame the
         gate refuses (some other structure, whose span may agree by chance) neither joins the
         history nor counts as a span in place (:meth:`_learn`). A vector off its history on
         more than ``edge_max_frames`` frames in a row is no longer known (its history starts
@@ -360,10 +364,11 @@ class ProfileTracker(Tracker):
         # two edges alike as often as one: an end "in its place" beside an end eaten as far
         # carried half the excess into the seam; and the span read under the arc need not be
         # the one read before it, which a wide stripe's bleed narrows): the span's centre as
-        # read, the span kept
+        # read, the span kept. Not a lap's: its aim is an end, and the glare round the root
+        # eats its two ends unlike each other (the edge lies the face's length away)
         norm = max(float(np.linalg.norm(ref)), 1e-9)
         ways = [(a, a + ref, names[1]), (b - ref, b, names[0])]
-        if float(d @ ref) > 0.0:
+        if res.joint == "butt" and float(d @ ref) > 0.0:
             ways.append((a + 0.5 * (d - ref), b - 0.5 * (d - ref), "both ends"))
         off = [float(np.linalg.norm(w[0] + share * ref - pred)) for w in ways]
         k = int(np.argmin(off))

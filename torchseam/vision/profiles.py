@@ -85,6 +85,7 @@ class ProfileConfig:
     shoulder_ratio: float = config_field(lo=1.0)
     arm_px: float = config_field(lo=2.0)
     far_side: str = config_field(choices=("up", "down"))
+    lit_face_share: float = config_field(lo=0.0, hi=1.0, lo_open=True)
 
 
 def load_profile_config(path: str | Path | None = None) -> ProfileConfig:
@@ -739,6 +740,14 @@ class ProfileFinder:
             a, b = dark
             le = self._end(left, response_at(self._ridge, left), a)
             re = self._end(right, response_at(self._ridge, right), b)
+            # a dark face is dark between the plates' ends; where the stripe is lit there, the
+            # face is lit and its centre line was lost (its speckled pixels dropped as small
+            # pieces, fume over it): the ends read are where that line stopped, not where the
+            # plates end, and each is carried on into the face's light at its corner
+            lit_share = self._lit_between(le, re, resp)
+            if lit_share > cfg.lit_face_share:
+                return _fail("lap", f"a lit edge face without its centre line (lit on "
+                             f"{100 * lit_share:.0f} % between the plates' ends)", pts)
             note = LAP_DARK_FACE
         # the far plate shows on the far side of the other: its end is the root
         before_far = (offset > 0.0) == (cfg.far_side == "up")
@@ -749,6 +758,29 @@ class ProfileFinder:
         arms = np.stack([root + cfg.fit_px * _outward(plate, piece), root + cfg.fit_px * face_d])
         return ProfileResult("lap", True, root.copy(), {"edge": edge, "root": root}, note,
                              width_px=jump, centre=pts, arm_points=arms)
+
+    def _lit_between(self, a: np.ndarray, b: np.ndarray, resp: np.ndarray) -> float:
+        """The share of the segment from ``a`` to ``b`` (a lap's two plates' ends as read
+        apart), farther than the stripe's width from either, where the stripe's response
+        (:meth:`_end`'s: the frame's ridge, at ``end_fraction`` of the centre line's median
+        response ``resp``) is lit within half the stripe's width across the segment (a lit
+        face's stripe runs from corner to corner; the ends read off its corners put the
+        segment up to a few pixels beside it). 0 where the segment is no longer than two
+        stripe widths (too short to tell)."""
+        w = float(self._width)
+        d = b - a
+        length = float(np.linalg.norm(d))
+        if length <= 2.0 * w:
+            return 0.0
+        d = d / length
+        normal = np.array([-d[1], d[0]])
+        level = self.cfg.end_fraction * float(np.median(resp))
+        along = a + (w + END_STEP_PX * np.arange(int((length - 2.0 * w) / END_STEP_PX) + 1)
+                     )[:, None] * d                                              # (n, 2)
+        across = np.arange(-0.5 * w, 0.5 * w + 1e-9, 1.0)                        # (m,)
+        val = _bilinear(self._ridge, (along[None] + across[:, None, None] * normal)
+                        .reshape(-1, 2)).reshape(len(across), -1).max(axis=0)
+        return float(np.mean(val >= level))
 
 
 #: :meth:`ProfileFinder._end`'s step along a line when it follows the stripe to its end (px)
