@@ -573,28 +573,13 @@ def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int
     that holds every non-zero pixel, or None when nothing landed in the image.
     """
     img = np.zeros((h, w), np.float32)
-    inside = ((pts[:, 0] > -1) & (pts[:, 0] < w) & (pts[:, 1] > -1) & (pts[:, 1] < h))
-    pts, weight = pts[inside], weight[inside]
-    if len(pts) == 0:
+    # compiled (torchseam.sim._kernels.splat): the four corners' np.bincount sums of the
+    # points in the image, in a box around them, cast into the image: the same numbers
+    box = load_kernels(__package__).splat(np.ascontiguousarray(pts, dtype=np.float64),
+                                          np.ascontiguousarray(weight, dtype=np.float64), img)
+    if box[0] < 0:
         return img, None
-    x0 = np.floor(pts[:, 0]).astype(int)
-    y0 = np.floor(pts[:, 1]).astype(int)
-    fx = pts[:, 0] - x0
-    fy = pts[:, 1] - y0
-    # accumulate in the bounding box only (with a one-pixel border for the +1 neighbours)
-    bx, by = x0.min(), y0.min()
-    bw, bh = x0.max() - bx + 2, y0.max() - by + 2
-    # the four corners' np.bincount sums, compiled (torchseam.sim._kernels.splat_box: the
-    # same numbers, a fifth of the time)
-    c = np.ascontiguousarray
-    acc = load_kernels(__package__).splat_box(
-        c(x0 - bx, dtype=np.int64), c(y0 - by, dtype=np.int64), c(fx, dtype=np.float64),
-        c(fy, dtype=np.float64), c(weight, dtype=np.float64), int(bw), int(bh)).reshape(bh, bw)
-    # drop what falls outside the image (the box may start at -1)
-    sx, sy = max(0, -bx), max(0, -by)
-    ex, ey = min(bw, w - bx), min(bh, h - by)
-    img[by + sy:by + ey, bx + sx:bx + ex] = acc[sy:ey, sx:ex]
-    return img, (int(bx + sx), int(by + sy), int(bx + ex), int(by + ey))
+    return img, (int(box[0]), int(box[1]), int(box[2]), int(box[3]))
 
 
 def camera_pose(cell: CellConfig, T_B_W: np.ndarray) -> np.ndarray:
