@@ -104,6 +104,8 @@ class ArcNoise:
         # band's float64 work array (reused)
         self._xs, self._ys = np.ascontiguousarray(xx[0]), np.ascontiguousarray(yy[:, 0])
         self._work_buf = np.empty(self.h * self.w)
+        self._blur_plane = np.empty((self.h, self.w), np.float32)
+        self._planes: tuple[np.ndarray, np.ndarray] | None = None   # next(reuse=True)'s
         self._k = load_kernels(__package__)
         self._ramp = 1.0 - 0.5 * yy / self.h
         # glare: saturated core plus a long halo, as a template pasted at the arc each frame
@@ -129,16 +131,19 @@ class ArcNoise:
                          self.rng.uniform(r0, r1), self.rng.uniform(r0, r1) * 0.4,
                          self.rng.uniform(0, np.pi), self.rng.uniform(b0, b1)])
 
-    def next(self, arc_uv: np.ndarray, stripe_uv: np.ndarray) -> NoiseLayers:
+    def next(self, arc_uv: np.ndarray, stripe_uv: np.ndarray, reuse: bool = False
+             ) -> NoiseLayers:
         """Advance one frame.
 
         Args:
             arc_uv: (2,) pixel of the arc (torch tip), may lie outside the image.
             stripe_uv: (2,) pixel of the stripe's feature point (reflections gather near it).
+            reuse: the glare and spatter layers are this generator's own two planes, zeroed
+                and drawn again by the next call (a renderer that is done with them by then
+                saves two fresh frame-sized planes, and their page faults, per frame).
         """
         L, cfg, rng, look = self.level, self.cfg, self.rng, self.look
-        out = NoiseLayers(np.zeros((self.h, self.w), np.float32),
-                          np.zeros((self.h, self.w), np.float32), [], NoiseFlags())
+        out = NoiseLayers(*self._zeroed_planes(reuse), [], NoiseFlags())
         if L <= 0.0:
             return out
         flags, glare, spatter = out.flags, out.glare, out.spatter
@@ -185,7 +190,9 @@ class ArcNoise:
             ys = slice(max(0, y0 - m), min(self.h, y1 + m))
             xs = slice(max(0, x0 - m), min(self.w, x1 + m))
             if ys.start < ys.stop and xs.start < xs.stop:
-                spatter[ys, xs] = cv2.GaussianBlur(spatter[ys, xs], (0, 0), 0.8)
+                # (into a reused plane: a fresh one would cost its page faults every frame)
+                blurred = self._blur_plane[:ys.stop - ys.start, :xs.stop - xs.start]
+                spatter[ys, xs] = cv2.GaussianBlur(spatter[ys, xs], (0, 0), 0.8, dst=blurred)
 
         if rng.random() < cfg.flash.prob * L:
             flags.flash = True
@@ -209,6 +216,18 @@ class ArcNoise:
             flags.flash = True
             out.rows = self._band_rows(ex.band_gain)
         return out
+
+    def _zeroed_planes(self, reuse: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Two all-zero float32 (H, W) planes: new ones, or (``reuse``) this generator's own."""
+        if not reuse:
+            return (np.zeros((self.h, self.w), np.float32),
+                    np.zeros((self.h, self.w), np.float32))
+        if self._planes is None:
+            self._planes = (np.zeros((self.h, self.w), np.float32),
+                            np.zeros((self.h, self.w), np.float32))
+        for plane in self._planes:
+            plane.fill(0.0)
+        return self._planes
 
     # ------------------------------------------------------------ primitives
     def _roi(self, cx: float, cy: float, r: float) -> tuple[slice, slice] | None:
@@ -289,11 +308,12 @@ class ArcNoise:
         brighter head); returns the box (x0, y0, x1, y1) it may touch."""
         rng, sp, look = self.rng, self.cfg.spatter, self.look.spatter
         ang, dist = self._launch()
-        start = arc + dist * np.array([np.cos(ang), np.sin(ang)])
+        # element by element, the numbers of the (2,) array arithmetic
+        sx, sy = arc[0] + dist * np.cos(ang), arc[1] + dist * np.sin(ang)
         length = rng.uniform(sp.length_px[0], sp.length_px[1]) * look.length_scale
         dirn = ang + rng.normal(0, 0.3)
-        end = start + length * np.array([np.cos(dirn), np.sin(dirn)])
-        p0, p1 = tuple(int(v) for v in start * 16), tuple(int(v) for v in end * 16)
+        ex, ey = sx + length * np.cos(dirn), sy + length * np.sin(dirn)
+        p0, p1 = (int(sx * 16), int(sy * 16)), (int(ex * 16), int(ey * 16))
         # drawn in this order: the same random stream
         value = float(rng.uniform(sp.brightness[0], sp.brightness[1]))
         thick = int(rng.integers(look.size_px[0], look.size_px[1] + 1))

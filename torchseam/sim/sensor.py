@@ -110,6 +110,8 @@ class LaserSensor:
         grain = np.random.default_rng(7).standard_normal(((h + 32) // 2, (w + 32) // 2))
         self._grain_field = cv2.resize(grain.astype(np.float32), (w + 32, h + 32))
         self._grains: dict[float, np.ndarray] = {}
+        # the stripe's blurred box (reused: a fresh plane costs its page faults every frame)
+        self._blur_plane = np.empty((h, w), np.float32)
         self._glint_rays: np.ndarray | None = None
         load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
 
@@ -180,9 +182,11 @@ class LaserSensor:
             k = jump[np.argmin(np.linalg.norm(P[jump] - seam_T, axis=1))] + 1
             if np.linalg.norm(P[k] - seam_T) < 2.0:
                 k_seam = k
-                order_P = np.insert(P, k, seam_T, axis=0)
-                order_s = np.insert(surf, k, 3)
-                order_b = np.insert(bright, k, 0.5 * (bright[k - 1] + bright[k]))
+                # (np.insert's values, without its overhead)
+                order_P = np.concatenate([P[:k], seam_T[None], P[k:]])
+                order_s = np.concatenate([surf[:k], np.array([3], surf.dtype), surf[k:]])
+                order_b = np.concatenate([bright[:k], [0.5 * (bright[k - 1] + bright[k])],
+                                          bright[k:]])
         # the stripe and the seam point projected in one call (each point on its own)
         X_order = (order_P - c) @ R
         if seam_ok:
@@ -196,7 +200,7 @@ class LaserSensor:
             uv = self.project(X_order)
             seam_uv, visible = np.full(2, np.nan), False
         if k_seam is not None:
-            order_seen = np.insert(seen, k_seam, visible)
+            order_seen = np.concatenate([seen[:k_seam], [visible], seen[k_seam:]])
         keep = order_seen & self.in_image(uv, margin=-20.0)
 
         a_T, b_T = R @ self._fan_ab[0], R @ self._fan_ab[1]
@@ -332,7 +336,8 @@ class LaserSensor:
 
     def stripe_layer(self, view: StripeView, rng: np.random.Generator,
                      gaps: list[tuple[float, float]] | None = None,
-                     look: StripeLook | None = None) -> np.ndarray:
+                     look: StripeLook | None = None, out: np.ndarray | None = None
+                     ) -> np.ndarray:
         """Float32 (H, W) red-channel stripe intensity, speckled, with optional dropouts.
 
         ``gaps`` are (start, end) arc-length ranges in pixels along the imaged stripe, measured
@@ -343,12 +348,16 @@ class LaserSensor:
         draws that cross-section twice, ``split_px`` apart across the stripe on either side of
         the fan's mid-plane (where the labels are), the second lobe weaker
         (:data:`SPLIT_SECOND_LOBE`); the light of the stripe is shared between them.
+        ``out``: a C-contiguous float32 (H, W) plane to draw into (zeroed first) and return,
+        instead of a new one.
         """
         look = DEFAULT_STRIPE if look is None else look
         w, h = self.size
         uv = view.uv
+        if out is not None:
+            out.fill(0.0)
         if len(uv) < 2:
-            return np.zeros((h, w), np.float32)
+            return np.zeros((h, w), np.float32) if out is None else out
         seg = np.diff(uv, axis=0)
         seg_len = np.linalg.norm(seg, axis=1)
         # Do not bridge real gaps (occlusion, fan ends): consecutive samples must be close.
@@ -376,7 +385,7 @@ class LaserSensor:
         if look.split_px > 0:
             pts, weight, unit = _split(pts, weight, step, seg[starts], seg_len[starts],
                                        look.split_px)
-        img, box = _splat(pts, weight, w, h)
+        img, box = _splat(pts, weight, w, h, out)
         # grainy laser speckle on the surface: a random crop of a fixed speckle field
         dy, dx = rng.integers(0, 32, 2)
         if box is None:
@@ -388,7 +397,8 @@ class LaserSensor:
         m = max(BLUR_MARGIN_PX, int(4 * sigma) + 2)
         x0, y0, x1, y1 = box
         ys, xs = slice(max(0, y0 - m), min(h, y1 + m)), slice(max(0, x0 - m), min(w, x1 + m))
-        sub = cv2.GaussianBlur(img[ys, xs], (0, 0), sigma)
+        sub = cv2.GaussianBlur(img[ys, xs], (0, 0), sigma,
+                               dst=self._blur_plane[:ys.stop - ys.start, :xs.stop - xs.start])
         if look.order != 1.0:
             sub = _super_gaussian(sub, _splat(pts, unit, w, h)[0][ys, xs], sigma, look.order)
         sub *= look.peak * np.sqrt(2 * np.pi) * sigma
@@ -565,14 +575,15 @@ def _refine_roots(f, brackets: list[tuple[float, float]], n: int = 33, rounds: i
     return out
 
 
-def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int
+def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int, out: np.ndarray | None = None
            ) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
-    """Bilinear splat of weighted points into a float32 (h, w) image (keeps the centroid).
+    """Bilinear splat of weighted points into a float32 (h, w) image (keeps the centroid):
+    ``out`` (all zeros, C-contiguous) or a new one.
 
     Returns the image and the box ``(x0, y0, x1, y1)`` (end-exclusive, inside the image)
     that holds every non-zero pixel, or None when nothing landed in the image.
     """
-    img = np.zeros((h, w), np.float32)
+    img = np.zeros((h, w), np.float32) if out is None else out
     # compiled (torchseam.sim._kernels.splat): the four corners' np.bincount sums of the
     # points in the image, in a box around them, cast into the image: the same numbers
     box = load_kernels(__package__).splat(np.ascontiguousarray(pts, dtype=np.float64),
