@@ -253,3 +253,42 @@ def band_add(img, r0, c0, xs, ys, x0, y0, d0, d1, len2, amp, e):  # pragma: no c
             t = min(max((dx * d0 + dyd) / len2, 0.0), 1.0)
             v = ((1.0 - t * 0.6) * amp) * e_row[j]
             i_row[c0 + j] = np.float32(np.float64(i_row[c0 + j]) + v)
+
+
+@numba.njit("Tuple((f8[:, ::1], f8[::1], f8[::1], i8[::1]))(f8[:, ::1], f8[::1], f8, f8)",
+            cache=True, nogil=True)
+def stripe_samples(uv, brightness, step_px, max_gap_px):  # pragma: no cover - compiled
+    """The stripe's splat samples along its polyline ``uv`` (N, 2): each segment shorter than
+    ``max_gap_px`` cut into ``max(1, ceil(length / step_px))`` samples at fractions ``j / n``
+    (longer ones, real gaps, into none). Returns the samples (M, 2), the arc length per sample,
+    the brightness interpolated along the segment times that length, and each sample's segment.
+    ``LaserSensor.stripe_layer``'s numpy statement (np.diff, the row norms, np.repeat,
+    np.cumsum), element by element in its order: the same numbers."""
+    n_seg = max(len(uv) - 1, 0)
+    seg_len = np.empty(n_seg)
+    n_sub = np.empty(n_seg, np.int64)
+    total = 0
+    for i in range(n_seg):
+        d0, d1 = uv[i + 1, 0] - uv[i, 0], uv[i + 1, 1] - uv[i, 1]
+        seg_len[i] = math.sqrt(d0 * d0 + d1 * d1)
+        n_sub[i] = max(1, int(math.ceil(seg_len[i] / step_px))) if seg_len[i] < max_gap_px \
+            else 0
+        total += n_sub[i]
+    pts = np.empty((total, 2))
+    step = np.empty(total)
+    weight = np.empty(total)
+    starts = np.empty(total, np.int64)
+    k = 0
+    for i in range(n_seg):
+        n = n_sub[i]
+        d0, d1 = uv[i + 1, 0] - uv[i, 0], uv[i + 1, 1] - uv[i, 1]
+        st = seg_len[i] / max(n, 1)
+        for j in range(n):
+            f = np.float64(j) / np.float64(max(n, 1))
+            pts[k, 0] = uv[i, 0] + f * d0
+            pts[k, 1] = uv[i, 1] + f * d1
+            step[k] = st
+            weight[k] = (brightness[i] * (1 - f) + brightness[i + 1] * f) * st
+            starts[k] = i
+            k += 1
+    return pts, step, weight, starts

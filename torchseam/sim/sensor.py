@@ -358,18 +358,12 @@ class LaserSensor:
             out.fill(0.0)
         if len(uv) < 2:
             return np.zeros((h, w), np.float32) if out is None else out
-        seg = np.diff(uv, axis=0)
-        seg_len = np.linalg.norm(seg, axis=1)
-        # Do not bridge real gaps (occlusion, fan ends): consecutive samples must be close.
-        ok = seg_len < 6.0
-        n_sub = np.maximum(1, np.ceil(seg_len / SPLAT_STEP_PX).astype(int)) * ok
-        starts = np.repeat(np.arange(len(seg)), n_sub)
-        frac = (np.arange(n_sub.sum()) - np.repeat(np.cumsum(n_sub) - n_sub, n_sub)) / np.repeat(
-            np.maximum(n_sub, 1), n_sub)
-        pts = uv[starts] + frac[:, None] * seg[starts]
-        step = seg_len[starts] / np.maximum(n_sub[starts], 1)   # arc length per sample
-        weight = (view.brightness[starts] * (1 - frac) + view.brightness[starts + 1] * frac)
-        weight = weight * step
+        # Samples every SPLAT_STEP_PX along the polyline, weighted by the brightness and the
+        # arc length per sample. Do not bridge real gaps (occlusion, fan ends): consecutive
+        # samples must be close (compiled: torchseam.sim._kernels.stripe_samples)
+        pts, step, weight, starts = load_kernels(__package__).stripe_samples(
+            np.ascontiguousarray(uv, dtype=np.float64),
+            np.ascontiguousarray(view.brightness, dtype=np.float64), SPLAT_STEP_PX, 6.0)
         # speckle: smooth log-normal modulation along the stripe (mean about 1)
         stride = look.speckle_px / SPLAT_STEP_PX
         sp = rng.standard_normal(int(len(pts) // stride) + 2)
@@ -383,6 +377,8 @@ class LaserSensor:
                 weight[(arc >= a0) & (arc <= a1)] *= 0.04
         unit = step
         if look.split_px > 0:
+            seg = np.diff(uv, axis=0)
+            seg_len = np.linalg.norm(seg, axis=1)
             pts, weight, unit = _split(pts, weight, step, seg[starts], seg_len[starts],
                                        look.split_px)
         img, box = _splat(pts, weight, w, h, out)
