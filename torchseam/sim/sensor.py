@@ -187,22 +187,6 @@ class LaserSensor:
                 order_s = np.concatenate([surf[:k], np.array([3], surf.dtype), surf[k:]])
                 order_b = np.concatenate([bright[:k], [0.5 * (bright[k - 1] + bright[k])],
                                           bright[k:]])
-        # the stripe and the seam point projected in one call (each point on its own)
-        X_order = (order_P - c) @ R
-        if seam_ok:
-            both = self.project(np.concatenate([X_order, seam_C[None]]))
-            uv, seam_uv = both[:-1], both[-1]
-            t_seam = t_cam[len(P):]
-            # The seam lies on both surfaces: its line of sight may graze one of them.
-            visible = bool(t_seam[0] >= np.linalg.norm(seam_T - c) - 0.05
-                           and self.in_image(seam_uv) and seam_C[2] > 1.0)
-        else:
-            uv = self.project(X_order)
-            seam_uv, visible = np.full(2, np.nan), False
-        if k_seam is not None:
-            order_seen = np.concatenate([seen[:k_seam], [visible], seen[k_seam:]])
-        keep = order_seen & self.in_image(uv, margin=-20.0)
-
         a_T, b_T = R @ self._fan_ab[0], R @ self._fan_ab[1]
 
         def lit(angle: np.ndarray) -> np.ndarray:
@@ -211,7 +195,24 @@ class LaserSensor:
             return src + joint.raycast(src, d)[0][:, None] * d
 
         arm_T = self._arm_points(P, surf, psi, seam_T, lit)
-        arm_uv = self.project((arm_T - c) @ R)
+        # the stripe, the seam point and the arm points projected in one call (each point on
+        # its own)
+        X_order = (order_P - c) @ R
+        n = len(X_order)
+        extra = [seam_C[None], (arm_T - c) @ R] if seam_ok else [(arm_T - c) @ R]
+        projected = self.project(np.concatenate([X_order, *extra]))
+        uv, arm_uv = projected[:n], projected[-2:]
+        if seam_ok:
+            seam_uv = projected[n]
+            t_seam = t_cam[len(P):]
+            # The seam lies on both surfaces: its line of sight may graze one of them.
+            visible = bool(t_seam[0] >= np.linalg.norm(seam_T - c) - 0.05
+                           and self.in_image(seam_uv) and seam_C[2] > 1.0)
+        else:
+            seam_uv, visible = np.full(2, np.nan), False
+        if k_seam is not None:
+            order_seen = np.concatenate([seen[:k_seam], [visible], seen[k_seam:]])
+        keep = order_seen & self.in_image(uv, margin=-20.0)
         return StripeView(uv[keep], order_b[keep], order_s[keep], seam_uv, seam_T, arm_T,
                           arm_uv, visible)
 
