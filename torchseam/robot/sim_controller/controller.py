@@ -134,10 +134,9 @@ class SimController:
 
     def _robot_message(self, q: np.ndarray, T: np.ndarray, T_plan: np.ndarray,
                        compute_s: float) -> Any:
-        last = self.arm.last   # the compiled cycle's quaternions and distance of these poses
-        known = last if last is not None and last[0] is T and last[1] is T_plan else None
-        return self._messages.build(q, T, self.arm.q, T_plan, self.arm.running, compute_s,
-                                    known=None if known is None else known[2:])
+        # the compiled cycle's quaternions and distance of these poses (None: computed there)
+        self._messages.known = self.arm.last
+        return self._messages.build(q, T, self.arm.q, T_plan, self.arm.running, compute_s)
 
     def _command(self, msg: Any) -> np.ndarray | None:
         """:func:`sensor_command` of a reply; in pose mode the same pose as the last reply's

@@ -43,22 +43,26 @@ class RobotMessages:
         self._quat = quat   # rotation -> quaternion (the arm's QuatCache: the same numbers)
         self._seqno = 0
         self._t0 = time.perf_counter()
+        #: the next :meth:`build`'s feedback and planned poses with their quaternions (2, 4)
+        #: and the distance between their positions, when its caller has them (the arm's
+        #: compiled cycle), else None
+        self.known: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
 
     def build(self, q: np.ndarray, T: np.ndarray, q_plan: np.ndarray, T_plan: np.ndarray,
-              running: bool, compute_s: float,
-              known: tuple[np.ndarray, float] | None = None) -> Any:
+              running: bool, compute_s: float) -> Any:
         """The next ``EgmRobot``: feedback joints ``q`` (deg) and TCP ``T`` (4x4 mm), planned
         joints and TCP, whether RAPID runs, the cycle's compute time (s). Header and clocks are
-        stamped by :meth:`stamp` when it is sent. ``known``: the quaternions (2, 4) of ``T``
-        and ``T_plan`` and the distance between their positions, when the caller has them
-        (the same numbers as computed here)."""
+        stamped by :meth:`stamp` when it is sent. Where :attr:`known` holds these very poses
+        (the same objects), their quaternions and distance are taken from it (the same
+        numbers as computed here); it is cleared."""
         msg = EgmRobot()
+        known, self.known = self.known, None
         quats: Any
-        if known is None:
+        if known is not None and known[0] is T and known[1] is T_plan:
+            quats, dist = known[2], known[3]
+        else:
             quats = (self._quat(T[:3, :3]), self._quat(T_plan[:3, :3]))
             dist = float(np.linalg.norm(T[:3, 3] - T_plan[:3, 3]))
-        else:
-            quats, dist = known[0], known[1]
         for part, joints, pose, quat in ((msg.feedBack, q, T, quats[0]),
                                          (msg.planned, q_plan, T_plan, quats[1])):
             part.joints.joints.extend(np.asarray(joints, dtype=float).tolist())
