@@ -99,6 +99,41 @@ def test_the_compiled_newton_step_is_its_numpy_statement(robot):
         np.testing.assert_allclose(dq, dq_np, rtol=1e-7, atol=1e-9)
 
 
+def test_the_compiled_pose_cycle_is_its_numpy_statement(robot):
+    """Pose mode's compiled cycle (step towards the target, Newton step, speed limits, the
+    messages' quaternions and convergence) gives the numpy statement's numbers to the bit, and
+    the same EgmRobot bytes."""
+    from torchseam.robot.sim_controller import arm as arm_module
+
+    sim = CFG.sim_controller
+    if not arm_module._pose_kernel_agrees(robot, sim):
+        pytest.skip("this machine's BLAS sums dot products otherwise: the arm keeps numpy")
+    fast, ref = ArmModel(robot, TOOL, sim, "pose"), ArmModel(robot, TOOL, sim, "pose")
+    ref._pose_update = None   # the numpy statement
+    assert fast._pose_update is not None
+    out = [RobotMessages(sim.period_s, fast.quats), RobotMessages(sim.period_s, ref.quats)]
+    home = ref.tcp_pose()
+    rng = np.random.default_rng(4)
+    for k in range(240):
+        if k % 60 == 10:   # (the first cycles without a target: the arm holds its pose)
+            target = home.copy()
+            target[:3, 3] += rng.normal(0.0, 8.0, 3)
+            target[:3, :3] = rotation_about(np.array([0.2, 1.0, -0.3]) / np.linalg.norm(
+                [0.2, 1.0, -0.3]), rng.normal(0.0, 0.1)) @ home[:3, :3]
+            target.setflags(write=False)   # as the controller's commands are
+            fast.target = ref.target = target
+        got, want = fast.update(sim.period_s), ref.update(sim.period_s)
+        for g, w in zip(got, want, strict=True):
+            assert np.array_equal(g, w), k
+        assert fast.last is not None and ref.last is None
+        out[0].known = fast.last
+        a = out[0].build(got[0], got[1], fast.q, got[2], True, 0.0)
+        assert out[0].known is None
+        b = out[1].build(want[0], want[1], ref.q, want[2], True, 0.0)
+        assert a.SerializePartialToString() == b.SerializePartialToString(), k
+    assert np.array_equal(fast.q, ref.q)
+
+
 def test_the_arm_runs_its_path_with_the_correction_in_the_tool_frame(robot):
     sim = dataclasses.replace(CFG.sim_controller, path_length_mm=20.0)
     arm = ArmModel(robot, TOOL, sim, "pathcorr")

@@ -249,3 +249,30 @@ def test_a_camera_that_sees_no_part_projects_nothing():
     from torchseam.sim.sensor import LaserSensor
 
     assert LaserSensor(load_cell()).project(np.zeros((0, 3))).shape == (0, 2)
+
+
+def test_compiled_stripe_samples_are_the_numpy_statements():
+    """The stripe's splat samples, compiled: np.diff, the row norms, np.repeat and the
+    interpolated brightness of the numpy statement, to the bit (gaps not bridged)."""
+    from torchseam.core.kernels import load_kernels
+    from torchseam.sim.sensor import SPLAT_STEP_PX
+
+    k = load_kernels("torchseam.sim")
+    rng = np.random.default_rng(8)
+    for trial in range(40):
+        n = int(rng.integers(2, 400))
+        uv = np.cumsum(rng.normal(0.0, 1.5 if trial % 2 else 4.0, (n, 2)), axis=0) + 300.0
+        bright = rng.random(n)
+        pts, step, weight, starts = k.stripe_samples(uv, bright, SPLAT_STEP_PX, 6.0)
+        seg = np.diff(uv, axis=0)
+        seg_len = np.linalg.norm(seg, axis=1)
+        n_sub = np.maximum(1, np.ceil(seg_len / SPLAT_STEP_PX).astype(int)) * (seg_len < 6.0)
+        s = np.repeat(np.arange(len(seg)), n_sub)
+        frac = (np.arange(n_sub.sum()) - np.repeat(np.cumsum(n_sub) - n_sub, n_sub)) / np.repeat(
+            np.maximum(n_sub, 1), n_sub)
+        want_step = seg_len[s] / np.maximum(n_sub[s], 1)
+        np.testing.assert_array_equal(starts, s)
+        np.testing.assert_array_equal(pts, uv[s] + frac[:, None] * seg[s])
+        np.testing.assert_array_equal(step, want_step)
+        np.testing.assert_array_equal(weight, (bright[s] * (1 - frac) + bright[s + 1] * frac)
+                                      * want_step)

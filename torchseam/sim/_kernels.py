@@ -11,6 +11,8 @@ loaded from numba's on-disk cache) when this module is imported, which
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 from llvmlite import ir
@@ -53,27 +55,70 @@ def finish_frame(light, background, noise, row, col, sigma, out):  # pragma: no 
             o_row[j] = np.uint8(min(max(v, lo), hi))
 
 
-@numba.njit("f8[::1](i8[::1], i8[::1], f8[::1], f8[::1], f8[::1], i8, i8)", cache=True,
-            nogil=True)
-def splat_box(x0, y0, fx, fy, weight, bw, bh):  # pragma: no cover - compiled
-    """Bilinear splat of points into a (bh, bw) box, flat: the point at pixel ``(x0, y0)``
-    (box coordinates) plus ``(fx, fy)`` adds ``weight`` times its four bilinear weights to
-    that pixel and its right, lower and lower-right neighbours. The sums of ``np.bincount``
-    with weights, one corner after the other (each corner's sums in the points' order, then
-    added to the box in the order (0, 0), (1, 0), (0, 1), (1, 1)): the same numbers."""
+@numba.njit("i8[::1](f8[:, ::1], f8[::1], f4[:, ::1])", cache=True, nogil=True)
+def splat(pts, weight, img):  # pragma: no cover - compiled
+    """Bilinear splat of weighted points (N, 2) into the all-zero float32 (H, W) ``img``;
+    returns the box ``(x0, y0, x1, y1)`` (end-exclusive, inside the image) that holds every
+    pixel it wrote, or ``(-1, -1, -1, -1)`` when no point lies in the image.
+
+    The numbers of the numpy statement: the points with ``-1 < u < W`` and ``-1 < v < H``,
+    each at pixel ``(floor u, floor v)`` plus ``(fx, fy)``, add ``weight`` times their four
+    bilinear weights to that pixel and its right, lower and lower-right neighbours, in a box
+    from the smallest pixel to one past the largest; the sums are ``np.bincount``'s with
+    weights, one corner after the other (each corner's sums in the points' order, added to
+    the box in the order (0, 0), (1, 0), (0, 1), (1, 1)), and the box, less what lies outside
+    the image, is cast to float32 into the image. A corner's sums are added where that corner
+    touched the box only (elsewhere they are +0.0, which changes no sum: a sum here never is
+    -0.0), so the work follows the points, not the box."""
+    h, w = img.shape
+    n_in = 0
+    bx, by, mx, my = 0, 0, 0, 0
+    for i in range(len(pts)):
+        u, v = pts[i, 0], pts[i, 1]
+        if u > -1 and u < w and v > -1 and v < h:
+            xi, yi = int(math.floor(u)), int(math.floor(v))
+            if n_in == 0:
+                bx, by, mx, my = xi, yi, xi, yi
+            else:
+                bx, by, mx, my = min(bx, xi), min(by, yi), max(mx, xi), max(my, yi)
+            n_in += 1
+    box = np.full(4, -1, np.int64)
+    if n_in == 0:
+        return box
+    bw, bh = mx - bx + 2, my - by + 2
     n = bw * bh
     acc = np.zeros(n)
-    part = np.empty(n)
+    part = np.zeros(n)
+    seen = np.zeros(n, np.bool_)
+    touched = np.empty(n_in, np.int64)
     for k in range(4):
         dx, dy = k % 2, k // 2
-        part[:] = 0.0
-        for i in range(len(x0)):
-            wx = fx[i] if dx else 1 - fx[i]
-            wy = fy[i] if dy else 1 - fy[i]
-            part[(y0[i] + dy) * bw + x0[i] + dx] += weight[i] * (wx * wy)
-        for j in range(n):
+        m = 0
+        for i in range(len(pts)):
+            u, v = pts[i, 0], pts[i, 1]
+            if not (u > -1 and u < w and v > -1 and v < h):
+                continue
+            xf, yf = math.floor(u), math.floor(v)
+            fx, fy = u - xf, v - yf
+            wx = fx if dx else 1 - fx
+            wy = fy if dy else 1 - fy
+            j = (int(yf) - by + dy) * bw + int(xf) - bx + dx
+            part[j] += weight[i] * (wx * wy)
+            if not seen[j]:
+                seen[j] = True
+                touched[m] = j
+                m += 1
+        for t in range(m):
+            j = touched[t]
             acc[j] += part[j]
-    return acc
+            part[j] = 0.0
+            seen[j] = False
+            y, x = by + j // bw, bx + j % bw
+            if 0 <= y < h and 0 <= x < w:
+                img[y, x] = np.float32(acc[j])
+    box[0], box[1] = max(0, bx), max(0, by)
+    box[2], box[3] = bx + min(bw, w - bx), by + min(bh, h - by)
+    return box
 
 
 @numba.njit("void(f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], i8, i8, f4[::1])", cache=True,
@@ -128,3 +173,122 @@ def mix_light(stripe, glare, spatter, mix, tail_from, out):  # pragma: no cover 
     against ``cv2.transform`` with (``sequence._fused_mix_agrees``)."""
     for y in range(stripe.shape[0]):
         _mix_row(stripe, glare, spatter, mix, y, tail_from, out[y])
+
+
+@numba.njit("void(f4[:, ::1], f4[:, ::1], i8, i8, i8, i8, f8)", cache=True, nogil=True)
+def paste_scaled(img, template, y0, x0, ty0, tx0, peak):  # pragma: no cover - compiled
+    """``img[y0:, x0:] = float32(peak * template[ty0:, tx0:])`` over the overlap (the
+    arithmetic of ``np.multiply(template, peak, out=img, casting="same_kind")`` with a float64
+    ``peak``: each product in float64, rounded once to float32), ``img``'s box being the
+    part of the template's box that lies inside the image (given by the caller)."""
+    h = min(img.shape[0] - y0, template.shape[0] - ty0)
+    w = min(img.shape[1] - x0, template.shape[1] - tx0)
+    for y in range(h):
+        i_row, t_row = img[y0 + y], template[ty0 + y]
+        for x in range(w):
+            i_row[x0 + x] = np.float32(np.float64(t_row[tx0 + x]) * peak)
+
+
+@numba.njit("void(f4[::1], f4[::1], f8, f8, f8, f8, f8, f8, f8[:, ::1])", cache=True,
+            nogil=True)
+def blob_arg(xs, ys, cx, cy, ca, sa, ra, rb, out):  # pragma: no cover - compiled
+    """The exponent of a reflection blob on the box of pixel columns ``xs`` and rows ``ys``
+    (float32 coordinates): ``-0.5 * (p^2 + q^2)`` with ``p = (ca dx + sa dy) / ra``,
+    ``q = (-sa dx + ca dy) / rb``, ``dx = x - cx``, ``dy = y - cy``, each operation in float64
+    in ``ArcNoise._blob``'s order (its numpy passes' numbers)."""
+    msa = -sa
+    for i in range(len(ys)):
+        dy = np.float64(ys[i]) - cy
+        sdy, cdy = sa * dy, ca * dy
+        o_row = out[i]
+        for j in range(len(xs)):
+            dx = np.float64(xs[j]) - cx
+            p = (ca * dx + sdy) / ra
+            q = (msa * dx + cdy) / rb
+            o_row[j] = (p * p + q * q) * -0.5
+
+
+@numba.njit("void(f4[:, ::1], i8, i8, f8[:, ::1], f8)", cache=True, nogil=True)
+def add_scaled(img, y0, x0, vals, amp):  # pragma: no cover - compiled
+    """``img[y0:, x0:][:h, :w] += vals * amp`` for the (h, w) float64 ``vals``: the product in
+    float64, the sum of the float32 pixel and it in float64, rounded once to float32 (numpy's
+    ``img[box] += p`` of a float64 ``p``)."""
+    for i in range(vals.shape[0]):
+        i_row, v_row = img[y0 + i], vals[i]
+        for j in range(vals.shape[1]):
+            i_row[x0 + j] = np.float32(np.float64(i_row[x0 + j]) + v_row[j] * amp)
+
+
+@numba.njit("void(f4[::1], f4[::1], f8, f8, f8, f8, f8, f8, f8[:, ::1])", cache=True,
+            nogil=True)
+def band_arg(xs, ys, x0, y0, d0, d1, len2, two_w2, out):  # pragma: no cover - compiled
+    """The exponent of the groove's band (``ArcNoise._band``) on the box of pixel columns
+    ``xs`` and rows ``ys``: ``-(ex^2 + ey^2) / two_w2`` with ``(ex, ey)`` the pixel's offset
+    from its nearest point ``t`` (clipped to [0, 1]) along the segment from ``(x0, y0)`` by
+    ``(d0, d1)``; float64, in the numpy passes' order."""
+    for i in range(len(ys)):
+        dy = np.float64(ys[i]) - y0
+        dyd = dy * d1
+        o_row = out[i]
+        for j in range(len(xs)):
+            dx = np.float64(xs[j]) - x0
+            t = min(max((dx * d0 + dyd) / len2, 0.0), 1.0)
+            ex = dx - t * d0
+            ey = dy - t * d1
+            o_row[j] = -(ex * ex + ey * ey) / two_w2
+
+
+@numba.njit("void(f4[:, ::1], i8, i8, f4[::1], f4[::1], f8, f8, f8, f8, f8, f8, f8[:, ::1])",
+            cache=True, nogil=True)
+def band_add(img, r0, c0, xs, ys, x0, y0, d0, d1, len2, amp, e):  # pragma: no cover
+    """``img`` += the groove's band on its box (rows from ``r0``, columns from ``c0``):
+    ``((1 - 0.6 t) * amp) * e`` with ``t`` as in :func:`band_arg` and ``e`` the exponential
+    of its exponent, added as :func:`add_scaled` adds (float64, rounded once to float32)."""
+    for i in range(len(ys)):
+        dy = np.float64(ys[i]) - y0
+        dyd = dy * d1
+        i_row, e_row = img[r0 + i], e[i]
+        for j in range(len(xs)):
+            dx = np.float64(xs[j]) - x0
+            t = min(max((dx * d0 + dyd) / len2, 0.0), 1.0)
+            v = ((1.0 - t * 0.6) * amp) * e_row[j]
+            i_row[c0 + j] = np.float32(np.float64(i_row[c0 + j]) + v)
+
+
+@numba.njit("Tuple((f8[:, ::1], f8[::1], f8[::1], i8[::1]))(f8[:, ::1], f8[::1], f8, f8)",
+            cache=True, nogil=True)
+def stripe_samples(uv, brightness, step_px, max_gap_px):  # pragma: no cover - compiled
+    """The stripe's splat samples along its polyline ``uv`` (N, 2): each segment shorter than
+    ``max_gap_px`` cut into ``max(1, ceil(length / step_px))`` samples at fractions ``j / n``
+    (longer ones, real gaps, into none). Returns the samples (M, 2), the arc length per sample,
+    the brightness interpolated along the segment times that length, and each sample's segment.
+    ``LaserSensor.stripe_layer``'s numpy statement (np.diff, the row norms, np.repeat,
+    np.cumsum), element by element in its order: the same numbers."""
+    n_seg = max(len(uv) - 1, 0)
+    seg_len = np.empty(n_seg)
+    n_sub = np.empty(n_seg, np.int64)
+    total = 0
+    for i in range(n_seg):
+        d0, d1 = uv[i + 1, 0] - uv[i, 0], uv[i + 1, 1] - uv[i, 1]
+        seg_len[i] = math.sqrt(d0 * d0 + d1 * d1)
+        n_sub[i] = max(1, int(math.ceil(seg_len[i] / step_px))) if seg_len[i] < max_gap_px \
+            else 0
+        total += n_sub[i]
+    pts = np.empty((total, 2))
+    step = np.empty(total)
+    weight = np.empty(total)
+    starts = np.empty(total, np.int64)
+    k = 0
+    for i in range(n_seg):
+        n = n_sub[i]
+        d0, d1 = uv[i + 1, 0] - uv[i, 0], uv[i + 1, 1] - uv[i, 1]
+        st = seg_len[i] / max(n, 1)
+        for j in range(n):
+            f = np.float64(j) / np.float64(max(n, 1))
+            pts[k, 0] = uv[i, 0] + f * d0
+            pts[k, 1] = uv[i, 1] + f * d1
+            step[k] = st
+            weight[k] = (brightness[i] * (1 - f) + brightness[i + 1] * f) * st
+            starts[k] = i
+            k += 1
+    return pts, step, weight, starts

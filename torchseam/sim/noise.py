@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from torchseam.core.config import MAX_NOISE_LEVEL, AppearanceFamily, NoiseConfig
+from torchseam.core.kernels import load_kernels
 
 # Colours of the ``sim`` family (``configs/noise.yaml`` holds every family's): arc light behind
 # the 650 nm band-pass, as seen through the Bayer filter (B, G, R): the core saturates white,
@@ -99,6 +100,13 @@ class ArcNoise:
         self.burst_left = 0
         yy, xx = np.mgrid[0:self.h, 0:self.w].astype(np.float32)
         self._xx, self._yy = xx, yy
+        # the pixel coordinates of a row and of a column (float32), and the blobs' and the
+        # band's float64 work array (reused)
+        self._xs, self._ys = np.ascontiguousarray(xx[0]), np.ascontiguousarray(yy[:, 0])
+        self._work_buf = np.empty(self.h * self.w)
+        self._blur_plane = np.empty((self.h, self.w), np.float32)
+        self._planes: tuple[np.ndarray, np.ndarray] | None = None   # next(reuse=True)'s
+        self._k = load_kernels(__package__)
         self._ramp = 1.0 - 0.5 * yy / self.h
         # glare: saturated core plus a long halo, as a template pasted at the arc each frame
         g = self.look.glare
@@ -123,16 +131,19 @@ class ArcNoise:
                          self.rng.uniform(r0, r1), self.rng.uniform(r0, r1) * 0.4,
                          self.rng.uniform(0, np.pi), self.rng.uniform(b0, b1)])
 
-    def next(self, arc_uv: np.ndarray, stripe_uv: np.ndarray) -> NoiseLayers:
+    def next(self, arc_uv: np.ndarray, stripe_uv: np.ndarray, reuse: bool = False
+             ) -> NoiseLayers:
         """Advance one frame.
 
         Args:
             arc_uv: (2,) pixel of the arc (torch tip), may lie outside the image.
             stripe_uv: (2,) pixel of the stripe's feature point (reflections gather near it).
+            reuse: the glare and spatter layers are this generator's own two planes, zeroed
+                and drawn again by the next call (a renderer that is done with them by then
+                saves two fresh frame-sized planes, and their page faults, per frame).
         """
         L, cfg, rng, look = self.level, self.cfg, self.rng, self.look
-        out = NoiseLayers(np.zeros((self.h, self.w), np.float32),
-                          np.zeros((self.h, self.w), np.float32), [], NoiseFlags())
+        out = NoiseLayers(*self._zeroed_planes(reuse), [], NoiseFlags())
         if L <= 0.0:
             return out
         flags, glare, spatter = out.flags, out.glare, out.spatter
@@ -179,7 +190,9 @@ class ArcNoise:
             ys = slice(max(0, y0 - m), min(self.h, y1 + m))
             xs = slice(max(0, x0 - m), min(self.w, x1 + m))
             if ys.start < ys.stop and xs.start < xs.stop:
-                spatter[ys, xs] = cv2.GaussianBlur(spatter[ys, xs], (0, 0), 0.8)
+                # (into a reused plane: a fresh one would cost its page faults every frame)
+                blurred = self._blur_plane[:ys.stop - ys.start, :xs.stop - xs.start]
+                spatter[ys, xs] = cv2.GaussianBlur(spatter[ys, xs], (0, 0), 0.8, dst=blurred)
 
         if rng.random() < cfg.flash.prob * L:
             flags.flash = True
@@ -204,6 +217,18 @@ class ArcNoise:
             out.rows = self._band_rows(ex.band_gain)
         return out
 
+    def _zeroed_planes(self, reuse: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Two all-zero float32 (H, W) planes: new ones, or (``reuse``) this generator's own."""
+        if not reuse:
+            return (np.zeros((self.h, self.w), np.float32),
+                    np.zeros((self.h, self.w), np.float32))
+        if self._planes is None:
+            self._planes = (np.zeros((self.h, self.w), np.float32),
+                            np.zeros((self.h, self.w), np.float32))
+        for plane in self._planes:
+            plane.fill(0.0)
+        return self._planes
+
     # ------------------------------------------------------------ primitives
     def _roi(self, cx: float, cy: float, r: float) -> tuple[slice, slice] | None:
         x0, x1 = int(max(0, cx - r)), int(min(self.w, cx + r + 1))
@@ -217,7 +242,8 @@ class ArcNoise:
         """Add the precomputed glare template, centred (to the pixel) on the arc.
 
         ``fresh``: ``img`` is all zeros, so the product is written straight into it (the same
-        numbers as adding it, without a full-frame temporary).
+        numbers as adding it, without a full-frame temporary: ``_kernels.paste_scaled``, each
+        product in float64 rounded once to float32, as ``0 + peak * t`` stores).
         """
         t = self._glare_t
         r = t.shape[0] // 2
@@ -225,45 +251,35 @@ class ArcNoise:
         x0, x1 = max(0, cx - r), min(self.w, cx + r + 1)
         y0, y1 = max(0, cy - r), min(self.h, cy + r + 1)
         if x0 < x1 and y0 < y1:
-            src = t[y0 - cy + r:y1 - cy + r, x0 - cx + r:x1 - cx + r]
             if fresh:
-                # peak (a float64 scalar) times the float32 template is computed in float64 and
-                # rounded to float32 on the way out: exactly what 0 + peak * t stores
-                np.multiply(src, peak, out=img[y0:y1, x0:x1], casting="same_kind")
+                self._k.paste_scaled(img, t, y0, x0, y0 - cy + r, x0 - cx + r, float(peak))
             else:
-                img[y0:y1, x0:x1] += peak * src
+                img[y0:y1, x0:x1] += peak * t[y0 - cy + r:y1 - cy + r, x0 - cx + r:x1 - cx + r]
 
-    def _axes(self, roi: tuple[slice, slice]) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel x (1, w) and y (h, 1) coordinates of a ROI, float32 (broadcast, not tiled)."""
-        return (self._xx[0, roi[1]][None, :], self._yy[roi[0], 0][:, None])
+    def _work(self, roi: tuple[slice, slice]) -> np.ndarray:
+        """A reused float64 work array of a ROI's shape (a view of one frame-sized buffer)."""
+        n = (roi[0].stop - roi[0].start) * (roi[1].stop - roi[1].start)
+        return self._work_buf[:n].reshape(roi[0].stop - roi[0].start, -1)
 
     def _blob(self, img: np.ndarray, ref: np.ndarray, amp: float) -> None:
-        # The same arithmetic, element for element, as on full (h, w) coordinate grids, but
-        # the coordinates broadcast from a row and a column and the work arrays are reused in
-        # place: a third of the time, bit-identical pixels.
+        # The same arithmetic, element for element, as numpy's passes on full (h, w)
+        # coordinate grids (float64, in their order: ``_kernels.blob_arg``), the exponential
+        # numpy's, the sum as ``img[roi] += p`` (``_kernels.add_scaled``): bit-identical pixels
         cx, cy, ra, rb, ang = ref[:5]
         roi = self._roi(cx, cy, 3 * ra)
         if roi is None:
             return
-        xs, ys = self._axes(roi)
-        dx, dy = xs - cx, ys - cy
-        ca, sa = np.cos(ang), np.sin(ang)
-        p = np.add(ca * dx, sa * dy)
-        np.divide(p, ra, out=p)
-        q = np.add(-sa * dx, ca * dy)
-        np.divide(q, rb, out=q)
-        np.multiply(p, p, out=p)
-        np.multiply(q, q, out=q)
-        np.add(p, q, out=p)
-        np.multiply(p, -0.5, out=p)
+        ys, xs = roi
+        p = self._work(roi)
+        self._k.blob_arg(self._xs[xs], self._ys[ys], float(cx), float(cy),
+                         float(np.cos(ang)), float(np.sin(ang)), float(ra), float(rb), p)
         np.exp(p, out=p)
-        np.multiply(p, amp, out=p)
-        img[roi] += p
+        self._k.add_scaled(img, ys.start, xs.start, p, float(amp))
 
     def _band(self, img: np.ndarray, p0: np.ndarray, p1: np.ndarray, width: float,
               amp: float) -> None:
         """Gaussian band along the segment p0-p1, fading towards p1 (bit-identical to the
-        full-grid arithmetic; see :meth:`_blob`)."""
+        full-grid arithmetic; see :meth:`_blob`: ``_kernels.band_arg`` and ``band_add``)."""
         d = p1 - p0
         length = float(np.hypot(*d))
         if length < 1.0 or amp <= 0:
@@ -272,26 +288,13 @@ class ArcNoise:
         roi = self._roi(mid[0], mid[1], 0.5 * length + 3 * width)
         if roi is None:
             return
-        xs, ys = self._axes(roi)
-        dx, dy = xs - p0[0], ys - p0[1]
-        t = np.add(dx * d[0], dy * d[1])
-        np.divide(t, length**2, out=t)
-        np.clip(t, 0.0, 1.0, out=t)
-        ex = np.multiply(t, d[0])
-        np.subtract(dx, ex, out=ex)
-        ey = np.multiply(t, d[1])
-        np.subtract(dy, ey, out=ey)
-        np.multiply(ex, ex, out=ex)
-        np.multiply(ey, ey, out=ey)
-        np.add(ex, ey, out=ex)
-        np.negative(ex, out=ex)
-        np.divide(ex, 2 * width**2, out=ex)
-        np.exp(ex, out=ex)
-        np.multiply(t, 0.6, out=t)
-        np.subtract(1.0, t, out=t)
-        np.multiply(t, amp, out=t)
-        np.multiply(t, ex, out=t)
-        img[roi] += t
+        ys, xs = roi
+        xr, yc = self._xs[xs], self._ys[ys]
+        geo = (float(p0[0]), float(p0[1]), float(d[0]), float(d[1]), length**2)
+        e = self._work(roi)
+        self._k.band_arg(xr, yc, *geo, 2 * width**2, e)
+        np.exp(e, out=e)
+        self._k.band_add(img, ys.start, xs.start, xr, yc, *geo, float(amp), e)
 
     def _launch(self) -> tuple[float, float]:
         """Direction and distance from the arc of one spatter droplet: mostly upwards (towards
@@ -305,11 +308,12 @@ class ArcNoise:
         brighter head); returns the box (x0, y0, x1, y1) it may touch."""
         rng, sp, look = self.rng, self.cfg.spatter, self.look.spatter
         ang, dist = self._launch()
-        start = arc + dist * np.array([np.cos(ang), np.sin(ang)])
+        # element by element, the numbers of the (2,) array arithmetic
+        sx, sy = arc[0] + dist * np.cos(ang), arc[1] + dist * np.sin(ang)
         length = rng.uniform(sp.length_px[0], sp.length_px[1]) * look.length_scale
         dirn = ang + rng.normal(0, 0.3)
-        end = start + length * np.array([np.cos(dirn), np.sin(dirn)])
-        p0, p1 = tuple(int(v) for v in start * 16), tuple(int(v) for v in end * 16)
+        ex, ey = sx + length * np.cos(dirn), sy + length * np.sin(dirn)
+        p0, p1 = (int(sx * 16), int(sy * 16)), (int(ex * 16), int(ey * 16))
         # drawn in this order: the same random stream
         value = float(rng.uniform(sp.brightness[0], sp.brightness[1]))
         thick = int(rng.integers(look.size_px[0], look.size_px[1] + 1))

@@ -110,6 +110,8 @@ class LaserSensor:
         grain = np.random.default_rng(7).standard_normal(((h + 32) // 2, (w + 32) // 2))
         self._grain_field = cv2.resize(grain.astype(np.float32), (w + 32, h + 32))
         self._grains: dict[float, np.ndarray] = {}
+        # the stripe's blurred box (reused: a fresh plane costs its page faults every frame)
+        self._blur_plane = np.empty((h, w), np.float32)
         self._glint_rays: np.ndarray | None = None
         load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
 
@@ -180,25 +182,11 @@ class LaserSensor:
             k = jump[np.argmin(np.linalg.norm(P[jump] - seam_T, axis=1))] + 1
             if np.linalg.norm(P[k] - seam_T) < 2.0:
                 k_seam = k
-                order_P = np.insert(P, k, seam_T, axis=0)
-                order_s = np.insert(surf, k, 3)
-                order_b = np.insert(bright, k, 0.5 * (bright[k - 1] + bright[k]))
-        # the stripe and the seam point projected in one call (each point on its own)
-        X_order = (order_P - c) @ R
-        if seam_ok:
-            both = self.project(np.concatenate([X_order, seam_C[None]]))
-            uv, seam_uv = both[:-1], both[-1]
-            t_seam = t_cam[len(P):]
-            # The seam lies on both surfaces: its line of sight may graze one of them.
-            visible = bool(t_seam[0] >= np.linalg.norm(seam_T - c) - 0.05
-                           and self.in_image(seam_uv) and seam_C[2] > 1.0)
-        else:
-            uv = self.project(X_order)
-            seam_uv, visible = np.full(2, np.nan), False
-        if k_seam is not None:
-            order_seen = np.insert(seen, k_seam, visible)
-        keep = order_seen & self.in_image(uv, margin=-20.0)
-
+                # (np.insert's values, without its overhead)
+                order_P = np.concatenate([P[:k], seam_T[None], P[k:]])
+                order_s = np.concatenate([surf[:k], np.array([3], surf.dtype), surf[k:]])
+                order_b = np.concatenate([bright[:k], [0.5 * (bright[k - 1] + bright[k])],
+                                          bright[k:]])
         a_T, b_T = R @ self._fan_ab[0], R @ self._fan_ab[1]
 
         def lit(angle: np.ndarray) -> np.ndarray:
@@ -207,7 +195,24 @@ class LaserSensor:
             return src + joint.raycast(src, d)[0][:, None] * d
 
         arm_T = self._arm_points(P, surf, psi, seam_T, lit)
-        arm_uv = self.project((arm_T - c) @ R)
+        # the stripe, the seam point and the arm points projected in one call (each point on
+        # its own)
+        X_order = (order_P - c) @ R
+        n = len(X_order)
+        extra = [seam_C[None], (arm_T - c) @ R] if seam_ok else [(arm_T - c) @ R]
+        projected = self.project(np.concatenate([X_order, *extra]))
+        uv, arm_uv = projected[:n], projected[-2:]
+        if seam_ok:
+            seam_uv = projected[n]
+            t_seam = t_cam[len(P):]
+            # The seam lies on both surfaces: its line of sight may graze one of them.
+            visible = bool(t_seam[0] >= np.linalg.norm(seam_T - c) - 0.05
+                           and self.in_image(seam_uv) and seam_C[2] > 1.0)
+        else:
+            seam_uv, visible = np.full(2, np.nan), False
+        if k_seam is not None:
+            order_seen = np.concatenate([seen[:k_seam], [visible], seen[k_seam:]])
+        keep = order_seen & self.in_image(uv, margin=-20.0)
         return StripeView(uv[keep], order_b[keep], order_s[keep], seam_uv, seam_T, arm_T,
                           arm_uv, visible)
 
@@ -333,7 +338,8 @@ class LaserSensor:
 
     def stripe_layer(self, view: StripeView, rng: np.random.Generator,
                      gaps: list[tuple[float, float]] | None = None,
-                     look: StripeLook | None = None) -> np.ndarray:
+                     look: StripeLook | None = None, out: np.ndarray | None = None
+                     ) -> np.ndarray:
         """Float32 (H, W) red-channel stripe intensity, speckled, with optional dropouts.
 
         ``gaps`` are (start, end) arc-length ranges in pixels along the imaged stripe, measured
@@ -344,24 +350,22 @@ class LaserSensor:
         draws that cross-section twice, ``split_px`` apart across the stripe on either side of
         the fan's mid-plane (where the labels are), the second lobe weaker
         (:data:`SPLIT_SECOND_LOBE`); the light of the stripe is shared between them.
+        ``out``: a C-contiguous float32 (H, W) plane to draw into (zeroed first) and return,
+        instead of a new one.
         """
         look = DEFAULT_STRIPE if look is None else look
         w, h = self.size
         uv = view.uv
+        if out is not None:
+            out.fill(0.0)
         if len(uv) < 2:
-            return np.zeros((h, w), np.float32)
-        seg = np.diff(uv, axis=0)
-        seg_len = np.linalg.norm(seg, axis=1)
-        # Do not bridge real gaps (occlusion, fan ends): consecutive samples must be close.
-        ok = seg_len < 6.0
-        n_sub = np.maximum(1, np.ceil(seg_len / SPLAT_STEP_PX).astype(int)) * ok
-        starts = np.repeat(np.arange(len(seg)), n_sub)
-        frac = (np.arange(n_sub.sum()) - np.repeat(np.cumsum(n_sub) - n_sub, n_sub)) / np.repeat(
-            np.maximum(n_sub, 1), n_sub)
-        pts = uv[starts] + frac[:, None] * seg[starts]
-        step = seg_len[starts] / np.maximum(n_sub[starts], 1)   # arc length per sample
-        weight = (view.brightness[starts] * (1 - frac) + view.brightness[starts + 1] * frac)
-        weight = weight * step
+            return np.zeros((h, w), np.float32) if out is None else out
+        # Samples every SPLAT_STEP_PX along the polyline, weighted by the brightness and the
+        # arc length per sample. Do not bridge real gaps (occlusion, fan ends): consecutive
+        # samples must be close (compiled: torchseam.sim._kernels.stripe_samples)
+        pts, step, weight, starts = load_kernels(__package__).stripe_samples(
+            np.ascontiguousarray(uv, dtype=np.float64),
+            np.ascontiguousarray(view.brightness, dtype=np.float64), SPLAT_STEP_PX, 6.0)
         # speckle: smooth log-normal modulation along the stripe (mean about 1)
         stride = look.speckle_px / SPLAT_STEP_PX
         sp = rng.standard_normal(int(len(pts) // stride) + 2)
@@ -375,9 +379,11 @@ class LaserSensor:
                 weight[(arc >= a0) & (arc <= a1)] *= 0.04
         unit = step
         if look.split_px > 0:
+            seg = np.diff(uv, axis=0)
+            seg_len = np.linalg.norm(seg, axis=1)
             pts, weight, unit = _split(pts, weight, step, seg[starts], seg_len[starts],
                                        look.split_px)
-        img, box = _splat(pts, weight, w, h)
+        img, box = _splat(pts, weight, w, h, out)
         # grainy laser speckle on the surface: a random crop of a fixed speckle field
         dy, dx = rng.integers(0, 32, 2)
         if box is None:
@@ -389,7 +395,8 @@ class LaserSensor:
         m = max(BLUR_MARGIN_PX, int(4 * sigma) + 2)
         x0, y0, x1, y1 = box
         ys, xs = slice(max(0, y0 - m), min(h, y1 + m)), slice(max(0, x0 - m), min(w, x1 + m))
-        sub = cv2.GaussianBlur(img[ys, xs], (0, 0), sigma)
+        sub = cv2.GaussianBlur(img[ys, xs], (0, 0), sigma,
+                               dst=self._blur_plane[:ys.stop - ys.start, :xs.stop - xs.start])
         if look.order != 1.0:
             sub = _super_gaussian(sub, _splat(pts, unit, w, h)[0][ys, xs], sigma, look.order)
         sub *= look.peak * np.sqrt(2 * np.pi) * sigma
@@ -571,36 +578,22 @@ def _refine_roots(f, brackets: list[tuple[float, float]], n: int = 33, rounds: i
     return out
 
 
-def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int
+def _splat(pts: np.ndarray, weight: np.ndarray, w: int, h: int, out: np.ndarray | None = None
            ) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
-    """Bilinear splat of weighted points into a float32 (h, w) image (keeps the centroid).
+    """Bilinear splat of weighted points into a float32 (h, w) image (keeps the centroid):
+    ``out`` (all zeros, C-contiguous) or a new one.
 
     Returns the image and the box ``(x0, y0, x1, y1)`` (end-exclusive, inside the image)
     that holds every non-zero pixel, or None when nothing landed in the image.
     """
-    img = np.zeros((h, w), np.float32)
-    inside = ((pts[:, 0] > -1) & (pts[:, 0] < w) & (pts[:, 1] > -1) & (pts[:, 1] < h))
-    pts, weight = pts[inside], weight[inside]
-    if len(pts) == 0:
+    img = np.zeros((h, w), np.float32) if out is None else out
+    # compiled (torchseam.sim._kernels.splat): the four corners' np.bincount sums of the
+    # points in the image, in a box around them, cast into the image: the same numbers
+    box = load_kernels(__package__).splat(np.ascontiguousarray(pts, dtype=np.float64),
+                                          np.ascontiguousarray(weight, dtype=np.float64), img)
+    if box[0] < 0:
         return img, None
-    x0 = np.floor(pts[:, 0]).astype(int)
-    y0 = np.floor(pts[:, 1]).astype(int)
-    fx = pts[:, 0] - x0
-    fy = pts[:, 1] - y0
-    # accumulate in the bounding box only (with a one-pixel border for the +1 neighbours)
-    bx, by = x0.min(), y0.min()
-    bw, bh = x0.max() - bx + 2, y0.max() - by + 2
-    # the four corners' np.bincount sums, compiled (torchseam.sim._kernels.splat_box: the
-    # same numbers, a fifth of the time)
-    c = np.ascontiguousarray
-    acc = load_kernels(__package__).splat_box(
-        c(x0 - bx, dtype=np.int64), c(y0 - by, dtype=np.int64), c(fx, dtype=np.float64),
-        c(fy, dtype=np.float64), c(weight, dtype=np.float64), int(bw), int(bh)).reshape(bh, bw)
-    # drop what falls outside the image (the box may start at -1)
-    sx, sy = max(0, -bx), max(0, -by)
-    ex, ey = min(bw, w - bx), min(bh, h - by)
-    img[by + sy:by + ey, bx + sx:bx + ex] = acc[sy:ey, sx:ex]
-    return img, (int(bx + sx), int(by + sy), int(bx + ex), int(by + ey))
+    return img, (int(box[0]), int(box[1]), int(box[2]), int(box[3]))
 
 
 def camera_pose(cell: CellConfig, T_B_W: np.ndarray) -> np.ndarray:

@@ -23,7 +23,7 @@ from torchseam.core.kernels import load_kernels
 from torchseam.core.transforms import apply, invert, rotation_about
 from torchseam.sim.noise import ARC_BGR, SPATTER_BGR, STRIPE_BGR, ArcNoise, NoiseFlags
 from torchseam.sim.scene import Scene
-from torchseam.sim.sensor import LaserSensor, camera_pose
+from torchseam.sim.sensor import LaserSensor
 
 BACKGROUND_GREY = 6.0       # ambient light behind the band-pass filter
 WOBBLE_MM = 0.15            # robot path wobble (std, smooth)
@@ -112,6 +112,8 @@ class SensorRenderer:
         # arithmetic (see _fused_mix_agrees); the camera stage works between the two
         self._fused = not self._camera_on and _fused_mix_agrees(self.mix, w, h)
         self._tail_from = _mix_tail_from(w * h)
+        self._tool_inv = invert(cell.tool.matrix())   # camera_pose's factors
+        self._hand_eye = cell.hand_eye.matrix()
         self.k = 0
 
     def _buf(self, name: str, channels: int, zero: bool = False) -> np.ndarray:
@@ -134,7 +136,8 @@ class SensorRenderer:
         """
         scene, sensor, rng = self.scene, self.sensor, self.rng
         w, h = self.size
-        T_B_C = camera_pose(self.cell, T_B_W)
+        # sensor.camera_pose's product, its factors made once (the same numbers)
+        T_B_C = T_B_W @ self._tool_inv @ self._hand_eye
         T_B_T = scene.part_pose(t_s)
         T_T_C = invert(T_B_T) @ T_B_C
         if phi_hint is None:
@@ -145,7 +148,9 @@ class SensorRenderer:
         arc_uv = sensor.project(apply(invert(T_B_C), T_B_W[:3, 3])[None])[0]
         src = self.arc_noise if arc_on else self.clean
         centre = np.array([w / 2.0, h / 2.0])
-        layers = src.next(arc_uv, view.seam_uv if np.all(np.isfinite(view.seam_uv)) else centre)
+        # (the noise's own planes: this frame is done with them before the next call)
+        layers = src.next(arc_uv, view.seam_uv if np.all(np.isfinite(view.seam_uv)) else centre,
+                          reuse=True)
         look = self.look
         if arc_on and look.glare.glint > 0 and src.level > 0:
             # the arc mirrored by the main pipe: a specular band along the pipe (no random draw)
@@ -158,7 +163,8 @@ class SensorRenderer:
             layers.glare += np.float32(
                 FLASH_GREY / (min(look.glare.bgr) * look.exposure.gain))
             layers.flags.flash = True
-        stripe = (sensor.stripe_layer(view, rng, layers.gaps, look.stripe) if laser_on
+        stripe = (sensor.stripe_layer(view, rng, layers.gaps, look.stripe,
+                                      out=self._buf("stripe", 1)[..., 0]) if laser_on
                   else np.zeros((h, w), np.float32))
         chans = [stripe, layers.glare, layers.spatter]
         if look.haze.amount > 0:   # fume: hides part of the stripe, adds a grey veil

@@ -207,7 +207,7 @@ EgmSensorPathCorr: Any = CLASSES["EgmSensorPathCorr"]
 # --------------------------------------------------------------------------- parsing datagrams
 
 def _finite(values: Any) -> bool:
-    return all(math.isfinite(v) for v in values)
+    return all(map(math.isfinite, values))
 
 
 def _pose_values(pose: Any) -> list[float]:

@@ -17,6 +17,9 @@ import math
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.core.extending import intrinsic
 
 
 @numba.njit("Tuple((f8[::1], f8[:, ::1]))(f8[::1], f8[:, ::1], f8[:, ::1], f8[::1], "
@@ -93,3 +96,121 @@ def newton_step(g, R0, tool, q_deg, T_des, rot_weight, damping):  # pragma: no c
     T[:3, 3] = pt
     T[3, 3] = 1.0
     return dq, T
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):  # pragma: no cover - compiled
+    """``a * b + c`` in float64 rounded once (LLVM's ``llvm.fma.f64``)."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        f = ir.DoubleType()
+        fn = builder.module.declare_intrinsic("llvm.fma", [f], ir.FunctionType(f, [f, f, f]))
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+@numba.njit("f8(f8[::1], f8[::1])", cache=True, nogil=True)
+def blas_dot(a, b):  # pragma: no cover - compiled
+    """``np.dot`` of two short float64 vectors as this machine's BLAS (``ddot``) computes it:
+    a fused multiply-add per element, in order, from 0 (``ArmModel`` checks that it agrees
+    before using :func:`pose_update`)."""
+    s = 0.0
+    for i in range(len(a)):
+        s = _fma(a[i], b[i], s)  # type: ignore[call-arg]
+    return s
+
+
+@numba.njit(cache=True, nogil=True)
+def _quat(R):  # pragma: no cover - compiled
+    """``torchseam.core.transforms.matrix_to_quat`` of one (3, 3) rotation, its arithmetic in
+    its order (Shepperd's method, normalised, w >= 0)."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    k, best = 0, tr
+    if R[0, 0] > best:
+        k, best = 1, R[0, 0]
+    if R[1, 1] > best:
+        k, best = 2, R[1, 1]
+    if R[2, 2] > best:
+        k = 3
+    q = np.empty(4)
+    if k == 0:
+        s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
+        q[0], q[1] = 0.25 * s, (R[2, 1] - R[1, 2]) / s
+        q[2], q[3] = (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s
+    elif k == 1:
+        s = 2.0 * math.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 0.0))
+        q[0], q[1] = (R[2, 1] - R[1, 2]) / s, 0.25 * s
+        q[2], q[3] = (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s
+    elif k == 2:
+        s = 2.0 * math.sqrt(max(1.0 - R[0, 0] + R[1, 1] - R[2, 2], 0.0))
+        q[0], q[1] = (R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s
+        q[2], q[3] = 0.25 * s, (R[1, 2] + R[2, 1]) / s
+    else:
+        s = 2.0 * math.sqrt(max(1.0 - R[0, 0] - R[1, 1] + R[2, 2], 0.0))
+        q[0], q[1] = (R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s
+        q[2], q[3] = (R[1, 2] + R[2, 1]) / s, 0.25 * s
+    q /= math.sqrt(blas_dot(q, q))
+    if q[0] < 0:
+        q = -q
+    return q
+
+
+@numba.njit(cache=True, nogil=True)
+def _slerp_matrix(q0, q1, u):  # pragma: no cover - compiled
+    """``quat_to_matrix(slerp(q0, q1, u))`` of ``torchseam.core.transforms``, their arithmetic
+    in their order."""
+    d = blas_dot(q0, q1)
+    if d < 0.0:
+        q1, d = -q1, -d
+    d = min(1.0, d)
+    if d > 0.9995:
+        q = q0 + u * (q1 - q0)
+    else:
+        a = math.acos(d)
+        q = (math.sin((1.0 - u) * a) * q0 + math.sin(u * a) * q1) / math.sin(a)
+    q = q / math.sqrt(blas_dot(q, q))
+    q = q / math.sqrt(blas_dot(q, q))   # quat_to_matrix normalises once more
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    R = np.empty((3, 3))
+    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    return R
+
+
+@numba.njit("Tuple((f8[::1], f8[:, ::1], f8[:, ::1], f8, f8[:, ::1]))(f8[::1], f8[:, ::1], "
+            "f8[:, ::1], f8[::1], f8[:, ::1], f8[:, ::1], b1, f8, f8, f8[::1], f8, f8, f8)",
+            cache=True, nogil=True)
+def pose_update(g, R0, tool, q_deg, planned, target, has_target, max_mm, max_rad, speed, dt,
+                rot_weight, damping):  # pragma: no cover - compiled
+    """One pose-mode cycle of ``ArmModel.update`` (its numpy statement's arithmetic, in its
+    order): the planned pose moved towards ``target`` (when ``has_target``) by at most
+    ``max_mm`` and ``max_rad`` (``arm.step_towards``), one :func:`newton_step` towards it, the
+    step scaled to the joint speeds ``speed`` (deg/s) over ``dt``. Returns the new joints, the
+    TCP pose at the old ones, the planned pose, the distance between the two poses' positions
+    and the quaternions (w, x, y, z) of their rotations, (2, 4)."""
+    if has_target:
+        T_des = np.eye(4)
+        d = target[:3, 3] - planned[:3, 3]
+        n = math.sqrt(blas_dot(d, d))
+        if n <= max_mm:
+            T_des[:3, 3] = target[:3, 3]
+        else:
+            T_des[:3, 3] = planned[:3, 3] + d * (max_mm / n)
+        q0, q1 = _quat(planned[:3, :3]), _quat(target[:3, :3])
+        ang = 2.0 * math.acos(min(1.0, abs(blas_dot(q0, q1))))
+        u = 1.0 if ang <= max_rad else max_rad / ang
+        T_des[:3, :3] = _slerp_matrix(q0, q1, u)
+    else:
+        T_des = planned
+    dq, T_now = newton_step(g, R0, tool, q_deg, T_des, rot_weight, damping)
+    over = np.max(np.abs(dq) / (speed * dt))
+    q_new = q_deg + (dq / over if over > 1.0 else dq)
+    e = T_des[:3, 3] - T_now[:3, 3]
+    lag = math.sqrt(blas_dot(e, e))
+    quats = np.empty((2, 4))
+    quats[0] = _quat(T_now[:3, :3])
+    quats[1] = _quat(T_des[:3, :3])
+    return q_new, T_now, T_des, lag, quats

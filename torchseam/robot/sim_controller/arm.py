@@ -138,8 +138,17 @@ class ArmModel:
         self._geometry = g = robot.geometry
         self._g = np.array([g.a1, g.d1, g.a2, g.a3, g.d4, g.d6], dtype=float)
         self._R0 = np.ascontiguousarray(g.R0, dtype=float)
-        self._kernel = load_kernels(__package__).newton_step
-        self._speed = np.asarray(sim.joint_speed_deg_s, float)
+        kernels = load_kernels(__package__)
+        self._kernel = kernels.newton_step
+        self._speed = np.ascontiguousarray(sim.joint_speed_deg_s, dtype=float)
+        # pose mode: the whole cycle compiled (``_kernels.pose_update``), where it computes
+        # what the numpy statement below does to the bit on this machine (_pose_kernel_agrees)
+        compiled = mode == "pose" and _pose_kernel_agrees(robot, sim)
+        self._pose_update = kernels.pose_update if compiled else None
+        #: the last pose-mode cycle's (TCP pose now, planned pose, their quaternions
+        #: (2, 4), the distance between them) when the compiled cycle ran it, else None
+        self.last: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
+        self._target: tuple[np.ndarray | None, np.ndarray] = (None, np.eye(4))
         #: the rotations' quaternions of the last cycles (this arm's and its messages')
         self.quats = QuatCache()
         self.q = np.asarray(sim.home_joints_deg, float).copy()
@@ -182,6 +191,21 @@ class ArmModel:
         """Advance by ``dt`` s; returns (feedback joints, feedback TCP, planned TCP) at the start
         of the step, and the distance between the planned and the fed-back TCP, mm."""
         q_now = self.q.copy()
+        if self._pose_update is not None:
+            target = self.target
+            if target is not None and target is not self._target[0]:
+                # the kernel's copy of a new target (the controller's commands are read-only)
+                self._target = (target, np.array(target, dtype=float, order="C"))
+            planned = np.ascontiguousarray(self.planned, dtype=float)
+            q, T_now, T_des, lag, quats = self._pose_update(
+                self._g, self._R0, self.tool, self.q, planned,
+                planned if target is None else self._target[1], target is not None,
+                self.sim.tcp_speed_mm_s * dt, math.radians(self.sim.tcp_rot_speed_deg_s) * dt,
+                self._speed, dt, _ROT_WEIGHT, _DAMPING)
+            self.q, self.planned = q, T_des
+            self.last = (T_now, T_des, quats, lag)
+            return q_now, T_now, T_des, lag
+        self.last = None
         if self.mode == "pathcorr":
             self.s = min(self.s + self.sim.path_speed_mm_s * dt, self.path.length)
             dc = self.corr_cmd - self.corr
@@ -225,3 +249,45 @@ class ArmModel:
         if not bool(ok[0]):
             return None
         return q[0].numpy().astype(float)
+
+
+_POSE_KERNEL_AGREES: list[bool] = []
+
+
+def _pose_kernel_agrees(robot: Any, sim: SimControllerConfig) -> bool:
+    """Whether ``_kernels.pose_update`` computes what :meth:`ArmModel.update`'s numpy statement
+    does, to the bit, on this machine: on a hundred cycles of an arm that follows moving
+    targets (once per process, a few ms). Its dot products are the fused multiply-adds this
+    machine's BLAS makes (``_kernels.blas_dot``) and its sines the C library's; a BLAS that
+    sums otherwise (another CPU, another build) rounds differently, and there the arm keeps the
+    numpy statement."""
+    if not _POSE_KERNEL_AGREES:
+        k = load_kernels(__package__)
+        arm = ArmModel(robot, np.eye(4), sim, "pathcorr")   # (its joints and geometry)
+        g, R0, tool, speed = arm._g, arm._R0, arm.tool, arm._speed
+        rng = np.random.default_rng(3)
+        home = arm.tcp_pose()
+        ok = True
+        dt, max_mm, max_rad = sim.period_s, sim.tcp_speed_mm_s * sim.period_s, math.radians(
+            sim.tcp_rot_speed_deg_s) * sim.period_s
+        planned, q = home, arm.q.copy()
+        for i in range(120):
+            if i % 20 == 0:   # a new target: a few mm and degrees away
+                target = home.copy()
+                target[:3, 3] += rng.normal(0.0, 5.0, 3)
+                target[:3, :3] = quat_to_matrix(rng.normal(0.0, 0.05, 4) + [1.0, 0, 0, 0]) \
+                    @ home[:3, :3]
+            T_des = step_towards(planned, target, max_mm, max_rad) if i % 40 else planned
+            dq, T_now = k.newton_step(g, R0, tool, q, T_des, _ROT_WEIGHT, _DAMPING)
+            over = float(np.max(np.abs(dq) / (speed * dt)))
+            q_ref = q + (dq / over if over > 1.0 else dq)
+            lag = float(np.linalg.norm(T_des[:3, 3] - T_now[:3, 3]))
+            got = k.pose_update(g, R0, tool, q, planned, target, bool(i % 40), max_mm, max_rad,
+                                speed, dt, _ROT_WEIGHT, _DAMPING)
+            ok &= (np.array_equal(got[0], q_ref) and np.array_equal(got[1], T_now)
+                   and np.array_equal(got[2], T_des) and got[3] == lag
+                   and np.array_equal(got[4][0], matrix_to_quat(T_now[:3, :3]))
+                   and np.array_equal(got[4][1], matrix_to_quat(T_des[:3, :3])))
+            planned, q = T_des, q_ref
+        _POSE_KERNEL_AGREES.append(bool(ok))
+    return _POSE_KERNEL_AGREES[0]

@@ -134,6 +134,8 @@ class SimController:
 
     def _robot_message(self, q: np.ndarray, T: np.ndarray, T_plan: np.ndarray,
                        compute_s: float) -> Any:
+        # the compiled cycle's quaternions and distance of these poses (None: computed there)
+        self._messages.known = self.arm.last
         return self._messages.build(q, T, self.arm.q, T_plan, self.arm.running, compute_s)
 
     def _command(self, msg: Any) -> np.ndarray | None:

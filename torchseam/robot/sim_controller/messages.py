@@ -43,19 +43,33 @@ class RobotMessages:
         self._quat = quat   # rotation -> quaternion (the arm's QuatCache: the same numbers)
         self._seqno = 0
         self._t0 = time.perf_counter()
+        #: the next :meth:`build`'s feedback and planned poses with their quaternions (2, 4)
+        #: and the distance between their positions, when its caller has them (the arm's
+        #: compiled cycle), else None
+        self.known: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
 
     def build(self, q: np.ndarray, T: np.ndarray, q_plan: np.ndarray, T_plan: np.ndarray,
               running: bool, compute_s: float) -> Any:
         """The next ``EgmRobot``: feedback joints ``q`` (deg) and TCP ``T`` (4x4 mm), planned
         joints and TCP, whether RAPID runs, the cycle's compute time (s). Header and clocks are
-        stamped by :meth:`stamp` when it is sent."""
+        stamped by :meth:`stamp` when it is sent. Where :attr:`known` holds these very poses
+        (the same objects), their quaternions and distance are taken from it (the same
+        numbers as computed here); it is cleared."""
         msg = EgmRobot()
-        for part, joints, pose in ((msg.feedBack, q, T), (msg.planned, q_plan, T_plan)):
+        known, self.known = self.known, None
+        quats: Any
+        if known is not None and known[0] is T and known[1] is T_plan:
+            quats, dist = known[2], known[3]
+        else:
+            quats = (self._quat(T[:3, :3]), self._quat(T_plan[:3, :3]))
+            dist = float(np.linalg.norm(T[:3, 3] - T_plan[:3, 3]))
+        for part, joints, pose, quat in ((msg.feedBack, q, T, quats[0]),
+                                         (msg.planned, q_plan, T_plan, quats[1])):
             part.joints.joints.extend(np.asarray(joints, dtype=float).tolist())
-            fill_pose(part.cartesian, pose, self._quat)
+            _fill(part.cartesian, pose, quat)
         msg.motorState.state = EgmMotorState.MOTORS_ON
         msg.mciState.state = EgmMCIState.MCI_RUNNING
-        msg.mciConvergenceMet = bool(np.linalg.norm(T[:3, 3] - T_plan[:3, 3]) < _CONVERGED_MM)
+        msg.mciConvergenceMet = dist < _CONVERGED_MM
         msg.rapidExecState.state = (EgmRapidCtrlExecState.RAPID_RUNNING if running
                                     else EgmRapidCtrlExecState.RAPID_STOPPED)
         msg.utilizationRate = 100.0 * compute_s / self.period
@@ -78,14 +92,19 @@ class RobotMessages:
 def fill_pose(pose: Any, T: np.ndarray, quat=matrix_to_quat) -> None:
     """Position (mm), quaternion (w, x, y, z) and ABB EulerZYX angles (deg) of a 4x4 pose
     (``quat``: the rotation -> quaternion conversion)."""
-    pose.pos.x, pose.pos.y, pose.pos.z = np.asarray(T[:3, 3], dtype=float).tolist()
-    pose.orient.u0, pose.orient.u1, pose.orient.u2, pose.orient.u3 = np.asarray(
-        quat(T[:3, :3]), dtype=float).tolist()
-    R = np.asarray(T[:3, :3], dtype=float).tolist()
+    _fill(pose, T, quat(T[:3, :3]))
+
+
+def _fill(pose: Any, T: np.ndarray, quat: np.ndarray) -> None:
+    """:func:`fill_pose` with the rotation's quaternion ``quat`` (4,) given."""
+    m = np.asarray(T, dtype=float).tolist()
+    pos, o, e = pose.pos, pose.orient, pose.euler
+    pos.x, pos.y, pos.z = m[0][3], m[1][3], m[2][3]
+    o.u0, o.u1, o.u2, o.u3 = np.asarray(quat, dtype=float).tolist()
     # R = Rz(z) Ry(y) Rx(x) (ABB EulerZYX); plain math: scipy objects cost more per cycle
-    pose.euler.y = math.degrees(math.asin(max(-1.0, min(1.0, -R[2][0]))))
-    pose.euler.z = math.degrees(math.atan2(R[1][0], R[0][0]))
-    pose.euler.x = math.degrees(math.atan2(R[2][1], R[2][2]))
+    e.y = math.degrees(math.asin(max(-1.0, min(1.0, -m[2][0]))))
+    e.z = math.degrees(math.atan2(m[1][0], m[0][0]))
+    e.x = math.degrees(math.atan2(m[2][1], m[2][2]))
 
 
 def sensor_command(msg: Any, mode: str) -> np.ndarray | None:
