@@ -176,8 +176,8 @@ class ProfileTracker(Tracker):
 
     def track(self, frame: np.ndarray) -> TrackResult:
         frame = check_frame(frame)
+        pred = self.expected if self.expected is not None else self.uv + self.velocity
         handed = self.expected is not None
-        pred = self.expected if handed else self.uv + self.velocity
         self.expected = None
         self.result = None
         self._span = None
