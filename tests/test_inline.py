@@ -407,3 +407,26 @@ def test_a_butt_break_beside_the_gap_is_no_evidence_however_long_the_tracker_was
     assert status[5:8] == [TrackStatus.COASTING] * 3
     assert status[8] == TrackStatus.COASTING, results[8][0].uv    # before h24: tracked, 17 px
     assert status[9] == TrackStatus.TRACKED and np.allclose(results[9][0].uv, truth)
+
+
+def test_a_butt_span_started_again_keeps_the_gap_width_last_tracked():
+    """A span off its history for ``edge_max_frames`` frames in a row is no longer known and
+    its history starts again from the next span read. It starts from a gap as wide as the one
+    last tracked (within half of it, as a groove found again keeps its shape): the bench's
+    flat coupon in `wide` extreme, seed 1002, read the 22 px gap as breaks of 80-120 px for 25
+    frames, then started again from a 93 px break round it and took it, 6.57 px off the
+    simulator's truth (5.99 px a frame earlier before h24). Here: 26 frames with the edges
+    eaten unlike (no evidence; the history runs stale), a 99 px break whose centre lies 2 px
+    from the prediction: not tracked; the gap as it was: tracked."""
+    from torchseam.track.fusion import TrackStatus
+
+    left, right = np.array([300.0, 240.0]), np.array([315.0, 240.0])
+    truth = (left + right) / 2
+    eaten = (left - [20.0, 0.0], right + [5.0, 0.0])
+    blown = (left - [40.0, 0.0], right + [44.0, 0.0])    # a 99 px break, its centre 2 px off
+    results, _ = _butt_tracker([*[(left, right)] * 6, *[eaten] * 26, blown, (left, right)])
+    status = [r.status for r, _ in results]
+    assert status[:5] == [TrackStatus.TRACKED] * 5
+    assert TrackStatus.TRACKED not in status[5:31]
+    assert status[31] != TrackStatus.TRACKED, results[31][0].uv    # before h24: tracked
+    assert status[32] == TrackStatus.TRACKED and np.allclose(results[32][0].uv, truth)

@@ -329,7 +329,8 @@ class ProfileTracker(Tracker):
         gate refuses (some other structure, whose span may agree by chance) neither joins the
         history nor counts as a span in place (:meth:`_learn`). A vector off its history on
         more than ``edge_max_frames`` frames in a row is no longer known (its history starts
-        again from what the frames show; the gate on the prediction still holds).
+        again from what the frames show; the gate on the prediction still holds; a butt's
+        from a gap within :data:`REFIND_SHARE` of the width last tracked, else no evidence).
 
         A lap whose edge face is lit (not noted :data:`~torchseam.vision.profiles.LAP_DARK_FACE`)
         has no end to keep: both are where the face's line meets the plates', and a span off
@@ -344,6 +345,16 @@ class ProfileTracker(Tracker):
         d = b - a
         hist = self._pair
         if not hist:   # the first span (the start frame's, or after the history ran stale)
+            then = self._shape[0] if res.joint == "butt" else float("nan")
+            now = float(np.linalg.norm(d))
+            if np.isfinite(then) and abs(now - then) > REFIND_SHARE * then:
+                # a history started again is started from a gap as wide as the one last
+                # tracked (as a groove found again keeps its shape, _same_shape): a break the
+                # glare blew to 90 px is not the 22 px gap
+                return dataclasses.replace(
+                    res, ok=False, aim=np.full(2, np.nan),
+                    reason=f"the butt's span started again at {now:.1f} px (last tracked "
+                           f"{then:.1f})")
             self._span = d
             return res
         ref = np.median(np.array(hist), axis=0)
