@@ -381,3 +381,52 @@ def test_a_butt_span_joins_its_history_only_on_evidence():
     spans = [float(d[0]) for d in tracker._pair]
     assert spans == [15.0, 15.0, 15.0, 19.0], spans       # not the far one's, nor 35
     assert tracker._stale_pair == 0
+
+
+def test_a_butt_break_beside_the_gap_is_no_evidence_however_long_the_tracker_was_blind():
+    """The locator's prediction (the seam seen so far, cut with the laser plane at the
+    camera's pose now) is made afresh from the robot's motion on every frame: the joint does
+    not move away from it while the tracker is blind, and the gate round it does not grow.
+    The bench's butt `wide` extreme rows (seed 1002 frame 31, seed 1003 frame 42): after two
+    or three frames without evidence, a break beside the gap (the glare's, ending at the
+    gap's left edge) whose span agreed with the gap's by chance was taken 17.4 and 11.8 px
+    off the simulator's truth, inside a gate grown to 24 and 18 px. Here: three frames with
+    both edges eaten far (no evidence), then the same span 17 px to the left: coasting; the
+    gap as it was: tracked. (The tracker's own prediction, its point held while blind, goes
+    stale as the joint moves on: its gate still grows.)"""
+    from torchseam.track.fusion import TrackStatus
+
+    left, right = np.array([300.0, 240.0]), np.array([315.0, 240.0])
+    truth = (left + right) / 2
+    eaten = (left - [20.0, 0.0], right + [5.0, 0.0])     # eaten unlike: no reading near it
+    beside = (left - [17.0, 0.0], right - [17.0, 0.0])    # the gap's span, 17 px to the left
+    results, _ = _butt_tracker([*[(left, right)] * 6, eaten, eaten, eaten, beside,
+                                (left, right)])
+    status = [r.status for r, _ in results]
+    assert status[:5] == [TrackStatus.TRACKED] * 5
+    assert status[5:8] == [TrackStatus.COASTING] * 3
+    assert status[8] == TrackStatus.COASTING, results[8][0].uv    # before h24: tracked, 17 px
+    assert status[9] == TrackStatus.TRACKED and np.allclose(results[9][0].uv, truth)
+
+
+def test_a_butt_span_started_again_keeps_the_gap_width_last_tracked():
+    """A span off its history for ``edge_max_frames`` frames in a row is no longer known and
+    its history starts again from the next span read. It starts from a gap as wide as the one
+    last tracked (within half of it, as a groove found again keeps its shape): the bench's
+    flat coupon in `wide` extreme, seed 1002, read the 22 px gap as breaks of 80-120 px for 25
+    frames, then started again from a 93 px break round it and took it, 6.57 px off the
+    simulator's truth (5.99 px a frame earlier before h24). Here: 26 frames with the edges
+    eaten unlike (no evidence; the history runs stale), a 99 px break whose centre lies 2 px
+    from the prediction: not tracked; the gap as it was: tracked."""
+    from torchseam.track.fusion import TrackStatus
+
+    left, right = np.array([300.0, 240.0]), np.array([315.0, 240.0])
+    truth = (left + right) / 2
+    eaten = (left - [20.0, 0.0], right + [5.0, 0.0])
+    blown = (left - [40.0, 0.0], right + [44.0, 0.0])    # a 99 px break, its centre 2 px off
+    results, _ = _butt_tracker([*[(left, right)] * 6, *[eaten] * 26, blown, (left, right)])
+    status = [r.status for r, _ in results]
+    assert status[:5] == [TrackStatus.TRACKED] * 5
+    assert TrackStatus.TRACKED not in status[5:31]
+    assert status[31] != TrackStatus.TRACKED, results[31][0].uv    # before h24: tracked
+    assert status[32] == TrackStatus.TRACKED and np.allclose(results[32][0].uv, truth)

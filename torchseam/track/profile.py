@@ -7,9 +7,11 @@ a gap in the stripe, where there is no corner and nothing to learn an appearance
 ProfileFinder`) in a window round the point it predicts: the expected pixel the locator hands
 it from the robot's motion (:meth:`~torchseam.track.base.Tracker.expect`), else its last point
 moved as it last moved (held where it was after a frame without evidence). A profile found
-there, its aim point within ``gate_px`` of the prediction (``(1 + n) gate_px`` after n frames
-without evidence, at most :data:`MAX_GATE_GROWTH` times), is the frame's evidence: status
-``tracked``, the point the aim point. Otherwise the
+there, its aim point within ``gate_px`` of the prediction, is the frame's evidence: status
+``tracked``, the point the aim point (the tracker's own prediction, its point held while blind,
+goes stale as the joint moves on: ``(1 + n) gate_px`` after n frames without evidence, at most
+:data:`MAX_GATE_GROWTH` times; the locator's is made afresh on every frame from the robot's
+pose and does not, so its gate does not grow). Otherwise the
 point is the prediction, ``coasting``, and after ``lost_frames`` such frames ``lost``. The
 profile itself (feature points and the pieces leaving the root edges) stays on the tracker
 (:attr:`ProfileTracker.result`) for the locator, which locates the faces' directions from it.
@@ -45,8 +47,9 @@ from torchseam.vision.profiles import (
 )
 from torchseam.vision.tipm import Tipm
 
-#: the evidence gate after n frames without evidence: ``gate_px (1 + n)``, at most this many
-#: times ``gate_px``
+#: the evidence gate round the tracker's own prediction (its point held while blind) after n
+#: frames without evidence: ``gate_px (1 + n)``, at most this many times ``gate_px`` (round the
+#: locator's prediction, :meth:`ProfileTracker.expect`, ``gate_px`` on every frame)
 MAX_GATE_GROWTH = 4.0
 #: a profile found again after the track was lost keeps its width and root gap within this
 #: share of the last tracked frame's (:meth:`ProfileTracker._same_shape`)
@@ -174,14 +177,21 @@ class ProfileTracker(Tracker):
     def track(self, frame: np.ndarray) -> TrackResult:
         frame = check_frame(frame)
         pred = self.expected if self.expected is not None else self.uv + self.velocity
+        handed = self.expected is not None
         self.expected = None
         self.result = None
         self._span = None
         if not np.all(np.isfinite(pred)):
             return TrackResult(np.full(2, np.nan), int(TrackStatus.LOST))
         res = self._window(frame, pred)
-        # a prediction grows less certain with each frame without evidence
-        gate = self.cfg.gate_px * min(1.0 + self.misses, MAX_GATE_GROWTH)
+        # the tracker's own prediction (its point, held while blind) grows less certain with
+        # each frame without evidence; the locator's (the seam seen so far, cut with the laser
+        # plane at the camera's pose now) is made afresh from the robot's motion on every
+        # frame: the joint does not move away from it while the tracker is blind, and a
+        # reading farther off than gate_px is as far off the joint (grown, it took other
+        # breaks whose span agreed by chance, 12-17 px off: the bench's butt `wide` extreme)
+        grow = 1.0 if handed else min(1.0 + self.misses, MAX_GATE_GROWTH)
+        gate = self.cfg.gate_px * grow
         if res.ok:
             res = self._root_edges(res) if res.joint == "v_groove" else self._ends(res, pred)
         if res.ok and res.joint == "v_groove" and self.misses > self.cfg.lost_frames:
@@ -319,7 +329,8 @@ class ProfileTracker(Tracker):
         gate refuses (some other structure, whose span may agree by chance) neither joins the
         history nor counts as a span in place (:meth:`_learn`). A vector off its history on
         more than ``edge_max_frames`` frames in a row is no longer known (its history starts
-        again from what the frames show; the gate on the prediction still holds).
+        again from what the frames show; the gate on the prediction still holds; a butt's
+        from a gap within :data:`REFIND_SHARE` of the width last tracked, else no evidence).
 
         A lap whose edge face is lit (not noted :data:`~torchseam.vision.profiles.LAP_DARK_FACE`)
         has no end to keep: both are where the face's line meets the plates', and a span off
@@ -334,6 +345,16 @@ class ProfileTracker(Tracker):
         d = b - a
         hist = self._pair
         if not hist:   # the first span (the start frame's, or after the history ran stale)
+            then = self._shape[0] if res.joint == "butt" else float("nan")
+            now = float(np.linalg.norm(d))
+            if np.isfinite(then) and abs(now - then) > REFIND_SHARE * then:
+                # a history started again is started from a gap as wide as the one last
+                # tracked (as a groove found again keeps its shape, _same_shape): a break the
+                # glare blew to 90 px is not the 22 px gap
+                return dataclasses.replace(
+                    res, ok=False, aim=np.full(2, np.nan),
+                    reason=f"the butt's span started again at {now:.1f} px (last tracked "
+                           f"{then:.1f})")
             self._span = d
             return res
         ref = np.median(np.array(hist), axis=0)
