@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from torchseam.console.config import DEFAULT_HOST
-from torchseam.core.config import JOINT_PROFILES
+from torchseam.core.config import JOINT_PROFILES, MAX_NOISE_LEVEL
 from torchseam.core.errors import TorchseamError
 from torchseam.core.signals import EXIT_SIGNAL, STOP_SIGNALS, SignalStop
 
@@ -61,7 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "joint: field (a different --joint is refused)")
     p.add_argument("--noise", default="heavy",
                    help="initial arc-noise level on the page: a name from configs/noise.yaml "
-                        "or a number in [0, 1] (default heavy)")
+                        f"or a number in [0, {MAX_NOISE_LEVEL:g}] (default heavy)")
     p.add_argument("--segments", default="abcdef",
                    help="initial segments on the page, letters of abcdef (default abcdef: "
                         "the whole ring)")

@@ -18,6 +18,7 @@ from torchseam.core.cliargs import (
     seed_arg,
     segments_arg,
 )
+from torchseam.core.config import MAX_NOISE_LEVEL
 from torchseam.core.errors import TorchseamError
 from torchseam.track.names import TRACKERS
 
@@ -89,7 +90,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--length-mm", type=_length, default=None,
                    help="the length of each segment the truth checks (default: all of it)")
     v.add_argument("--noise", default="strike",
-                   help="arc-noise level: name or 0..1 (default strike)")
+                   help="arc-noise level: a name from configs/noise.yaml or a number in "
+                        f"[0, {MAX_NOISE_LEVEL:g}] (default strike)")
     v.add_argument("--seed", type=seed_arg, default=0,
                    help=f"random seed of the simulation, 0 .. {MAX_SEED} (default 0)")
     v.add_argument("--camera-latency-ms", type=_ms, default=20.0,

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 import time
@@ -18,7 +19,13 @@ from torchseam.core.cliargs import (
     seed_arg,
     segments_arg,
 )
-from torchseam.core.config import JOINT_PROFILES, load_cell, load_noise, load_part
+from torchseam.core.config import (
+    JOINT_PROFILES,
+    MAX_NOISE_LEVEL,
+    load_cell,
+    load_noise,
+    load_part,
+)
 from torchseam.core.errors import TorchseamError
 from torchseam.core.report import ReportError, format_table
 from torchseam.core.signals import EXIT_SIGNAL, SignalStop
@@ -51,7 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "what was done is written, summary.json marked interrupted).")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml; "
                                              "others in configs/parts/)")
-    p.add_argument("--noise", default="heavy", help="arc-noise level: name or 0..1 (default heavy)")
+    p.add_argument("--noise", default="heavy",
+                   help="arc-noise level: a name from configs/noise.yaml or a number in "
+                        f"[0, {MAX_NOISE_LEVEL:g}] (default heavy)")
     p.add_argument("--seed", type=seed_arg, default=0,
                    help=f"random seed of the simulation, 0 .. {MAX_SEED} (default 0)")
     p.add_argument("--out", type=out_dir_arg, default=Path("demo_out"),
@@ -95,10 +104,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                                   "camera: camera:N (device index) or a stream URL")
     r.add_argument("--tracker", choices=TRACKERS, default="anchored",
                    help="feature-point tracker (default anchored)")
-    r.add_argument("--joint", choices=JOINT_PROFILES, default="fillet",
-                   help="the joint in the frames (default fillet: TIPM's corner, followed by "
-                        "--tracker; v_groove, butt, lap: the profile's aim point, "
-                        "configs/profiles.yaml, with the default tracker)")
+    r.add_argument("--joint", choices=JOINT_PROFILES, default=None,
+                   help="the joint in the frames (default: the part's joint a frame folder's "
+                        "meta.json names, as `torchseam simulate` writes it, else fillet; "
+                        "fillet: TIPM's corner, followed by --tracker; v_groove, butt, lap: the "
+                        "profile's aim point, configs/profiles.yaml, with the default tracker)")
     r.add_argument("--init", default=None, metavar="U,V",
                    help="start pixel (default: TIPM on the first frame, which must be arc-off; "
                         "a --joint other than fillet: its profile's aim point there)")
@@ -138,7 +148,7 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     from torchseam.core.transforms import pose_matrix
     from torchseam.live.parts import load_live_parts
     from torchseam.live.replay import run_replay
-    from torchseam.live.sources import open_source
+    from torchseam.live.sources import FolderSource, open_source
     from torchseam.track.fusion import TrackStatus
     from torchseam.track.peers import STATUS_NAMES
 
@@ -157,10 +167,21 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
             raise TorchseamError("--pose: the quaternion is zero")
         pose = pose_matrix(np.array(v[:3]), q / np.linalg.norm(q))
     cell, parts = load_cell(), load_live_parts()
-    tracker = parts.tracker(args.tracker, args.joint, args.model)  # refused before any frame
+    # refused before any frame; without --joint, a frame folder's meta.json may name it
+    given = args.joint
+    tracker = parts.tracker(args.tracker, given, args.model) if given is not None else None
     source = open_source(args.source, (cell.camera.width, cell.camera.height), args.fps)
+    ds = source.ds if isinstance(source, FolderSource) else None
+    args.joint, line = ds.joint(given) if ds is not None else (given or "fillet", "")
+    if line:
+        print(line, file=sys.stderr, flush=True)
+    if tracker is None:
+        with contextlib.ExitStack() as undo:
+            undo.enter_context(source)  # closed if the tracker is refused
+            tracker = parts.tracker(args.tracker, args.joint, args.model)
+            undo.pop_all()
     truth = None
-    meta = getattr(getattr(source, "ds", None), "meta", None)
+    meta = source.ds.meta if isinstance(source, FolderSource) else None
     if meta and isinstance(meta.get("frames"), list):
         truth = {int(e["frame"]): np.asarray(e["seam_mm"], float)
                  for e in meta["frames"] if "seam_mm" in e and "frame" in e}

@@ -95,7 +95,8 @@ class SeamLocator:
                 raise TorchseamError("cannot start tracking: no stripe corner in the start "
                                      "frame (camera.stripe_axis "
                                      f"{self._view_setting[0]}, stripe_response "
-                                     f"{self._view_setting[1]})")
+                                     f"{self._view_setting[1]}; a joint that is not a "
+                                     "fillet: give its profile, --joint)")
         view = self.axis.frame(frame)
         if uv0 is None and isinstance(self.tracker, ProfileTracker):
             prof = self.tracker.find(view)

@@ -8,7 +8,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from torchseam.core.cliargs import MAX_SEED, out_dir_arg, seed_arg
-from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
+from torchseam.core.config import (
+    FAMILY_NAMES,
+    MAX_NOISE_LEVEL,
+    load_cell,
+    load_noise,
+    load_part,
+)
 from torchseam.core.errors import TorchseamError
 
 if TYPE_CHECKING:  # imported when the command runs: the parser (--help) needs no OpenCV
@@ -35,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=100, help="number of frames (default 100)")
     p.add_argument("--noise", default="clean",
                    help="arc-noise level: a name from configs/noise.yaml (clean, light, strike, "
-                        "heavy) or a number in [0, 1] (default clean)")
+                        f"heavy, extreme) or a number in [0, {MAX_NOISE_LEVEL:g}] (default clean)")
     p.add_argument("--family", choices=FAMILY_NAMES, default=None, metavar="NAME",
                    help="appearance family from the noise model's families: "
                         f"{', '.join(FAMILY_NAMES)} (default: its `family`)")

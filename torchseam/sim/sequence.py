@@ -78,7 +78,7 @@ class SensorRenderer:
 
     Args:
         scene: the part (true and nominal) on its positioner.
-        level: arc-noise level in [0, 1]; seed: random seed.
+        level: arc-noise level in [0, MAX_NOISE_LEVEL] (1: heavy); seed: random seed.
         family: appearance family, a name of ``noise.families`` (None: ``noise.family``);
             ValueError naming an unknown one.
     """

@@ -52,10 +52,11 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tracker", choices=TRACKERS, default="anchored",
                    help="tracker (default anchored: EAKF-STC fused with TIPM, as the live loop "
                         "and demo run it; eakf-stc alone drifts along the stripe)")
-    p.add_argument("--joint", choices=JOINT_PROFILES, default="fillet",
-                   help="the joint in the frames (default fillet: --tracker follows TIPM's "
-                        "corner; v_groove, butt, lap: the profile's aim point, "
-                        "configs/profiles.yaml, with the default tracker)")
+    p.add_argument("--joint", choices=JOINT_PROFILES, default=None,
+                   help="the joint in the frames (default: the part's joint that the folder's "
+                        "meta.json names, as `torchseam simulate` writes it, else fillet; "
+                        "fillet: --tracker follows TIPM's corner; v_groove, butt, lap: the "
+                        "profile's aim point, configs/profiles.yaml, with the default tracker)")
     p.add_argument("--init", metavar="U,V",
                    help="start point on the first frame (default: TIPM on the first frame; a "
                         "--joint other than fillet: its profile's aim point there)")
@@ -99,6 +100,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.set_defaults(func=run_eval)
 
 
+def _resolve_joint(args: argparse.Namespace, ds: Dataset) -> None:
+    """``args.joint`` from ``--joint`` or the folder's meta.json (:meth:`Dataset.joint`)."""
+    args.joint, line = ds.joint(args.joint)
+    if line:
+        print(line, file=sys.stderr, flush=True)
+
+
 def _start(img: np.ndarray, tipm: Tipm, uv0: np.ndarray | None, args: argparse.Namespace,
            name: str, number: int) -> tuple[FrameView, np.ndarray, str]:
     """How to view the stream and where to start, from its first readable frame ``img``
@@ -115,7 +123,8 @@ def _start(img: np.ndarray, tipm: Tipm, uv0: np.ndarray | None, args: argparse.N
         if view is None:
             raise TorchseamError(f"{name}: no stripe corner on the first frame (stripe axis "
                                  f"{axis}, response {response}); give --stripe-axis and "
-                                 "--stripe-response")
+                                 "--stripe-response, or --joint for a joint that is not a "
+                                 "fillet (v_groove, butt, lap)")
     else:
         view = FrameView(axis, img.shape[0], response)
     if uv0 is not None:
@@ -226,6 +235,7 @@ def run_track(args: argparse.Namespace) -> int:
 
     uv0 = _parse_init(args.init)
     ds = Dataset.open(args.frames_dir, labels=False)  # track needs no labels
+    _resolve_joint(args, ds)
     gone = {int(f) for f in _warn_missing(ds)}
     tipm = load_tipm()
     tracker = _make_tracker(args, tipm)
@@ -264,6 +274,7 @@ def run_eval(args: argparse.Namespace) -> int:
 
     uv0 = _parse_init(args.init)
     ds = Dataset.open(args.frames_dir, require_labels=True)
+    _resolve_joint(args, ds)
     _warn_missing(ds)
     uv = np.full((len(ds), 2), np.nan)
     n_bad = 0
