@@ -223,6 +223,14 @@ class PartConfig:
     placement_error: Pose = field(
         default_factory=lambda: Pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
 
+    def file_dict(self) -> dict[str, Any]:
+        """The part as its YAML file holds it (:func:`save_config`): every field, less those
+        its kind must leave out (a coupon's branch pipe), so that the file loads back."""
+        data = to_dict(self)
+        if self.kind == "coupon":
+            del data["branch_od_mm"], data["intersection_angle_deg"]
+        return data
+
     def _check_given(self, given: frozenset[str]) -> None:
         """A size the kind needs, left out of the file (its default 0 means none)."""
         if self.kind in ("pipe", "offset") and "main_od_mm" not in given:
@@ -908,6 +916,8 @@ def from_dict(cls: type[T], data: Any, source: str = "<dict>") -> T:
 
 
 def save_config(obj: Any, path: str | os.PathLike[str]) -> None:
-    """Write a config object back to YAML (used by ``torchseam calibrate``)."""
-    Path(path).write_text(yaml.safe_dump(to_dict(obj), sort_keys=False))
+    """Write a config object back to YAML (``torchseam calibrate``; a part as turned for a
+    segment, ``plan --out`` and the demo's report: :meth:`PartConfig.file_dict`)."""
+    data = obj.file_dict() if isinstance(obj, PartConfig) else to_dict(obj)
+    Path(path).write_text(yaml.safe_dump(data, sort_keys=False))
 
