@@ -55,7 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "--source)")
     p.add_argument("--part", type=Path, help="part config (default configs/parts/t_joint.yaml)")
     p.add_argument("--joint", choices=JOINT_PROFILES, default=None,
-                   help="the joint in --source's frames (default fillet: the page's tracker "
+                   help="the joint in --source's frames (default: the part's joint a frame "
+                        "folder's meta.json names, else fillet; fillet: the page's tracker "
                         "follows TIPM's corner; v_groove, butt, lap: the profile's aim point, "
                         "default tracker only); with the simulated cell or --cell, the part's "
                         "joint: field (a different --joint is refused)")
@@ -103,9 +104,16 @@ def run(args: argparse.Namespace) -> int:
         elif args.source == "sim":
             console = simulated_console(cfg, cell, part, noise, parts, defaults=defaults)
         else:   # a folder or video: open_source's errors name the path
-            parts.tracker("anchored", args.joint or "fillet")  # a bad joint, before serving
+            joint = args.joint or "fillet"
+            if Path(args.source).is_dir():  # its meta.json may name the part's joint
+                from torchseam.core.dataset import Dataset
+
+                joint, line = Dataset.open(args.source, labels=False).joint(args.joint)
+                if line:
+                    print(line, file=sys.stderr, flush=True)
+            parts.tracker("anchored", joint)  # a bad joint, before serving
             console = replay_console(args.source, cfg, cell, noise, parts, defaults=defaults,
-                                     joint=args.joint or "fillet")
+                                     joint=joint)
     except ParamError as e:
         raise TorchseamError(str(e)) from None
     console.allowed_hosts = tuple(args.allow_host)
