@@ -8,6 +8,7 @@ import shutil
 import pytest
 
 from torchseam.cli import main
+from torchseam.core.config import CONFIG_DIR
 
 
 def _rows(out: str) -> dict[str, tuple[str, str]]:
@@ -91,3 +92,6 @@ def test_every_config_shows(capsys):
     out = capsys.readouterr().out
     for name in ("cell", "tipm", "anchor", "egm", "live", "console", "train_live"):
         assert f"{name} (" in out
+    # every config file of the folder, `torchseam train`'s train.yaml too (once left out)
+    for path in sorted(CONFIG_DIR.glob("*.yaml")):
+        assert f"\n{path.stem} ({path})\n" in f"\n{out}", path.name

@@ -34,6 +34,7 @@ CONFIGS: dict[str, tuple[str, str]] = {
     "search": ("torchseam.live.search", "SearchConfig"),
     "profile_track": ("torchseam.live.profile_track", "ProfileTrackConfig"),
     "console": ("torchseam.console.config", "ConsoleConfig"),
+    "train": ("torchseam.fit.config", "FitConfig"),
     "train_live": ("torchseam.fit.anchored", "AnchoredFitConfig"),
 }
 
