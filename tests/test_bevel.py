@@ -171,10 +171,11 @@ def test_replay_joint_follows_the_groove_and_names_a_bad_choice(tmp_path, capsys
                     float(r["v"]) - labels[int(r["frame"])][1]) for r in rows]
     assert max(err) < 1.5, err
     capsys.readouterr()
-    # no --joint: the part's joint from the folder's meta.json, said; the same points
+    # no --joint: the part's joint from the folder's meta.json, said in the summary; the same
+    # points
     out2 = tmp_path / "replay2.csv"
     assert main(["replay", str(seq), "--out", str(out2)]) == 0
-    assert f"joint v_groove: from {seq / 'meta.json'}" in capsys.readouterr().err
+    assert f"joint v_groove (from {seq / 'meta.json'})" in capsys.readouterr().out
     assert out2.read_text() == out.read_text()
     assert main(["replay", str(seq), "--joint", "v_groove", "--tracker", "tipm"]) == 2
     err_lines = capsys.readouterr().err.strip().splitlines()
@@ -232,9 +233,9 @@ def test_track_and_eval_joint_follow_the_groove(tmp_path, capsys):
     assert main(["eval", str(turned), "--joint", "v_groove"]) == 0
     capsys.readouterr()
     # no --joint: the joint of the part the simulator wrote into the folder's meta.json (the
-    # fillet's TIPM finds no corner on a groove's first frame), said on stderr
+    # fillet's TIPM finds no corner on a groove's first frame), said in the summary
     assert main(["eval", str(seq)]) == 0
-    assert f"joint v_groove: from {seq / 'meta.json'}" in capsys.readouterr().err
+    assert f"joint v_groove from {seq / 'meta.json'}; start: " in capsys.readouterr().out
     main(["eval", str(seq), "--joint", "lap"])  # the user's --joint is kept, with a warning
     assert (f"warning: --joint lap, but {seq / 'meta.json'} says the part's joint is v_groove"
             in capsys.readouterr().err)

@@ -104,14 +104,18 @@ def run(args: argparse.Namespace) -> int:
         elif args.source == "sim":
             console = simulated_console(cfg, cell, part, noise, parts, defaults=defaults)
         else:   # a folder or video: open_source's errors name the path
-            joint = args.joint or "fillet"
+            joint, origin = args.joint or "fillet", ""
             if Path(args.source).is_dir():  # its meta.json may name the part's joint
                 from torchseam.core.dataset import Dataset
 
-                joint, line = Dataset.open(args.source, labels=False).joint(args.joint)
-                if line:
-                    print(line, file=sys.stderr, flush=True)
+                joint, origin, warning = Dataset.open(args.source, labels=False).joint(
+                    args.joint)
+                if warning:
+                    print(warning, file=sys.stderr, flush=True)
             parts.tracker("anchored", joint)  # a bad joint, before serving
+            if origin:
+                print(f"--source {args.source}: joint {joint} (from {origin}; give --joint to "
+                      "override)", flush=True)
             console = replay_console(args.source, cfg, cell, noise, parts, defaults=defaults,
                                      joint=joint)
     except ParamError as e:

@@ -185,21 +185,22 @@ class Dataset:
                 raise DatasetError(f"{mp}: not valid JSON ({e})") from None
         return cls(root, frames, paths, uv, meta, unimaged)
 
-    def joint(self, given: str | None) -> tuple[str, str]:
-        """The joint to read the frames as, and a line for stderr ('' when there is nothing to
-        say): ``given`` (a ``--joint``) when given, with a warning when the folder's
-        ``meta.json`` names another part joint (``part.joint``, as ``torchseam simulate``
-        writes it); else that joint, said where it came from; else fillet."""
+    def joint(self, given: str | None) -> tuple[str, str, str]:
+        """``(joint, where it came from, warning)`` to read the frames as: ``given`` (a
+        ``--joint``; from '') when given, with a warning when the folder's ``meta.json`` names
+        another part joint (``part.joint``, as ``torchseam simulate`` writes it); else that
+        joint (from the meta.json's path); else fillet (from ''). The warning is '' or one line
+        for stderr."""
         part = self.meta.get("part") if isinstance(self.meta, dict) else None
         named = part.get("joint") if isinstance(part, dict) else None
         named = named if named in JOINT_PROFILES else None
         where = self.root / "meta.json"
         if given is None:
-            return ((named, f"joint {named}: from {where} (give --joint to override)")
-                    if named is not None else ("fillet", ""))
+            return (named, str(where), "") if named is not None else ("fillet", "", "")
         if named is not None and named != given:
-            return given, f"warning: --joint {given}, but {where} says the part's joint is {named}"
-        return given, ""
+            return given, "", (f"warning: --joint {given}, but {where} says the part's joint "
+                               f"is {named}")
+        return given, "", ""
 
     def __len__(self) -> int:
         return len(self.paths)

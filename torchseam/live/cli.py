@@ -172,9 +172,10 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     tracker = parts.tracker(args.tracker, given, args.model) if given is not None else None
     source = open_source(args.source, (cell.camera.width, cell.camera.height), args.fps)
     ds = source.ds if isinstance(source, FolderSource) else None
-    args.joint, line = ds.joint(given) if ds is not None else (given or "fillet", "")
-    if line:
-        print(line, file=sys.stderr, flush=True)
+    args.joint, origin, warning = ds.joint(given) if ds is not None else (given or "fillet",
+                                                                          "", "")
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     if tracker is None:
         with contextlib.ExitStack() as undo:
             undo.enter_context(source)  # closed if the tracker is refused
@@ -195,7 +196,8 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     lost = int(np.sum(res.status == int(TrackStatus.LOST)))
     located = int(np.sum(np.isfinite(res.p).all(axis=1)))
     print(f"replay of {args.source}: {n + 1} frames (start frame {res.start_index}), tracker "
-          f"{args.tracker}, {wall:.1f} s; torch poses "
+          f"{args.tracker}" + (f", joint {args.joint} (from {origin})" if origin else "")
+          + f", {wall:.1f} s; torch poses "
           + ("from the recording" if res.poses_known else
              ("from --pose" if pose is not None else "not recorded: flange at the base origin "
               "(3D points in the flange frame)")))

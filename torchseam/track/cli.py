@@ -100,11 +100,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.set_defaults(func=run_eval)
 
 
-def _resolve_joint(args: argparse.Namespace, ds: Dataset) -> None:
-    """``args.joint`` from ``--joint`` or the folder's meta.json (:meth:`Dataset.joint`)."""
-    args.joint, line = ds.joint(args.joint)
-    if line:
-        print(line, file=sys.stderr, flush=True)
+def _resolve_joint(args: argparse.Namespace, ds: Dataset) -> str:
+    """``args.joint`` from ``--joint`` or the folder's meta.json (:meth:`Dataset.joint`; a
+    warning on stderr when they disagree). Returns a note for the summary line: '' or where
+    the joint came from."""
+    args.joint, origin, warning = ds.joint(args.joint)
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
+    return f"joint {args.joint} from {origin}; " if origin else ""
 
 
 def _start(img: np.ndarray, tipm: Tipm, uv0: np.ndarray | None, args: argparse.Namespace,
@@ -235,7 +238,7 @@ def run_track(args: argparse.Namespace) -> int:
 
     uv0 = _parse_init(args.init)
     ds = Dataset.open(args.frames_dir, labels=False)  # track needs no labels
-    _resolve_joint(args, ds)
+    said = _resolve_joint(args, ds)
     gone = {int(f) for f in _warn_missing(ds)}
     tipm = load_tipm()
     tracker = _make_tracker(args, tipm)
@@ -264,7 +267,7 @@ def run_track(args: argparse.Namespace) -> int:
         note, _ = _follow(args, tracker, ds, uv0, row, tipm)
     shown = ", ".join(f"{k} {n}" for k, n in counts.items()
                       if n or k in STATUS_NAMES.values())
-    print(f"{args.tracker}: {len(ds)} frames -> {args.out} (start: {note}; {shown})")
+    print(f"{args.tracker}: {len(ds)} frames -> {args.out} ({said}start: {note}; {shown})")
     return 0
 
 
@@ -274,7 +277,7 @@ def run_eval(args: argparse.Namespace) -> int:
 
     uv0 = _parse_init(args.init)
     ds = Dataset.open(args.frames_dir, require_labels=True)
-    _resolve_joint(args, ds)
+    said = _resolve_joint(args, ds)
     _warn_missing(ds)
     uv = np.full((len(ds), 2), np.nan)
     n_bad = 0
@@ -291,7 +294,7 @@ def run_eval(args: argparse.Namespace) -> int:
     s = error_stats(err)
     p50, p99 = percentiles_ms(secs if secs else [0.0])
     print(f"{args.tracker} on {ds.root} ({int(labelled.sum())} of {len(ds)} frames labelled; "
-          f"start: {note}" + (f"; {n_bad} unreadable, counted lost" if n_bad else "") + ")")
+          f"{said}start: {note}" + (f"; {n_bad} unreadable, counted lost" if n_bad else "") + ")")
     print(format_table(["tracker", "frames", "RMSE px", "max px", "> 5 px %", "lost %",
                         "ms p50", "ms p99"],
                        [[args.tracker, s["n"], s["rmse"], s["max"], s["pct_gt5"], s["pct_lost"],
