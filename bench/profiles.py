@@ -103,9 +103,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--false-px", type=float, default=3.0)
     ap.add_argument("--worst", type=int, default=0, help="list this many false-tracked frames")
     a = ap.parse_args(argv)
+    paths = []
+    for name in a.parts.split(","):  # a file, or a shipped part's name (t_joint_bevel)
+        path = Path(name) if Path(name).is_file() else CONFIG_DIR / "parts" / f"{name}.yaml"
+        if not path.is_file():
+            ap.error(f"--parts: {name}: no such part file, nor configs/parts/{name}.yaml")
+        paths.append(path)
+    for fam in a.families.split(","):
+        if fam not in FAMILY_NAMES:
+            ap.error(f"--families: {fam!r}: not one of {', '.join(FAMILY_NAMES)}")
+    for lev in a.levels.split(","):
+        try:
+            load_noise().level(lev)
+        except ValueError as e:
+            ap.error(f"--levels: {e}")
     cv2.setNumThreads(1)
     rows = []
-    for part_path in [Path(p) for p in a.parts.split(",")]:
+    for part_path in paths:
         for fam in a.families.split(","):
             for lev in a.levels.split(","):
                 agg: dict = {}
