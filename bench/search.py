@@ -50,6 +50,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--length-mm", type=float, default=2.0)
     args = ap.parse_args()
+    for name in args.parts.split(","):
+        if not (CONFIG_DIR / "parts" / f"{name}.yaml").is_file():
+            ap.error(f"--parts: {name}: no configs/parts/{name}.yaml")
     torch.set_num_threads(1)
     cell, noise, parts = load_cell(), load_noise(), load_live_parts()
     rows = []

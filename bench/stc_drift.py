@@ -54,6 +54,11 @@ def main() -> None:
         if s != "fitted" and not (s.replace(".", "", 1).isdigit() and float(s) > 0):
             ap.error(f"--sigmas: {s!r} is neither 'fitted' nor a width > 0 in px")
     cell, part, noise, tipm = load_cell(), load_part(), load_noise(), load_tipm()
+    for name in args.levels.split(","):
+        try:
+            noise.level(name)
+        except ValueError as e:
+            ap.error(f"--levels: {e}")
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     blocks = range(0, args.frames, args.block)

@@ -45,6 +45,11 @@ def main() -> None:
     cv2.setNumThreads(args.threads)
     torch.set_num_threads(1)  # the renderer's threads must not spin beside the timed calls
     cell, part, noise = load_cell(), load_part(), load_noise()
+    for name in args.levels.split(","):
+        try:
+            noise.level(name)
+        except ValueError as e:
+            ap.error(f"--levels: {e}")
     rows = []
     for fam in families:
         for name in args.levels.split(","):
