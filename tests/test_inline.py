@@ -430,3 +430,31 @@ def test_a_butt_span_started_again_keeps_the_gap_width_last_tracked():
     assert TrackStatus.TRACKED not in status[5:31]
     assert status[31] != TrackStatus.TRACKED, results[31][0].uv    # before h24: tracked
     assert status[32] == TrackStatus.TRACKED and np.allclose(results[32][0].uv, truth)
+
+
+def test_a_butt_gap_whose_two_edges_moved_alike_is_held_to_the_prediction():
+    """The arc's glare beside a butt's gap moves its two edges the same way: the span agrees
+    with its history, the centre moved with them, and the 6 px gate took it (the bench's butt
+    rows at extreme: both edges 3-6 px to one side, ``tracked`` 3.1-5.7 px off). The gap's
+    centre is held to ``centre_tol_px`` of the locator's prediction after a frame with
+    evidence, ``centre_tol_growth_px`` more per frame without since (the prediction ages
+    while blind). Here: both edges 3.5 px to the right after tracked frames: coasting (before
+    h26: tracked, 3.5 px off); again on the next frame (2.75 px allowed): coasting; 1.5 px to
+    the right: tracked; the same 3.5 px after four frames without evidence (4.25 px allowed):
+    tracked."""
+    from torchseam.track.fusion import TrackStatus
+
+    left, right = np.array([300.0, 240.0]), np.array([315.0, 240.0])
+    truth = (left + right) / 2
+    moved = (left + [3.5, 0.0], right + [3.5, 0.0])       # the span in place, moved 3.5 px
+    near = (left + [1.5, 0.0], right + [1.5, 0.0])
+    eaten = (left - [20.0, 0.0], right + [5.0, 0.0])      # eaten unlike: no evidence
+    results, _ = _butt_tracker([*[(left, right)] * 4, moved, moved, near,
+                                *[eaten] * 4, moved])
+    status = [r.status for r, _ in results]
+    assert status[:3] == [TrackStatus.TRACKED] * 3
+    assert status[3:5] == [TrackStatus.COASTING] * 2, [r.uv for r, _ in results[3:5]]
+    assert np.allclose(results[3][0].uv, truth)                  # the prediction held
+    assert status[5] == TrackStatus.TRACKED and np.allclose(results[5][0].uv, truth + [1.5, 0])
+    assert status[6:10] == [TrackStatus.COASTING] * 4
+    assert status[10] == TrackStatus.TRACKED, results[10][0].uv

@@ -11,7 +11,8 @@ there, its aim point within ``gate_px`` of the prediction, is the frame's eviden
 ``tracked``, the point the aim point (the tracker's own prediction, its point held while blind,
 goes stale as the joint moves on: ``(1 + n) gate_px`` after n frames without evidence, at most
 :data:`MAX_GATE_GROWTH` times; the locator's is made afresh on every frame from the robot's
-pose and does not, so its gate does not grow). Otherwise the
+pose and does not, so its gate does not grow; a butt's gap centre is held tighter round the
+locator's prediction, :meth:`ProfileTracker._centre_tol`). Otherwise the
 point is the prediction, ``coasting``, and after ``lost_frames`` such frames ``lost``. The
 profile itself (feature points and the pieces leaving the root edges) stays on the tracker
 (:attr:`ProfileTracker.result`) for the locator, which locates the faces' directions from it.
@@ -74,6 +75,8 @@ class ProfileTrackConfig:
     edge_tol_px: float = config_field(lo=0.0, lo_open=True)
     edge_max_frames: int = config_field(lo=0)
     line_tol_deg: float = config_field(lo=0.0)
+    centre_tol_px: float = config_field(lo=0.0, lo_open=True)
+    centre_tol_growth_px: float = config_field(lo=0.0)
 
 
 def load_profile_track_config(path: str | Path | None = None) -> ProfileTrackConfig:
@@ -127,6 +130,9 @@ class ProfileTracker(Tracker):
         #: the span of the frame in hand where its ends were taken as read: it joins the
         #: history only if the frame is evidence (:meth:`_learn`)
         self._span: np.ndarray | None = None
+        #: butt: how far from the locator's prediction the frame in hand's aim may lie
+        #: (:meth:`_centre_tol`; infinite round the tracker's own prediction)
+        self._tol = float("inf")
         #: (width, root gap) px of the last frame tracked (the start frame's at first)
         self._shape = (float("nan"), float("nan"))
 
@@ -144,6 +150,7 @@ class ProfileTracker(Tracker):
         self._pair.clear()
         self._stale_pair = 0
         self._shape = (float("nan"), float("nan"))
+        self._tol = float("inf")   # the start frame: no prediction but the start point
         # the profile's shape (and a butt's or a lap's span) from the start frame (clean: the
         # arc is not lit yet), so the first frames under the arc are checked too
         if np.all(np.isfinite(self.uv)):
@@ -192,6 +199,7 @@ class ProfileTracker(Tracker):
         # breaks whose span agreed by chance, 12-17 px off: the bench's butt `wide` extreme)
         grow = 1.0 if handed else min(1.0 + self.misses, MAX_GATE_GROWTH)
         gate = self.cfg.gate_px * grow
+        self._tol = self._centre_tol() if handed else float("inf")
         if res.ok:
             res = self._root_edges(res) if res.joint == "v_groove" else self._ends(res, pred)
         if res.ok and res.joint == "v_groove" and self.misses > self.cfg.lost_frames:
@@ -207,6 +215,26 @@ class ProfileTracker(Tracker):
         self.uv, self.velocity = pred, np.zeros(2)  # held, not extrapolated, while blind
         status = TrackStatus.LOST if self.misses > self.cfg.lost_frames else TrackStatus.COASTING
         return TrackResult(pred.copy(), int(status))
+
+    def _centre_tol(self) -> float:
+        """How far from the locator's prediction a butt's aim may lie to be evidence:
+        ``centre_tol_px`` after a frame with evidence, ``centre_tol_growth_px`` more for each
+        frame without since (the prediction is drawn from the seam seen, which ages while the
+        tracker is blind: on the butt's closed loop its error against the truth, p90, grew
+        0.66, 0.85, 0.95, 1.04, 1.38 px after 0-4 frames without evidence).
+
+        The arc's glare stands on the seam and moves a butt's two gap edges alike as often as
+        it eats one: a span "in its place" whose two ends moved the same way moves the gap's
+        centre with them, and the span check cannot see it (the bench's butt rows at extreme:
+        both edges 3-6 px to one side, tracked 3.1-5.7 px off within the 6 px gate); a way
+        read off a span off its history (:meth:`_ends`) is off by its kept edge's own loss.
+        The prediction is the one thing such a reading is checked against: the gap moves by a
+        fraction of a pixel a frame between the prediction and the frame (the locator's
+        prediction on the closed loop, p99 1.5 px after a frame with evidence). Held to
+        ``gate_px`` at every age (the gate's own bound), and not used round the tracker's own
+        prediction (its point held while blind: the gate grows round it instead)."""
+        return min(self.cfg.centre_tol_px + self.cfg.centre_tol_growth_px * self.misses,
+                   self.cfg.gate_px)
 
     def _same_shape(self, res: ProfileResult) -> ProfileResult:
         """After the track was lost (its gate grown :data:`MAX_GATE_GROWTH` times), a groove
@@ -325,12 +353,14 @@ class ProfileTracker(Tracker):
         and the edge, the face's length away, unlike each other: the root moved by half the
         span's excess is no reading of it (a dark face read with its root 15.6 px and its edge
         9.1 px short was taken so, 3.17 px off). The way whose aim lies nearest the prediction
-        is taken, within ``edge_tol_px`` of it; none there: no evidence (``ok`` False). A frame the
-        gate refuses (some other structure, whose span may agree by chance) neither joins the
-        history nor counts as a span in place (:meth:`_learn`). A vector off its history on
-        more than ``edge_max_frames`` frames in a row is no longer known (its history starts
-        again from what the frames show; the gate on the prediction still holds; a butt's
-        from a gap within :data:`REFIND_SHARE` of the width last tracked, else no evidence).
+        is taken, within ``edge_tol_px`` of it (a butt's: within :meth:`_centre_tol` too, as
+        a butt's span in place or started again is); none there: no evidence (``ok`` False).
+        A frame the gate refuses (some other structure, whose span may agree by chance)
+        neither joins the history nor counts as a span in place (:meth:`_learn`). A vector off
+        its history on more than ``edge_max_frames`` frames in a row is no longer known (its
+        history starts again from what the frames show; the gate on the prediction still
+        holds; a butt's from a gap within :data:`REFIND_SHARE` of the width last tracked,
+        else no evidence).
 
         A lap whose edge face is lit (not noted :data:`~torchseam.vision.profiles.LAP_DARK_FACE`)
         has no end to keep: both are where the face's line meets the plates', and a span off
@@ -355,10 +385,16 @@ class ProfileTracker(Tracker):
                     res, ok=False, aim=np.full(2, np.nan),
                     reason=f"the butt's span started again at {now:.1f} px (last tracked "
                            f"{then:.1f})")
+            if res.joint == "butt" and self._centre_off(res, pred):
+                return self._far_centre(res, pred, "a span started again")
             self._span = d
             return res
         ref = np.median(np.array(hist), axis=0)
         if float(np.linalg.norm(d - ref)) <= self.cfg.edge_tol_px:
+            if res.joint == "butt" and self._centre_off(res, pred):
+                # both ends moved the same way (the glare beside the gap): the span agrees,
+                # the centre moved with them
+                return self._far_centre(res, pred, "its span in place")
             self._span = d   # joins the history if the frame is evidence (_learn)
             return res
         self._stale_pair += 1
@@ -393,7 +429,8 @@ class ProfileTracker(Tracker):
             ways.append((a + 0.5 * (d - ref), b - 0.5 * (d - ref), "both ends"))
         off = [float(np.linalg.norm(w[0] + share * ref - pred)) for w in ways]
         k = int(np.argmin(off))
-        if off[k] > self.cfg.edge_tol_px:
+        tol = min(self.cfg.edge_tol_px, self._tol) if res.joint == "butt" else self.cfg.edge_tol_px
+        if off[k] > tol:
             return dataclasses.replace(
                 res, ok=False, aim=np.full(2, np.nan),
                 reason=f"both ends off their expected places (span {np.linalg.norm(d):.1f} px, "
@@ -416,6 +453,17 @@ class ProfileTracker(Tracker):
             res, aim=aim, points=dict(res.points, **{names[0]: a_new, names[1]: b_new}),
             arm_points=arms, reason=(res.reason + "; " if res.reason else "") + note,
             width_px=norm if res.joint == "butt" else res.width_px)
+
+    def _centre_off(self, res: ProfileResult, pred: np.ndarray) -> bool:
+        """A butt's gap centre as read farther from the prediction than :meth:`_centre_tol`."""
+        return float(np.linalg.norm(res.aim - pred)) > self._tol
+
+    def _far_centre(self, res: ProfileResult, pred: np.ndarray, how: str) -> ProfileResult:
+        """No evidence: the gap's centre read too far from the prediction."""
+        return dataclasses.replace(
+            res, ok=False, aim=np.full(2, np.nan),
+            reason=f"the gap's centre {np.linalg.norm(res.aim - pred):.1f} px from the "
+                   f"prediction with {how} (at most {self._tol:.2f})")
 
     def _learn(self) -> None:
         """The span of the frame in hand (:meth:`_ends`) joins the history: the frame is
