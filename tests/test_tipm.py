@@ -705,3 +705,24 @@ def test_thin_clipped_runs_take_a_clipped_line_not_a_core_or_specks():
     assert not m[:, 80:121].any()                       # the core's columns
     assert not m[70:, :].any()                          # the specks
     assert m[:, :65].any(axis=0).all() and m[:, 136:160].any(axis=0).all()
+    # the compiled runs and areas are the plain reading's: each column's runs, then
+    # OpenCV's 8-connected areas (random planes round the clipping level, lines, blobs)
+    import cv2
+
+    def plain(p, max_rows, min_area):
+        out = np.zeros(p.shape, np.uint8)
+        for c in range(p.shape[1]):
+            d = np.diff(np.r_[False, p[:, c] >= 250, False].astype(np.int8))  # rows [a, b)
+            runs = [(a, b) for a, b in zip(np.nonzero(d == 1)[0], np.nonzero(d == -1)[0],
+                                           strict=True)
+                    if a > 0 and b < p.shape[0] and b - a <= max_rows]  # the edge bounds none
+            if len(runs) == 1:
+                out[runs[0][0]:runs[0][1], c] = 255
+        _, lab, st, _ = cv2.connectedComponentsWithStats(out, connectivity=8)
+        return np.where((st[lab, cv2.CC_STAT_AREA] >= min_area) & (lab > 0), 255, 0)
+    for k in range(30):
+        p = rng.integers(0, 256, (int(rng.integers(2, 30)), int(rng.integers(2, 30))))
+        p = np.where(rng.random(p.shape) < 0.3 + 0.02 * k, 255, p).astype(np.uint8)
+        for max_rows, min_area in ((3, 0), (5, 4), (10, 20)):
+            assert np.array_equal(thin_clipped_runs(p, max_rows, min_area),
+                                  plain(p, max_rows, min_area)), (k, max_rows, min_area)

@@ -311,7 +311,7 @@ def test_the_arms_round_a_clipped_glare_core_place_the_hidden_corner(wide_heavy)
     along the stripe, `shallow_noise` included); it is no evidence (the arms stop at the
     core)."""
     from torchseam.sim.variants import glare_over_corner, to_mono
-    from torchseam.track.anchored import load_anchor_config, observe
+    from torchseam.track.anchored import clipped_centre, load_anchor_config, observe
     from torchseam.vision.tipm import SATURATED
     tipm, cfg = load_tipm(), load_anchor_config()
     frames, labels = wide_heavy
@@ -324,7 +324,13 @@ def test_the_arms_round_a_clipped_glare_core_place_the_hidden_corner(wide_heavy)
             w = cfg.window_px
             roi = np.ascontiguousarray(mono[int(x[1]) - w:int(x[1]) + w + 1,
                                             int(x[0]) - w:int(x[0]) + w + 1])
-            refused += tipm.find(roi)[0].reason == SATURATED
+            res, ridge, mask = tipm.find(roi)
+            refused += res.reason == SATURATED
+            if res.first_look and res.reason != SATURATED:
+                # TIPM's planes are the unblinded reading's: reused, the same points
+                got = clipped_centre(tipm, roi, res.centre, (ridge, mask))
+                want = clipped_centre(tipm, roi, res.centre)
+                assert all(np.array_equal(a, b) for a, b in zip(got, want, strict=True)), k
             obs = observe(tipm, mono, x, None, cfg)
             assert obs.res is None and obs.shallow is not None, k
             err = float(np.linalg.norm(obs.shallow.uv - uv))

@@ -359,8 +359,11 @@ def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | No
             # into clipped light are that light's edge (a saturated glare core's rim), not
             # the stripe; the shallow corner takes what is left (the red excess of a colour
             # frame has no such rim)
+            # TIPM's first look at a window not refused as blinded made the planes that the
+            # window's unblinded reading makes (see clipped_centre)
+            first = (red, mask) if res.first_look and res.reason != SATURATED else None
             centre, clipped = clipped_centre(tipm, roi,
-                                             centre if res.reason != SATURATED else None)
+                                             centre if res.reason != SATURATED else None, first)
             if centre is not None:
                 keep = ~beside_clipped(roi, centre, tipm.cfg.ridge_px // 2)
                 centre, clipped = centre[keep], clipped[keep]
@@ -380,7 +383,8 @@ def _unblinded(cfg: TipmConfig) -> Tipm:
     return Tipm(dataclasses.replace(cfg, max_saturated_fraction=1.0))
 
 
-def clipped_centre(tipm: Tipm, roi: np.ndarray, centre: np.ndarray | None
+def clipped_centre(tipm: Tipm, roi: np.ndarray, centre: np.ndarray | None,
+                   planes: tuple[np.ndarray, np.ndarray] | None = None
                    ) -> tuple[np.ndarray | None, np.ndarray]:
     """The centre line (N, 2) of a window ``roi`` (H, W) read by its brightness, with the
     stripe where it runs clipped over glare: ``centre``, TIPM's centre line of the window
@@ -392,13 +396,15 @@ def clipped_centre(tipm: Tipm, roi: np.ndarray, centre: np.ndarray | None
     stripe's centre). Why: under a clipped glare core the stripe's arms run clipped over the
     bright halo round it, a few grey levels of ridge, and a window more than
     ``max_saturated_fraction`` clipped is refused whole, while the arms are still in view
-    outside the core (docs/benchmarks.md, issue 35). Returns ``(centre or None, clipped
-    (N,) bool: the points on a clipped run)``."""
+    outside the core (docs/benchmarks.md, issue 35). ``planes``: the window's stripe response
+    and mask (:meth:`Tipm.stripe_mask`) when TIPM made them without refusing it as blinded,
+    the same as the unblinded reading's (then not made again: ~0.4 ms, issue 35); None: made
+    here. Returns ``(centre or None, clipped (N,) bool: the points on a clipped run)``."""
     thin = thin_clipped_runs(roi, tipm.cfg.ridge_px // 2, tipm.cfg.min_area)
     if centre is not None and not thin.any():
         return centre, np.zeros(len(centre), bool)
     t = _unblinded(tipm.cfg)
-    red, mask, _ = t.stripe_mask(roi)
+    red, mask = t.stripe_mask(roi)[:2] if planes is None else planes
     pts = t.centre(cv2.max(red, thin), cv2.max(mask, thin))
     h, w = thin.shape
     u = np.clip(np.rint(pts[:, 0]).astype(np.intp), 0, w - 1)

@@ -574,3 +574,59 @@ def fit_line(p, robust):  # pragma: no cover - compiled
     if dx < 0.0:
         dx, dy = -dx, -dy
     return cx, cy, dx, dy, np.sqrt(ss / kept)
+
+
+@numba.njit("i8(u1[:, ::1], i8, i8, i8, u1[:, ::1])", cache=True, nogil=True)
+def thin_clipped_runs(plane, level, max_rows, min_area, out):  # pragma: no cover - compiled
+    """:func:`torchseam.vision.tipm.thin_clipped_runs` into ``out`` (H, W) uint8, zeros on
+    entry: 255 on each column's one run of pixels ``>= level`` at most ``max_rows`` tall and
+    bounded by lower pixels above and below (a column with two such runs or more keeps none),
+    in 8-connected areas of ``min_area`` px at least; returns the columns kept. With one run
+    a column at most, an area is a chain of runs in consecutive columns, each touching the
+    next (a row apart at most), so it is summed along the columns, not labelled (the numpy
+    and ``cv2.connectedComponentsWithStats`` version took ~1 ms on the tracker's window)."""
+    h, w = plane.shape
+    runs = np.zeros(w, np.int64)  # thin bounded runs found in the column
+    top = np.zeros(w, np.int64)
+    end = np.zeros(w, np.int64)   # the last one's rows [top, end)
+    for c in range(w):  # column by column (a window is in cache: 2x faster than by rows)
+        start = -1  # the open run's first row; -1: none, or one from the top row
+        prev = plane[0, c] >= level
+        n = 0
+        t = 0
+        e = 0
+        for r in range(1, h):
+            cur = plane[r, c] >= level
+            if cur != prev:
+                if cur:
+                    start = r
+                else:
+                    if start >= 0 and r - start <= max_rows:
+                        n += 1
+                        t = start
+                        e = r
+                    start = -1
+                prev = cur
+        runs[c] = n
+        top[c] = t
+        end[c] = e
+    # (a run still open at the bottom row has no end: it is not counted)
+    kept = 0
+    c = 0
+    while c < w:
+        if runs[c] != 1:
+            c += 1
+            continue
+        c1 = c + 1  # the chain of touching runs from column c: columns [c, c1)
+        area = end[c] - top[c]
+        while (c1 < w and runs[c1] == 1 and top[c1] <= end[c1 - 1]
+               and top[c1 - 1] <= end[c1]):
+            area += end[c1] - top[c1]
+            c1 += 1
+        if area >= min_area:
+            for k in range(c, c1):
+                for r in range(top[k], end[k]):
+                    out[r, k] = 255
+            kept += c1 - c
+        c = c1
+    return kept

@@ -209,6 +209,8 @@ class TipmResult:
             arm lines are placed, the noise of the corner as a measurement (the live tracker
             weighs a fix by it).
         mask: (H, W) uint8 stripe mask after filtering (for the overlay).
+        first_look: the planes :meth:`Tipm.find` gave with it are its first look's
+            (:meth:`Tipm.stripe_mask` of the frame as given), not a second look's.
     """
 
     ok: bool
@@ -221,6 +223,7 @@ class TipmResult:
     rms_px: float = float("nan")
     mask: np.ndarray | None = None
     inlier_rms_px: float = float("nan")
+    first_look: bool = True
 
 
 #: the failure reason of a frame blinded by arc light
@@ -276,34 +279,14 @@ def thin_clipped_runs(plane: np.ndarray, max_rows: int, min_area: int = 0) -> np
         >>> m = thin_clipped_runs(f, 10); int(m[:, 0].sum() // 255), int(m[:, 5].sum() // 255)
         (4, 4)
     """
-    h, w = plane.shape
-    out = np.zeros((h, w), np.uint8)
-    clip = cv2.compare(plane, CLIPPED, cv2.CMP_GE)  # type: ignore[call-overload]
-    if cv2.countNonZero(clip) < max(min_area, 1):
-        return out
-    # +1 where a run starts (row r + 1), -1 where one ends (after row r), column by column
-    d = np.diff((clip.T > 0).view(np.int8), axis=1)
-    c0, r0 = np.nonzero(d == 1)
-    c1, r1 = np.nonzero(d == -1)
-    if not len(c0) or not len(c1):
-        return out
-    # a run that touches the top row has no start, one that touches the bottom no end: pair
-    # each start with the first end after it in its column (both sorted by column, row)
-    j = np.minimum(np.searchsorted(c1 * (h + 1) + r1, c0 * (h + 1) + r0), len(c1) - 1)
-    ok = (c1[j] == c0) & (r1[j] > r0) & (r1[j] - r0 <= max_rows)
-    # a column with more thin clipped runs than one is a speckled, nearly clipped halo (noise
-    # round the clipping level): no cross-section of the stripe can be told there
-    ok &= np.bincount(c0[ok], minlength=w)[c0] == 1
-    if not ok.any():
-        return out
-    cols, top, end = c0[ok], r0[ok] + 1, r1[j][ok] + 1  # one run a column now
-    rows = np.arange(h)[:, None]
-    out[:, cols] = ((rows >= top) & (rows < end)).view(np.uint8) * np.uint8(255)
-    if min_area > 1:
-        _, labels, stats, _ = cv2.connectedComponentsWithStats(out, connectivity=8)
-        keep = (stats[:, cv2.CC_STAT_AREA] >= min_area).astype(np.uint8) * np.uint8(255)
-        keep[0] = 0
-        out = keep[labels]
+    if plane.dtype != np.uint8 or plane.ndim != 2:
+        raise ValueError(f"thin_clipped_runs: expected an (H, W) uint8 plane, got {plane.dtype} "
+                         f"{plane.shape}")
+    out = np.zeros(plane.shape, np.uint8)
+    # compiled: a column's runs in one pass, the areas summed along chains of runs (the numpy
+    # and connected-components version took ~1 ms on the tracker's window, issue 35)
+    load_kernels(__package__).thin_clipped_runs(np.ascontiguousarray(plane), CLIPPED,
+                                                int(max_rows), int(min_area), out)
     return out
 
 
@@ -589,7 +572,9 @@ class Tipm:
         Brightness also shows the part's own lit faces, whose edges the ridge (a one-sided
         step passes it) would take for a stripe's arms; an edge's bright side stays bright,
         a line's two sides do not. The returned planes are the red excess's when this look
-        finds no corner either.
+        finds no corner either: with no corner found they are the first look's (of
+        :meth:`stripe_mask` of ``frame``), as with a corner ``first_look`` (the tracker
+        reuses them, issue 35).
         """
         red, mask, why = self.stripe_mask(frame)
         res = _fail(why, mask) if why else self.corner(self.centre(red, mask), mask, prior)
@@ -602,6 +587,7 @@ class Tipm:
             if not why2:
                 res2 = self.corner(self.centre(red, mask2), mask2, prior)
                 if res2.ok:
+                    res2.first_look = False
                     return res2, red, mask2
         if frame.ndim == 3:
             # the red excess found no corner: look at the frame's brightness as at a mono frame
@@ -617,6 +603,7 @@ class Tipm:
             ridge = cv2.subtract(grey, cv2.blur(grey, (1, self.cfg.ridge_px)))
             res3, red3, mask3 = self.find(cv2.min(ridge, cv2.add(line, line)), prior)
             if res3.ok:
+                res3.first_look = False
                 return res3, red3, mask3
         return res, red, mask
 
