@@ -39,6 +39,9 @@ class Fix:
         firm: precise enough to place the seam by (the live loop's located points for the
             robot's expected pixel): a TIPM corner; a shallow one only when its std along
             the stripe, glare term included, is within the tracker's ``evidence_px``.
+        jumped: the filter started again on it (a clean corner its gate refused: the image
+            jumped, or glare made a corner elsewhere): no evidence on its own frame, only
+            once the next frame's corner is found there.
     """
 
     uv: np.ndarray
@@ -48,6 +51,7 @@ class Fix:
     seen: bool = True
     shallow: bool = False
     firm: bool = True
+    jumped: bool = False
 
 
 @dataclass(frozen=True)
