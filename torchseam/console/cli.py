@@ -113,9 +113,9 @@ def run(args: argparse.Namespace) -> int:
                 if warning:
                     print(warning, file=sys.stderr, flush=True)
             parts.tracker("anchored", joint)  # a bad joint, before serving
-            if origin:
+            if origin:  # on stderr: stdout's first line stays the page's address
                 print(f"--source {args.source}: joint {joint} (from {origin}; give --joint to "
-                      "override)", flush=True)
+                      "override)", file=sys.stderr, flush=True)
             console = replay_console(args.source, cfg, cell, noise, parts, defaults=defaults,
                                      joint=joint)
     except ParamError as e:
