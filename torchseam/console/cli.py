@@ -104,18 +104,16 @@ def run(args: argparse.Namespace) -> int:
         elif args.source == "sim":
             console = simulated_console(cfg, cell, part, noise, parts, defaults=defaults)
         else:   # a folder or video: open_source's errors name the path
-            joint, origin = args.joint or "fillet", ""
-            if Path(args.source).is_dir():  # its meta.json may name the part's joint
+            joint = args.joint or "fillet"
+            if Path(args.source).is_dir():  # its meta.json may name the part's joint (taken
+                # silently: stdout's first line is the page's address, stderr one line an
+                # error's; a --joint it contradicts is warned of)
                 from torchseam.core.dataset import Dataset
 
-                joint, origin, warning = Dataset.open(args.source, labels=False).joint(
-                    args.joint)
+                joint, _, warning = Dataset.open(args.source, labels=False).joint(args.joint)
                 if warning:
                     print(warning, file=sys.stderr, flush=True)
             parts.tracker("anchored", joint)  # a bad joint, before serving
-            if origin:  # on stderr: stdout's first line stays the page's address
-                print(f"--source {args.source}: joint {joint} (from {origin}; give --joint to "
-                      "override)", file=sys.stderr, flush=True)
             console = replay_console(args.source, cfg, cell, noise, parts, defaults=defaults,
                                      joint=joint)
     except ParamError as e:
