@@ -32,6 +32,7 @@ from torchseam.geometry.calibrate import (
     load_calibration,
     load_laser_set,
     stripe_on_board,
+    update_cell,
 )
 from torchseam.sim.board import (
     BoardRenderer,
@@ -444,6 +445,42 @@ def test_cli_tcp_updates_the_cell_in_place(tmp_path, cell, capsys):
     assert np.linalg.norm(np.asarray(got.tool.position_mm) - cell.tool.position_mm) < 0.2
     assert got.tool.position_mm != cell.tool.position_mm
     assert got.camera == cell.camera
+
+
+def test_the_four_calibrations_in_turn_keep_the_file_s_comments(tmp_path, cell):
+    """The README's order (camera, laser plane, hand-eye, TCP), each written into the same
+    file: every step keeps the person's comments. (The hand-eye step once rewrote the file
+    without them: the laser plane's normal, normalised again on reading, differed in its last
+    bits from the config it was compared with.)"""
+    def unit(v):
+        return np.asarray(v, float) / np.linalg.norm(v)
+
+    target = tmp_path / "my_cell.yaml"
+    target.write_text((CONFIG_DIR / "cell.yaml").read_text())
+    # a laser plane `calibrate laser` wrote (the simulated set, seed 0)
+    normal = unit([0.000144589, 0.766088658, 0.642734896])
+    steps = [
+        ("camera", dataclasses.replace(cell.camera, fx=1599.7401, fy=1599.8815, cx=331.1456,
+                                       cy=243.0019)),
+        ("laser_plane", dataclasses.replace(cell.laser_plane, normal=tuple(normal),
+                                            distance_mm=83.557177,
+                                            source_mm=(-1e-06, 77.129445, 38.070414))),
+        ("hand_eye", dataclasses.replace(cell.hand_eye, position_mm=(103.5722, 0.0251, 250.3927),
+                                         quaternion=tuple(unit(np.array(
+                                             [0.664519501, -0.241648919, -0.241864475,
+                                              0.664470622]))))),
+        ("tool", dataclasses.replace(cell.tool, position_mm=(0.0204, -0.031, 349.9121))),
+    ]
+    for section, value in steps:
+        written, kept = update_cell(target, target, section, value, f"calibrated: {section}")
+        assert kept, section
+        assert written == load_cell(target), section
+        text = target.read_text()
+        assert "# OpenCV order: k1 k2 p1 p2 k3" in text, section
+        assert f"# calibrated: {section}" in text, section
+    got = load_cell(target)
+    assert np.allclose(got.laser_plane.normal, normal, atol=1e-9)
+    assert got.tool.position_mm == (0.0204, -0.031, 349.9121)
 
 
 def test_cli_handeye_reads_its_folder(tmp_path, handeye_set, cell, capsys):

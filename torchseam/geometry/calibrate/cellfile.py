@@ -8,6 +8,7 @@ back through core's parser before it counts as written (:func:`update_cell`).
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -86,6 +87,20 @@ def splice_section(text: str, section: str, data: dict[str, Any], note: str) -> 
     return "".join(lines)
 
 
+def _same(a: Any, b: Any) -> bool:
+    """Two configs' trees (:func:`to_dict`) equal, floats to 1e-12 relative: a unit vector is
+    normalised again when its file is read, which may move its last bits."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, float) or isinstance(b, float):
+        return (not isinstance(a, bool) and not isinstance(b, bool)
+                and isinstance(a, (int, float)) and isinstance(b, (int, float))
+                and math.isclose(a, b, rel_tol=1e-12, abs_tol=1e-12))
+    return bool(a == b)
+
+
 def update_cell(cell_path: Path, out: Path, section: str, value: Any, note: str
                 ) -> tuple[CellConfig, bool]:
     """Write ``cell_path``'s config with ``section`` replaced by ``value`` to ``out``.
@@ -109,8 +124,9 @@ def update_cell(cell_path: Path, out: Path, section: str, value: Any, note: str
     if text is not None:
         out.write_text(text)
         try:
-            if load_cell(out) == new:
-                return new, True
+            back = load_cell(out)
+            if _same(to_dict(back), to_dict(new)):
+                return back, True
         except ConfigError:
             pass
     save_config(new, out)
