@@ -159,6 +159,23 @@ def test_train_live_command_fits_and_writes_a_run(tmp_path, monkeypatch, capsys)
     assert meta["info"]["data"]["train"]["families"] == ["sim"]
 
 
+def test_train_live_refuses_a_start_without_the_stc_extensions_it_fits(tmp_path, monkeypatch,
+                                                                      capsys):
+    """A start `torchseam train` wrote with its defaults has STC's reg and anchor switched off,
+    which train-live's fit frees: one line that says how to fit a start it takes."""
+    from torchseam.cli import main
+    from torchseam.track.fusion import EAKFSTC
+
+    start = model_io.save_fitted(EAKFSTC(learnable=True), tmp_path / "eakf_stc.safetensors")
+    monkeypatch.chdir(tmp_path)
+    rc = main(["train-live", "--start", str(start), "--name", "s"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert f"--start {start}" in err and "reg and anchor switched off" in err
+    assert "--tracker reg=20,anchor=0.3" in err
+    assert not (tmp_path / "runs" / "s").exists()
+
+
 def test_train_live_fits_on_labelled_recordings(tmp_path, monkeypatch, capsys):
     """`train-live --data DIR --val-data DIR`: your own labelled recordings instead of the
     simulator (frames + labels.csv, here written by the simulator, some frames unlabelled:

@@ -119,6 +119,16 @@ def run(args: argparse.Namespace) -> int:
     dtype = getattr(torch, cfg.dtype)
     start = Path(args.start) if args.start else model_io.MODEL_DIR / "eakf_stc.safetensors"
     base = fitted_eakf_stc(model_path=start)
+    # reg and anchor are STC extensions that exist only when switched on (> 0): a fit of
+    # either needs a start that has it (tracker: {reg: > 0} and {anchor: > 0})
+    switched = {"reg": base.config.reg, "anchor": base.config.anchor}
+    off = [g for g, v in switched.items() if g in cfg.fit and not v]
+    if off:
+        raise TorchseamError(
+            f"--start {start}: its STC has {' and '.join(off)} switched off (0), which the fit "
+            f"frees (train_live.yaml fit: {', '.join(cfg.fit)}): fit the start with `torchseam "
+            "train --tracker reg=20,anchor=0.3` (the shipped start's values), or leave "
+            f"{', '.join(off)} out of fit: in your copy of train_live.yaml")
     eakf = make_module(base.config, dtype)
     model_io.load_fitted(eakf, start)
     live = AnchoredModel(eakf, load_anchor_config(), learnable=True).to(dtype)
