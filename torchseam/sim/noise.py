@@ -20,7 +20,6 @@ renderer adds it to the glare layer (:meth:`~torchseam.sim.sensor.LaserSensor.ar
 from __future__ import annotations
 
 import functools
-
 from dataclasses import dataclass
 
 import cv2
@@ -377,9 +376,10 @@ def _glare_template(rad: float, core: float, halo: float, aspect: float, tilt_de
                     exact: bool = True) -> np.ndarray:
     """Float32 glare template (saturated Gaussian core plus exponential halo), centre pixel in
     the middle, made once per set of arguments and shared (every renderer of a family and level
-    pastes the same one): never written to (the compiled paste takes writeable arrays only). ``aspect`` != 1 stretches it along the (tilted) image vertical
-    and shrinks it across, keeping its area. Without ``exact`` it is evaluated every other
-    pixel and interpolated (a quarter of the work; the glare is smooth at that scale)."""
+    pastes the same one): never written to (the compiled paste takes writeable arrays only).
+    ``aspect`` != 1 stretches it along the (tilted) image vertical and shrinks it across,
+    keeping its area. Without ``exact`` it is evaluated every other pixel and interpolated (a
+    quarter of the work; the glare is smooth at that scale)."""
     s = np.sqrt(aspect)
     r = int(4 * rad * max(s, 1 / s))
     if exact and aspect == 1.0 and tilt_deg == 0.0:
