@@ -38,3 +38,13 @@ def test_python_api_examples_run(tmp_path, monkeypatch, capsys):
     assert ns["res"].summary["unsafe_poses_sent"] == 0
     assert (tmp_path / "out" / "summary.json").exists()
     assert bool(ns["ok"][0])
+
+
+def test_the_configuration_section_names_every_shipped_config():
+    """A config file the README's list leaves out is a setting a user never hears of."""
+    text = README.read_text()
+    section = text[text.index("## Configuration"):text.index("## Further reading")]
+    shipped = sorted(p.name for p in (README.parent / "configs").glob("*.yaml"))
+    assert shipped, "no configs found next to the README"
+    missing = [name for name in shipped if f"`{name}`" not in section]
+    assert not missing, f"README's Configuration section does not name {missing}"
