@@ -167,6 +167,8 @@ CASES = [
      r"argument --overlay: .*a_file is a file, not a folder"),
     ("track model missing", lambda t, s: ["track", str(s), "--model", str(t / "no.st")],
      r"argument --model: .*no\.st: no such model file"),
+    ("track a video", lambda t, s: ["track", str(_a_file(t).rename(t / "weld.avi"))],
+     r"weld\.avi: not a folder of frames .*torchseam replay .*weld\.avi"),
     ("track model junk", lambda t, s: ["track", str(s), "--model", str(_a_file(t))],
      r"a_file: not a readable safetensors model file"),
     ("model for tipm", lambda t, s: ["track", str(s), "--tracker", "tipm", "--model",

@@ -145,7 +145,8 @@ class Dataset:
         if not root.exists():
             raise DatasetError(f"{root}: no such folder")
         if not root.is_dir():
-            raise DatasetError(f"{root}: not a folder")
+            raise DatasetError(f"{root}: not a folder of frames (a video or a camera goes "
+                               f"through the live loop: torchseam replay {root})")
         found = []
         for p in root.iterdir():
             m = FRAME_RE.match(p.name)
