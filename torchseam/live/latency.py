@@ -176,4 +176,11 @@ def measure_latency(runner: Any, duration_s: float, amplitude_mm: float, period_
     if len(t_cam) < 20:
         raise TorchseamError(f"latency: only {len(t_cam)} frames arrived in {duration_s:g} s")
     base = t_cam + float(np.min(t_arr - t_cam))
-    return fit_latency(base, np.asarray(rows), height_at)
+    # only frames exposed once the sensor stood at its start: the camera's queue still holds
+    # frames of RAPID's move there (tens of mm away, the stripe elsewhere on the part), which
+    # would pull the straight line off the motion
+    since = base >= t_start
+    if since.sum() < 20:
+        raise TorchseamError(f"latency: only {int(since.sum())} frames exposed during the "
+                             f"motion arrived in {duration_s:g} s")
+    return fit_latency(base[since], np.asarray(rows)[since], height_at)
