@@ -595,6 +595,50 @@ def test_the_latency_fit_leaves_out_the_frames_of_rapid_s_move_to_the_start(monk
     assert res.residual_px < 0.2 and abs(res.px_per_mm - 7.9) < 0.2, res
 
 
+def test_the_virtual_cell_s_last_line_says_how_it_ended():
+    """Ctrl-C before the sensor came printed 'seam RMSE nan mm, max nan mm': now it says it
+    was interrupted and that no pose was welded; a weld's figures as before."""
+    from torchseam.live.virtual_cell import summary_line
+
+    base = {"program": "weld", "unsafe_poses_sent": 0, "arc_on_while_still_s": 0.0,
+            "arc_on_off_seam_s": 0.0}
+    none = summary_line({**base, "seam_rmse_mm": float("nan"), "seam_max_mm": float("nan"),
+                         "axis_within_1deg": 0, "poses_welded": 0}, "V/summary.json", "SIGINT")
+    assert none.startswith("virtual cell: interrupted by SIGINT; no pose welded (program weld)")
+    assert "nan" not in none and none.endswith("summary V/summary.json")
+    done = summary_line({**base, "seam_rmse_mm": 0.0531, "seam_max_mm": 0.0632,
+                         "axis_within_1deg": 10, "poses_welded": 10}, "V/summary.json")
+    assert done.startswith("virtual cell: seam RMSE 0.053 mm, max 0.063 mm, axis within 1 deg "
+                           "10 of 10, unsafe poses 0")
+
+
+def _sleep_a_while() -> None:
+    time.sleep(5.0)
+
+
+def test_the_virtual_camera_s_process_ignores_ctrl_c_from_its_start():
+    """A terminal's Ctrl-C reaches the whole process group: the virtual camera's process,
+    still importing, printed a KeyboardInterrupt traceback. It starts with SIGINT ignored (the
+    parent ends it), and the parent's own handler is back afterwards."""
+    import multiprocessing as mp
+
+    from torchseam.live.virtual_cell import _start_ignoring_sigint
+
+    before = signal.getsignal(signal.SIGINT)
+    p = mp.get_context("spawn").Process(target=_sleep_a_while, daemon=True)
+    _start_ignoring_sigint(p)
+    try:
+        assert signal.getsignal(signal.SIGINT) is before
+        time.sleep(0.05)                        # inside the child's interpreter start
+        os.kill(p.pid, signal.SIGINT)
+        p.join(1.0)
+        assert p.is_alive() and p.exitcode is None
+    finally:
+        p.terminate()
+        p.join(5.0)
+    assert p.exitcode == -signal.SIGTERM
+
+
 def test_the_weld_follows_the_part_s_joint(tmp_path, capsys):
     """``weld`` tracks what the part file's ``joint:`` says (a fillet: --tracker; a groove, a
     butt or a lap: its profile, as ``demo`` does; it had taken the fillet's tracker for every

@@ -1,8 +1,6 @@
 """``python -m torchseam``: the ``torchseam`` command."""
 
-import sys
-
-from torchseam.cli import main
+from torchseam.cli import run_command
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_command()

@@ -19,7 +19,9 @@ import argparse
 import contextlib
 import importlib
 import os
+import signal
 import sys
+import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, NoReturn
@@ -43,7 +45,7 @@ from torchseam.core.errors import TorchseamError
 #: there); re-exported here for callers of the command line's module
 __all__ = ["COMMANDS", "COMMAND_MODULES", "MAX_SEED", "SEGMENT_LETTERS", "OneLineParser",
            "build_parser", "config_dir_arg", "main", "model_arg", "out_dir_arg", "out_file_arg",
-           "seed_arg", "segments_arg", "threads_arg", "use_config_dir"]
+           "seed_arg", "segments_arg", "threads_arg", "use_config_dir", "run_command"]
 
 #: Every sub-command: name, the stage module whose ``register(subparsers)`` adds it, and its
 #: one-line help (the same text the module gives ``add_parser``), in the order ``--help`` lists
@@ -178,10 +180,28 @@ def _run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"torchseam {args.command}: interrupted", file=sys.stderr)
+        # a second Ctrl-C (a terminal's, or one a wrapper such as `timeout` passes on) while
+        # this is said would be a traceback: ignored while the line is written
+        main_thread = threading.current_thread() is threading.main_thread()
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+        try:
+            print(f"torchseam {args.command}: interrupted", file=sys.stderr)
+        finally:
+            if main_thread:
+                signal.signal(signal.SIGINT, handler)
         return 130
     return int(rc or 0)
 
 
+def run_command() -> NoReturn:
+    """The ``torchseam`` program (the console script and ``python -m torchseam``): :func:`main`,
+    then exit with its code. Once a command was interrupted the process only ends, so further
+    Ctrl-Cs are ignored (one arriving while the interpreter shuts down is a traceback)."""
+    rc = main()
+    if rc == 130 and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(rc)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run_command()

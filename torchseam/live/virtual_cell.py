@@ -687,6 +687,20 @@ def free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _start_ignoring_sigint(proc: Any) -> None:
+    """Start ``proc`` (a spawned process) with SIGINT ignored from its first instruction (a
+    Ctrl-C reaches the whole process group; the parent ends the child): the parent ignores it
+    meanwhile, the disposition passes through exec, and a SIGINT sent to the parent in that
+    window stays pending (blocked) until its own handler is back."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        proc.start()
+    finally:
+        signal.signal(signal.SIGINT, handler)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top down
     """``torchseam virtual-cell`` (see the module docstring); returns the exit code."""
     import torch
@@ -739,6 +753,17 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
         # the sensor moves the robot (torchseam calibrate latency), nothing welded
         jobs = [dataclasses.replace(jobs[0], length_mm=0.0)]
         scenes, angles, gates = scenes[:1], angles[:1], gates[:1]
+    # from here a signal is taken, not raised: the camera's process and the controller's
+    # thread are started and must be ended, and the run still reports (exit 128 + signal)
+    stopping: dict[str, Any] = {"sig": 0, "vc": None}
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        stopping["sig"] = signum
+        if stopping["vc"] is not None:
+            stopping["vc"].ended.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
     ctx = mp.get_context("spawn")
     ring = _shared_ring(ctx)
     stop = ctx.Event()
@@ -749,9 +774,18 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
                       args.camera_latency_ms / 1e3, tuple(args.fault), 0)
     cam = ctx.Process(target=camera_main, args=(spec, ring, port_tx, stop, marks),
                       name="laser-camera", daemon=True)
-    cam.start()
-    if not port_rx.poll(60.0):
-        raise TorchseamError("the virtual camera did not start within 60 s")
+    _start_ignoring_sigint(cam)
+    deadline = time.monotonic() + 60.0
+    while not port_rx.poll(0.1):
+        if stopping["sig"] or time.monotonic() > deadline:
+            stop.set()
+            cam.terminate()
+            cam.join(timeout=5.0)
+            if stopping["sig"]:
+                print(f"virtual cell: interrupted by {signal.Signals(stopping['sig']).name} "
+                      "while its camera started; nothing ran", flush=True)
+                return 128 + stopping["sig"]
+            raise TorchseamError("the virtual camera did not start within 60 s")
     cam_port = int(port_rx.recv())
     sensor_port = free_udp_port()
     comm_timeout = args.comm_timeout_s
@@ -776,16 +810,11 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
                                   # leaves at the next tick: a cycle old at the least
                                   feedback_delay_ms=vc.ctrl.period * 1e3,
                                   rapid_data=args.rapid_data == "on"))
-    stopping = {"sig": 0}
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        stopping["sig"] = signum
+    stopping["vc"] = vc
+    if stopping["sig"]:
         vc.ended.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
     vc.start()
-    if args.write_cell is not None:
+    if args.write_cell is not None and not stopping["sig"]:
         save_weld_cell(weld_cell, args.write_cell,
                        header="# written by torchseam virtual-cell: the virtual camera's "
                               "calibration, its frame stream, the virtual IRC5's EGM\n")
@@ -817,16 +846,25 @@ def run_virtual_cell(args: Any) -> int:  # noqa: C901 - the command, read top do
     summary = summarise(vc.log, jobs, scenes, lambda i: gates[i], angles, max_step,
                         vc.t_start, info, frames_sent=marks[2], frames_late=marks[1])
     write_json_atomic(out / "summary.json", summary)
-    s = summary
-    print(f"virtual cell: seam RMSE {s['seam_rmse_mm']:.3f} mm, max {s['seam_max_mm']:.3f} mm, "
-          f"axis within 1 deg {s['axis_within_1deg']} of {s['poses_welded']}, unsafe poses "
-          f"{s['unsafe_poses_sent']}, arc on while still {s['arc_on_while_still_s']:.2f} s, "
-          f"off seam {s['arc_on_off_seam_s']:.2f} s; summary {out / 'summary.json'}",
+    print(summary_line(summary, out / "summary.json",
+                       signal.Signals(stopping["sig"]).name if stopping["sig"] else None),
           flush=True)
     if stopping["sig"]:
         return 128 + stopping["sig"]
     return 0
 
 
+def summary_line(s: dict, path: Any, interrupted_by: str | None = None) -> str:
+    """The virtual cell's last line: the truth's figures of what was welded (no seam figures
+    when no pose was: a program interrupted, or the latency calibration's), and how it ended."""
+    how = f"interrupted by {interrupted_by}; " if interrupted_by else ""
+    seam = (f"seam RMSE {s['seam_rmse_mm']:.3f} mm, max {s['seam_max_mm']:.3f} mm, axis within "
+            f"1 deg {s['axis_within_1deg']} of {s['poses_welded']}" if s["poses_welded"]
+            else f"no pose welded (program {s['program']})")
+    return (f"virtual cell: {how}{seam}, unsafe poses {s['unsafe_poses_sent']}, arc on while "
+            f"still {s['arc_on_while_still_s']:.2f} s, off seam {s['arc_on_off_seam_s']:.2f} s; "
+            f"summary {path}")
+
+
 __all__ = ["VIRTUAL_FAULTS", "VirtualController", "run_virtual_cell", "camera_main",
-           "summarise", "os"]
+           "summarise", "summary_line", "os"]
