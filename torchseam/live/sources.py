@@ -275,7 +275,14 @@ class CameraSource(BaseSource):
         self.name = f"camera {device!r}"
         self.size = size
         self.max_failed_reads = int(max_failed_reads)
-        self._cap: Any = cv2.VideoCapture(device)
+        # OpenCV's own warnings about a device it cannot open (a second stderr line beside
+        # the one error below) are held back while it tries
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        try:
+            self._cap: Any = cv2.VideoCapture(device)
+        finally:
+            cv2.utils.logging.setLogLevel(level)
         if not self._cap.isOpened():
             self._cap.release()
             raise FrameError(f"{self.name}: cannot be opened (no such device, in use by "
