@@ -20,10 +20,9 @@ Per frame (:class:`AnchoredFilter`, one stream):
    ``reanchor_px`` off;
 7. status from evidence: ``tracked`` only when this frame's corner is seen (both arms reach
    it) within ``evidence_px`` of the point, and (offline, without the robot's prediction) is
-   neither the clean corner of step 4's restart nor more than ``evidence_px`` from where the
-   track expected it: such a corner is evidence once the next frame finds its corner there,
-   and a jump the next frame does not confirm is undone (the filter goes back to the track
-   it left and fuses that frame from there); ``coasting`` otherwise; ``lost`` after
+   not the clean corner of step 4's restart: a jump is evidence once the next frame finds its
+   corner there, and a jump the next frame does not confirm is undone (the filter goes back
+   to the track it left and fuses that frame from there); ``coasting`` otherwise; ``lost`` after
    ``lost_frames`` or ``lost_px`` of coasting. While coasting, TIPM searches the whole frame
    between frames and ``reacquire_frames`` consistent corners move the track (no lock-out).
 
@@ -748,11 +747,6 @@ class AnchoredFilter:
             # constant velocity over tens of frames (the path's wobble, the part's deviation)
             fade = math.exp(-self.coast / self.cfg.velocity_fade_frames)
             self.x = self.x + o.const(fade * self.velocity)
-        # offline, where the track expects the corner: the prediction, carried on by the
-        # velocity of the points with evidence while they come (when coasting it is in x)
-        ahead = None if robot else o.value(self.x)
-        if ahead is not None and self.coast == 0 and self.velocity is not None:
-            ahead = ahead + self.velocity
         # the shallow corner only where no robot prediction comes (offline), unless set: in
         # the live loop the expected pixel places the point better (docs/benchmarks.md)
         obs = observe(self.tipm, frame, o.value(self.x), self.prior(), c,
@@ -792,7 +786,7 @@ class AnchoredFilter:
                 self.shape, self.age = arm_shape(obs.res), 0
             assert obs.z is not None  # set with obs.res
             fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, obs.seen,
-                      jumped=jumped, unexpected=self._unexpected(obs.z, ahead))
+                      jumped=jumped)
         elif obs.shallow is not None:
             # a nearly straight stripe: its slope break places the corner weakly along the
             # stripe, firmly across it (R from the fit, c.shallow_noise for the centre line's
@@ -812,8 +806,7 @@ class AnchoredFilter:
             seen = obs.shallow_seen and c.evidence_sigmas * along * c.shallow_noise \
                 <= c.evidence_px
             firm = along * c.shallow_noise * math.sqrt(_num(g)) <= c.evidence_px
-            fix = Fix(sf.uv.copy(), cov, _num(g), taken, seen, shallow=True, firm=firm,
-                      unexpected=self._unexpected(sf.uv, ahead))
+            fix = Fix(sf.uv.copy(), cov, _num(g), taken, seen, shallow=True, firm=firm)
         if inner_ok:
             self._measure(inner_uv, inflate * self.R_track, p["track_gate"])
         reanchor: Any = 0.0
@@ -826,19 +819,13 @@ class AnchoredFilter:
                                     dist - p["reanchor_px"], REANCHOR_TEMP)
         return self.x, reanchor, fix, obs
 
-    def _unexpected(self, z: np.ndarray, ahead: np.ndarray | None) -> bool:
-        """Whether the corner ``z`` (2,) lies more than ``evidence_px`` from ``ahead``, where
-        the track expected it (None: the robot's prediction, never)."""
-        return ahead is not None and float(np.linalg.norm(z - ahead)) > self.cfg.evidence_px
-
     def evidence(self, out: np.ndarray, fix: Fix | None) -> bool:
         """Whether ``fix`` is evidence for the point ``out`` (2,): seen, within
-        ``evidence_px`` of it, and neither a corner the filter jumped to on this frame nor
-        one away from where the track expected it (either is evidence only when the next
-        frame finds it again: under glare a clean corner tens of px from a track that was
-        right, a nearly straight corner placed px off along the stripe)."""
-        return (fix is not None and fix.seen and not fix.jumped and not fix.unexpected
-                and float(np.linalg.norm(fix.uv - out)) <= self.cfg.evidence_px)
+        ``evidence_px`` of it, and not a corner the filter jumped to on this frame (that is
+        evidence only when the next frame finds it again: under glare a clean corner tens of
+        px from a track that was right)."""
+        return fix is not None and fix.seen and not fix.jumped and float(
+            np.linalg.norm(fix.uv - out)) <= self.cfg.evidence_px
 
     def verdict(self, out: np.ndarray, fix: Fix | None) -> int:
         """This frame's status from the evidence at ``out`` (2,) (see the module docstring)."""

@@ -42,10 +42,6 @@ class Fix:
         jumped: the filter started again on it (a clean corner its gate refused: the image
             jumped, or glare made a corner elsewhere): no evidence on its own frame, only
             once the next frame's corner is found there.
-        unexpected: offline (no robot prediction), it lies more than the tracker's
-            ``evidence_px`` from where the track expected it: no evidence on its own frame
-            either (one frame cannot tell a move of the corner from a corner misplaced),
-            only once the next frame's corner is found there.
     """
 
     uv: np.ndarray
@@ -56,7 +52,6 @@ class Fix:
     shallow: bool = False
     firm: bool = True
     jumped: bool = False
-    unexpected: bool = False
 
 
 @dataclass(frozen=True)
