@@ -21,9 +21,8 @@ Per frame (:class:`AnchoredFilter`, one stream):
 7. status from evidence: ``tracked`` only when this frame's corner is seen (both arms reach
    it) within ``evidence_px`` of the point, and (offline, without the robot's prediction) is
    not the clean corner of step 4's restart: a jump is evidence once the next frame finds its
-   corner there (on its own frame the point is the prediction), and a jump the next frame
-   does not confirm is undone (the filter goes back to the track it left and fuses that
-   frame from there); ``coasting`` otherwise; ``lost`` after
+   corner there, and a jump the next frame does not confirm is undone (the filter goes back
+   to the track it left and fuses that frame from there); ``coasting`` otherwise; ``lost`` after
    ``lost_frames`` or ``lost_px`` of coasting. While coasting, TIPM searches the whole frame
    between frames and ``reacquire_frames`` consistent corners move the track (no lock-out).
 
@@ -690,10 +689,8 @@ class AnchoredFilter:
         the filter goes back to the track the jump left (:class:`LeftState`) and fuses this
         frame from there: glare makes clean corners elsewhere on the stripe for a frame, and
         a point left there would coast on the wrong place for as long as the corner stays
-        hidden. On the jump's own frame the point reported is the prediction (the frame is
-        ``coasting``: a predicted point), the filter already restarted at the corner. A
-        genuine jump is lost by this only while its corner is not seen: the next frame it
-        shows, it restarts the filter again.
+        hidden. A genuine jump is lost by this only while its corner is not seen: the next
+        frame it shows, it restarts the filter again.
 
         Args:
             frame: the frame (checked, canonical view).
@@ -728,10 +725,6 @@ class AnchoredFilter:
             self.left = None
             x, _, fix, obs = self._fuse(frame, inner_uv, inner_ok, None, robot)
             reanchor = 1.0
-        if self.left is not None:
-            # a jump on this frame: no evidence yet, so the point is the prediction (what
-            # `coasting` reports) until the next frame confirms the jump
-            x = self.left.x
         return x, reanchor, fix, obs
 
     def _fuse(self, frame: np.ndarray, inner_uv: Any, inner_ok: bool,
@@ -1121,8 +1114,7 @@ class AnchoredTracker(Tracker):
         if reanchor:
             self.inner.reanchor(frame, out)
         self.glare, self.fix = obs.glare, fix
-        # (none at a jump's corner: the point reported on its frame is the prediction)
-        arm_dirs = (arm_directions(obs.res) if fix is not None and fix.taken and not fix.jumped
+        arm_dirs = (arm_directions(obs.res) if fix is not None and fix.taken
                     and obs.res is not None
                     and obs.res.inlier_rms_px <= self.values["max_rms_px"]
                     else None)
