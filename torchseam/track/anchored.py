@@ -683,9 +683,9 @@ class AnchoredFilter:
                                                            Observation]:
         """Fuse one frame.
 
-        Offline (no robot prediction), a restart on a clean corner outside the gate (the
-        jump, :attr:`Fix.jumped`) holds only if this next frame confirms it: its corner
-        seen within ``evidence_px`` of the point (what makes a frame ``tracked``). Otherwise
+        Offline (no robot prediction), a restart on the last frame on a clean corner outside
+        the gate (the jump, :attr:`Fix.jumped`) holds only if this frame confirms it: its
+        corner seen within ``evidence_px`` of the point (what makes a frame ``tracked``). Otherwise
         the filter goes back to the track the jump left (:class:`LeftState`) and fuses this
         frame from there: glare makes clean corners elsewhere on the stripe for a frame, and
         a point left there would coast on the wrong place for as long as the corner stays
