@@ -272,10 +272,10 @@ def _corner(uv, rms, slopes=(-0.3, 0.3), gap_px=0.0):
 
 def _anchored_with_tipm(offsets, rms, shapes=None):
     """AnchoredTracker on a stub EAKF-STC fixed at (200, 150) and a stub TIPM returning the
-    corner at ``offsets[k]`` from the true point (200, 150) on call k (``shapes[k]``: its
-    ``_corner`` keyword arguments, slopes and gap)."""
+    corner at ``offsets[k]`` from the true point (200, 150) on call k (None: no corner;
+    ``shapes[k]``: its ``_corner`` keyword arguments, slopes and gap)."""
     from torchseam.track.anchored import AnchoredTracker, load_anchored_model
-    from torchseam.vision.tipm import load_tipm, load_tipm_config
+    from torchseam.vision.tipm import TipmResult, load_tipm, load_tipm_config
 
     trk = AnchoredTracker(load_anchored_model(), load_tipm())
     trk.inner = _StubInner((200.0, 150.0))
@@ -291,9 +291,12 @@ def _anchored_with_tipm(offsets, rms, shapes=None):
         def find(self, roi, prior=None):
             trk.priors.append(prior)
             z = np.zeros(roi.shape[:2], np.uint8)
+            offset, kind = next(calls), next(kinds)
+            if offset is None:
+                return TipmResult(False, np.full(2, np.nan), "no stripe found"), z, z
             # the ROI starts window_px up-left of the filtered point
-            return _corner(np.array([200.0, 150.0]) + next(calls) - trk.roi_origin(), rms,
-                           **next(kinds)), z, z
+            return _corner(np.array([200.0, 150.0]) + offset - trk.roi_origin(), rms,
+                           **kind), z, z
 
     trk.priors = []
     trk.roi_origin = lambda: np.floor(trk.x) - trk.cfg.window_px
@@ -367,6 +370,31 @@ def test_anchored_takes_a_far_clean_fix_at_once_and_refuses_far_loose_ones():
     # ... where a clean one is taken at once
     trk = _anchored_with_tipm([on] * 5 + [loose], rms=0.15)
     assert abs([trk.update(frame)[0] for _ in range(6)][5][0] - 215.0) < 0.3
+
+
+def test_anchored_goes_back_to_its_track_when_the_next_frame_does_not_confirm_a_jump():
+    """Offline, glare makes a clean corner elsewhere on the stripe for a frame while the
+    corner is hidden: the filter jumps there, but the next frame finds no corner at it, so
+    the filter goes back to the track it left and fuses that frame from there (the point
+    follows the old track instead of coasting where the jump put it). A jump the next frame
+    confirms is taken, as is one that shows again once the corner is seen."""
+    frame = np.zeros((480, 640, 3), np.uint8)
+    on, far = np.zeros(2), np.array([30.0, 0.0])
+    # the frame after the jump: no corner at the jump (first call) nor on the old track
+    # (the second, from where it went back); then the corner on the track
+    trk = _anchored_with_tipm([on] * 5 + [far] + [None, None] + [on], rms=0.15)
+    res = [trk.update(frame) for _ in range(8)]
+    assert abs(res[5][0][0] - 230.0) < 0.3 and res[5][1] == TrackStatus.COASTING
+    assert abs(res[6][0][0] - 200.0) < 1.5 and res[6][1] == TrackStatus.COASTING
+    assert trk.inner.reanchored and abs(trk.inner.reanchored[-1][0] - 200.0) < 1.5
+    assert abs(res[7][0][0] - 200.0) < 0.3 and res[7][1] == TrackStatus.TRACKED
+    # a genuine jump whose corner is hidden on the next frame: taken again when it shows,
+    # tracked once the frame after finds it there
+    trk = _anchored_with_tipm([on] * 5 + [far] + [None, None] + [far, far], rms=0.15)
+    res = [trk.update(frame) for _ in range(9)]
+    assert abs(res[6][0][0] - 200.0) < 1.5
+    assert abs(res[7][0][0] - 230.0) < 0.3 and res[7][1] == TrackStatus.COASTING
+    assert abs(res[8][0][0] - 230.0) < 0.3 and res[8][1] == TrackStatus.TRACKED
 
 
 def test_anchored_takes_the_robots_motion_as_its_prediction():

@@ -21,7 +21,8 @@ Per frame (:class:`AnchoredFilter`, one stream):
 7. status from evidence: ``tracked`` only when this frame's corner is seen (both arms reach
    it) within ``evidence_px`` of the point, and (offline, without the robot's prediction) is
    not the clean corner of step 4's restart: a jump is evidence once the next frame finds its
-   corner there; ``coasting`` otherwise; ``lost`` after
+   corner there, and a jump the next frame does not confirm is undone (the filter goes back
+   to the track it left and fuses that frame from there); ``coasting`` otherwise; ``lost`` after
    ``lost_frames`` or ``lost_px`` of coasting. While coasting, TIPM searches the whole frame
    between frames and ``reacquire_frames`` consistent corners move the track (no lock-out).
 
@@ -541,6 +542,25 @@ def _num(x: Any) -> float:
 GATE_TEMP, RMS_TEMP, REANCHOR_TEMP = 0.5, 0.05, 0.5
 
 
+@dataclass
+class LeftState:
+    """What the filter held on a frame where it restarted on a clean corner outside its gate
+    (the jump), had it not: its prediction ``x``, ``P`` there, the arm shape of its last
+    seen fix and that fix's age, the frame count, and its motion trail. The next frame's
+    evidence decides between the jump and this (:meth:`AnchoredFilter.step`)."""
+
+    x: Any
+    P: Any
+    shape: np.ndarray | None
+    age: int
+    k: int
+    trail: list[tuple[int, np.ndarray]]
+
+    def detached(self) -> LeftState:
+        """The same, cut from the graph (torch backend; truncated BPTT)."""
+        return dataclasses.replace(self, x=self.x.detach(), P=self.P.detach())
+
+
 # --------------------------------------------------------------------------- one stream
 
 class AnchoredFilter:
@@ -571,6 +591,7 @@ class AnchoredFilter:
         self._trail: deque[tuple[int, np.ndarray]] = deque()  # (frame, point) with evidence
         self._velocity: np.ndarray | None = None     # (2,) px per frame, from the trail ...
         self._velocity_due = False                   # ... fitted again when next asked
+        self.left: LeftState | None = None  # the state the last frame's jump left, if any
 
     def set_params(self, params: Mapping[str, Any]) -> None:
         """New fitted values (after an optimiser step)."""
@@ -579,6 +600,13 @@ class AnchoredFilter:
         self.Q = o.diag2(p["motion_u_px"] ** 2, p["motion_v_px"] ** 2)
         self.I = o.const(np.eye(2))  # F and H: a random walk, the point measured directly
         self.R_track = o.diag2(p["track_u_px"] ** 2, p["track_v_px"] ** 2)
+
+    def detach(self, params: Mapping[str, Any]) -> None:
+        """Cut the state from the graph (truncated BPTT) and take new fitted values."""
+        self.x, self.P = self.x.detach(), self.P.detach()
+        if self.left is not None:
+            self.left = self.left.detached()
+        self.set_params(params)
 
     def _restart(self, uv: Any, P: Any, shape: np.ndarray | None) -> None:
         self.x, self.P = uv, P
@@ -589,7 +617,7 @@ class AnchoredFilter:
         self._restart(self.ops.const(uv), self.Q, None)
         self.coast, self.last_evidence = 0, np.asarray(uv, float).copy()
         self.status = int(TrackStatus.TRACKED)
-        self._found, self._reacquire = [], None
+        self._found, self._reacquire, self.left = [], None, None
         self._forget_motion()
 
     def _forget_motion(self) -> None:
@@ -655,6 +683,15 @@ class AnchoredFilter:
                                                            Observation]:
         """Fuse one frame.
 
+        Offline (no robot prediction), a restart on the last frame on a clean corner outside
+        the gate (the jump, :attr:`Fix.jumped`) holds only if this frame confirms it: its
+        corner seen within ``evidence_px`` of the point (what makes a frame ``tracked``). Otherwise
+        the filter goes back to the track the jump left (:class:`LeftState`) and fuses this
+        frame from there: glare makes clean corners elsewhere on the stripe for a frame, and
+        a point left there would coast on the wrong place for as long as the corner stays
+        hidden. A genuine jump is lost by this only while its corner is not seen: the next
+        frame it shows, it restarts the filter again.
+
         Args:
             frame: the frame (checked, canonical view).
             inner_uv: (2,) the inner tracker's point on it (an array of the backend).
@@ -666,17 +703,37 @@ class AnchoredFilter:
             forward) with which the inner tracker is to be moved onto it, the TIPM fix weighed
             (or None) and the observation.
         """
-        o, c, p = self.ops, self.cfg, self.p
         robot = expected is not None  # the live loop: a prediction from the robot's motion
+        left, self.left = self.left, None
         if self.x is None:
             self._restart(inner_uv, self.Q, None)
         if self._reacquire is not None:
             # a corner the whole-frame search found persistently away from the track
             # (see search): start again there; the window below looks for it on this frame
-            self._restart(o.const(self._reacquire), self.Q, None)
-            self._reacquire, expected = None, None
+            self._restart(self.ops.const(self._reacquire), self.Q, None)
+            self._reacquire, expected, left = None, None, None
             self.reacquired += 1
             self._forget_motion()
+        x, reanchor, fix, obs = self._fuse(frame, inner_uv, inner_ok, expected, robot)
+        if left is not None and not robot and not self.evidence(self.ops.value(x), fix):
+            # the jump unconfirmed: back to the track it left, this frame fused from there;
+            # EAKF-STC, moved onto the jump, is moved back onto the point
+            self.x, self.P, self.shape, self.age, self.k = (left.x, left.P, left.shape,
+                                                            left.age, left.k)
+            self._trail = deque(left.trail)
+            self._velocity_due = True
+            self.left = None
+            x, _, fix, obs = self._fuse(frame, inner_uv, inner_ok, None, robot)
+            reanchor = 1.0
+        return x, reanchor, fix, obs
+
+    def _fuse(self, frame: np.ndarray, inner_uv: Any, inner_ok: bool,
+              expected: np.ndarray | None, robot: bool
+              ) -> tuple[Any, Any, Fix | None, Observation]:
+        """Steps 2-6 of the module docstring on one frame (see :meth:`step`); ``robot``: the
+        frame came with the robot's expected pixel (``expected`` may be None all the same: a
+        re-acquisition drops it)."""
+        o, c, p = self.ops, self.cfg, self.p
         self.age += 1
         self.k += 1
         # x <- F x + B u, P <- F P F^T + Q  (F = B = I; u the velocity of the points with
@@ -708,6 +765,9 @@ class AnchoredFilter:
             # loop's expected pixel is made afresh from the robot's motion every frame, and
             # its window, gate and the located points' confirmation stand against a jump
             jumped = not taken and clean and not robot
+            if jumped:
+                self.left = LeftState(self.x, self.P, self.shape, self.age, self.k,
+                                      list(self._trail))
             if not taken:
                 # a clean corner the motion model did not expect: the image jumped; a clean
                 # fit is worth more than the random-walk prediction, so start again there
@@ -759,15 +819,18 @@ class AnchoredFilter:
                                     dist - p["reanchor_px"], REANCHOR_TEMP)
         return self.x, reanchor, fix, obs
 
+    def evidence(self, out: np.ndarray, fix: Fix | None) -> bool:
+        """Whether ``fix`` is evidence for the point ``out`` (2,): seen, within
+        ``evidence_px`` of it, and not a corner the filter jumped to on this frame (that is
+        evidence only when the next frame finds it again: under glare a clean corner tens of
+        px from a track that was right)."""
+        return fix is not None and fix.seen and not fix.jumped and float(
+            np.linalg.norm(fix.uv - out)) <= self.cfg.evidence_px
+
     def verdict(self, out: np.ndarray, fix: Fix | None) -> int:
         """This frame's status from the evidence at ``out`` (2,) (see the module docstring)."""
         c = self.cfg
-        # a corner the filter jumped to is evidence only when the next frame finds it again:
-        # under glare a clean corner tens of px from a track that was right (the bench's
-        # held-out `beyond` seeds 1002-1003: 54 and 60 px, on a frame the corner was hidden)
-        evidence = fix is not None and fix.seen and not fix.jumped and float(
-            np.linalg.norm(fix.uv - out)) <= c.evidence_px
-        if evidence:
+        if self.evidence(out, fix):
             self.coast, self.last_evidence = 0, np.asarray(out, float).copy()
             self.status = int(TrackStatus.TRACKED)
             self._learn_motion(out)
@@ -893,9 +956,7 @@ class AnchoredModel(nn.Module):
         """Cut the state from the graph (truncated BPTT) with the current fitted values."""
         params = self._params()
         for f in state.filters:
-            f.x = f.x.detach()
-            f.P = f.P.detach()
-            f.set_params(params)
+            f.detach(params)
         return AnchoredState(self.eakf_stc.detach(state.inner), state.filters, state.frames)
 
     def step_state(self, state: AnchoredState, frames: Sequence[np.ndarray], grey: Tensor
