@@ -301,9 +301,9 @@ class ProfileFinder:
         self._across = np.ones((2 * s.side_px + 1, 1), np.uint8)
         self._dilate = tipm._kernel
         self._ridge = np.zeros((1, 1), np.uint8)  # the frame's stripe response (see _end)
-        #: the most stripe response the frame last read has room for at each pixel (headroom;
-        #: _end)
-        self._room = np.full((1, 1), 255, np.uint8)
+        #: the most stripe response the intensity frame last read has room for at each pixel
+        #: (headroom; _end); None for a colour frame's red excess
+        self._room: np.ndarray | None = None
         #: the stripe's whole width (rows) on the frame last read: side_px, or its mask's
         #: median height + 1 where taller (stripe(); glare_white)
         self._width = cfg.stripe.side_px
@@ -411,15 +411,14 @@ class ProfileFinder:
             # line runs (saturated_centre): no level to tell where it ends by. A groove's root
             # edges are its stripe's ends: each was followed on over the root gap or into the
             # glare beside it (where both were, they crossed; where one side's line started
-            # late, the root read 20-25 px off). Its brightness reads it (__call__). (A butt's
-            # ends cross there, and a lap's are checked against its span.)
+            # late under the glare, the root read off by tens of px). Its brightness reads it
+            # (__call__). (A butt's ends cross there, and a lap's are checked against its span.)
             return _fail(self.joint, "no stripe found (white along its centre line: no red "
                          "excess to end it by)", pts)
         self._ridge = ridge
         # the red excess has no room to speak of where R clips (it dips at the stripe there:
         # glare_white; the brightness reads such frames, __call__): only an intensity's room
-        self._room = (headroom(frame, self.tipm.cfg.ridge_px) if frame.ndim == 2
-                      else np.full((1, 1), 255, np.uint8))
+        self._room = headroom(frame, self.tipm.cfg.ridge_px) if frame.ndim == 2 else None
         finder = {"v_groove": self._v_groove, "butt": self._butt, "lap": self._lap}[self.joint]
         return finder(pts, resp)
 
@@ -510,7 +509,7 @@ class ProfileFinder:
         floor ``min_red`` (where glare clips the plane there is no room, and nothing is
         lit)."""
         level = np.full(len(p), self.cfg.end_fraction * median)
-        if self._room.size > 1:
+        if self._room is not None:
             room = _bilinear(self._room, p)
             low = room < median
             level[low] = np.maximum(self.cfg.end_fraction * room[low], self._low.cfg.min_red)
@@ -985,7 +984,7 @@ def headroom(plane: np.ndarray, ridge_px: int) -> np.ndarray:
     ``plane`` (H, W) has room for: full scale less the plane's local vertical mean over
     ``ridge_px`` rows (the ridge's own: the ridge is the plane less that mean, so it cannot
     exceed this). On glare near clipping a lit stripe's ridge is small."""
-    return cv2.subtract(np.full_like(plane, 255), cv2.blur(plane, (1, ridge_px)))
+    return cv2.bitwise_not(cv2.blur(plane, (1, ridge_px)))   # 255 less the mean
 
 
 def response_at(ridge: np.ndarray, pts: np.ndarray) -> np.ndarray:
