@@ -301,6 +301,9 @@ class ProfileFinder:
         self._across = np.ones((2 * s.side_px + 1, 1), np.uint8)
         self._dilate = tipm._kernel
         self._ridge = np.zeros((1, 1), np.uint8)  # the frame's stripe response (see _end)
+        #: the most stripe response the intensity frame last read has room for at each pixel
+        #: (headroom; _end); None for a colour frame's red excess
+        self._room: np.ndarray | None = None
         #: the stripe's whole width (rows) on the frame last read: side_px, or its mask's
         #: median height + 1 where taller (stripe(); glare_white)
         self._width = cfg.stripe.side_px
@@ -402,7 +405,20 @@ class ProfileFinder:
         if len(pts) < 2 * self.cfg.min_points:
             return _fail(self.joint, f"no stripe found ({len(pts)} centre-line points)", pts)
         resp = response_at(ridge, pts)
+        if (self.joint == "v_groove" and frame.ndim == 3
+                and np.median(resp) < self._low.cfg.min_red):
+            # a stripe saturated in R and G has no red excess in its core, where its centre
+            # line runs (saturated_centre): no level to tell where it ends by. A groove's root
+            # edges are its stripe's ends: each was followed on over the root gap or into the
+            # glare beside it (where both were, they crossed; where one side's line started
+            # late under the glare, the root read off by tens of px). Its brightness reads it
+            # (__call__). (A butt's ends cross there, and a lap's are checked against its span.)
+            return _fail(self.joint, "no stripe found (white along its centre line: no red "
+                         "excess to end it by)", pts)
         self._ridge = ridge
+        # the red excess has no room to speak of where R clips (it dips at the stripe there:
+        # glare_white; the brightness reads such frames, __call__): only an intensity's room
+        self._room = headroom(frame, self.tipm.cfg.ridge_px) if frame.ndim == 2 else None
         finder = {"v_groove": self._v_groove, "butt": self._butt, "lap": self._lap}[self.joint]
         return finder(pts, resp)
 
@@ -462,8 +478,8 @@ class ProfileFinder:
         point where the response (bilinear, the brightest of the line and a pixel either side
         of it) falls through that level: a blurred line's end is where it has half its
         brightness, and whole-pixel steps stopped ~1 px short of it."""
-        level = self.cfg.end_fraction * np.median(resp)
-        lit = resp >= level
+        median = float(np.median(resp))
+        lit = resp >= self._level(piece, median)
         k = int(np.argmax(lit)) if lit.any() else 0
         end = line.project(piece[k])
         if len(piece) < 2:
@@ -476,12 +492,28 @@ class ProfileFinder:
         along = end + (ds * np.arange(n + 1))[:, None] * step                  # (n + 1, 2)
         val = _bilinear(self._ridge, (along[None] + np.array([-1.0, 0.0, 1.0])[:, None, None]
                                       * normal).reshape(-1, 2)).reshape(3, -1).max(axis=0)
+        level = self._level(along, median)
         below = np.flatnonzero(val < level)
         if not len(below) or below[0] == 0:  # bright throughout, or dim where it starts
             return along[-1] if not len(below) else end
         i = int(below[0])
-        frac = (val[i - 1] - level) / max(val[i - 1] - val[i], 1e-9)
+        frac = (val[i - 1] - level[i - 1]) / max(val[i - 1] - val[i], 1e-9)
         return along[i - 1] + frac * ds * step
+
+    def _level(self, p: np.ndarray, median: float) -> np.ndarray:
+        """(N,) the response at points (N, 2) below which the stripe has ended there:
+        ``end_fraction`` of the piece's ``median`` response, or of the room the frame leaves
+        the response there where that is less (:func:`headroom`: glare that lifts the light
+        towards clipping leaves a stripe on it less to rise by, and the stripe's last lit
+        pixels under the glare at the root read dim though lit), there never below TIPM's
+        floor ``min_red`` (where glare clips the plane there is no room, and nothing is
+        lit)."""
+        level = np.full(len(p), self.cfg.end_fraction * median)
+        if self._room is not None:
+            room = _bilinear(self._room, p)
+            low = room < median
+            level[low] = np.maximum(self.cfg.end_fraction * room[low], self._low.cfg.min_red)
+        return level
 
     def _near(self, piece: np.ndarray, reach: float | None = None) -> int:
         """How many points of a piece (N, 2), from its first, lie within ``fit_px`` (or
@@ -945,6 +977,14 @@ def glare_white(frame: np.ndarray, pts: np.ndarray, width: int) -> np.ndarray:
     clip = ((rows >= 0) & (rows < h)
             & (frame[np.clip(rows, 0, h - 1), u[:, None], 2] >= SATURATED_LEVEL))
     return white & (clip[:, :reach + 1].all(axis=1) | clip[:, reach:].all(axis=1))
+
+
+def headroom(plane: np.ndarray, ridge_px: int) -> np.ndarray:
+    """(H, W) uint8: the most stripe response (ridge) each pixel of an 8-bit intensity
+    ``plane`` (H, W) has room for: full scale less the plane's local vertical mean over
+    ``ridge_px`` rows (the ridge's own: the ridge is the plane less that mean, so it cannot
+    exceed this). On glare near clipping a lit stripe's ridge is small."""
+    return cv2.bitwise_not(cv2.blur(plane, (1, ridge_px)))   # 255 less the mean
 
 
 def response_at(ridge: np.ndarray, pts: np.ndarray) -> np.ndarray:
