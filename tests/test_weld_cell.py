@@ -101,6 +101,21 @@ def test_frame_stream_refuses_a_foreign_protocol():
         StreamCamera("camera:0")
 
 
+def test_a_frame_stream_that_does_not_answer_is_said_at_once_then_refused():
+    """The weld tries a frame stream for up to a minute (the camera may start later): it says
+    so when the first try fails, not after a minute of silence, then names the source."""
+    with socket.socket() as s:             # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    said: list[str] = []
+    t0 = time.monotonic()
+    with pytest.raises(FrameStreamError, match=rf"tcp://127\.0\.0\.1:{port}: cannot connect "
+                       r"within 0\.3 s"):
+        StreamCamera(f"tcp://127.0.0.1:{port}", connect_timeout_s=0.3, say=said.append)
+    assert len(said) == 1 and f"tcp://127.0.0.1:{port}: not answering" in said[0]
+    assert "up to 0.3 s" in said[0] and time.monotonic() - t0 < 3.0
+
+
 # --------------------------------------------------------------------------- the cell
 
 

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 from torchseam.live.framestream import (
     FrameStreamError,
@@ -78,10 +80,12 @@ class OpenCVCamera(QueuedCamera):
 
 def open_camera(source: str, size: tuple[int, int], fps: float,
                 connect_timeout_s: float = 30.0,
-                exposure_us: float | None = None) -> QueuedCamera:
+                exposure_us: float | None = None,
+                say: Callable[[str], Any] | None = None) -> QueuedCamera:
     """The camera input for ``source`` (see the module), with the exposure time
     ``exposure_us`` set on it (a GenICam camera only: the others take none from the weld, and
-    asking is refused rather than ignored); FrameStreamError naming it."""
+    asking is refused rather than ignored); FrameStreamError naming it. ``say``: told when a
+    frame stream does not answer at once (it is tried for ``connect_timeout_s``)."""
     if source.startswith("aravis://"):
         from torchseam.live.genicam import AravisCamera
 
@@ -92,7 +96,7 @@ def open_camera(source: str, size: tuple[int, int], fps: float,
             f"camera source {source}: camera.exposure_us is set, but {kind} takes no exposure "
             "time from the weld: set it on the camera's side and leave camera.exposure_us out")
     if source.startswith("tcp://"):
-        return StreamCamera(source, connect_timeout_s=connect_timeout_s)
+        return StreamCamera(source, connect_timeout_s=connect_timeout_s, say=say)
     if source.startswith(OPENCV_PREFIXES):
         return OpenCVCamera(source, size=size, fps=fps)
     raise FrameStreamError(f"camera source {source!r}: expected tcp://HOST:PORT, "

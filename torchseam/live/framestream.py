@@ -34,8 +34,9 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -272,16 +273,20 @@ class StreamCamera(QueuedCamera):
     """
 
     def __init__(self, url: str, connect_timeout_s: float = 30.0, maxsize: int = 2,
-                 max_pixels: int = MAX_PIXELS) -> None:
+                 max_pixels: int = MAX_PIXELS, say: Callable[[str], Any] | None = None
+                 ) -> None:
         super().__init__(url, maxsize)
         self.host, self.port = parse_url(url)
         self.max_pixels = max_pixels
-        self._sock = self._connect(connect_timeout_s)
+        self._sock = self._connect(connect_timeout_s, say)
         self._thread = threading.Thread(target=self._read, name="frame-stream-read", daemon=True)
         self._thread.start()
 
-    def _connect(self, timeout_s: float) -> socket.socket:
+    def _connect(self, timeout_s: float, say: Callable[[str], Any] | None) -> socket.socket:
+        """Connect, trying again until ``timeout_s``; ``say``: told once when the first try
+        fails (a wait of up to a minute is not a silent one)."""
         end = time.monotonic() + timeout_s
+        said = say is None
         while True:
             try:
                 s = socket.create_connection((self.host, self.port), timeout=2.0)
@@ -292,6 +297,11 @@ class StreamCamera(QueuedCamera):
                 if time.monotonic() > end:
                     raise FrameStreamError(f"camera source {self.url}: cannot connect within "
                                            f"{timeout_s:g} s ({e.strerror or e})") from None
+                if not said:
+                    assert say is not None
+                    say(f"camera source {self.url}: not answering ({e.strerror or e}): "
+                        f"trying for up to {timeout_s:g} s")
+                    said = True
                 time.sleep(0.1)
 
     def _header(self) -> tuple[int, int, int, int, int, int] | None:

@@ -303,7 +303,8 @@ class WeldRunner:
         cam = self.calib.camera
         self.cam = open_camera(self.cell.camera.source, (cam.width, cam.height),
                                self.calib.process.frame_rate_hz, self.connect_timeout_s,
-                               self.cell.camera.exposure_us)
+                               self.cell.camera.exposure_us,
+                               say=lambda m: self.progress("weld: " + m))
         if self.cam.exposure_us is not None:
             self.progress(f"weld: the camera's exposure time set to {self.cam.exposure_us:g} us")
         self._wait_controller()
