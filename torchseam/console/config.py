@@ -194,7 +194,8 @@ def _number(raw: dict[str, Any], name: str, limits: tuple[float, ...], unit: str
     if not math.isfinite(v):
         raise ParamError(f"{name}: {v!r} is not a number")
     lo, hi = limits
-    span = f"{lo:g}..{hi:g}" + (f" {unit}" if unit else "")
+    fmt = (lambda x: f"{int(x)}") if integer else (lambda x: f"{x:g}")
+    span = f"{fmt(lo)}..{fmt(hi)}" + (f" {unit}" if unit else "")
     if integer and not float(v).is_integer():
         raise ParamError(f"{name} must be a whole number in {span}, got {v:g}")
     if not lo <= v <= hi:
