@@ -7,9 +7,11 @@ import pytest
 import torch
 
 from torchseam.track import EAKFSTC, TrackInputError, TrackStatus
-from torchseam.track.anchored import fitted_eakf_stc
+from torchseam.track.anchored import fitted_eakf_stc, load_anchor_config
+from torchseam.track.base import Tracker
 from torchseam.track.fusion import LiteEAKFSTC, LiteTracker
 from torchseam.track.peers import (
+    Confirmed,
     grey_tensor,
     make_tracker,
     run_tracker,
@@ -182,8 +184,10 @@ def test_eakf_stc_tracker_is_the_twin_and_follows_a_heavy_arc_seam(cell, part, n
     pairs = list(simulate(cell, part, noise, SequenceSpec(n_frames=80,
                                                           level=noise.level("heavy"), seed=5)))
     frames, truth = [f for f, _ in pairs], np.array([t.uv for _, t in pairs], float)
-    trk = make_tracker("eakf-stc", tipm)
-    assert isinstance(trk, LiteTracker)
+    confirmed = make_tracker("eakf-stc", tipm)
+    # its status held to TIPM's corner (Confirmed): the twin is the point's own tracker
+    assert isinstance(confirmed, Confirmed) and isinstance(confirmed.inner, LiteTracker)
+    trk = confirmed.inner
     uv, status, secs, idle_secs, note = run_tracker(trk, frames, truth[0], tipm)
     assert uv.shape == (80, 2) and status.shape == (80,) and note == "given"
     assert idle_secs.shape == (80,) and idle_secs[1:].min() > 0  # the learning, between frames
@@ -254,3 +258,45 @@ def test_the_twins_transforms_are_scipy_ffts() -> None:
         np.testing.assert_array_equal(_rfft2(x), X)
         Y = X * (rng.normal(size=X.shape) + 1j * rng.normal(size=X.shape))
         np.testing.assert_array_equal(_irfft2(Y, (64, 64)), scipy.fft.irfft2(Y, s=(64, 64)))
+
+
+class _Offset(Tracker):
+    """A tracker with no evidence of its own: its point is the truth moved by ``offset`` px,
+    always said ``tracked`` (as STC, KCF, CSRT and MOSSE say it)."""
+
+    name = "offset"
+
+    def __init__(self, truth: np.ndarray, offset: tuple[float, float]) -> None:
+        self.truth, self.offset, self.k = truth, np.asarray(offset, float), 0
+
+    def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
+        self.k = 0
+
+    def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
+        self.k += 1
+        return self.truth[self.k] + self.offset, int(TrackStatus.TRACKED)
+
+
+def test_a_tracker_without_evidence_is_tracked_only_where_tipm_sees_its_corner(clean_seq,
+                                                                                 tipm):
+    """The status rule of every tracker: a point on the true corner is `tracked` on clean
+    frames; the same tracker 12 px along the stripe off it (its own status still `tracked`)
+    is not, on any frame, and its point stays its own (Confirmed weighs, never corrects)."""
+    frames = [f for f, _ in clean_seq]
+    truth = np.array([t.uv for _, t in clean_seq], float)
+    cfg = load_anchor_config()
+    for offset, tracked in (((0.0, 0.0), True), ((12.0, 0.0), False)):
+        trk = Confirmed(_Offset(truth, offset), tipm, cfg)
+        trk.init(frames[0], truth[0])
+        for k, frame in enumerate(frames[1:], start=1):
+            res = trk.track(frame)
+            np.testing.assert_allclose(res.uv, truth[k] + offset)
+            assert res.tracked == tracked, (offset, k, res.status)
+            assert res.fix is not None and np.linalg.norm(res.fix.uv - truth[k]) < 1.0
+            if not tracked:
+                assert res.status == TrackStatus.COASTING  # 11 frames: not lost yet
+    # every tracker whose own status is no image evidence is held to it
+    for name in ("eakf-stc", "stc", "kcf", "csrt", "mosse"):
+        assert isinstance(make_tracker(name, tipm), Confirmed), name
+    assert not isinstance(make_tracker("tipm", tipm), Confirmed)
+    assert not isinstance(make_tracker("anchored", tipm), Confirmed)

@@ -293,6 +293,16 @@ def corner_seen(res: TipmResult, support_px: float, points: int) -> bool:
                 and np.sum((d > 0) & (d <= support_px)) >= points)
 
 
+def blind_status(cfg: AnchorConfig, coast: int, out: np.ndarray,
+                 last_evidence: np.ndarray | None) -> int:
+    """The status of a point ``out`` (2,) on a frame without evidence, the ``coast``-th in a
+    row: ``lost`` after ``lost_frames`` such frames or once ``lost_px`` from the last point
+    with evidence (or without one, or a point that is not finite), ``coasting`` before."""
+    far = (last_evidence is None or not np.all(np.isfinite(out))
+           or float(np.linalg.norm(out - last_evidence)) > cfg.lost_px)
+    return int(TrackStatus.LOST if far or coast > cfg.lost_frames else TrackStatus.COASTING)
+
+
 @dataclass
 class Observation:
     """What TIPM saw on one frame in the window around the prediction.
@@ -836,10 +846,7 @@ class AnchoredFilter:
             self._learn_motion(out)
         else:
             self.coast += 1
-            far = (self.last_evidence is None or not np.all(np.isfinite(out))
-                   or float(np.linalg.norm(out - self.last_evidence)) > c.lost_px)
-            self.status = int(TrackStatus.LOST if far or self.coast > c.lost_frames
-                              else TrackStatus.COASTING)
+            self.status = blind_status(c, self.coast, out, self.last_evidence)
         return self.status
 
     def search(self, frame: np.ndarray | None) -> None:

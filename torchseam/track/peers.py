@@ -25,11 +25,15 @@ from torchseam.core.errors import TorchseamError
 from torchseam.core.orient import FrameView
 from torchseam.track import model_file
 from torchseam.track.anchored import (
+    AnchorConfig,
     AnchoredTracker,
+    blind_status,
     fitted_eakf_stc,
+    load_anchor_config,
     load_anchored_model,
+    observe,
 )
-from torchseam.track.base import Tracker
+from torchseam.track.base import Fix, Tracker, TrackResult
 from torchseam.track.fusion import LiteTracker, TrackStatus
 from torchseam.track.names import TRACKERS
 from torchseam.track.stc import STC
@@ -133,6 +137,65 @@ class OpenCVTracker(Tracker):
         return self.last, int(TrackStatus.TRACKED)
 
 
+class Confirmed(Tracker):
+    """A tracker whose own status is no image evidence, held to the status every tracker
+    gives (:class:`~torchseam.track.base.TrackResult`): STC, KCF, CSRT and MOSSE say
+    ``tracked`` whenever they give a point, EAKF-STC whenever it trusts its filter, however
+    far the point has drifted off the stripe's corner. Here a frame is ``tracked`` only when
+    TIPM's corner in the window round the tracker's point is seen (both arms reach it) and
+    lies within ``evidence_px`` of it, as for the live tracker; ``coasting`` otherwise and
+    ``lost`` by the live tracker's rule (:func:`~torchseam.track.anchored.blind_status`; the
+    settings of ``configs/anchor.yaml``). The point is the tracker's own: the corner is
+    weighed as evidence (``TrackResult.fix``, never taken), not used to correct it.
+
+    Example:
+        >>> from torchseam.vision.tipm import load_tipm
+        >>> trk = Confirmed(OpenCVTracker("mosse"), load_tipm(), load_anchor_config())
+        >>> trk.init(frame0, uv0)               # doctest: +SKIP
+        >>> trk.track(frame1).tracked           # doctest: +SKIP
+    """
+
+    def __init__(self, inner: Tracker, tipm: Tipm, cfg: AnchorConfig) -> None:
+        self.inner, self.tipm, self.cfg = inner, tipm, cfg
+        self.name, self.fitted_fps = inner.name, inner.fitted_fps
+        self.coast = 0                                 # frames without evidence in a row
+        self.last_evidence: np.ndarray | None = None   # the last point with evidence
+
+    def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
+        self.inner.init(frame, uv)
+        self.coast, self.last_evidence = 0, np.asarray(uv, float).copy()
+
+    def expect(self, uv: np.ndarray | None) -> None:
+        self.inner.expect(uv)
+
+    def idle(self) -> None:
+        self.inner.idle()
+
+    def update(self, frame: np.ndarray) -> tuple[np.ndarray, int]:
+        res = self.track(frame)
+        return res.uv, res.status
+
+    def track(self, frame: np.ndarray) -> TrackResult:
+        uv, status = self.inner.update(frame)
+        uv = np.asarray(uv, float)
+        if status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
+            self.coast += 1
+            return TrackResult(uv, int(TrackStatus.LOST))
+        obs = observe(self.tipm, frame, uv, None, self.cfg, shallow=False)
+        fix = None
+        if obs.res is not None and obs.z is not None and obs.shape_cov is not None:
+            rms = obs.res.inlier_rms_px
+            fix = Fix(obs.z.copy(), rms * rms * obs.shape_cov, 1.0, taken=False, seen=obs.seen)
+        if fix is not None and fix.seen and float(
+                np.linalg.norm(fix.uv - uv)) <= self.cfg.evidence_px:
+            self.coast, self.last_evidence = 0, uv.copy()
+            status = int(TrackStatus.TRACKED)
+        else:
+            self.coast += 1
+            status = blind_status(self.cfg, self.coast, uv, self.last_evidence)
+        return TrackResult(uv, status, fix, obs.stripe, None, obs.glare)
+
+
 def make_tracker(name: str, tipm: Tipm, model: dict | None = None,
                  model_path: str | Path | None = None) -> FrameTracker:
     """A tracker by CLI name (see ``TRACKERS``); ``tipm`` is the TIPM of those that run it
@@ -142,23 +205,27 @@ def make_tracker(name: str, tipm: Tipm, model: dict | None = None,
     ``configs/anchor.yaml``, see :func:`~torchseam.track.anchored.load_anchored_model`) and
     ``eakf-stc`` its own fit ``models/eakf_stc.safetensors``, unless ``model`` (a TrackerConfig
     mapping) is given. A ``model_path`` for a tracker without EAKF-STC is an error (it would be
-    ignored)."""
+    ignored). The trackers whose status is no image evidence (all but ``anchored`` and
+    ``tipm``) are :class:`Confirmed`: ``tracked`` means what it means for every tracker."""
     if model_path is not None and name not in ("eakf-stc", "anchored"):
         raise TorchseamError(f"--model {model_path}: tracker {name} loads no model (only "
                              "eakf-stc and anchored do)")
+    if name == "anchored":
+        return AnchoredTracker(load_anchored_model(model_path, model=model), tipm)
+    if name == "tipm":
+        return TipmPerFrame(tipm)
+    inner: Tracker
     if name == "eakf-stc":
         if model_path is None and not model and model_file.EAKF_STC_MODEL.is_file():
             model_path = model_file.EAKF_STC_MODEL  # its own fit, not the live tracker's part
-        return LiteTracker(fitted_eakf_stc(model, model_path))
-    if name == "anchored":
-        return AnchoredTracker(load_anchored_model(model_path, model=model), tipm)
-    if name == "stc":
-        return TorchTracker(name, STC())
-    if name == "tipm":
-        return TipmPerFrame(tipm)
-    if name in ("kcf", "csrt", "mosse"):
-        return OpenCVTracker(name)
-    raise TorchseamError(f"unknown tracker {name!r}: use one of {', '.join(TRACKERS)}")
+        inner = LiteTracker(fitted_eakf_stc(model, model_path))
+    elif name == "stc":
+        inner = TorchTracker(name, STC())
+    elif name in ("kcf", "csrt", "mosse"):
+        inner = OpenCVTracker(name)
+    else:
+        raise TorchseamError(f"unknown tracker {name!r}: use one of {', '.join(TRACKERS)}")
+    return Confirmed(inner, tipm, load_anchor_config())
 
 
 def run_tracker(tracker: FrameTracker, frames, uv0: np.ndarray | None, tipm: Tipm,
