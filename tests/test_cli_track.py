@@ -108,3 +108,24 @@ def test_eval_counts_an_unreadable_frame_as_lost(seq_dir, tmp_path, capsys):
     assert "1 unreadable, counted lost" in io.out and "00005.png" in io.err
     row = io.out.strip().splitlines()[-1].split()
     assert int(row[1]) == 10 and float(row[5]) == pytest.approx(10.0)
+
+
+def test_eval_counts_the_frames_said_tracked_and_the_false_ones(seq_dir, tmp_path, capsys):
+    """The status against the labels: TIPM says tracked on every frame of this light-arc
+    folder; where the labels are moved 12 px (a corner it reads there but the label does not
+    have) those frames are false tracked, and only those."""
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    for p in sorted(seq_dir.glob("0*.png")):
+        (moved / p.name).write_bytes(p.read_bytes())
+    lines = (seq_dir / "labels.csv").read_text().splitlines()
+    for k in range(11, 15):  # frames 10..13 (line 0 is the header)
+        frame, u, v = lines[k].split(",")
+        lines[k] = f"{frame},{float(u) + 12.0},{v}"
+    (moved / "labels.csv").write_text("\n".join(lines) + "\n")
+    for folder, false in ((seq_dir, 0), (moved, 4)):
+        assert main(["eval", str(folder), "--tracker", "tipm"]) == 0
+        out = capsys.readouterr().out
+        assert "tracked %" in out and "false trk" in out
+        row = out.strip().splitlines()[-1].split()
+        assert float(row[6]) == pytest.approx(100.0) and int(row[7]) == false, out

@@ -30,6 +30,9 @@ MISSING = "missing"  # track.csv status of a frame number the folder has no imag
 #: regular file (a FIFO: never opened) or an image above the pixel limit (never decoded) too
 #: (:mod:`torchseam.core.imageio`)
 UNREADABLE = "unreadable"
+#: ``eval``: a frame said ``tracked`` farther than this from its label is a false one (px; the
+#: benchmarks' rule, bench/tracking.py)
+FALSE_TRACKED_PX = 5.0
 #: unreadable frames named one by one on stderr; the rest are counted
 WARN_FRAMES = 10
 
@@ -92,7 +95,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser(
         "eval", help="track a labelled folder and print the error table",
         description="Track FRAMES_DIR and compare with its labels.csv: RMSE, max error, "
-                    "% frames > 5 px, % lost (> 15 px or no point), ms per frame (frame -> "
+                    "% frames > 5 px, % lost (> 15 px or no point), % of frames said tracked "
+                    "and how many of those are more than 5 px off (false trk; the start frame "
+                    "counts in neither), ms per frame (frame -> "
                     "point; the tracker's learning between frames, as the live loop runs it, "
                     "is not counted). A frame that cannot be read (as for track) counts as "
                     "lost.")
@@ -280,11 +285,15 @@ def run_eval(args: argparse.Namespace) -> int:
     said = _resolve_joint(args, ds)
     _warn_missing(ds)
     uv = np.full((len(ds), 2), np.nan)
+    said_tracked = np.zeros(len(ds), bool)
+    start = np.zeros(len(ds), bool)  # the frame the tracker started on (its point is given)
     n_bad = 0
 
     def keep(i: int, p: np.ndarray, status: str) -> None:
         nonlocal n_bad
         uv[i] = p
+        said_tracked[i] = status == "tracked"
+        start[i] = not start.any() and status != UNREADABLE
         n_bad += status == UNREADABLE
 
     tipm = load_tipm()
@@ -292,11 +301,17 @@ def run_eval(args: argparse.Namespace) -> int:
     labelled = ds.labelled
     err = np.linalg.norm(uv - ds.labels, axis=1)[labelled]
     s = error_stats(err)
+    # the status against the labels: a frame said tracked more than FALSE_TRACKED_PX off is a
+    # false one (the start frame is not counted)
+    counted = ~start[labelled]
+    tracked = said_tracked[labelled][counted]
+    false = int(np.sum(tracked & ~(err[counted] <= FALSE_TRACKED_PX)))
+    pct_tracked = 100.0 * float(tracked.mean()) if len(tracked) else 0.0
     p50, p99 = percentiles_ms(secs if secs else [0.0])
     print(f"{args.tracker} on {ds.root} ({int(labelled.sum())} of {len(ds)} frames labelled; "
           f"{said}start: {note}" + (f"; {n_bad} unreadable, counted lost" if n_bad else "") + ")")
     print(format_table(["tracker", "frames", "RMSE px", "max px", "> 5 px %", "lost %",
-                        "ms p50", "ms p99"],
+                        "tracked %", "false trk", "ms p50", "ms p99"],
                        [[args.tracker, s["n"], s["rmse"], s["max"], s["pct_gt5"], s["pct_lost"],
-                         p50, p99]]))
+                         pct_tracked, false, p50, p99]]))
     return 0
