@@ -176,6 +176,8 @@ CASES = [
      r"--model .*: tracker tipm loads no model"),
     ("replay model missing", lambda t, s: ["replay", str(s), "--model", str(t / "no.st")],
      r"argument --model: .*no\.st: no such model file"),
+    ("replay pose not unit", lambda t, s: ["replay", str(s), "--pose", "900,0,400,2,0,0,0"],
+     r"--pose: quaternion Q1\.\.Q4 \(w, x, y, z\) must have norm 1, got 2\.000000"),
     ("train the shipped model", lambda t, s: ["train", "--data", str(s), "--model",
                                               str(model_io.DEFAULT_MODEL)],
      r"--model .*live_tracker\.safetensors is the model the trackers load: .*--install"),

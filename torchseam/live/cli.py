@@ -27,6 +27,7 @@ from torchseam.core.config import (
     load_part,
 )
 from torchseam.core.errors import TorchseamError
+from torchseam.core.poses_csv import NORM_TOLERANCE
 from torchseam.core.report import ReportError, format_table
 from torchseam.core.signals import EXIT_SIGNAL, SignalStop
 from torchseam.live.names import FAULTS
@@ -163,9 +164,11 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     if args.pose:
         v = _floats(args.pose, 7, "--pose")
         q = np.array(v[3:])
-        if not np.linalg.norm(q) > 0:
-            raise TorchseamError("--pose: the quaternion is zero")
-        pose = pose_matrix(np.array(v[:3]), q / np.linalg.norm(q))
+        norm = float(np.linalg.norm(q))
+        if not abs(norm - 1.0) <= NORM_TOLERANCE:  # as `robot ik` and a pose file: no guess
+            raise TorchseamError(f"--pose: quaternion Q1..Q4 (w, x, y, z) must have norm 1, "
+                                 f"got {norm:.6f}")
+        pose = pose_matrix(np.array(v[:3]), q / norm)
     cell, parts = load_cell(), load_live_parts()
     # refused before any frame; without --joint, a frame folder's meta.json may name it
     given = args.joint

@@ -32,7 +32,7 @@ from typing import Any
 
 from torchseam.core.cliargs import out_file_arg
 from torchseam.core.errors import TorchseamError
-from torchseam.core.poses_csv import POSE_COLUMNS, read_pose_csv
+from torchseam.core.poses_csv import NORM_TOLERANCE, POSE_COLUMNS, read_pose_csv
 
 #: the shipped RAPID module (in the package's ``rapid`` folder: the repository's ``rapid/``)
 RAPID_MODULE = "TorchseamWeld.mod"
@@ -169,7 +169,7 @@ def run_ik(args: argparse.Namespace) -> int:
         raise TorchseamError(f"pose: expected finite numbers, got {pose}")
     quat = np.asarray(pose[3:])
     norm = float(np.linalg.norm(quat))
-    if abs(norm - 1.0) > 1e-3:
+    if abs(norm - 1.0) > NORM_TOLERANCE:
         raise TorchseamError(f"pose: quaternion Q1..Q4 (w, x, y, z) must have norm 1, "
                              f"got {norm:.6f}")
     robot = _robot(args)
