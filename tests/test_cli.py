@@ -35,6 +35,24 @@ def test_simulate_with_preview_then_detect(tmp_path, capsys):
     assert (tmp_path / "ov" / "00000_tipm.png").exists()
 
 
+@pytest.mark.parametrize(("camera", "dtype"), [("mono", np.uint8), ("mono16", np.uint16)])
+def test_simulate_writes_a_mono_cameras_frames(camera, dtype, tmp_path, capsys):
+    """A mono camera behind the band-pass: one channel, 8 or 16 bit, the same scene (TIPM finds
+    the labelled point on the arc-off frame 0), the camera said in meta.json."""
+    import cv2
+
+    out = tmp_path / camera
+    assert main(["simulate", str(out), "--frames", "2", "--camera", camera]) == 0
+    img = cv2.imread(str(out / "00000.png"), cv2.IMREAD_UNCHANGED)
+    assert img.ndim == 2 and img.dtype == dtype and int(img.max()) > np.iinfo(dtype).max // 4
+    ds = Dataset.open(out, require_labels=True)
+    assert ds.meta["camera"] == camera
+    capsys.readouterr()
+    assert main(["detect", str(out / "00000.png")]) == 0
+    line = capsys.readouterr().out.strip().split()
+    np.testing.assert_allclose([float(line[1]), float(line[2])], ds.labels[0], atol=0.5)
+
+
 def test_bad_noise_level_is_a_clear_error(tmp_path, capsys):
     assert main(["simulate", str(tmp_path / "x"), "--noise", "loud"]) == 2
     err = capsys.readouterr().err

@@ -16,6 +16,7 @@ from torchseam.core.config import (
     load_part,
 )
 from torchseam.core.errors import TorchseamError
+from torchseam.sim.names import CAMERAS
 
 if TYPE_CHECKING:  # imported when the command runs: the parser (--help) needs no OpenCV
     import numpy as np
@@ -51,6 +52,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="seam arc length at the first frame (default: random from the seed)")
     p.add_argument("--preview", action="store_true",
                    help="also write preview.png: a contact sheet with the true point drawn")
+    p.add_argument("--camera", choices=CAMERAS, default="colour",
+                   help="the frames as a colour camera gives them (BGR, the default), or as a "
+                        "mono camera behind the 650 nm band-pass does: mono (8 bit) or mono16 "
+                        "(16-bit PNG)")
     p.add_argument("--overwrite", action="store_true", help="replace frames already in OUT")
     add_world_options(p)
     p.set_defaults(func=run)
@@ -77,10 +82,11 @@ def run(args: argparse.Namespace) -> int:
     spec = SequenceSpec(n_frames=args.frames, level=level, seed=args.seed, start_mm=args.start_mm,
                         family=args.family)
     name = args.noise if args.noise in noise.levels else None
-    truths = write_sequence(args.out, cell, part, noise, spec, name, overwrite=args.overwrite)
+    truths = write_sequence(args.out, cell, part, noise, spec, name, overwrite=args.overwrite,
+                            camera=args.camera)
     visible = sum(t.visible for t in truths)
-    print(f"wrote {len(truths)} frames to {args.out} (noise level {level:g}, seed {args.seed}; "
-          f"seam visible in {visible})")
+    print(f"wrote {len(truths)} {args.camera} frames to {args.out} (noise level {level:g}, "
+          f"seed {args.seed}; seam visible in {visible})")
     if args.preview:
         pick = np.unique(np.linspace(0, len(truths) - 1, min(12, len(truths))).astype(int))
         imgs = [_read_frame(args.out / f"{i:05d}.png") for i in pick]

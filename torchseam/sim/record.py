@@ -17,7 +17,9 @@ from torchseam.core.dataset import frame_name, write_labels
 from torchseam.core.errors import DatasetError
 from torchseam.core.overlay import put_label
 from torchseam.core.transforms import matrix_to_quat
+from torchseam.sim.names import CAMERAS
 from torchseam.sim.sequence import FrameTruth, SequenceSpec, simulate
+from torchseam.sim.variants import to_mono
 
 FORMAT = "torchseam-dataset/1"
 
@@ -44,12 +46,17 @@ def truth_dict(t: FrameTruth) -> dict[str, Any]:
 
 def write_sequence(out: str | os.PathLike[str], cell: CellConfig, part: PartConfig,
                    noise: NoiseConfig, spec: SequenceSpec, noise_name: str | None = None,
-                   progress: bool = True, overwrite: bool = False) -> list[FrameTruth]:
+                   progress: bool = True, overwrite: bool = False,
+                   camera: str = "colour") -> list[FrameTruth]:
     """Simulate ``spec`` and write it to ``out`` (frames, labels.csv, meta.json).
 
+    ``camera``: ``colour`` (BGR, as rendered), ``mono`` or ``mono16`` (the single channel a
+    camera behind the 650 nm band-pass gives, 8 or 16 bit: :func:`~torchseam.sim.variants.to_mono`).
     Returns the per-frame truths. Refuses to write into a folder that already holds frames
     unless ``overwrite``.
     """
+    if camera not in CAMERAS:
+        raise ValueError(f"camera {camera!r}: use one of {', '.join(CAMERAS)}")
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise DatasetError(f"{out}: exists and is not a folder")
@@ -64,6 +71,9 @@ def write_sequence(out: str | os.PathLike[str], cell: CellConfig, part: PartConf
     bar = tqdm(it, total=spec.n_frames, desc=f"simulate {out.name}", unit="frame",
                disable=not progress, leave=False)
     for img, truth in bar:
+        if camera != "colour":  # its sensor noise seeded by the sequence and the frame
+            img = to_mono(img, bits=16 if camera == "mono16" else 8,
+                          rng=np.random.default_rng((spec.seed, truth.index)))
         if not cv2.imwrite(str(out / frame_name(truth.index)), img):
             raise DatasetError(f"{out / frame_name(truth.index)}: could not be written")
         truths.append(truth)
@@ -72,6 +82,7 @@ def write_sequence(out: str | os.PathLike[str], cell: CellConfig, part: PartConf
     meta = {
         "format": FORMAT,
         "source": "torchseam simulator",
+        "camera": camera,
         "noise": {"level": spec.level, "name": noise_name, "seed": spec.seed,
                   "clean_lead_frames": noise.clean_lead_frames},
         "sequence": {"n_frames": spec.n_frames, "start_mm": spec.start_mm,
