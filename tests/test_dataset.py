@@ -30,6 +30,27 @@ def test_write_and_read_back(tmp_path, cell, part, noise):
                        progress=False)
 
 
+def test_an_interrupted_write_leaves_a_dataset_of_the_frames_written(tmp_path, cell, part,
+                                                                      noise, monkeypatch):
+    """Ctrl-C while simulating: the frames written so far keep their labels and meta.json (a
+    dataset of 3 frames, said so), and the interrupt goes on to the command."""
+    import torchseam.sim.record as record
+    from torchseam.sim.sequence import simulate
+
+    def three_then_ctrl_c(*args, **kwargs):
+        yield from list(simulate(*args, **kwargs))[:3]
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(record, "simulate", three_then_ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        write_sequence(tmp_path / "s", cell, part, noise,
+                       SequenceSpec(n_frames=5, level=0.0, seed=4), progress=False)
+    ds = Dataset.open(tmp_path / "s", require_labels=True)
+    truths = list(simulate(cell, part, noise, SequenceSpec(n_frames=3, level=0.0, seed=4)))
+    assert len(ds) == 3 and ds.meta["sequence"]["n_frames"] == 3
+    np.testing.assert_allclose(ds.labels, [t.uv for _, t in truths], atol=1e-4)
+
+
 def _folder(tmp_path, n=3, labels="frame,u,v\n0,1.5,2.5\n1,3,4\n2,5,6\n"):
     d = tmp_path / "rec"
     d.mkdir()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -82,8 +83,14 @@ def run(args: argparse.Namespace) -> int:
     spec = SequenceSpec(n_frames=args.frames, level=level, seed=args.seed, start_mm=args.start_mm,
                         family=args.family)
     name = args.noise if args.noise in noise.levels else None
-    truths = write_sequence(args.out, cell, part, noise, spec, name, overwrite=args.overwrite,
-                            camera=args.camera)
+    try:
+        truths = write_sequence(args.out, cell, part, noise, spec, name,
+                                overwrite=args.overwrite, camera=args.camera)
+    except KeyboardInterrupt:
+        n = len(list(args.out.glob("[0-9]*.png")))
+        print(f"torchseam simulate: {n} of {args.frames} frames written to {args.out} before the "
+              "interrupt, with their labels.csv and meta.json", file=sys.stderr)
+        raise
     visible = sum(t.visible for t in truths)
     print(f"wrote {len(truths)} {args.camera} frames to {args.out} (noise level {level:g}, "
           f"seed {args.seed}; seam visible in {visible})")

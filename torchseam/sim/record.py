@@ -70,14 +70,31 @@ def write_sequence(out: str | os.PathLike[str], cell: CellConfig, part: PartConf
     it = simulate(cell, part, noise, spec)
     bar = tqdm(it, total=spec.n_frames, desc=f"simulate {out.name}", unit="frame",
                disable=not progress, leave=False)
-    for img, truth in bar:
-        if camera != "colour":  # its sensor noise seeded by the sequence and the frame
-            img = to_mono(img, bits=16 if camera == "mono16" else 8,
-                          rng=np.random.default_rng((spec.seed, truth.index)))
-        if not cv2.imwrite(str(out / frame_name(truth.index)), img):
-            raise DatasetError(f"{out / frame_name(truth.index)}: could not be written")
-        truths.append(truth)
-    uv = np.array([t.uv for t in truths])
+    try:
+        for img, truth in bar:
+            if camera != "colour":  # its sensor noise seeded by the sequence and the frame
+                img = to_mono(img, bits=16 if camera == "mono16" else 8,
+                              rng=np.random.default_rng((spec.seed, truth.index)))
+            if not cv2.imwrite(str(out / frame_name(truth.index)), img):
+                raise DatasetError(f"{out / frame_name(truth.index)}: could not be written")
+            truths.append(truth)
+    except KeyboardInterrupt:
+        # the frames written so far stay a dataset: with their labels and meta.json (a frame
+        # whose truth was not kept yet is removed), then the interrupt goes on
+        for p in out.glob("[0-9]*.png"):
+            if p.stem.isdigit() and int(p.stem) >= len(truths):
+                p.unlink()
+        _write_index(out, truths, cell, part, noise, spec, noise_name, camera)
+        raise
+    _write_index(out, truths, cell, part, noise, spec, noise_name, camera)
+    return truths
+
+
+def _write_index(out: Path, truths: list[FrameTruth], cell: CellConfig, part: PartConfig,
+                 noise: NoiseConfig, spec: SequenceSpec, noise_name: str | None,
+                 camera: str) -> None:
+    """labels.csv and meta.json of the frames ``truths`` written to ``out``."""
+    uv = np.array([t.uv for t in truths]).reshape(-1, 2)
     write_labels(out / "labels.csv", np.arange(len(truths)), uv)
     meta = {
         "format": FORMAT,
@@ -85,13 +102,12 @@ def write_sequence(out: str | os.PathLike[str], cell: CellConfig, part: PartConf
         "camera": camera,
         "noise": {"level": spec.level, "name": noise_name, "seed": spec.seed,
                   "clean_lead_frames": noise.clean_lead_frames},
-        "sequence": {"n_frames": spec.n_frames, "start_mm": spec.start_mm,
+        "sequence": {"n_frames": len(truths), "start_mm": spec.start_mm,
                      "rotation_deg": spec.rotation_deg, "laser_off": list(spec.laser_off)},
         "cell": to_dict(cell), "part": to_dict(part),
         "frames": [truth_dict(t) for t in truths],
     }
     (out / "meta.json").write_text(json.dumps(meta, indent=1))
-    return truths
 
 
 def contact_sheet(frames: list[np.ndarray], points: list[np.ndarray | None],
