@@ -159,6 +159,40 @@ def test_train_live_command_fits_and_writes_a_run(tmp_path, monkeypatch, capsys)
     assert meta["info"]["data"]["train"]["families"] == ["sim"]
 
 
+def test_train_live_interrupted_keeps_the_best_epoch_done(tmp_path, monkeypatch, capsys):
+    """Ctrl-C in epoch 1 of 2: exit 130, the best of what was done (the start, epoch 0) written
+    to the run as a model the trackers load (said interrupted), nothing installed."""
+    import torchseam.fit.anchored as fit_anchored_module
+    from torchseam.cli import main
+
+    cfg = dataclasses.asdict(load_anchored_fit_config())
+    cfg.update(families=["sim"], levels=["heavy"], val_levels=["heavy"], frames=30,
+               hide_frames=[4], epochs=2, chunk=10, batch=1)
+    (tmp_path / "c.yaml").write_text(
+        "\n".join(f"{k}: {list(v) if isinstance(v, tuple) else v}" for k, v in cfg.items()))
+    calls = []
+    real = fit_anchored_module.track_set
+
+    def ctrl_c_in_epoch_1(*args, **kwargs):  # the start's validation, then epoch 1's training
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fit_anchored_module, "track_set", ctrl_c_in_epoch_1)
+    before = model_io.DEFAULT_MODEL.read_bytes()
+    monkeypatch.chdir(tmp_path)
+    rc = main(["train-live", "--config", str(tmp_path / "c.yaml"), "--name", "t2", "--install"])
+    out, err = capsys.readouterr()
+    assert rc == 130 and len(calls) == 2, out + err
+    assert "interrupted in epoch 1 of 2" in out and "not installed" in out
+    run = tmp_path / "runs" / "t2"
+    _, meta = model_io.read_model(run / "live_tracker.safetensors")
+    assert meta["info"]["interrupted_in_epoch"] == 1 and meta["info"]["best_epoch"] == 0
+    assert model_io.DEFAULT_MODEL.read_bytes() == before
+    load_anchored_model(run / "live_tracker.safetensors")  # a model `--model` takes
+
+
 def test_train_live_refuses_a_start_without_the_stc_extensions_it_fits(tmp_path, monkeypatch,
                                                                       capsys):
     """A start `torchseam train` wrote with its defaults has STC's reg and anchor switched off,

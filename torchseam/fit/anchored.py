@@ -305,37 +305,51 @@ def fit_anchored(module: AnchoredModel, train: Sequence[AnchoredSequence],
                 "params": readable(module), "seconds": round(time.time() - t0, 1)}]
     say(f"epoch 0 (start): val loss {v_loss:.4f}  ({time.time() - t0:.0f} s)")
     rng = np.random.default_rng(0)
-    for epoch in range(1, cfg.epochs + 1):
-        t1 = time.time()
-        order = [train[i] for i in rng.permutation(len(train))]
-        loss, _, _ = track_set(module, order, cfg.batch, cfg.chunk, cfg.huber, opt, cfg.clip,
-                               tipm=tipm)
-        v_loss, v_groups = validate()
-        if not math.isfinite(v_loss):
-            raise FitError(f"epoch {epoch}: the validation loss is not finite: the fit diverged "
-                           "(lower lr)")
-        history.append({"epoch": epoch, "loss": loss, "val_loss": v_loss, "val": v_groups,
-                        "params": readable(module), "seconds": round(time.time() - t1, 1)})
-        mark = ""
-        if v_loss < best_loss:
-            best_epoch, best_loss = epoch, v_loss
-            best_state = {k: v.detach().clone() for k, v in module.state_dict().items()}
-            mark = "  (best)"
-        say(f"epoch {epoch}: train loss {loss:.4f}, val loss {v_loss:.4f}{mark}  "
-            f"({time.time() - t1:.0f} s)")
-        (out / "metrics.json").write_text(json.dumps(
-            {"history": history, "best_epoch": best_epoch, "freed": freed}, indent=1))
+    interrupted: int | None = None  # the epoch under way when Ctrl-C came
+    try:
+        for epoch in range(1, cfg.epochs + 1):
+            t1 = time.time()
+            order = [train[i] for i in rng.permutation(len(train))]
+            loss, _, _ = track_set(module, order, cfg.batch, cfg.chunk, cfg.huber, opt,
+                                   cfg.clip, tipm=tipm)
+            v_loss, v_groups = validate()
+            if not math.isfinite(v_loss):
+                raise FitError(f"epoch {epoch}: the validation loss is not finite: the fit "
+                               "diverged (lower lr)")
+            history.append({"epoch": epoch, "loss": loss, "val_loss": v_loss, "val": v_groups,
+                            "params": readable(module), "seconds": round(time.time() - t1, 1)})
+            mark = ""
+            if v_loss < best_loss:
+                best_epoch, best_loss = epoch, v_loss
+                best_state = {k: v.detach().clone() for k, v in module.state_dict().items()}
+                mark = "  (best)"
+            say(f"epoch {epoch}: train loss {loss:.4f}, val loss {v_loss:.4f}{mark}  "
+                f"({time.time() - t1:.0f} s)")
+            (out / "metrics.json").write_text(json.dumps(
+                {"history": history, "best_epoch": best_epoch, "freed": freed}, indent=1))
+    except KeyboardInterrupt:
+        # the epochs done are not lost: the best of them is written as a finished fit's is,
+        # said to be from an interrupted fit, and the interrupt goes on to the command
+        interrupted = len(history)
     with torch.no_grad():
         module.load_state_dict(best_state)
     kept = history[best_epoch]
     metrics = {"history": history, "best_epoch": best_epoch, "freed": freed,
                "config": dataclasses.asdict(cfg), "val": kept["val"],
                "params": kept["params"]}
+    if interrupted is not None:
+        metrics["interrupted_in_epoch"] = interrupted
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     plot_history(history, best_epoch, out / "loss_curve.png")
-    save_fitted(module, out / "live_tracker.safetensors",
+    path = out / "live_tracker.safetensors"
+    save_fitted(module, path,
                 {**info, "best_epoch": best_epoch, "val_loss": best_loss,
-                 "params": kept["params"], "added_by_hand": []})
+                 "params": kept["params"], "added_by_hand": [],
+                 **({"interrupted_in_epoch": interrupted} if interrupted is not None else {})})
+    if interrupted is not None:
+        say(f"interrupted in epoch {interrupted} of {cfg.epochs}: kept epoch {best_epoch} of "
+            f"the {interrupted - 1} done (0: the start); model {path} (not installed)")
+        raise KeyboardInterrupt
     return metrics
 
 
