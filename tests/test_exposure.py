@@ -149,3 +149,99 @@ def test_a_frame_rendered_at_half_exposure_is_the_family_with_half_the_gain(cell
     assert (full[-1] >= 250).sum() > 2 * (got[-1] >= 250).sum()
     with pytest.raises(ValueError, match="exposure must be > 0"):
         next(simulate(cell, part, noise, spec, exposure=lambda k: 0.0))
+
+
+# --------------------------------------------------------------------------- the live cell
+
+
+def _wait_for(cond, timeout_s: float = 2.0) -> bool:
+    import time
+
+    end = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.005)
+    return True
+
+
+def test_a_frame_stream_carries_the_welds_exposure_request_to_the_camera():
+    """The weld's request reaches the virtual camera's server (the exposure its next frames
+    are rendered at); a new reader starts at the configured exposure; a request that breaks
+    the format is refused, not applied."""
+    import socket
+
+    from torchseam.live.framestream import (
+        REQUEST,
+        FrameStreamError,
+        FrameStreamServer,
+        StreamCamera,
+    )
+
+    server = FrameStreamServer("127.0.0.1", 0)
+    try:
+        url = f"tcp://127.0.0.1:{server.address[1]}"
+        with StreamCamera(url, connect_timeout_s=5.0) as cam:
+            assert _wait_for(lambda: server.connected)
+            assert server.exposure == 1.0
+            cam.request_exposure(0.5)
+            cam.request_exposure(0.4)
+            assert _wait_for(lambda: server.exposure == 0.4 and server.requests == 2)
+            with pytest.raises(FrameStreamError, match="exposure scale 0 is outside"):
+                cam.request_exposure(0.0)
+        with socket.create_connection(server.address) as s:
+            assert _wait_for(lambda: server.exposure == 1.0)      # a new reader
+            s.sendall(REQUEST.pack(b"XXXX", 1, REQUEST.size, 0.3))
+            assert _wait_for(lambda: server.bad_requests == 1)
+            assert server.exposure == 1.0
+    finally:
+        server.close()
+
+
+def test_the_cell_file_turns_auto_exposure_on_only_for_a_camera_that_takes_it(tmp_path):
+    from torchseam.core.config import ConfigError, load_cell, to_dict
+    from torchseam.live.cellfile import CameraLink, ControllerLink, WeldCell, load_weld_cell
+
+    cell = WeldCell(load_cell(), CameraLink(source="tcp://127.0.0.1:7000", latency_ms=20.0),
+                    ControllerLink(host="127.0.0.1", port=6510, controller_host="127.0.0.1",
+                                   controller_port=6511))
+    assert cell.camera.auto_exposure is False                     # off by default
+    data = to_dict(cell)
+    data["camera"]["auto_exposure"] = True
+    (tmp_path / "on.yaml").write_text(yaml.safe_dump(data))
+    assert load_weld_cell(tmp_path / "on.yaml").camera.auto_exposure is True
+    data["camera"]["source"] = "camera:0"
+    (tmp_path / "cv.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"camera.auto_exposure: set, but camera:0 takes no "
+                                          r"exposure request") as e:
+        load_weld_cell(tmp_path / "cv.yaml")
+    assert "\n" not in str(e.value)
+
+
+def test_the_welds_exposure_step_asks_the_camera_for_less_under_clipping_glare():
+    """The weld's step (its frame and tracked point in, a request out): a frame clipped round
+    the point asks the camera for a lower exposure, a clean one asks nothing new; a camera
+    OpenCV reads refuses a request in one line."""
+    from torchseam.live.cameras import OpenCVCamera
+    from torchseam.live.framestream import FrameStreamError
+    from torchseam.live.weld import auto_exposure_step
+
+    class Cam:
+        def __init__(self):
+            self.asked = []
+
+        def request_exposure(self, scale):
+            self.asked.append(scale)
+
+    ae, cam, rng = ExposureController(CFG), Cam(), np.random.default_rng(0)
+    clean = _window(1.0, 160.0, 0.0, rng)
+    assert auto_exposure_step(ae, cam, clean, np.array([40.0, 40.0])) == 1.0
+    assert cam.asked == []
+    glare = np.dstack([_window(1.0, 160.0, 400.0, rng)] * 3)      # colour, clipped
+    assert auto_exposure_step(ae, cam, glare, np.array([40.0, 40.0])) == CFG.step_down
+    assert cam.asked == [CFG.step_down]
+    opencv = OpenCVCamera.__new__(OpenCVCamera)
+    opencv.url = "camera:0"
+    with pytest.raises(FrameStreamError, match="camera:0: takes no exposure request"):
+        opencv.request_exposure(0.5)
+
