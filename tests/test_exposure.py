@@ -77,6 +77,28 @@ def test_a_flickering_arc_does_not_make_the_exposure_hunt():
     assert scales[50:].max() < 1.0                    # it stays down under the arc
 
 
+def test_light_that_clips_at_any_exposure_is_not_chased_down():
+    """A weld pool flaring over the corner for 40 frames (a disc clipped at any exposure,
+    pasted on the frame): steps down change nothing in the window, so after respond_steps of
+    them the exposure holds instead of darkening the stripe to min_scale, and comes back
+    after."""
+    ae, rng, scales = ExposureController(CFG), np.random.default_rng(2), []
+    yy, xx = np.mgrid[0:81, 0:81]
+    disc = (xx - 40) ** 2 + (yy - 40) ** 2 <= 30 ** 2
+    for k in range(130):
+        scales.append(ae.scale)
+        frame = _window(ae.scale, 160.0, 0.0, rng)
+        if 20 <= k < 60:
+            frame[disc] = 255
+        ae.update(frame_stats(frame, np.array([40.0, 40.0]), CFG))
+    scales = np.array(scales)
+    held = CFG.step_down ** CFG.respond_steps          # the steps it takes to tell
+    assert scales[21] == CFG.step_down                 # a step down: the disc clips
+    assert scales[20:61].min() == pytest.approx(held)  # and no more than those
+    assert held > CFG.min_scale
+    assert np.all(scales[-5:] == 1.0)                  # back after it
+
+
 def test_a_dim_stripe_keeps_the_configured_exposure():
     """A clean frame whose stripe is under level_low never goes over max_scale."""
     scales = _run(lambda k: 0.0, 40, stripe=120.0)
@@ -85,8 +107,8 @@ def test_a_dim_stripe_keeps_the_configured_exposure():
 
 def test_the_exposure_stays_within_its_bounds():
     ae = ExposureController(CFG)
-    for _ in range(200):
-        ae.update(FrameStats(255.0, 1.0, 1.0))
+    for k in range(200):   # a flickering arc: the clipped share changes frame to frame
+        ae.update(FrameStats(255.0, (0.5, 0.2)[k % 2], 1.0))
     assert ae.scale == CFG.min_scale
     ae = ExposureController(CFG, start=0.01)
     assert ae.scale == CFG.min_scale

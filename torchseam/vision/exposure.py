@@ -15,7 +15,13 @@ tracked point:
   ``level_high``; a step up only after ``hold_frames`` frames in a row whose level stayed
   under ``level_low`` and which one step up would clip no more than ``clip_low`` of. So under
   a flickering arc the exposure is set by its brightest frames, and the bands between the
-  two levels and the two clipped shares keep it from oscillating.
+  two levels and the two clipped shares keep it from oscillating. Light that clips at any
+  exposure (a weld pool flaring over the corner) is not chased down: after ``respond_steps``
+  steps down in a row that each left the window's clipped share and its level within
+  ``1 - respond`` of what they were (nothing changed: an arc that flickers changes them), the
+  exposure holds until the window stops clipping, rather than darkening the stripe for
+  nothing. (One step is not enough to tell: an overexposed stripe stays clipped for a step
+  or two before it comes under the clip.)
 
 Both are pure (numbers in, a number out); the settings are ``configs/exposure.yaml``
 (:func:`load_exposure_config`), read at the boundary.
@@ -43,6 +49,8 @@ class ExposureConfig:
     level_low: float = config_field(lo=1.0, hi=255.0)
     step_down: float = config_field(lo=0.0, hi=1.0, lo_open=True, hi_open=True)
     step_up: float = config_field(lo=1.0, hi=10.0, lo_open=True)
+    respond: float = config_field(lo=0.0, hi=1.0)
+    respond_steps: int = config_field(lo=1, hi=1000)
     hold_frames: int = config_field(lo=0, hi=100000)
     min_scale: float = config_field(lo=0.0, hi=1000.0, lo_open=True)
     max_scale: float = config_field(lo=0.0, hi=1000.0, lo_open=True)
@@ -90,7 +98,8 @@ def frame_stats(frame: np.ndarray, uv: np.ndarray | None, cfg: ExposureConfig) -
     None or not finite (no point to look round).
 
     Example:
-        >>> cfg = ExposureConfig(40, 250.0, 0.02, 0.01, 245.0, 200.0, 0.8, 1.05, 10, 0.3, 1.0)
+        >>> cfg = ExposureConfig(40, 250.0, 0.02, 0.01, 245.0, 200.0, 0.8, 1.05, 0.9, 2, 10,
+        ...                      0.3, 1.0)
         >>> f = np.zeros((100, 100), np.uint8); f[48:52] = 255; f[52] = 240
         >>> s = frame_stats(f, np.array([50.0, 50.0]), cfg)
         >>> s.level, round(s.clipped, 3), round(s.near_clip, 3)
@@ -122,7 +131,8 @@ class ExposureController:
     ``[cfg.min_scale, cfg.max_scale]`` (see the module).
 
     Example:
-        >>> cfg = ExposureConfig(40, 250.0, 0.02, 0.01, 245.0, 200.0, 0.8, 1.05, 2, 0.3, 1.0)
+        >>> cfg = ExposureConfig(40, 250.0, 0.02, 0.01, 245.0, 200.0, 0.8, 1.05, 0.9, 2, 2,
+        ...                      0.3, 1.0)
         >>> ae = ExposureController(cfg)
         >>> ae.update(FrameStats(255.0, 0.2, 0.2)), ae.update(FrameStats(150.0, 0.0, 0.0))
         (0.8, 0.8)
@@ -133,15 +143,28 @@ class ExposureController:
         s = cfg.max_scale if start is None else float(start)
         self.scale = float(min(max(s, cfg.min_scale), cfg.max_scale))
         self._quiet = cfg.hold_frames   # frames in a row a step up was safe after: at once
+        self._down_from: FrameStats | None = None   # the frame the last step down was for
+        self._unhelped = 0     # steps down in a row that changed nothing in the window
 
     def update(self, stats: FrameStats) -> float:
         """Take one frame's statistics (taken at the current ``scale``); return the scale of
         the next frame (also ``self.scale``)."""
         cfg = self.cfg
         if stats.clipped > cfg.clip_high or stats.level > cfg.level_high:
-            self.scale = max(cfg.min_scale, self.scale * cfg.step_down)
+            prev, self._down_from = self._down_from, stats
             self._quiet = 0
-        elif stats.level < cfg.level_low and stats.near_clip <= cfg.clip_low:
+            tol = 1.0 - cfg.respond
+            if self._unhelped < cfg.respond_steps:
+                if prev is not None and (abs(stats.clipped - prev.clipped) <= tol * prev.clipped
+                                         and abs(stats.level - prev.level) <= tol * prev.level):
+                    self._unhelped += 1    # the last step changed nothing
+                else:
+                    self._unhelped = 0
+            if self._unhelped < cfg.respond_steps:
+                self.scale = max(cfg.min_scale, self.scale * cfg.step_down)
+            return self.scale
+        self._down_from, self._unhelped = None, 0
+        if stats.level < cfg.level_low and stats.near_clip <= cfg.clip_low:
             self._quiet += 1
             if self._quiet > cfg.hold_frames:
                 self.scale = min(cfg.max_scale, self.scale * cfg.step_up)
