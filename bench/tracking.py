@@ -4,6 +4,7 @@ Usage: python bench/tracking.py [--families sim,wide,thin,smoke] [--variants col
                                 [--levels clean,strike,heavy,extreme,beyond,shallow]
                                 [--sequences 3] [--frames 300]
                                 [--first-seed 1000] [--trackers ...] [--batch 64]
+                                [--auto-exposure [FILE]]
 
 Every tracker starts on frame 0 (arc off) by TIPM and is scored over the arc frames against the
 simulator's labels: RMSE and max (px), % frames lost (no point or > 15 px off), false-tracked
@@ -31,6 +32,13 @@ single channel a camera behind a 650 nm band-pass delivers (:func:`torchseam.sim
 scored in the turned frame's pixels. Every tracker gets the view (stripe axis, colour response)
 found on frame 0, as the live loop does with ``auto`` in the cell config.
 
+Automatic exposure (``--auto-exposure``, settings ``configs/exposure.yaml`` or FILE): the
+exposure controller (:mod:`torchseam.vision.exposure`) is in the loop: frame k is rendered at
+the exposure it chose from frames 0..k-1 as the tracker saw them (the window round each
+frame's tracked point), so every variant and tracker gets its own rendering; ``beyond``'s
+glare over the corner scales its halo by the same exposure (its core clips at any). Column
+``exposure``: the scale over the arc frames, min / median (1: the family's exposure).
+
 Threads: torch.set_num_threads(1) and cv2.setNumThreads(1) for the single-stream figures (the
 live loop's setting: one core per camera); the batched run uses --batch-threads (default 2).
 """
@@ -51,9 +59,23 @@ from torchseam.core.config import FAMILY_NAMES, load_cell, load_noise, load_part
 from torchseam.core.report import error_stats, format_table, percentiles_ms
 from torchseam.fit import model_io
 from torchseam.sim.sequence import SequenceSpec, simulate
-from torchseam.sim.variants import HIDE, SHALLOW, hide_corner, rotate90, shallow_corner, to_mono
+from torchseam.sim.variants import (
+    HIDE,
+    SHALLOW,
+    glare_over_corner,
+    hide_corner,
+    rotate90,
+    shallow_corner,
+    to_mono,
+)
 from torchseam.track.fusion import TrackStatus
 from torchseam.track.peers import TRACKERS, fitted_eakf_stc, make_tracker, run_tracker
+from torchseam.vision.exposure import (
+    ExposureConfig,
+    ExposureController,
+    frame_stats,
+    load_exposure_config,
+)
 from torchseam.vision.tipm import load_tipm, red_response
 
 ORDER = ["tipm", "stc", "kcf", "csrt", "mosse", "eakf-stc", "anchored"]
@@ -123,6 +145,75 @@ def variant(frames: list[np.ndarray], labels: np.ndarray, name: str
     raise ValueError(f"unknown variant {name!r}: use {', '.join(VARIANTS)}")
 
 
+def exposure_text(scales: np.ndarray) -> str:
+    """The exposure scales of a row: ``1`` when all are, else ``min / median``."""
+    if np.all(scales == 1.0):
+        return "1"
+    return f"{np.min(scales):.2f} / {np.median(scales):.2f}"
+
+
+def hidden_mask(n: int, stretches: tuple[tuple[float, int], ...] = HIDE) -> np.ndarray:
+    """(n,) the frames :func:`hide_corner` hides."""
+    hidden = np.zeros(n, bool)
+    for start, length in stretches:
+        hidden[int(start * n):int(start * n) + length] = True
+    return hidden
+
+
+class _Watched:
+    """A tracker whose last frame (as it saw it) and point are kept for the exposure."""
+
+    def __init__(self, tracker) -> None:
+        self.tracker, self.frame, self.uv = tracker, None, None
+
+    def init(self, frame, uv):
+        self.frame, self.uv = frame, np.asarray(uv, float)
+        return self.tracker.init(frame, uv)
+
+    def update(self, frame):
+        uv, st = self.tracker.update(frame)
+        self.frame, self.uv = frame, np.asarray(uv, float)
+        return uv, st
+
+    def __getattr__(self, name):
+        return getattr(self.tracker, name)
+
+
+def run_auto_exposure(cell, part, noise, spec: SequenceSpec, level_name: str, var: str,
+                      tracker, tipm, cfg: ExposureConfig):
+    """Render ``spec`` with the exposure controller in the loop (frame k at the scale chosen
+    from frames < k as ``tracker`` saw them) and track it: ``(uv, status, seconds,
+    idle_seconds, labels (N, 2), arc (N,), hidden (N,), scales (N,))``."""
+    watched = _Watched(tracker)
+    ae = ExposureController(cfg)
+    hidden = hidden_mask(spec.n_frames) if level_name == BEYOND else np.zeros(spec.n_frames,
+                                                                             bool)
+    labels, arc, scales = [], [], []
+
+    def exposure(k: int) -> float:
+        if k > 0:
+            ae.update(frame_stats(watched.frame, watched.uv, cfg))
+        scales.append(ae.scale)
+        return ae.scale
+
+    def frames():
+        for k, (img, truth) in enumerate(simulate(cell, part, noise, spec, exposure)):
+            if hidden[k]:
+                img = glare_over_corner(img, truth.uv, gain=scales[k])
+            labels.append(truth.uv)
+            arc.append(truth.arc_on)
+            if var in ("mono", "mono16"):
+                img = to_mono(img, bits=16 if var == "mono16" else 8, rng=k)
+            elif var == "columns":
+                img, labels[-1] = rotate90(img, truth.uv)
+            yield img
+
+    uv, st, sec, idle_sec, _ = run_tracker(watched, frames(), None, tipm, axis="auto",
+                                           response="auto")
+    return (uv, st, sec, idle_sec, np.array(labels, float), np.array(arc, bool), hidden,
+            np.array(scales))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--families", default="all",
@@ -142,6 +233,10 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=64,
                     help="B of the batched torch run (0: skip it; default 64)")
     ap.add_argument("--batch-threads", type=int, default=2)
+    ap.add_argument("--auto-exposure", nargs="?", type=Path, const=Path(), default=None,
+                    metavar="FILE",
+                    help="the exposure controller in the loop (settings: configs/exposure.yaml "
+                         "or FILE); not with level shallow")
     args = ap.parse_args()
     if args.batch < 0 or args.batch_threads < 1 or args.sequences < 1 or args.frames < 2:
         ap.error("--batch must be >= 0, --batch-threads and --sequences >= 1, --frames >= 2")
@@ -166,6 +261,16 @@ def main() -> None:
             ap.error(f"--levels: {e} (or {BEYOND}, {SHALLOW_LEVEL})")
     if args.model is not None and not args.model.is_file():
         ap.error(f"--model {args.model}: no such file")
+    ae_cfg = None
+    if args.auto_exposure is not None:
+        if SHALLOW_LEVEL in levels:
+            ap.error(f"--auto-exposure: level {SHALLOW_LEVEL} is drawn over whole sequences, "
+                     "not frame by frame: leave it out")
+        try:
+            ae_cfg = load_exposure_config(args.auto_exposure if args.auto_exposure.name
+                                          else None)
+        except ValueError as e:
+            ap.error(f"--auto-exposure: {e}")
     fit = fitted_on(args.model)
     chosen = sorted(set(fit) | set(TUNED_ON))
     torch.set_num_threads(1)
@@ -175,34 +280,43 @@ def main() -> None:
     for fam in families:
         for name in levels:
             level = noise.level("heavy" if name in (BEYOND, SHALLOW_LEVEL) else name)
-            cell_rows = {(v, t): ([], [], [], [], [], [], [], [], []) for v in variants
+            cell_rows = {(v, t): ([], [], [], [], [], [], [], [], [], []) for v in variants
                          for t in trackers}
             for s in range(args.sequences):
                 spec = SequenceSpec(n_frames=args.frames, level=level,
                                     seed=args.first_seed + s, family=fam)
-                frames0, labels0, arc, arms0 = sequence(cell, part, noise, spec)
-                hidden = np.zeros(len(frames0), bool)
-                if name == BEYOND:
-                    frames0, hidden = hide_corner(frames0, labels0)
-                elif name == SHALLOW_LEVEL:
-                    frames0, _, hidden = shallow_corner(frames0, labels0, arms0, spec.seed)
-                late = hidden & (np.cumsum(hidden) > LATE)  # one stretch at most
-                if fam == families[0] and name == levels[-1]:
-                    grey_bank.append((np.stack([red_response(f) for f in frames0]),
-                                      labels0[0]))
+                if ae_cfg is None:
+                    frames0, labels0, arc, arms0 = sequence(cell, part, noise, spec)
+                    hidden = np.zeros(len(frames0), bool)
+                    if name == BEYOND:
+                        frames0, hidden = hide_corner(frames0, labels0)
+                    elif name == SHALLOW_LEVEL:
+                        frames0, _, hidden = shallow_corner(frames0, labels0, arms0, spec.seed)
+                    if fam == families[0] and name == levels[-1]:
+                        grey_bank.append((np.stack([red_response(f) for f in frames0]),
+                                          labels0[0]))
                 for v in variants:
-                    frames, labels = variant(frames0, labels0, v)
+                    if ae_cfg is None:
+                        frames, labels = variant(frames0, labels0, v)
                     for t in trackers:
                         # the view (stripe axis, colour response) found on frame 0, as the
                         # live loop's default cell config has it
                         path = args.model if t in ("eakf-stc", "anchored") else None
-                        uv, st, sec, idle_sec, _ = run_tracker(
-                            make_tracker(t, tipm, model_path=path), frames, None, tipm, axis="auto",
-                            response="auto")
+                        tracker = make_tracker(t, tipm, model_path=path)
+                        if ae_cfg is None:
+                            uv, st, sec, idle_sec, _ = run_tracker(
+                                tracker, frames, None, tipm, axis="auto", response="auto")
+                            scales = np.ones(len(uv))
+                        else:
+                            (uv, st, sec, idle_sec, labels, arc, hidden,
+                             scales) = run_auto_exposure(cell, part, noise, spec, name, v,
+                                                         tracker, tipm, ae_cfg)
+                        late = hidden & (np.cumsum(hidden) > LATE)  # one stretch at most
                         e = np.linalg.norm(uv - labels, axis=1)
                         keep = arc if arc.any() else np.arange(len(e)) > 0
                         (err, stat, secs, idle, seeds, coast, reacq, late_err,
-                         hidden_trk) = cell_rows[(v, t)]
+                         hidden_trk, scale) = cell_rows[(v, t)]
+                        scale.append(scales[keep])
                         seen = keep & ~hidden  # the corner in sight
                         err.append(e[seen])
                         stat.append(st[seen])
@@ -223,8 +337,8 @@ def main() -> None:
                         idle.append(idle_sec[1:])
                         seeds.append(args.first_seed + s)
                 print(f"  {fam} {name}: sequence {s + 1}/{args.sequences} done", flush=True)
-            for (v, t), (err, stat, secs, idle, seeds, coast, reacq, late_err, hidden_trk
-                         ) in cell_rows.items():
+            for (v, t), (err, stat, secs, idle, seeds, coast, reacq, late_err, hidden_trk,
+                         scale) in cell_rows.items():
                 if coast:  # the hidden stretches: their own columns, not in RMSE / max
                     n_hidden = len(coast)
                     hidden_err = err[1::2]
@@ -248,7 +362,7 @@ def main() -> None:
                 rows.append([fam, "no" if fam in chosen else "yes", v, name, t, st["n"],
                              st["rmse"], st["max"], st["pct_lost"], false_tracked,
                              100.0 * float(tracked.mean()), extra[0], extra[3], extra[4], extra[1],
-                             p50, p99, i50, i99])
+                             p50, p99, i50, i99, exposure_text(np.concatenate(scale))])
     cpu = platform.processor() or platform.machine()
     print(f"\nTrackers on {args.sequences} sequences (seeds {args.first_seed}-"
           f"{args.first_seed + args.sequences - 1}) x {args.frames} frames per family and level "
@@ -258,7 +372,7 @@ def main() -> None:
     print(format_table(["family", "held out", "variant", "noise", "tracker", "frames", "RMSE px",
                         "max px", "lost %", "false trk", "tracked %", "coast max",
                         f"@{LATE}", "trk flat", "reacq",
-                        "ms p50", "ms p99", "idle p50", "idle p99"], rows))
+                        "ms p50", "ms p99", "idle p50", "idle p99", "exposure"], rows))
     print("Errors over the arc frames; 'lost' = no point or > 15 px off; 'false trk' = frames "
           f"with status tracked while > 5 px off (or at all while the corner is hidden: "
           f"'{BEYOND}'). "

@@ -77,13 +77,21 @@ def test_aravis_url_that_names_no_camera_is_one_clear_error():
 
 
 def test_aravis_camera_takes_the_cell_files_exposure_time(fake_camera):
-    """The weld sets camera.exposure_us on a GenICam camera, and reads back what it took."""
+    """The weld sets camera.exposure_us on a GenICam camera, and reads back what it took; its
+    automatic exposure's requests are taken the same way."""
     from torchseam.live.genicam import AravisCamera
 
     with AravisCamera(fake_camera, frame_rate_hz=25.0, exposure_us=1500.0) as cam:
         assert cam.exposure_us == pytest.approx(1500.0)
         assert cam.camera.get_exposure_time() == pytest.approx(1500.0)
         assert cam.get(3.0) is not None              # and it streams
+        # the weld's automatic exposure: scale x the time set at open, within the camera's
+        # bounds and the frame period
+        cam.request_exposure(0.5)
+        assert cam.exposure_us == pytest.approx(750.0)
+        assert cam.camera.get_exposure_time() == pytest.approx(750.0)
+        cam.request_exposure(100.0)
+        assert cam.exposure_us == pytest.approx(40_000.0)
 
 
 @pytest.mark.parametrize("us, fps, message", [

@@ -24,6 +24,7 @@ CONFIGS: dict[str, tuple[str, str]] = {
     "noise": ("torchseam.core.config", "NoiseConfig"),
     "tipm": ("torchseam.vision.tipm", "TipmConfig"),
     "profiles": ("torchseam.vision.profiles", "ProfileConfig"),
+    "exposure": ("torchseam.vision.exposure", "ExposureConfig"),
     "anchor": ("torchseam.track.anchored", "AnchorConfig"),
     "ecal": ("torchseam.geometry.ecal", "EcalConfig"),
     "calibration": ("torchseam.core.calibration", "CalibrationConfig"),

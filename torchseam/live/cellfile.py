@@ -17,6 +17,9 @@ one for the virtual cell; for a real cell copy it and edit it)::
                                      # left out: as the camera is set). Short enough that the
                                      # arc does not clip the stripe's band (a mono band-pass
                                      # camera has one band: docs/benchmarks.md, "Exposure")
+      auto_exposure: false           # optional: the weld sets the exposure frame by frame from
+                                     # the window round the tracked point (configs/exposure.yaml;
+                                     # a tcp:// frame stream or an aravis:// camera only)
     controller:           # the EGM link (configs/egm.yaml's network section)
       host: 127.0.0.1                # where the weld listens (the UdpUc device's remote address)
       port: 6510
@@ -71,8 +74,17 @@ class CameraLink:
     #: the exposure time (microseconds) the weld sets on a GenICam camera when it opens it
     #: (None: as the camera is set); a frame stream or an OpenCV camera takes none from the weld
     exposure_us: float | None = _f(default=None, lo=1.0, hi=1e7)
+    #: the weld's automatic exposure (torchseam.vision.exposure): after each frame it asks the
+    #: camera for the next frames' exposure, a share of the configured one; a frame stream
+    #: or a GenICam camera takes the request, an OpenCV camera does not
+    auto_exposure: bool = _f(default=False)
 
     def _check(self) -> None:
+        if self.auto_exposure and not self.source.startswith(("tcp://", "aravis://")):
+            raise ValueError(f"auto_exposure: set, but {self.source} takes no exposure request "
+                             "from the weld (a tcp:// frame stream or an aravis:// GenICam "
+                             "camera does): use the camera's own automatic exposure and leave "
+                             "auto_exposure out")
         if self.exposure_us is not None and not self.source.startswith("aravis://"):
             raise ValueError(f"exposure_us: set, but {self.source} takes no exposure time from "
                              "the weld (only an aravis:// GenICam camera does): set it on the "

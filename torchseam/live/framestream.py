@@ -19,6 +19,18 @@ pixels)::
     bits       u8       8 or 16
     payload    u32      width * height * channels * bits / 8 bytes of row-major pixels follow
 
+The weld may ask the camera for an exposure on the same connection (its automatic exposure,
+``camera.auto_exposure`` in the cell file), one message of 16 bytes (``<4sHHd``)::
+
+    magic      4 bytes  b"TSXR"
+    version    u16      1
+    header     u16      16 (bytes of this message)
+    scale      f64      the exposure asked for, as a share of the camera's configured one
+
+A camera applies the newest request to the frames it exposes after it arrives; one that reads
+none ignores them (the weld sends without waiting, and drops a request the connection cannot
+take at once). :class:`FrameStreamServer` keeps the newest in :attr:`~FrameStreamServer.exposure`.
+
 The reader stamps each frame's arrival on the PC's monotonic clock as its header is read (the
 pixels follow at the link's speed); the exposure time stays on the camera's clock
 (:class:`~torchseam.live.clocks.ClockOffset` relates the two). A message that breaks the
@@ -47,6 +59,10 @@ HEADER = struct.Struct("<4sHHqqHHBBI")
 MAGIC = b"TSFS"
 VERSION = 1
 MAX_PIXELS = 4096 * 4096   # a frame larger than this is not a laser camera's: refused
+REQUEST = struct.Struct("<4sHHd")
+REQUEST_MAGIC = b"TSXR"
+#: the exposure scales a request may carry (outside: the request is refused, not applied)
+MIN_SCALE, MAX_SCALE = 1e-3, 1e3
 
 
 class FrameStreamError(TorchseamError):
@@ -146,6 +162,11 @@ class FrameStreamServer:
         self._stop = threading.Event()
         self.sent = 0
         self.discarded = 0      # frames with no reader connected
+        #: the newest exposure the reader asked for (a share of the configured one; 1 until
+        #: the reader asks), and the requests refused (bad magic, version or scale)
+        self.exposure = 1.0
+        self.requests = 0
+        self.bad_requests = 0
         self._thread = threading.Thread(target=self._accept, name="frame-stream-accept",
                                         daemon=True)
         self._thread.start()
@@ -171,9 +192,39 @@ class FrameStreamServer:
             conn.settimeout(self.send_timeout_s)
             with self._lock:
                 old, self._client = self._client, conn
+                self.exposure = 1.0     # a new reader has asked for nothing yet
             if old is not None:
                 with contextlib.suppress(OSError):
                     old.close()
+            threading.Thread(target=self._requests, args=(conn,), name="frame-stream-requests",
+                             daemon=True).start()
+
+    def _requests(self, conn: socket.socket) -> None:
+        """Read the reader's exposure requests on ``conn`` until it closes or sends one that
+        breaks the format (counted in :attr:`bad_requests`; its later ones are not read)."""
+        buf = b""
+        while not self._stop.is_set():
+            try:
+                got = conn.recv(REQUEST.size - len(buf))
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if not got:
+                return
+            buf += got
+            if len(buf) < REQUEST.size:
+                continue
+            magic, version, size, scale = REQUEST.unpack(buf)
+            buf = b""
+            if (magic != REQUEST_MAGIC or version != VERSION or size != REQUEST.size
+                    or not MIN_SCALE <= scale <= MAX_SCALE):
+                self.bad_requests += 1
+                return
+            with self._lock:
+                if self._client is conn:
+                    self.exposure = float(scale)
+                    self.requests += 1
 
     def send(self, index: int, t_exp_ns: int, image: np.ndarray) -> bool:
         """Send one frame to the reader; False when there is none (or it just went away)."""
@@ -251,6 +302,14 @@ class QueuedCamera:
         :attr:`error` says why)."""
         return self._frames.get(timeout_s)
 
+    def request_exposure(self, scale: float) -> None:
+        """Ask the camera for the exposure ``scale`` (a share of its configured one) for the
+        frames it exposes from now on; FrameStreamError where it takes none from the weld."""
+        raise FrameStreamError(f"camera source {self.url}: takes no exposure request from the "
+                               "weld (a tcp:// frame stream or an aravis:// GenICam camera "
+                               "does): use the camera's own automatic exposure and leave "
+                               "camera.auto_exposure out")
+
     @property
     def alive(self) -> bool:
         return self._thread.is_alive()
@@ -278,6 +337,7 @@ class StreamCamera(QueuedCamera):
         super().__init__(url, maxsize)
         self.host, self.port = parse_url(url)
         self.max_pixels = max_pixels
+        self.requests_dropped = 0
         self._sock = self._connect(connect_timeout_s, say)
         self._thread = threading.Thread(target=self._read, name="frame-stream-read", daemon=True)
         self._thread.start()
@@ -348,6 +408,21 @@ class StreamCamera(QueuedCamera):
             if not self._stop.is_set():
                 self.error = str(e) if isinstance(e, FrameStreamError) else (
                     f"camera source {self.url}: {e}")
+
+    def request_exposure(self, scale: float) -> None:
+        """Send an exposure request (see the module) without waiting: one the connection
+        cannot take at once is dropped (counted in ``requests_dropped``); a scale outside
+        [MIN_SCALE, MAX_SCALE] is a FrameStreamError."""
+        if not MIN_SCALE <= scale <= MAX_SCALE:
+            raise FrameStreamError(f"camera source {self.url}: exposure scale {scale:g} is "
+                                   f"outside {MIN_SCALE:g} .. {MAX_SCALE:g}")
+        try:
+            sent = self._sock.send(REQUEST.pack(REQUEST_MAGIC, VERSION, REQUEST.size,
+                                                float(scale)), socket.MSG_DONTWAIT)
+        except OSError:
+            sent = 0
+        if sent != REQUEST.size:
+            self.requests_dropped += 1
 
     def __iter__(self) -> Iterator[StampedFrame]:
         while self.alive or not self._frames.empty():

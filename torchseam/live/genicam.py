@@ -103,6 +103,12 @@ class AravisCamera(QueuedCamera):
             self.exposure_us = self._set_exposure(Aravis, float(exposure_us), frame_rate_hz)
         if frame_rate_hz is not None:
             self.camera.set_frame_rate(float(frame_rate_hz))
+        self._Aravis, self._frame_rate_hz = Aravis, frame_rate_hz
+        #: the exposure time (us) a request's scale multiplies: as set, or the camera's at open
+        self.base_exposure_us: float | None = None
+        if self.camera.is_exposure_time_available():
+            self.base_exposure_us = (self.exposure_us if self.exposure_us is not None
+                                     else float(self.camera.get_exposure_time()))
         self.pixel_format = self.camera.get_pixel_format_as_string()
         self.model = f"{self.camera.get_vendor_name()} {self.camera.get_model_name()}"
         self._stream = self.camera.create_stream(None, None)
@@ -133,6 +139,22 @@ class AravisCamera(QueuedCamera):
             self.camera.set_exposure_time_auto(Aravis.Auto.OFF)
         self.camera.set_exposure_time(us)
         return float(self.camera.get_exposure_time())
+
+    def request_exposure(self, scale: float) -> None:
+        """Set the exposure time to ``scale`` x :attr:`base_exposure_us`, within the camera's
+        bounds and the frame period (the camera's own automatic exposure off);
+        ``self.exposure_us`` is then the time the camera took. FrameStreamError where the
+        camera has no exposure time to set."""
+        if self.base_exposure_us is None:
+            raise FrameStreamError(f"camera source {self.url}: the camera has no exposure "
+                                   "time to set: leave camera.auto_exposure out")
+        lo, hi = self.camera.get_exposure_time_bounds()
+        if self._frame_rate_hz is not None:
+            hi = min(hi, 1e6 / self._frame_rate_hz)
+        if self.camera.is_exposure_auto_available():
+            self.camera.set_exposure_time_auto(self._Aravis.Auto.OFF)
+        self.camera.set_exposure_time(min(max(self.base_exposure_us * float(scale), lo), hi))
+        self.exposure_us = float(self.camera.get_exposure_time())
 
     def _read(self) -> None:
         try:

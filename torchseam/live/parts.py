@@ -26,6 +26,7 @@ from torchseam.plan.path import PlanConfig, load_plan_config
 from torchseam.robot.egm import EgmConfig, load_egm_config
 from torchseam.robot.kinematics import IRB1410, load_irb1410
 from torchseam.track.peers import FrameTracker
+from torchseam.vision.exposure import ExposureConfig, load_exposure_config
 from torchseam.vision.profiles import ProfileConfig, load_profile_config
 from torchseam.vision.tipm import Tipm, load_tipm
 
@@ -51,6 +52,8 @@ class LiveParts:
             not a fillet is followed by its profile's aim point.
         profile_track: how that is followed (``configs/profile_track.yaml``;
             :class:`~torchseam.live.profile_track.ProfileTracker`).
+        exposure: the automatic exposure's settings (``configs/exposure.yaml``; used where a
+            cell file turns it on, ``camera.auto_exposure``); None: not read.
     """
 
     plan: PlanConfig
@@ -62,6 +65,7 @@ class LiveParts:
     ecal: Ecal
     profiles: ProfileConfig
     profile_track: ProfileTrackConfig
+    exposure: ExposureConfig | None = None
 
     def tracker(self, name: str, joint: str, model_path: str | Path | None = None
                 ) -> FrameTracker:
@@ -73,10 +77,11 @@ class LiveParts:
 
 def load_live_parts() -> LiveParts:
     """The shipped :class:`LiveParts`: ``configs/plan.yaml``, ``live.yaml``, ``search.yaml``,
-    ``egm.yaml``, ``robot.yaml``, ``tipm.yaml``, ``ecal.yaml``, ``profiles.yaml`` and
-    ``profile_track.yaml``, each read by its own loader (a bad file raises ``ConfigError``
-    naming it and the field)."""
+    ``egm.yaml``, ``robot.yaml``, ``tipm.yaml``, ``ecal.yaml``, ``profiles.yaml``,
+    ``profile_track.yaml`` and ``exposure.yaml``, each read by its own loader (a bad file
+    raises ``ConfigError`` naming it and the field)."""
     return LiveParts(plan=load_plan_config(), live=load_live_config(),
                      search=load_search_config(), egm=load_egm_config(), robot=load_irb1410(),
                      tipm=load_tipm(), ecal=load_ecal(), profiles=load_profile_config(),
-                     profile_track=load_profile_track_config())
+                     profile_track=load_profile_track_config(),
+                     exposure=load_exposure_config())

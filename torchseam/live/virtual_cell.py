@@ -529,8 +529,10 @@ def camera_main(spec: CameraSpec, ring: Any, port_out: Any, stop: Any, marks: An
                 r = renderers[job] = SensorRenderer(spec.cell, scenes[job], spec.noise,
                                                     spec.level, spec.seed * 10 + job,
                                                     spec.family)
+            # at the exposure the weld asked for last (1: as configured; its automatic
+            # exposure, camera.auto_exposure, asks on the stream)
             frame, _ = r.render(T, t_exp - guided if math.isfinite(guided) else 0.0,
-                                arc_on=arc)
+                                arc_on=arc, exposure=server.exposure)
             into = t_exp - guided if math.isfinite(guided) else -1.0
             fault = math.isfinite(guided) and spec.fault_at_s[job] <= into < (
                 spec.fault_at_s[job] + FAULT_S)

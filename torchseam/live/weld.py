@@ -56,6 +56,7 @@ from torchseam.live.runner import (
     run_segment,
 )
 from torchseam.robot.egm import rapid_data as rd
+from torchseam.vision.exposure import ExposureController, frame_stats
 
 #: exit codes of ``torchseam weld``
 EXIT_OK, EXIT_INCOMPLETE, EXIT_BAD_INPUT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 2, 130, 143
@@ -208,6 +209,9 @@ class WeldResult:
     poses: list[tuple[str, float, np.ndarray, np.ndarray]] = field(default_factory=list)
     link: dict[str, Any] = field(default_factory=dict)
     clocks: dict[str, Any] = field(default_factory=dict)
+    # the automatic exposure (camera.auto_exposure): (segment, frame t PC s, the scale asked
+    # for after that frame, for the frames the camera exposes from its arrival on)
+    exposure: list[tuple[str, float, float]] = field(default_factory=list)
 
 
 class Interrupted(Exception):
@@ -261,6 +265,12 @@ class WeldRunner:
         self._partial: SegmentOutcome | None = None   # the segment a signal interrupted
         self.old_schema = False   # the controller's EGM carries no RAPID data
         self._raise_on_signal = False   # True while blocked in set-up (no loop checks a flag)
+        self.ae: ExposureController | None = None
+        if cell.camera.auto_exposure:
+            if parts.exposure is None:
+                raise TorchseamError("camera.auto_exposure is set, but no exposure settings "
+                                     "were read (configs/exposure.yaml)")
+            self.ae = ExposureController(parts.exposure)
 
     # ------------------------------------------------------------------ set-up
 
@@ -307,6 +317,12 @@ class WeldRunner:
                                say=lambda m: self.progress("weld: " + m))
         if self.cam.exposure_us is not None:
             self.progress(f"weld: the camera's exposure time set to {self.cam.exposure_us:g} us")
+        if self.ae is not None:
+            self.cam.request_exposure(self.ae.scale)   # one it cannot take: refused here
+            c = self.ae.cfg
+            self.progress(f"weld: automatic exposure on: {c.min_scale:g} .. {c.max_scale:g} x "
+                          "the camera's exposure, from the window round the tracked point "
+                          "(configs/exposure.yaml)")
         self._wait_controller()
 
     def warm(self) -> None:
@@ -659,6 +675,9 @@ class _CellInterfaces:
                        f"{max(0.0, along_mm - self.approach_mm):5.1f} / "
                        f"{self.length_mm:.1f} mm, {rep.state.value if rep else 'start'}")
         loc = rep.location if rep is not None else None
+        if w.ae is not None and f.image is not None:
+            scale = auto_exposure_step(w.ae, w.cam, f.image, loc.uv if loc is not None else None)
+            w.res.exposure.append((self.name, f.t_s, scale))
         nan2, nan3 = np.full(2, np.nan), np.full(3, np.nan)
         return FrameRecord(self.name, f.t_s, arc,
                            loc.uv if loc is not None else nan2, nan2,
@@ -702,6 +721,29 @@ def _link_figures(link: Any) -> dict[str, Any]:
             "sessions": st.sessions, "watchdog_trips": st.watchdog_trips}
 
 
+def auto_exposure_step(ae: ExposureController, cam: Any, image: np.ndarray,
+                       uv: np.ndarray | None) -> float:
+    """One frame of the weld's automatic exposure: the frame's window round the tracked point
+    ``uv`` (None: the whole frame) into ``ae``, and the scale it chose asked of ``cam``
+    (:meth:`~torchseam.live.framestream.QueuedCamera.request_exposure`) when it changed;
+    returns that scale."""
+    before = ae.scale
+    scale = ae.update(frame_stats(image, uv, ae.cfg))
+    if scale != before:
+        cam.request_exposure(scale)
+    return scale
+
+
+def _exposure_figures(res: WeldResult) -> dict[str, Any] | None:
+    """summary.json's ``exposure``: the scales the automatic exposure asked for (None: off)."""
+    if not res.exposure:
+        return None
+    s = np.array([x for *_, x in res.exposure])
+    return {"auto": True, "scale_min": float(s.min()), "scale_median": float(np.median(s)),
+            "scale_max": float(s.max()), "changes": int(np.count_nonzero(np.diff(s))),
+            "file": "exposure.csv"}
+
+
 def weld_summary(res: WeldResult, info: dict[str, Any]) -> dict[str, Any]:
     """summary.json of a weld (no truth columns: a real cell has none)."""
     lat = np.array(res.latency_ms)
@@ -722,6 +764,7 @@ def weld_summary(res: WeldResult, info: dict[str, Any]) -> dict[str, Any]:
         "latency_p50_ms": float(np.percentile(lat, 50)) if len(lat) else None,
         "latency_p99_ms": float(np.percentile(lat, 99)) if len(lat) else None,
         "link": res.link, "clocks": res.clocks,
+        "exposure": _exposure_figures(res),
         "interrupted": res.interrupted or False,
         "messages": res.messages[-200:],
     }
@@ -730,7 +773,9 @@ def weld_summary(res: WeldResult, info: dict[str, Any]) -> dict[str, Any]:
 def write_weld_files(res: WeldResult, out: Path) -> list[Path]:
     """``poses.csv`` (every pose the link accepted: ``t,x,y,z,q1,q2,q3,q4``, t from the weld's
     first pose, the torch tip in the base; what ``torchseam robot check`` reads), one
-    ``poses_<s>.csv`` per segment, and ``messages.txt``."""
+    ``poses_<s>.csv`` per segment, ``messages.txt``, and with the automatic exposure on
+    ``exposure.csv`` (``segment,t_s,scale``: the scale asked for after each frame, t from the
+    weld's first frame)."""
     from torchseam.core.poses_csv import write_pose_csv
 
     files = []
@@ -745,6 +790,11 @@ def write_weld_files(res: WeldResult, out: Path) -> list[Path]:
             files.append(write_pose_csv(out / f"poses_{name}.csv", P[k], Q[k], t[k]))
     (out / "messages.txt").write_text("\n".join(res.messages) + "\n")
     files.append(out / "messages.txt")
+    if res.exposure:
+        t0 = res.exposure[0][1]
+        rows = [f"{seg},{t - t0:.6f},{x:.6g}" for seg, t, x in res.exposure]
+        (out / "exposure.csv").write_text("segment,t_s,scale\n" + "\n".join(rows) + "\n")
+        files.append(out / "exposure.csv")
     return files
 
 

@@ -12,7 +12,7 @@ geometry, so the labels are the same in every family.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import cv2
@@ -127,13 +127,19 @@ class SensorRenderer:
         return buf
 
     def render(self, T_B_W: np.ndarray, t_s: float, arc_on: bool = True, laser_on: bool = True,
-               phi_hint: float | None = None, force_flash: bool = False
-               ) -> tuple[np.ndarray, FrameTruth]:
+               phi_hint: float | None = None, force_flash: bool = False,
+               exposure: float = 1.0) -> tuple[np.ndarray, FrameTruth]:
         """Frame (H, W, 3) uint8 and truth with the torch at ``T_B_W`` at weld time ``t_s``.
 
         ``phi_hint``: branch angle near the stripe (default: from the torch position).
         ``force_flash``: blind the sensor with an arc flash this frame (fault injection).
+        ``exposure``: the camera's exposure as a share of the family's (> 0): it scales all
+        light (stripe, arc, background) before the sensor clips, as the family's
+        ``exposure.gain`` does; the read noise is the sensor's and stays. The random draws
+        are the same at any exposure, so one sequence can be rendered at several.
         """
+        if not exposure > 0.0:
+            raise ValueError(f"exposure must be > 0, got {exposure}")
         scene, sensor, rng = self.scene, self.sensor, self.rng
         w, h = self.size
         # sensor.camera_pose's product, its factors made once (the same numbers)
@@ -161,7 +167,7 @@ class SensorRenderer:
             # light enough to clip the glare's weakest channel after the exposure: blinded
             # in every response (the red excess and the brightness alike)
             layers.glare += np.float32(
-                FLASH_GREY / (min(look.glare.bgr) * look.exposure.gain))
+                FLASH_GREY / (min(look.glare.bgr) * look.exposure.gain * exposure))
             layers.flags.flash = True
         stripe = (sensor.stripe_layer(view, rng, layers.gaps, look.stripe,
                                       out=self._buf("stripe", 1)[..., 0]) if laser_on
@@ -172,7 +178,8 @@ class SensorRenderer:
             if layers.haze is not None and look.haze.absorb > 0:
                 stripe *= 1.0 - look.haze.absorb * haze
             chans.append(haze)
-        fused = self._fused and len(chans) == 3
+        camera_on = self._camera_on or exposure != 1.0
+        fused = self._fused and len(chans) == 3 and not camera_on
         if not fused:
             # colour mixing of stripe, arc glare, spatter (and fume) light in one pass, into
             # reused planes (frame-sized temporaries cost page faults on every frame)
@@ -192,9 +199,9 @@ class SensorRenderer:
                                self._tail_from, self.background.reshape(h, -1),
                                noise.reshape(len(noise), -1),
                                int(dy), int(dx) * 3, np.float32(sigma), frame.reshape(h, -1))
-        elif self._camera_on:
+        elif camera_on:
             img += self.background
-            img = self._camera(img, layers.rows)
+            img = self._camera(img, layers.rows, exposure)
             # the background is in the light already: add nothing more
             background = self._buf("zero", 3, zero=True)
         else:
@@ -213,15 +220,17 @@ class SensorRenderer:
         self.k += 1
         return frame, truth
 
-    def _camera(self, img: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+    def _camera(self, img: np.ndarray, rows: np.ndarray | None, exposure: float = 1.0
+                ) -> np.ndarray:
         """The family's optics and camera on the (H, W, 3) float32 light: horizontal motion
-        blur, exposure gain (and a rolling-shutter band's ``rows`` gain), red overflow bleeding
-        into green and blue, then the response curve."""
+        blur, exposure gain (the family's times ``exposure``, and a rolling-shutter band's
+        ``rows`` gain), red overflow bleeding into green and blue, then the response curve."""
         ex = self.look.exposure
         if self._blur is not None:
             img = cv2.filter2D(img, -1, self._blur, borderType=cv2.BORDER_REFLECT)
-        if ex.gain != 1.0:
-            img *= np.float32(ex.gain)
+        gain = ex.gain * exposure
+        if gain != 1.0:
+            img *= np.float32(gain)
         if rows is not None:
             img *= rows[:, None, None]
         if any(ex.bleed):
@@ -236,13 +245,18 @@ class SensorRenderer:
         return img
 
 
-def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: SequenceSpec
+def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: SequenceSpec,
+             exposure: Callable[[int], float] | None = None
              ) -> Iterator[tuple[np.ndarray, FrameTruth]]:
     """Yield ``(frame, truth)`` pairs: (H, W, 3) uint8 BGR frames with their ground truth.
 
     The robot runs the nominal path at weld speed (with a small wobble). The first
     ``noise.clean_lead_frames`` frames (or up to ``spec.arc_on_frame``) are arc-off (clean),
     as before a real weld starts; then the arc noise of ``spec.level`` applies.
+
+    ``exposure``: called with ``k`` just before frame ``k`` is rendered (the frames before it
+    already yielded), it gives that frame's exposure as a share of the family's (see
+    :meth:`SensorRenderer.render`): an automatic exposure in the loop. None: the family's.
 
     Example:
         >>> from torchseam.core.config import load_cell, load_part, load_noise
@@ -271,7 +285,8 @@ def simulate(cell: CellConfig, part: PartConfig, noise: NoiseConfig, spec: Seque
             T_B_W = T_B_W @ _small_motion(wob[:3] * WOBBLE_MM, wob[3:] * WOBBLE_DEG)
         phi_hint = float(scene.phi_at(np.array([s + proc.look_ahead_mm]))[0])
         yield renderer.render(T_B_W, spec.t0_s + t, arc_on=k >= arc_on_frame,
-                              laser_on=k not in spec.laser_off, phi_hint=phi_hint)
+                              laser_on=k not in spec.laser_off, phi_hint=phi_hint,
+                              exposure=1.0 if exposure is None else float(exposure(k)))
 
 
 
