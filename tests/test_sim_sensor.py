@@ -173,6 +173,47 @@ def test_fused_colour_mix_and_finish_pass_is_the_two_calls_to_the_bit():
         np.testing.assert_array_equal(ta.uv, tb.uv)
 
 
+def test_compiled_projection_is_opencvs_to_the_bit():
+    """The sensor's projection, compiled (``_kernels.project_points``: OpenCV's arithmetic
+    without the Jacobian it also computes), gives ``cv2.projectPoints``'s pixels to the bit:
+    on points all over the view, behind the camera and at depth zero, and on a rendered
+    view's stripe; where a probe finds otherwise the sensor calls OpenCV."""
+    from torchseam.core.config import load_cell, load_part
+    from torchseam.sim.sensor import LaserSensor, _projection_agrees
+
+    cell = load_cell()
+    sensor = LaserSensor(cell)
+    if sensor._project is None:
+        pytest.skip("this OpenCV's projectPoints is not the kernel's arithmetic: the sensor "
+                    "calls OpenCV here")
+    kernel = sensor._project
+    rng = np.random.default_rng(11)
+    X = np.c_[rng.uniform(-80.0, 80.0, (20000, 2)), rng.uniform(-20.0, 300.0, 20000)]
+    X[::37, 2] = 0.0
+    X[5] = np.nan
+
+    def opencv(P):
+        return cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), sensor.K,
+                                 sensor.dist)[0].reshape(-1, 2)
+
+    np.testing.assert_array_equal(sensor.project(X), opencv(X))
+    scene = Scene(load_part(), 0.0)
+    T_B_C = scene.nominal_tcp(np.array([30.0]))[0] @ invert(cell.tool.matrix()) \
+        @ cell.hand_eye.matrix()
+    T_T_C = invert(scene.part_pose(0.0)) @ T_B_C
+    view = sensor.view(scene.true_joint, T_T_C)
+    sensor._project = None   # OpenCV's call
+    ref = sensor.view(scene.true_joint, T_T_C)
+    assert len(view.uv) > 500 and view.visible
+    for a, b in ((view.uv, ref.uv), (view.seam_uv, ref.seam_uv), (view.arm_uv, ref.arm_uv)):
+        np.testing.assert_array_equal(a, b)
+    # a probe that disagrees (another camera model's arithmetic) falls back to OpenCV
+    assert _projection_agrees(kernel, sensor._K, sensor.dist, sensor._k14)
+    wrong = sensor._k14.copy()
+    wrong[0] += 1e-9
+    assert not _projection_agrees(kernel, sensor._K, sensor.dist, wrong)
+
+
 def test_roots_refined_in_lockstep_are_each_brackets_own():
     """The sensor's arm points: two roots refined together (one call of the function per
     round) are the roots each search finds alone, to the bit; a bracket without a sign change

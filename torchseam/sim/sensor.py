@@ -113,15 +113,25 @@ class LaserSensor:
         # the stripe's blurred box (reused: a fresh plane costs its page faults every frame)
         self._blur_plane = np.empty((h, w), np.float32)
         self._glint_rays: np.ndarray | None = None
-        load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
+        k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
+        # the projection compiled where a probe finds it OpenCV's to the bit (else OpenCV)
+        self._K = np.ascontiguousarray(self.K, dtype=np.float64)
+        self._k14 = np.zeros(14)
+        self._k14[:len(self.dist)] = self.dist
+        self._project = k.project_points if _projection_agrees(
+            k.project_points, self._K, self.dist, self._k14) else None
 
     # ---------------------------------------------------------------- projection
     def project(self, X_C: np.ndarray) -> np.ndarray:
         """(N, 3) points in {C} (mm) -> (N, 2) distorted pixels (OpenCV reference model)."""
-        X = np.ascontiguousarray(X_C, dtype=np.float64).reshape(-1, 1, 3)
+        X = np.ascontiguousarray(X_C, dtype=np.float64).reshape(-1, 3)
         if not len(X):  # (OpenCV answers None to no points: a camera that sees no part)
             return np.zeros((0, 2))
-        uv, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), self.K, self.dist)
+        if self._project is not None:
+            out = np.empty((len(X), 2))
+            self._project(X, self._K, self._k14, out)
+            return out
+        uv, _ = cv2.projectPoints(X[:, None], np.zeros(3), np.zeros(3), self.K, self.dist)
         return uv.reshape(-1, 2)
 
     def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
@@ -529,6 +539,20 @@ def _seam_grid(joint: Joint) -> tuple[np.ndarray, np.ndarray]:
 #: :func:`_seam_grid`'s cache: joint -> its seam grid, kept while the joint lives
 _SEAM_GRIDS: weakref.WeakKeyDictionary[Joint, tuple[np.ndarray, np.ndarray]] = \
     weakref.WeakKeyDictionary()
+
+
+def _projection_agrees(project, K: np.ndarray, dist: np.ndarray, k14: np.ndarray) -> bool:
+    """Whether the compiled ``project`` (``_kernels.project_points``) gives
+    ``cv2.projectPoints``'s pixels to the bit for this camera, on probe points over its view
+    (in front of it, behind it, at depth zero, far off the axis): checked once per sensor,
+    so another OpenCV build's arithmetic falls back to OpenCV."""
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-300.0, 300.0, (4000, 2)), rng.uniform(-50.0, 400.0, 4000)]
+    X[::50, 2] = 0.0
+    ref = cv2.projectPoints(X[:, None], np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+    got = np.empty_like(ref)
+    project(X, K, k14, got)
+    return bool(np.array_equal(ref, got, equal_nan=True))
 
 
 def _refine_root(f, lo: float, hi: float, n: int = 33, rounds: int = 4) -> float:
