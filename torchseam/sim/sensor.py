@@ -310,9 +310,9 @@ class LaserSensor:
             off = mid - phi_hint
             i = idx[np.argmin(np.abs(np.angle(np.exp(1j * off)) if joint.closed else off))]
         else:
-            i = idx[np.argmin(np.linalg.norm(joint.seam(mid).point - c, axis=1))]
-        root = _refine_root(lambda x: joint.seam(x).point @ n - d, phi[i], phi[i + 1])
-        return joint.seam(np.array([root])).point[0]
+            i = idx[np.argmin(np.linalg.norm(joint.seam_point(mid) - c, axis=1))]
+        root = _refine_root(lambda x: joint.seam_point(x) @ n - d, phi[i], phi[i + 1])
+        return joint.seam_point(np.array([root]))[0]
 
     @staticmethod
     def _arm_points(P: np.ndarray, surf: np.ndarray, psi: np.ndarray, seam: np.ndarray,
