@@ -214,6 +214,31 @@ def test_compiled_projection_is_opencvs_to_the_bit():
     assert not _projection_agrees(kernel, sensor._K, sensor.dist, wrong)
 
 
+def test_reused_planes_zeroed_where_drawn_give_the_frames_of_planes_zeroed_whole():
+    """The renderer's stripe plane and its arc noise's spatter plane are zeroed, frame to
+    frame, only where the last frame drew into them: a sequence (the stripe moving, spatter
+    streaks coming and going, a frame without the laser) is the same to the bit as with both
+    planes zeroed whole before every frame."""
+    from torchseam.core.config import load_cell, load_noise, load_part
+    from torchseam.sim.sequence import SensorRenderer
+
+    cell = load_cell()
+    scene = Scene(load_part(), 0.0)
+    noise = load_noise()
+    part, whole = (SensorRenderer(cell, scene, noise, 2.0, 5) for _ in range(2))
+    drawn = 0
+    for k in range(6):
+        T = scene.nominal_tcp(np.array([30.0 + 1.5 * k]))[0]
+        whole.sensor._stripe_drawn = None          # the whole plane zeroed
+        whole.arc_noise._spatter_drawn = (slice(None), slice(None))
+        a, _ = part.render(T, 0.04 * k, laser_on=k != 4)
+        b, _ = whole.render(T, 0.04 * k, laser_on=k != 4)
+        np.testing.assert_array_equal(a, b, err_msg=f"frame {k}")
+        drawn += part.arc_noise._spatter_drawn is not None
+        assert part.sensor._stripe_drawn is not None
+    assert drawn >= 3   # spatter drawn in several frames, so stale streaks would show
+
+
 def test_roots_refined_in_lockstep_are_each_brackets_own():
     """The sensor's arm points: two roots refined together (one call of the function per
     round) are the roots each search finds alone, to the bit; a bracket without a sign change

@@ -112,6 +112,8 @@ class LaserSensor:
         self._grains: dict[float, np.ndarray] = {}
         # the stripe's blurred box (reused: a fresh plane costs its page faults every frame)
         self._blur_plane = np.empty((h, w), np.float32)
+        # the plane stripe_layer last drew into and the box of it that holds what it drew
+        self._stripe_drawn: tuple[np.ndarray, slice, slice] | None = None
         self._glint_rays: np.ndarray | None = None
         k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
         # the projection compiled where a probe finds it OpenCV's to the bit (else OpenCV)
@@ -361,15 +363,25 @@ class LaserSensor:
         the fan's mid-plane (where the labels are), the second lobe weaker
         (:data:`SPLIT_SECOND_LOBE`); the light of the stripe is shared between them.
         ``out``: a C-contiguous float32 (H, W) plane to draw into (zeroed first) and return,
-        instead of a new one.
+        instead of a new one. The same plane again: only the box this drew into last time is
+        zeroed (the caller keeps the rest of it zero; scaling it keeps it so).
         """
         look = DEFAULT_STRIPE if look is None else look
         w, h = self.size
         uv = view.uv
         if out is not None:
-            out.fill(0.0)
+            last = self._stripe_drawn
+            if last is not None and _same_plane(last[0], out):
+                out[last[1], last[2]] = 0.0
+            else:
+                out.fill(0.0)
+            # (the whole plane until this call has drawn, should it fail half way)
+            self._stripe_drawn = (out, slice(None), slice(None))
         if len(uv) < 2:
-            return np.zeros((h, w), np.float32) if out is None else out
+            if out is None:
+                return np.zeros((h, w), np.float32)
+            self._stripe_drawn = (out, slice(0, 0), slice(0, 0))   # nothing drawn
+            return out
         # Samples every SPLAT_STEP_PX along the polyline, weighted by the brightness and the
         # arc length per sample. Do not bridge real gaps (occlusion, fan ends): consecutive
         # samples must be close (compiled: torchseam.sim._kernels.stripe_samples)
@@ -396,7 +408,9 @@ class LaserSensor:
         img, box = _splat(pts, weight, w, h, out)
         # grainy laser speckle on the surface: a random crop of a fixed speckle field
         dy, dx = rng.integers(0, 32, 2)
-        if box is None:
+        if box is None:   # no point in the image: nothing drawn
+            if out is not None:
+                self._stripe_drawn = (out, slice(0, 0), slice(0, 0))
             return img
         # Blur, scale and speckle only where the stripe is (its bounding box plus more than
         # the kernel's reach): everything outside is zero before and after, and inside the
@@ -412,6 +426,8 @@ class LaserSensor:
         sub *= look.peak * np.sqrt(2 * np.pi) * sigma
         sub *= self.grain(look.grain)[dy:dy + h, dx:dx + w][ys, xs]
         img[ys, xs] = sub
+        if out is not None:
+            self._stripe_drawn = (out, ys, xs)
         return img
 
     def arc_glint(self, joint: Joint, T_T_C: np.ndarray, light_T: np.ndarray) -> np.ndarray:
@@ -539,6 +555,14 @@ def _seam_grid(joint: Joint) -> tuple[np.ndarray, np.ndarray]:
 #: :func:`_seam_grid`'s cache: joint -> its seam grid, kept while the joint lives
 _SEAM_GRIDS: weakref.WeakKeyDictionary[Joint, tuple[np.ndarray, np.ndarray]] = \
     weakref.WeakKeyDictionary()
+
+
+def _same_plane(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether ``a`` and ``b`` are views of the same pixels (a caller's buffer indexed
+    afresh each frame gives a new view object of it; ``a`` is kept alive, so its memory is
+    not another array's)."""
+    return a is b or (a.ctypes.data == b.ctypes.data and a.shape == b.shape
+                      and a.strides == b.strides)
 
 
 def _projection_agrees(project, K: np.ndarray, dist: np.ndarray, k14: np.ndarray) -> bool:
