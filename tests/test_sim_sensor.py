@@ -231,12 +231,34 @@ def test_reused_planes_zeroed_where_drawn_give_the_frames_of_planes_zeroed_whole
         T = scene.nominal_tcp(np.array([30.0 + 1.5 * k]))[0]
         whole.sensor._stripe_drawn = None          # the whole plane zeroed
         whole.arc_noise._spatter_drawn = (slice(None), slice(None))
+        if whole.arc_noise._planes is not None:   # the glare plane: written whole, or zeroed
+            whole.arc_noise._planes[0].fill(np.nan)
         a, _ = part.render(T, 0.04 * k, laser_on=k != 4)
         b, _ = whole.render(T, 0.04 * k, laser_on=k != 4)
         np.testing.assert_array_equal(a, b, err_msg=f"frame {k}")
         drawn += part.arc_noise._spatter_drawn is not None
         assert part.sensor._stripe_drawn is not None
     assert drawn >= 3   # spatter drawn in several frames, so stale streaks would show
+
+
+def test_arc_noise_reusing_its_planes_gives_fresh_planes_numbers():
+    """The arc noise's own planes, reused (the glare plane left unzeroed where the glare
+    template covers the whole image, the spatter plane zeroed where the last frame drew),
+    hold the numbers of fresh all-zero planes frame after frame, the arc off the image
+    (the template covering part of it) included."""
+    from torchseam.core.config import load_noise
+
+    noise = load_noise()
+    reused, fresh = (ArcNoise(noise, 2.0, (160, 120), 9) for _ in range(2))
+    stripe = np.array([80.0, 40.0])
+    # (the template's radius is ~1 000 px at this level: far off the image it covers part of
+    # it, or none)
+    for k, arc in enumerate([(80, 100), (80, 100), (1100, 60), (70, 110), (2500, -1800),
+                             (75, 105), (-1100, 50), (80, 101)]):
+        a = reused.next(np.array(arc, float), stripe, reuse=True)
+        b = fresh.next(np.array(arc, float), stripe)
+        np.testing.assert_array_equal(a.glare, b.glare, err_msg=f"glare, frame {k}")
+        np.testing.assert_array_equal(a.spatter, b.spatter, err_msg=f"spatter, frame {k}")
 
 
 def test_roots_refined_in_lockstep_are_each_brackets_own():
