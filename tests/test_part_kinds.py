@@ -248,3 +248,13 @@ def test_preflight_plans_every_kind(kind, cell, parts):
                        part_name=KINDS[kind])
     assert report.ok, report.text()
     assert min(v.clearance_mm for v in report.verdicts) > 2.0
+
+
+def test_seam_point_is_the_seams_point_to_the_bit():
+    """``Joint.seam_point`` (the sensor's root searches along the seam) gives the points of
+    ``Joint.seam`` to the bit on every shipped part, ring and open seam, bevel, butt and lap."""
+    phi = np.r_[np.linspace(-0.3, 2 * np.pi + 0.3, 397), [0.0, np.pi / 2, np.pi]]
+    for path in sorted(PARTS.glob("*.yaml")):
+        j = make_joint(load_part(path))
+        np.testing.assert_array_equal(j.seam_point(phi), j.seam(phi).point, err_msg=path.name)
+        np.testing.assert_array_equal(j.seam_point(phi[:1]), j.seam(phi[:1]).point)

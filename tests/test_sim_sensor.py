@@ -173,6 +173,94 @@ def test_fused_colour_mix_and_finish_pass_is_the_two_calls_to_the_bit():
         np.testing.assert_array_equal(ta.uv, tb.uv)
 
 
+def test_compiled_projection_is_opencvs_to_the_bit():
+    """The sensor's projection, compiled (``_kernels.project_points``: OpenCV's arithmetic
+    without the Jacobian it also computes), gives ``cv2.projectPoints``'s pixels to the bit:
+    on points all over the view, behind the camera and at depth zero, and on a rendered
+    view's stripe; where a probe finds otherwise the sensor calls OpenCV."""
+    from torchseam.core.config import load_cell, load_part
+    from torchseam.sim.sensor import LaserSensor, _projection_agrees
+
+    cell = load_cell()
+    sensor = LaserSensor(cell)
+    if sensor._project is None:
+        pytest.skip("this OpenCV's projectPoints is not the kernel's arithmetic: the sensor "
+                    "calls OpenCV here")
+    kernel = sensor._project
+    rng = np.random.default_rng(11)
+    X = np.c_[rng.uniform(-80.0, 80.0, (20000, 2)), rng.uniform(-20.0, 300.0, 20000)]
+    X[::37, 2] = 0.0
+    X[5] = np.nan
+
+    def opencv(P):
+        return cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), sensor.K,
+                                 sensor.dist)[0].reshape(-1, 2)
+
+    np.testing.assert_array_equal(sensor.project(X), opencv(X))
+    scene = Scene(load_part(), 0.0)
+    T_B_C = scene.nominal_tcp(np.array([30.0]))[0] @ invert(cell.tool.matrix()) \
+        @ cell.hand_eye.matrix()
+    T_T_C = invert(scene.part_pose(0.0)) @ T_B_C
+    view = sensor.view(scene.true_joint, T_T_C)
+    sensor._project = None   # OpenCV's call
+    ref = sensor.view(scene.true_joint, T_T_C)
+    assert len(view.uv) > 500 and view.visible
+    for a, b in ((view.uv, ref.uv), (view.seam_uv, ref.seam_uv), (view.arm_uv, ref.arm_uv)):
+        np.testing.assert_array_equal(a, b)
+    # a probe that disagrees (another camera model's arithmetic) falls back to OpenCV
+    assert _projection_agrees(kernel, sensor._K, sensor.dist, sensor._k14)
+    wrong = sensor._k14.copy()
+    wrong[0] += 1e-9
+    assert not _projection_agrees(kernel, sensor._K, sensor.dist, wrong)
+
+
+def test_reused_planes_zeroed_where_drawn_give_the_frames_of_planes_zeroed_whole():
+    """The renderer's stripe plane and its arc noise's spatter plane are zeroed, frame to
+    frame, only where the last frame drew into them: a sequence (the stripe moving, spatter
+    streaks coming and going, a frame without the laser) is the same to the bit as with both
+    planes zeroed whole before every frame."""
+    from torchseam.core.config import load_cell, load_noise, load_part
+    from torchseam.sim.sequence import SensorRenderer
+
+    cell = load_cell()
+    scene = Scene(load_part(), 0.0)
+    noise = load_noise()
+    part, whole = (SensorRenderer(cell, scene, noise, 2.0, 5) for _ in range(2))
+    drawn = 0
+    for k in range(6):
+        T = scene.nominal_tcp(np.array([30.0 + 1.5 * k]))[0]
+        whole.sensor._stripe_drawn = None          # the whole plane zeroed
+        whole.arc_noise._spatter_drawn = (slice(None), slice(None))
+        if whole.arc_noise._planes is not None:   # the glare plane: written whole, or zeroed
+            whole.arc_noise._planes[0].fill(np.nan)
+        a, _ = part.render(T, 0.04 * k, laser_on=k != 4)
+        b, _ = whole.render(T, 0.04 * k, laser_on=k != 4)
+        np.testing.assert_array_equal(a, b, err_msg=f"frame {k}")
+        drawn += part.arc_noise._spatter_drawn is not None
+        assert part.sensor._stripe_drawn is not None
+    assert drawn >= 3   # spatter drawn in several frames, so stale streaks would show
+
+
+def test_arc_noise_reusing_its_planes_gives_fresh_planes_numbers():
+    """The arc noise's own planes, reused (the glare plane left unzeroed where the glare
+    template covers the whole image, the spatter plane zeroed where the last frame drew),
+    hold the numbers of fresh all-zero planes frame after frame, the arc off the image
+    (the template covering part of it) included."""
+    from torchseam.core.config import load_noise
+
+    noise = load_noise()
+    reused, fresh = (ArcNoise(noise, 2.0, (160, 120), 9) for _ in range(2))
+    stripe = np.array([80.0, 40.0])
+    # (the template's radius is ~1 000 px at this level: far off the image it covers part of
+    # it, or none)
+    for k, arc in enumerate([(80, 100), (80, 100), (1100, 60), (70, 110), (2500, -1800),
+                             (75, 105), (-1100, 50), (80, 101)]):
+        a = reused.next(np.array(arc, float), stripe, reuse=True)
+        b = fresh.next(np.array(arc, float), stripe)
+        np.testing.assert_array_equal(a.glare, b.glare, err_msg=f"glare, frame {k}")
+        np.testing.assert_array_equal(a.spatter, b.spatter, err_msg=f"spatter, frame {k}")
+
+
 def test_roots_refined_in_lockstep_are_each_brackets_own():
     """The sensor's arm points: two roots refined together (one call of the function per
     round) are the roots each search finds alone, to the bit; a bracket without a sign change

@@ -133,6 +133,14 @@ class Joint:
         t /= np.linalg.norm(t, axis=1, keepdims=True)
         return SeamSample(phi, p, t, self.normal_main(p), self.normal_branch(p))
 
+    def seam_point(self, phi: np.ndarray) -> np.ndarray:
+        """(N, 3) seam points at branch angles ``phi`` (N,) rad: ``seam(phi).point`` (the
+        same numbers) without the tangent and the normals, for root searches along the seam."""
+        phi = np.asarray(phi, dtype=float).reshape(-1)
+        c, dc = self.branch_point(phi)
+        h, _ = self._height(c, dc)
+        return c + h[:, None] * self.d
+
     def _height(self, c: np.ndarray, dc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Height ``h`` along the branch axis where the generator through ``c`` meets the main
         body's surface, and ``dh / dphi`` (from ``dc = dc / dphi``)."""
@@ -473,6 +481,10 @@ class BevelledJoint(Joint):
             out[face] = self._bevel_normal(rho[face], phi[face], self.root_height(phi[face])[1])
         return out
 
+    def seam_point(self, phi: np.ndarray) -> np.ndarray:
+        """``seam(phi).point``."""
+        return self.seam(phi).point
+
     def seam(self, phi: np.ndarray) -> SeamSample:
         """The root centre at branch angles ``phi`` (N,) rad: the middle of the root gap on
         the branch's inner generator; tangent, the main body's normal at its root edge and
@@ -560,6 +572,10 @@ class InlineJoint(Joint):
         cos, sin = np.cos(phi)[:, None], np.sin(phi)[:, None]
         c = self.r * (cos * self.e1 + sin * self.e2) - 0.5 * self.gap * self.d
         return c, self.r * (-sin * self.e1 + cos * self.e2)
+
+    def seam_point(self, phi: np.ndarray) -> np.ndarray:
+        """``seam(phi).point``."""
+        return super().seam_point(phi) if self.lap else self.seam(phi).point
 
     def seam(self, phi: np.ndarray) -> SeamSample:
         """A lap: the corner of the sleeve's end face and the pipe (:meth:`Joint.seam`). A
@@ -724,6 +740,10 @@ class CouponJoint(Joint):
 
     def phi_near(self, p: np.ndarray) -> float:
         return float(2.0 * np.pi * p[0] / self.length)
+
+    def seam_point(self, phi: np.ndarray) -> np.ndarray:
+        """``seam(phi).point``."""
+        return self.seam(phi).point
 
     def seam(self, phi: np.ndarray) -> SeamSample:
         phi = np.asarray(phi, dtype=float).reshape(-1)

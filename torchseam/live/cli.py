@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import math
 import sys
 import time
@@ -296,6 +297,20 @@ def _demo_faults(args: argparse.Namespace) -> tuple[str, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``torchseam demo``: :func:`_demo`, with the cyclic garbage collector off while the
+    imports and the plan are made: their objects outlive the weld, so they are frozen out of
+    the collector before it (as the EGM session's child does) instead of being gone over by
+    its full passes, during the imports and after."""
+    gc_on = gc.isenabled()
+    gc.disable()
+    try:
+        return _demo(args, gc_on)
+    finally:
+        if gc_on:
+            gc.enable()
+
+
+def _demo(args: argparse.Namespace, gc_on: bool) -> int:
     import cv2  # here, not at the top: the parser (--help) needs no OpenCV or torch
     import torch
     from tqdm import tqdm
@@ -349,6 +364,9 @@ def run(args: argparse.Namespace) -> int:
             if not video.isOpened():
                 raise TorchseamError(f"{out / 'weld.mp4'}: OpenCV cannot write MP4 here "
                                      "(use --no-video)")
+        gc.freeze()   # (see run)
+        if gc_on:
+            gc.enable()
         t0 = time.perf_counter()
         bar = tqdm(desc="weld", unit="frame",
                    total=_expected_frames(cell, part, parts.plan, args), mininterval=0.5)

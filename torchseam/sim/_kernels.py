@@ -292,3 +292,40 @@ def stripe_samples(uv, brightness, step_px, max_gap_px):  # pragma: no cover - c
             starts[k] = i
             k += 1
     return pts, step, weight, starts
+
+
+@numba.njit("void(f8[:, ::1], f8[:, ::1], f8[::1], f8[:, ::1])", cache=True, nogil=True)
+def project_points(X, K, k, out):  # pragma: no cover - compiled
+    """``cv2.projectPoints(X, zeros(3), zeros(3), K, dist)`` of the (N, 3) points ``X`` into
+    ``out`` (N, 2): OpenCV's arithmetic (its ``cvProjectPoints2Internal``), operation by
+    operation in its order, with the rotation of a zero vector (the identity), a zero
+    translation and no tilt; ``k`` the distortion coefficients padded with zeros to 14.
+    OpenCV computes the projection's Jacobian too, which the Python call cannot decline and
+    which costs most of the call; ``LaserSensor`` uses this where a probe finds it OpenCV's
+    to the bit (``sensor._projection_agrees``)."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    for i in range(X.shape[0]):
+        xw, yw, zw = X[i, 0], X[i, 1], X[i, 2]
+        x = 1.0 * xw + 0.0 * yw + 0.0 * zw + 0.0
+        y = 0.0 * xw + 1.0 * yw + 0.0 * zw + 0.0
+        z = 0.0 * xw + 0.0 * yw + 1.0 * zw + 0.0
+        z = 1.0 / z if z != 0.0 else 1.0
+        x *= z
+        y *= z
+        r2 = x * x + y * y
+        r4 = r2 * r2
+        r6 = r4 * r2
+        a1 = 2 * x * y
+        a2 = r2 + 2 * x * x
+        a3 = r2 + 2 * y * y
+        cdist = 1 + k[0] * r2 + k[1] * r4 + k[4] * r6
+        icdist2 = 1.0 / (1 + k[5] * r2 + k[6] * r4 + k[7] * r6)
+        xd0 = x * cdist * icdist2 + k[2] * a1 + k[3] * a2 + k[8] * r2 + k[9] * r4
+        yd0 = y * cdist * icdist2 + k[2] * a3 + k[3] * a1 + k[10] * r2 + k[11] * r4
+        # the tilt: the identity matrix times (xd0, yd0, 1)
+        t0 = 1.0 * xd0 + 0.0 * yd0 + 0.0 * 1.0
+        t1 = 0.0 * xd0 + 1.0 * yd0 + 0.0 * 1.0
+        t2 = 0.0 * xd0 + 0.0 * yd0 + 1.0 * 1.0
+        inv = 1.0 / t2 if t2 != 0.0 else 1.0
+        out[i, 0] = (inv * t0) * fx + cx
+        out[i, 1] = (inv * t1) * fy + cy

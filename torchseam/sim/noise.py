@@ -107,6 +107,8 @@ class ArcNoise:
         self._work_buf = np.empty(self.h * self.w)
         self._blur_plane = np.empty((self.h, self.w), np.float32)
         self._planes: tuple[np.ndarray, np.ndarray] | None = None   # next(reuse=True)'s
+        # the box of its spatter plane that holds every pixel the last call drew (None: none)
+        self._spatter_drawn: tuple[slice, slice] | None = None
         self._k = load_kernels(__package__)
         self._ramp = 1.0 - 0.5 * yy / self.h
         # glare: saturated core plus a long halo, as a template pasted at the arc each frame
@@ -144,12 +146,17 @@ class ArcNoise:
                 saves two fresh frame-sized planes, and their page faults, per frame).
         """
         L, cfg, rng, look = self.level, self.cfg, self.rng, self.look
-        out = NoiseLayers(*self._zeroed_planes(reuse), [], NoiseFlags())
+        if L > 0.0 and self._offset is not None:
+            # the arc light centre sits off the torch tip's pixel
+            arc_uv = arc_uv + self._offset
+        # the glare template pasted below writes every pixel it covers: the whole image, as
+        # a rule (the template reaches 2 x its radius), and then the glare plane needs no
+        # zeroing first
+        covered = L > 0.0 and self._glare_box(arc_uv)[:4] == (0, self.w, 0, self.h)
+        out = NoiseLayers(*self._zeroed_planes(reuse, glare=not covered), [], NoiseFlags())
         if L <= 0.0:
             return out
         flags, glare, spatter = out.flags, out.glare, out.spatter
-        if self._offset is not None:   # the arc light centre sits off the torch tip's pixel
-            arc_uv = arc_uv + self._offset
 
         # Arc brightness: AR(1) flicker around 1.
         self.flicker = max(0.2, 0.7 * self.flicker + 0.3 + cfg.glare.flicker * rng.standard_normal()
@@ -179,21 +186,9 @@ class ArcNoise:
         flags.burst = self.burst_left > 0
         rate = (cfg.spatter.burst_rate if flags.burst else cfg.spatter.rate) * L
         flags.spatter = int(rng.poisson(rate))
-        box = None
-        draw = self._dot if look.spatter.style == "dots" else self._streak
-        for _ in range(flags.spatter):
-            box = _union(box, draw(spatter, arc_uv))
-        if box is not None:
-            # blur only around the streaks (the rest is zero before and after; the margin
-            # exceeds the kernel's reach, so the pixels are the full-frame blur's)
-            x0, y0, x1, y1 = box
-            m = SPATTER_BLUR_MARGIN_PX
-            ys = slice(max(0, y0 - m), min(self.h, y1 + m))
-            xs = slice(max(0, x0 - m), min(self.w, x1 + m))
-            if ys.start < ys.stop and xs.start < xs.stop:
-                # (into a reused plane: a fresh one would cost its page faults every frame)
-                blurred = self._blur_plane[:ys.stop - ys.start, :xs.stop - xs.start]
-                spatter[ys, xs] = cv2.GaussianBlur(spatter[ys, xs], (0, 0), 0.8, dst=blurred)
+        drawn = self._spatter(spatter, arc_uv, flags.spatter)
+        if reuse:
+            self._spatter_drawn = drawn
 
         if rng.random() < cfg.flash.prob * L:
             flags.flash = True
@@ -218,16 +213,47 @@ class ArcNoise:
             out.rows = self._band_rows(ex.band_gain)
         return out
 
-    def _zeroed_planes(self, reuse: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Two all-zero float32 (H, W) planes: new ones, or (``reuse``) this generator's own."""
+    def _spatter(self, spatter: np.ndarray, arc_uv: np.ndarray, n: int
+                 ) -> tuple[slice, slice] | None:
+        """Draw ``n`` spatter streaks (or dots) from the arc into the all-zero ``spatter`` and
+        blur them; returns the box of the plane that holds every pixel drawn (None: none)."""
+        box = None
+        draw = self._dot if self.look.spatter.style == "dots" else self._streak
+        for _ in range(n):
+            box = _union(box, draw(spatter, arc_uv))
+        if box is None:
+            return None
+        # blur only around the streaks (the rest is zero before and after; the margin
+        # exceeds the kernel's reach, so the pixels are the full-frame blur's)
+        x0, y0, x1, y1 = box
+        m = SPATTER_BLUR_MARGIN_PX
+        ys = slice(max(0, y0 - m), min(self.h, y1 + m))
+        xs = slice(max(0, x0 - m), min(self.w, x1 + m))
+        if not (ys.start < ys.stop and xs.start < xs.stop):
+            return None   # the streaks lie outside the image: nothing drawn
+        # (into a reused plane: a fresh one would cost its page faults every frame)
+        blurred = self._blur_plane[:ys.stop - ys.start, :xs.stop - xs.start]
+        spatter[ys, xs] = cv2.GaussianBlur(spatter[ys, xs], (0, 0), 0.8, dst=blurred)
+        return ys, xs
+
+    def _zeroed_planes(self, reuse: bool, glare: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Two all-zero float32 (H, W) planes: new ones, or (``reuse``) this generator's own:
+        the glare plane zeroed (not with ``glare`` False: the caller writes every pixel of it),
+        the spatter plane where the last call drew (the box round its streaks that it
+        blurred; the rest of it is zero, and the renderer only reads it)."""
         if not reuse:
             return (np.zeros((self.h, self.w), np.float32),
                     np.zeros((self.h, self.w), np.float32))
         if self._planes is None:
             self._planes = (np.zeros((self.h, self.w), np.float32),
                             np.zeros((self.h, self.w), np.float32))
-        for plane in self._planes:
-            plane.fill(0.0)
+            return self._planes
+        glare_plane, spatter = self._planes
+        if glare:
+            glare_plane.fill(0.0)
+        if self._spatter_drawn is not None:
+            spatter[self._spatter_drawn] = 0.0
+            self._spatter_drawn = None
         return self._planes
 
     # ------------------------------------------------------------ primitives
@@ -248,14 +274,20 @@ class ArcNoise:
         """
         t = self._glare_t
         r = t.shape[0] // 2
-        cx, cy = int(round(c[0])), int(round(c[1]))
-        x0, x1 = max(0, cx - r), min(self.w, cx + r + 1)
-        y0, y1 = max(0, cy - r), min(self.h, cy + r + 1)
+        x0, x1, y0, y1, cx, cy = self._glare_box(c)
         if x0 < x1 and y0 < y1:
             if fresh:
                 self._k.paste_scaled(img, t, y0, x0, y0 - cy + r, x0 - cx + r, float(peak))
             else:
                 img[y0:y1, x0:x1] += peak * t[y0 - cy + r:y1 - cy + r, x0 - cx + r:x1 - cx + r]
+
+    def _glare_box(self, c: np.ndarray) -> tuple[int, int, int, int, int, int]:
+        """The image box ``(x0, x1, y0, y1)`` the glare template covers centred (to the
+        pixel) on ``c``, and that pixel ``(cx, cy)``."""
+        r = self._glare_t.shape[0] // 2
+        cx, cy = int(round(c[0])), int(round(c[1]))
+        return (max(0, cx - r), min(self.w, cx + r + 1), max(0, cy - r), min(self.h, cy + r + 1),
+                cx, cy)
 
     def _work(self, roi: tuple[slice, slice]) -> np.ndarray:
         """A reused float64 work array of a ROI's shape (a view of one frame-sized buffer)."""

@@ -112,16 +112,28 @@ class LaserSensor:
         self._grains: dict[float, np.ndarray] = {}
         # the stripe's blurred box (reused: a fresh plane costs its page faults every frame)
         self._blur_plane = np.empty((h, w), np.float32)
+        # the plane stripe_layer last drew into and the box of it that holds what it drew
+        self._stripe_drawn: tuple[np.ndarray, slice, slice] | None = None
         self._glint_rays: np.ndarray | None = None
-        load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
+        k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
+        # the projection compiled where a probe finds it OpenCV's to the bit (else OpenCV)
+        self._K = np.ascontiguousarray(self.K, dtype=np.float64)
+        self._k14 = np.zeros(14)
+        self._k14[:len(self.dist)] = self.dist
+        self._project = k.project_points if _projection_agrees(
+            k.project_points, self._K, self.dist, self._k14) else None
 
     # ---------------------------------------------------------------- projection
     def project(self, X_C: np.ndarray) -> np.ndarray:
         """(N, 3) points in {C} (mm) -> (N, 2) distorted pixels (OpenCV reference model)."""
-        X = np.ascontiguousarray(X_C, dtype=np.float64).reshape(-1, 1, 3)
+        X = np.ascontiguousarray(X_C, dtype=np.float64).reshape(-1, 3)
         if not len(X):  # (OpenCV answers None to no points: a camera that sees no part)
             return np.zeros((0, 2))
-        uv, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), self.K, self.dist)
+        if self._project is not None:
+            out = np.empty((len(X), 2))
+            self._project(X, self._K, self._k14, out)
+            return out
+        uv, _ = cv2.projectPoints(X[:, None], np.zeros(3), np.zeros(3), self.K, self.dist)
         return uv.reshape(-1, 2)
 
     def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
@@ -300,9 +312,9 @@ class LaserSensor:
             off = mid - phi_hint
             i = idx[np.argmin(np.abs(np.angle(np.exp(1j * off)) if joint.closed else off))]
         else:
-            i = idx[np.argmin(np.linalg.norm(joint.seam(mid).point - c, axis=1))]
-        root = _refine_root(lambda x: joint.seam(x).point @ n - d, phi[i], phi[i + 1])
-        return joint.seam(np.array([root])).point[0]
+            i = idx[np.argmin(np.linalg.norm(joint.seam_point(mid) - c, axis=1))]
+        root = _refine_root(lambda x: joint.seam_point(x) @ n - d, phi[i], phi[i + 1])
+        return joint.seam_point(np.array([root]))[0]
 
     @staticmethod
     def _arm_points(P: np.ndarray, surf: np.ndarray, psi: np.ndarray, seam: np.ndarray,
@@ -351,15 +363,25 @@ class LaserSensor:
         the fan's mid-plane (where the labels are), the second lobe weaker
         (:data:`SPLIT_SECOND_LOBE`); the light of the stripe is shared between them.
         ``out``: a C-contiguous float32 (H, W) plane to draw into (zeroed first) and return,
-        instead of a new one.
+        instead of a new one. The same plane again: only the box this drew into last time is
+        zeroed (the caller keeps the rest of it zero; scaling it keeps it so).
         """
         look = DEFAULT_STRIPE if look is None else look
         w, h = self.size
         uv = view.uv
         if out is not None:
-            out.fill(0.0)
+            last = self._stripe_drawn
+            if last is not None and _same_plane(last[0], out):
+                out[last[1], last[2]] = 0.0
+            else:
+                out.fill(0.0)
+            # (the whole plane until this call has drawn, should it fail half way)
+            self._stripe_drawn = (out, slice(None), slice(None))
         if len(uv) < 2:
-            return np.zeros((h, w), np.float32) if out is None else out
+            if out is None:
+                return np.zeros((h, w), np.float32)
+            self._stripe_drawn = (out, slice(0, 0), slice(0, 0))   # nothing drawn
+            return out
         # Samples every SPLAT_STEP_PX along the polyline, weighted by the brightness and the
         # arc length per sample. Do not bridge real gaps (occlusion, fan ends): consecutive
         # samples must be close (compiled: torchseam.sim._kernels.stripe_samples)
@@ -386,7 +408,9 @@ class LaserSensor:
         img, box = _splat(pts, weight, w, h, out)
         # grainy laser speckle on the surface: a random crop of a fixed speckle field
         dy, dx = rng.integers(0, 32, 2)
-        if box is None:
+        if box is None:   # no point in the image: nothing drawn
+            if out is not None:
+                self._stripe_drawn = (out, slice(0, 0), slice(0, 0))
             return img
         # Blur, scale and speckle only where the stripe is (its bounding box plus more than
         # the kernel's reach): everything outside is zero before and after, and inside the
@@ -402,6 +426,8 @@ class LaserSensor:
         sub *= look.peak * np.sqrt(2 * np.pi) * sigma
         sub *= self.grain(look.grain)[dy:dy + h, dx:dx + w][ys, xs]
         img[ys, xs] = sub
+        if out is not None:
+            self._stripe_drawn = (out, ys, xs)
         return img
 
     def arc_glint(self, joint: Joint, T_T_C: np.ndarray, light_T: np.ndarray) -> np.ndarray:
@@ -529,6 +555,28 @@ def _seam_grid(joint: Joint) -> tuple[np.ndarray, np.ndarray]:
 #: :func:`_seam_grid`'s cache: joint -> its seam grid, kept while the joint lives
 _SEAM_GRIDS: weakref.WeakKeyDictionary[Joint, tuple[np.ndarray, np.ndarray]] = \
     weakref.WeakKeyDictionary()
+
+
+def _same_plane(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether ``a`` and ``b`` are views of the same pixels (a caller's buffer indexed
+    afresh each frame gives a new view object of it; ``a`` is kept alive, so its memory is
+    not another array's)."""
+    return a is b or (a.ctypes.data == b.ctypes.data and a.shape == b.shape
+                      and a.strides == b.strides)
+
+
+def _projection_agrees(project, K: np.ndarray, dist: np.ndarray, k14: np.ndarray) -> bool:
+    """Whether the compiled ``project`` (``_kernels.project_points``) gives
+    ``cv2.projectPoints``'s pixels to the bit for this camera, on probe points over its view
+    (in front of it, behind it, at depth zero, far off the axis): checked once per sensor,
+    so another OpenCV build's arithmetic falls back to OpenCV."""
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-300.0, 300.0, (4000, 2)), rng.uniform(-50.0, 400.0, 4000)]
+    X[::50, 2] = 0.0
+    ref = cv2.projectPoints(X[:, None], np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+    got = np.empty_like(ref)
+    project(X, K, k14, got)
+    return bool(np.array_equal(ref, got, equal_nan=True))
 
 
 def _refine_root(f, lo: float, hi: float, n: int = 33, rounds: int = 4) -> float:
