@@ -9,8 +9,11 @@ Per frame (:class:`AnchoredFilter`, one stream):
 3. TIPM looks for the stripe corner in a window around the prediction, its arm fits pulled
    toward the arm shape of the last fix taken where the corner was seen (:func:`observe`; a
    corner extrapolated under glare has the prior's own shape, see :meth:`AnchoredFilter.step`);
-4. the corner is a measurement ``z`` with covariance ``R = g (s max(rms, floor))^2 M``
-   (:func:`corner_cov_shape` gives ``M``, the glare term ``g`` is
+4. the corner is a measurement ``z`` with covariance
+   ``R = g ((s max(rms, floor))^2 + l^2 lambda(M)) M`` (:func:`corner_cov_shape` gives ``M``,
+   :func:`shape_lever2` its lever ``lambda(M)`` along the stripe, ``l`` is
+   ``fix_lever_px``: the arm lines' correlated error, which grows as the kink flattens), the
+   glare term ``g`` is
    ``1 + (relu(glare - glare_start) / glare_scale)^2``), taken through a Mahalanobis gate:
    ``y = z - x``, ``S = P + R``, ``K = P S^-1``, ``x <- x + K y``, ``P <- (I - K) P``; a clean
    corner (inlier arm-fit RMS <= ``max_rms_px``) outside the gate restarts the filter there
@@ -19,7 +22,8 @@ Per frame (:class:`AnchoredFilter`, one stream):
 6. EAKF-STC is re-anchored on the fused point when a fix was taken and it is more than
    ``reanchor_px`` off;
 7. status from evidence: ``tracked`` only when this frame's corner is seen (both arms reach
-   it) within ``evidence_px`` of the point, and (offline, without the robot's prediction) is
+   it) within ``evidence_px`` of the point, its std along the stripe ``evidence_sigmas``
+   times within ``evidence_px``, and (offline, without the robot's prediction) is
    not the clean corner of step 4's restart: a jump is evidence once the next frame finds its
    corner there, and a jump the next frame does not confirm is undone (the filter goes back
    to the track it left and fuses that frame from there); ``coasting`` otherwise; ``lost`` after
@@ -134,6 +138,7 @@ class AnchorConfig:
     shallow_min_deg: float = config_field(lo=0.0, hi=90.0)
     shallow_max_along_px: float = config_field(lo=0.0, lo_open=True)
     evidence_sigmas: float = config_field(lo=0.0, lo_open=True)
+    fix_lever_px: float = config_field(lo=0.0)
     velocity_frames: int = config_field(lo=2)
     velocity_points: int = config_field(lo=2)
     velocity_fade_frames: float = config_field(lo=0.0, lo_open=True)
@@ -198,14 +203,27 @@ def corner_cov_shape(res: TipmResult, prior: np.ndarray | None = None,
     return (n_inv * var) @ n_inv.T
 
 
+def shape_lever2(shape: np.ndarray) -> float:
+    """The larger eigenvalue of a (2, 2) :func:`corner_cov_shape`: the squared px the corner
+    moves along the stripe per px of arm-line offset (about ``1 / sin(kink)^2``)."""
+    (a, b), (_, d) = shape.tolist()
+    h = 0.5 * (a + d)
+    return h + math.sqrt(max(h * h - (a * d - b * b), 0.0))
+
+
 def corner_cov(res: TipmResult, noise: float, floor_px: float,
                prior: np.ndarray | None = None,
-               arm_cols: tuple[float, float] = (5.0, 120.0)) -> np.ndarray:
+               arm_cols: tuple[float, float] = (5.0, 120.0), lever_px: float = 0.0
+               ) -> np.ndarray:
     """(2, 2) covariance of a TIPM corner whose arm lines are off along their normals by
     ``noise * max(rms, floor_px)``, ``rms`` the arm fits' over the points they kept
-    (:attr:`TipmResult.inlier_rms_px`; see :func:`corner_cov_shape`)."""
+    (:attr:`TipmResult.inlier_rms_px`; see :func:`corner_cov_shape`), and independently by
+    ``lever_px`` times the corner's lever along the stripe (:func:`shape_lever2`: the
+    centre line's correlated errors, which the RMS does not show; the tracker's
+    ``fix_lever_px``)."""
     sigma = noise * max(res.inlier_rms_px, floor_px)
-    return sigma * sigma * corner_cov_shape(res, prior, arm_cols)
+    shape = corner_cov_shape(res, prior, arm_cols)
+    return (sigma * sigma + lever_px * lever_px * shape_lever2(shape)) * shape
 
 
 def glare_level(frame: np.ndarray, uv: np.ndarray, half_px: int) -> float:
@@ -755,8 +773,12 @@ class AnchoredFilter:
         taken, fix = False, None
         if obs.res is not None:
             rms = obs.res.inlier_rms_px
+            assert obs.shape_cov is not None  # set with obs.res
             sigma = p["fix_noise"] * o.maximum(p["fix_floor_px"], rms)
-            cov = (sigma * sigma) * o.const(obs.shape_cov)
+            # the arm lines' error that the fits' RMS does not show (the centre line's
+            # correlated errors), growing with the corner's lever along the stripe
+            lever2 = shape_lever2(obs.shape_cov)
+            cov = (sigma * sigma + c.fix_lever_px ** 2 * lever2) * o.const(obs.shape_cov)
             R = inflate * cov
             z = o.const(obs.z)
             taken = self._measure(z, R, p["fix_gate"])
@@ -785,7 +807,13 @@ class AnchoredFilter:
                 # corner is hidden and bias the fixes after it
                 self.shape, self.age = arm_shape(obs.res), 0
             assert obs.z is not None  # set with obs.res
-            fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, obs.seen,
+            # evidence and firm only where the image places it along the stripe within the
+            # evidence radius (as a shallow corner: weak along a nearly straight stripe)
+            along = math.sqrt(_num(sigma) ** 2 + c.fix_lever_px ** 2 * lever2) \
+                * math.sqrt(lever2)
+            seen = obs.seen and c.evidence_sigmas * along <= c.evidence_px
+            firm = along * math.sqrt(_num(inflate)) <= c.evidence_px
+            fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, seen, firm=firm,
                       jumped=jumped)
         elif obs.shallow is not None:
             # a nearly straight stripe: its slope break places the corner weakly along the
