@@ -271,11 +271,11 @@ def test_shallow_kink_under_glare_is_weak_evidence_not_tracked():
 
 def test_a_flat_tipm_corner_carries_its_error_along_the_stripe():
     """A stripe bent 9 degrees (TIPM still gives a corner, both arms seen) whose centre line
-    runs 0.4 px off its arm over ~30 px next to the corner (a correlated error, as glare's
-    bias leaves: the arm fits' RMS does not show it): TIPM's corner is 2 px off along the
-    stripe. Its covariance along the stripe covers that, and so weak a corner is no
-    evidence. The same bend at a sharp corner moves it a tenth as far: the corner stays
-    firm, tight and tracked (issue 35)."""
+    runs 0.4 px off its arm over ~30 px next to the corner and is noisy (a correlated error
+    with scatter, as glare and spatter leave): TIPM's corner is ~2 px off along the stripe.
+    Its covariance along the stripe covers that, and so weak a corner is no evidence. The
+    same bend at a sharp corner moves it a fifth as far: its covariance stays the fitted,
+    tight one and the frame is tracked (issue 35)."""
     from torchseam.track.anchored import AnchoredTracker, corner_seen, load_anchored_model
     from torchseam.track.fusion import TrackStatus
     tipm = load_tipm()
@@ -285,10 +285,13 @@ def test_a_flat_tipm_corner_carries_its_error_along_the_stripe():
         slopes = (0.05 + t, 0.05 - t)
         trk = AnchoredTracker(load_anchored_model(), tipm)
         trk.init(_v_frame(uv, slopes), uv)
-        f = _v_frame(uv, slopes, bump=(0.4, 30.0, 15.0))
-        r = tipm(f)
-        assert r.ok and corner_seen(r, trk.cfg.support_px, trk.cfg.support_points)
+        rng = np.random.default_rng(0)
         for _ in range(2):
+            f = _v_frame(uv, slopes, bump=(0.4, 30.0, 15.0)).astype(np.float64)
+            f += rng.normal(0.0, 25.0, f.shape[:2])[..., None] * np.array([0.2, 0.3, 1.0])
+            f = np.clip(f, 0, 255).astype(np.uint8)
+            r = tipm(f)
+            assert r.ok and corner_seen(r, trk.cfg.support_px, trk.cfg.support_points)
             res = trk.track(f)
             trk.idle()
             fix = res.fix
@@ -305,7 +308,7 @@ def test_a_flat_tipm_corner_carries_its_error_along_the_stripe():
                 # glare included, within evidence_px
                 assert fix.firm == (sigma <= trk.cfg.evidence_px)
             else:
-                assert along < 0.3 and sigma < 0.2, (along, sigma)
+                assert along < 0.5 and sigma < 0.2, (along, sigma)
                 assert res.status == TrackStatus.TRACKED and fix.firm
 
 

@@ -9,11 +9,12 @@ Per frame (:class:`AnchoredFilter`, one stream):
 3. TIPM looks for the stripe corner in a window around the prediction, its arm fits pulled
    toward the arm shape of the last fix taken where the corner was seen (:func:`observe`; a
    corner extrapolated under glare has the prior's own shape, see :meth:`AnchoredFilter.step`);
-4. the corner is a measurement ``z`` with covariance
-   ``R = g ((s max(rms, floor))^2 + l^2 lambda(M)) M`` (:func:`corner_cov_shape` gives ``M``,
-   :func:`shape_lever2` its lever ``lambda(M)`` along the stripe, ``l`` is
-   ``fix_lever_px``: the arm lines' correlated error, which grows as the kink flattens), the
-   glare term ``g`` is
+4. the corner is a measurement ``z`` with covariance ``R = g (s max(rms, floor))^2 M``
+   (:func:`corner_cov_shape` gives ``M``; where the kink is so flat that with the arm lines'
+   correlated error, ``l max(rms, floor)`` times the lever ``sqrt(lambda(M))`` along the
+   stripe (:func:`shape_lever2`, ``l`` = ``fix_lever``), the corner's std along the stripe
+   is not within the evidence radius, ``R = g max(rms, floor)^2 (s^2 + l^2 lambda(M)) M`` and
+   the corner is no evidence), the glare term ``g`` is
    ``1 + (relu(glare - glare_start) / glare_scale)^2``), taken through a Mahalanobis gate:
    ``y = z - x``, ``S = P + R``, ``K = P S^-1``, ``x <- x + K y``, ``P <- (I - K) P``; a clean
    corner (inlier arm-fit RMS <= ``max_rms_px``) outside the gate restarts the filter there
@@ -22,13 +23,14 @@ Per frame (:class:`AnchoredFilter`, one stream):
 6. EAKF-STC is re-anchored on the fused point when a fix was taken and it is more than
    ``reanchor_px`` off;
 7. status from evidence: ``tracked`` only when this frame's corner is seen (both arms reach
-   it) within ``evidence_px`` of the point, its std along the stripe ``evidence_sigmas``
-   times within ``evidence_px``, and (offline, without the robot's prediction) is
-   not the clean corner of step 4's restart: a jump is evidence once the next frame finds its
-   corner there, and a jump the next frame does not confirm is undone (the filter goes back
-   to the track it left and fuses that frame from there); ``coasting`` otherwise; ``lost`` after
-   ``lost_frames`` or ``lost_px`` of coasting. While coasting, TIPM searches the whole frame
-   between frames and ``reacquire_frames`` consistent corners move the track (no lock-out).
+   it) within ``evidence_px`` of the point, its std along the stripe (step 4)
+   ``evidence_sigmas`` times within ``evidence_px``, and (offline, without the robot's
+   prediction) is not the clean corner of step 4's restart: a jump is evidence once the next
+   frame finds its corner there, and a jump the next frame does not confirm is undone (the
+   filter goes back to the track it left and fuses that frame from there); ``coasting``
+   otherwise; ``lost`` after ``lost_frames`` or ``lost_px`` of coasting. While coasting, TIPM
+   searches the whole frame between frames and ``reacquire_frames`` consistent corners move
+   the track (no lock-out).
 
 The fusion is written once, over a tiny array backend (:class:`NumpyOps` for the live loop,
 :class:`TorchOps` for fitting): the same code runs the robot and is differentiated. The
@@ -138,7 +140,7 @@ class AnchorConfig:
     shallow_min_deg: float = config_field(lo=0.0, hi=90.0)
     shallow_max_along_px: float = config_field(lo=0.0, lo_open=True)
     evidence_sigmas: float = config_field(lo=0.0, lo_open=True)
-    fix_lever_px: float = config_field(lo=0.0)
+    fix_lever: float = config_field(lo=0.0)
     velocity_frames: int = config_field(lo=2)
     velocity_points: int = config_field(lo=2)
     velocity_fade_frames: float = config_field(lo=0.0, lo_open=True)
@@ -213,17 +215,17 @@ def shape_lever2(shape: np.ndarray) -> float:
 
 def corner_cov(res: TipmResult, noise: float, floor_px: float,
                prior: np.ndarray | None = None,
-               arm_cols: tuple[float, float] = (5.0, 120.0), lever_px: float = 0.0
+               arm_cols: tuple[float, float] = (5.0, 120.0), lever: float = 0.0
                ) -> np.ndarray:
     """(2, 2) covariance of a TIPM corner whose arm lines are off along their normals by
     ``noise * max(rms, floor_px)``, ``rms`` the arm fits' over the points they kept
     (:attr:`TipmResult.inlier_rms_px`; see :func:`corner_cov_shape`), and independently by
-    ``lever_px`` times the corner's lever along the stripe (:func:`shape_lever2`: the
-    centre line's correlated errors, which the RMS does not show; the tracker's
-    ``fix_lever_px``)."""
-    sigma = noise * max(res.inlier_rms_px, floor_px)
+    ``lever * max(rms, floor_px)`` times the corner's lever along the stripe
+    (:func:`shape_lever2`: the centre line's correlated errors; the tracker's
+    ``fix_lever``, which it carries only where it makes the corner no evidence)."""
+    r = max(res.inlier_rms_px, floor_px)
     shape = corner_cov_shape(res, prior, arm_cols)
-    return (sigma * sigma + lever_px * lever_px * shape_lever2(shape)) * shape
+    return r * r * (noise * noise + lever * lever * shape_lever2(shape)) * shape
 
 
 def glare_level(frame: np.ndarray, uv: np.ndarray, half_px: int) -> float:
@@ -774,11 +776,19 @@ class AnchoredFilter:
         if obs.res is not None:
             rms = obs.res.inlier_rms_px
             assert obs.shape_cov is not None  # set with obs.res
-            sigma = p["fix_noise"] * o.maximum(p["fix_floor_px"], rms)
-            # the arm lines' error that the fits' RMS does not show (the centre line's
-            # correlated errors), growing with the corner's lever along the stripe
+            r_eff = o.maximum(p["fix_floor_px"], rms)
+            sigma = p["fix_noise"] * r_eff
+            cov = (sigma * sigma) * o.const(obs.shape_cov)
+            # the arm lines' correlated error, which the fit's noise (fitted on sharp
+            # corners) leaves out: fix_lever x the RMS x the corner's lever along the
+            # stripe; where with it the corner's std along the stripe is not within the
+            # evidence radius (a nearly straight stripe), it carries it and is no evidence
             lever2 = shape_lever2(obs.shape_cov)
-            cov = (sigma * sigma + c.fix_lever_px ** 2 * lever2) * o.const(obs.shape_cov)
+            extra = (c.fix_lever * r_eff) ** 2 * lever2
+            along = math.sqrt((_num(sigma) ** 2 + _num(extra)) * lever2)
+            weak = c.evidence_sigmas * along > c.evidence_px
+            if weak:
+                cov = cov + extra * o.const(obs.shape_cov)
             R = inflate * cov
             z = o.const(obs.z)
             taken = self._measure(z, R, p["fix_gate"])
@@ -807,14 +817,11 @@ class AnchoredFilter:
                 # corner is hidden and bias the fixes after it
                 self.shape, self.age = arm_shape(obs.res), 0
             assert obs.z is not None  # set with obs.res
-            # evidence and firm only where the image places it along the stripe within the
-            # evidence radius (as a shallow corner: weak along a nearly straight stripe)
-            along = math.sqrt(_num(sigma) ** 2 + c.fix_lever_px ** 2 * lever2) \
-                * math.sqrt(lever2)
-            seen = obs.seen and c.evidence_sigmas * along <= c.evidence_px
-            firm = along * math.sqrt(_num(inflate)) <= c.evidence_px
-            fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, seen, firm=firm,
-                      jumped=jumped)
+            # a weak corner is firm as a shallow one: its std along the stripe, glare
+            # included, within the evidence radius
+            firm = not weak or along * math.sqrt(_num(inflate)) <= c.evidence_px
+            fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, obs.seen and not weak,
+                      firm=firm, jumped=jumped)
         elif obs.shallow is not None:
             # a nearly straight stripe: its slope break places the corner weakly along the
             # stripe, firmly across it (R from the fit, c.shallow_noise for the centre line's
