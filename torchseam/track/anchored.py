@@ -685,14 +685,17 @@ class AnchoredFilter:
         out[:, 3] = c.arm_noise_px ** 2 / (n * c.curvature_step ** 2)
         return out
 
-    def _measure(self, z: Any, R: Any, gate: Any) -> bool:
+    def _measure(self, z: Any, R: Any, gate: Any, gate_R: Any = None) -> bool:
         """Kalman update with ``z`` (covariance ``R``, ``H = I``) unless its Mahalanobis
-        distance from the filtered point exceeds ``gate`` (:mod:`torchseam.core.kalman`)."""
+        distance from the filtered point exceeds ``gate`` (:mod:`torchseam.core.kalman`);
+        ``gate_R``: the covariance that distance is taken with, where not ``R``."""
         o = self.ops
         inn = kalman.innovation(self.x, self.P, z, self.I, R)
         self.innovation = inn
-        hard = bool(_num(inn.d2) <= _num(gate) ** 2)
-        w = o.decide(hard, gate - o.sqrt(inn.d2), GATE_TEMP)
+        d2 = inn.d2 if gate_R is None else kalman.innovation(self.x, self.P, z, self.I,
+                                                              gate_R).d2
+        hard = bool(_num(d2) <= _num(gate) ** 2)
+        w = o.decide(hard, gate - o.sqrt(d2), GATE_TEMP)
         if isinstance(w, float) and w == 0.0:
             return False
         self.x, self.P = kalman.update(self.x, self.P, inn, self.I, R, w)
@@ -787,11 +790,14 @@ class AnchoredFilter:
             extra = (c.fix_lever * r_eff) ** 2 * lever2
             along = math.sqrt((_num(sigma) ** 2 + _num(extra)) * lever2)
             weak = c.evidence_sigmas * along > c.evidence_px
+            # ... gated as before (the gate keeps out corners that are not the stripe's: a
+            # weak corner's wider covariance must not let them in), weighed with it
+            gate_R = inflate * cov if weak else None
             if weak:
                 cov = cov + extra * o.const(obs.shape_cov)
             R = inflate * cov
             z = o.const(obs.z)
-            taken = self._measure(z, R, p["fix_gate"])
+            taken = self._measure(z, R, p["fix_gate"], gate_R)
             clean = rms <= _num(p["max_rms_px"])
             # offline (no robot prediction): a jump off the track's own prediction; the live
             # loop's expected pixel is made afresh from the robot's motion every frame, and
