@@ -10,11 +10,7 @@ Per frame (:class:`AnchoredFilter`, one stream):
    toward the arm shape of the last fix taken where the corner was seen (:func:`observe`; a
    corner extrapolated under glare has the prior's own shape, see :meth:`AnchoredFilter.step`);
 4. the corner is a measurement ``z`` with covariance ``R = g (s max(rms, floor))^2 M``
-   (:func:`corner_cov_shape` gives ``M``; where the kink is so flat that with the arm lines'
-   correlated error, ``l max(rms, floor)`` times the lever ``sqrt(lambda(M))`` along the
-   stripe (:func:`shape_lever2`, ``l`` = ``fix_lever``), the corner's std along the stripe
-   is not within the evidence radius, ``R = g max(rms, floor)^2 (s^2 + l^2 lambda(M)) M`` and
-   the corner is no evidence), the glare term ``g`` is
+   (:func:`corner_cov_shape` gives ``M``, the glare term ``g`` is
    ``1 + (relu(glare - glare_start) / glare_scale)^2``), taken through a Mahalanobis gate:
    ``y = z - x``, ``S = P + R``, ``K = P S^-1``, ``x <- x + K y``, ``P <- (I - K) P``; a clean
    corner (inlier arm-fit RMS <= ``max_rms_px``) outside the gate restarts the filter there
@@ -23,14 +19,12 @@ Per frame (:class:`AnchoredFilter`, one stream):
 6. EAKF-STC is re-anchored on the fused point when a fix was taken and it is more than
    ``reanchor_px`` off;
 7. status from evidence: ``tracked`` only when this frame's corner is seen (both arms reach
-   it) within ``evidence_px`` of the point, its std along the stripe (step 4)
-   ``evidence_sigmas`` times within ``evidence_px``, and (offline, without the robot's
-   prediction) is not the clean corner of step 4's restart: a jump is evidence once the next
-   frame finds its corner there, and a jump the next frame does not confirm is undone (the
-   filter goes back to the track it left and fuses that frame from there); ``coasting``
-   otherwise; ``lost`` after ``lost_frames`` or ``lost_px`` of coasting. While coasting, TIPM
-   searches the whole frame between frames and ``reacquire_frames`` consistent corners move
-   the track (no lock-out).
+   it) within ``evidence_px`` of the point, and (offline, without the robot's prediction) is
+   not the clean corner of step 4's restart: a jump is evidence once the next frame finds its
+   corner there, and a jump the next frame does not confirm is undone (the filter goes back
+   to the track it left and fuses that frame from there); ``coasting`` otherwise; ``lost`` after
+   ``lost_frames`` or ``lost_px`` of coasting. While coasting, TIPM searches the whole frame
+   between frames and ``reacquire_frames`` consistent corners move the track (no lock-out).
 
 The fusion is written once, over a tiny array backend (:class:`NumpyOps` for the live loop,
 :class:`TorchOps` for fitting): the same code runs the robot and is differentiated. The
@@ -140,7 +134,6 @@ class AnchorConfig:
     shallow_min_deg: float = config_field(lo=0.0, hi=90.0)
     shallow_max_along_px: float = config_field(lo=0.0, lo_open=True)
     evidence_sigmas: float = config_field(lo=0.0, lo_open=True)
-    fix_lever: float = config_field(lo=0.0)
     velocity_frames: int = config_field(lo=2)
     velocity_points: int = config_field(lo=2)
     velocity_fade_frames: float = config_field(lo=0.0, lo_open=True)
@@ -205,27 +198,14 @@ def corner_cov_shape(res: TipmResult, prior: np.ndarray | None = None,
     return (n_inv * var) @ n_inv.T
 
 
-def shape_lever2(shape: np.ndarray) -> float:
-    """The larger eigenvalue of a (2, 2) :func:`corner_cov_shape`: the squared px the corner
-    moves along the stripe per px of arm-line offset (about ``1 / sin(kink)^2``)."""
-    (a, b), (_, d) = shape.tolist()
-    h = 0.5 * (a + d)
-    return h + math.sqrt(max(h * h - (a * d - b * b), 0.0))
-
-
 def corner_cov(res: TipmResult, noise: float, floor_px: float,
                prior: np.ndarray | None = None,
-               arm_cols: tuple[float, float] = (5.0, 120.0), lever: float = 0.0
-               ) -> np.ndarray:
+               arm_cols: tuple[float, float] = (5.0, 120.0)) -> np.ndarray:
     """(2, 2) covariance of a TIPM corner whose arm lines are off along their normals by
     ``noise * max(rms, floor_px)``, ``rms`` the arm fits' over the points they kept
-    (:attr:`TipmResult.inlier_rms_px`; see :func:`corner_cov_shape`), and independently by
-    ``lever * max(rms, floor_px)`` times the corner's lever along the stripe
-    (:func:`shape_lever2`: the centre line's correlated errors; the tracker's
-    ``fix_lever``, which it carries only where it makes the corner no evidence)."""
-    r = max(res.inlier_rms_px, floor_px)
-    shape = corner_cov_shape(res, prior, arm_cols)
-    return r * r * (noise * noise + lever * lever * shape_lever2(shape)) * shape
+    (:attr:`TipmResult.inlier_rms_px`; see :func:`corner_cov_shape`)."""
+    sigma = noise * max(res.inlier_rms_px, floor_px)
+    return sigma * sigma * corner_cov_shape(res, prior, arm_cols)
 
 
 def glare_level(frame: np.ndarray, uv: np.ndarray, half_px: int) -> float:
@@ -685,17 +665,14 @@ class AnchoredFilter:
         out[:, 3] = c.arm_noise_px ** 2 / (n * c.curvature_step ** 2)
         return out
 
-    def _measure(self, z: Any, R: Any, gate: Any, gate_R: Any = None) -> bool:
+    def _measure(self, z: Any, R: Any, gate: Any) -> bool:
         """Kalman update with ``z`` (covariance ``R``, ``H = I``) unless its Mahalanobis
-        distance from the filtered point exceeds ``gate`` (:mod:`torchseam.core.kalman`);
-        ``gate_R``: the covariance that distance is taken with, where not ``R``."""
+        distance from the filtered point exceeds ``gate`` (:mod:`torchseam.core.kalman`)."""
         o = self.ops
         inn = kalman.innovation(self.x, self.P, z, self.I, R)
         self.innovation = inn
-        d2 = inn.d2 if gate_R is None else kalman.innovation(self.x, self.P, z, self.I,
-                                                              gate_R).d2
-        hard = bool(_num(d2) <= _num(gate) ** 2)
-        w = o.decide(hard, gate - o.sqrt(d2), GATE_TEMP)
+        hard = bool(_num(inn.d2) <= _num(gate) ** 2)
+        w = o.decide(hard, gate - o.sqrt(inn.d2), GATE_TEMP)
         if isinstance(w, float) and w == 0.0:
             return False
         self.x, self.P = kalman.update(self.x, self.P, inn, self.I, R, w)
@@ -778,26 +755,11 @@ class AnchoredFilter:
         taken, fix = False, None
         if obs.res is not None:
             rms = obs.res.inlier_rms_px
-            assert obs.shape_cov is not None  # set with obs.res
-            r_eff = o.maximum(p["fix_floor_px"], rms)
-            sigma = p["fix_noise"] * r_eff
+            sigma = p["fix_noise"] * o.maximum(p["fix_floor_px"], rms)
             cov = (sigma * sigma) * o.const(obs.shape_cov)
-            # the arm lines' correlated error, which the fit's noise (fitted on sharp
-            # corners) leaves out: fix_lever x the RMS x the corner's lever along the
-            # stripe; where with it the corner's std along the stripe is not within the
-            # evidence radius (a nearly straight stripe), it carries it and is no evidence
-            lever2 = shape_lever2(obs.shape_cov)
-            extra = (c.fix_lever * r_eff) ** 2 * lever2
-            along = math.sqrt((_num(sigma) ** 2 + _num(extra)) * lever2)
-            weak = c.evidence_sigmas * along > c.evidence_px
-            # ... gated as before (the gate keeps out corners that are not the stripe's: a
-            # weak corner's wider covariance must not let them in), weighed with it
-            gate_R = inflate * cov if weak else None
-            if weak:
-                cov = cov + extra * o.const(obs.shape_cov)
             R = inflate * cov
             z = o.const(obs.z)
-            taken = self._measure(z, R, p["fix_gate"], gate_R)
+            taken = self._measure(z, R, p["fix_gate"])
             clean = rms <= _num(p["max_rms_px"])
             # offline (no robot prediction): a jump off the track's own prediction; the live
             # loop's expected pixel is made afresh from the robot's motion every frame, and
@@ -823,11 +785,8 @@ class AnchoredFilter:
                 # corner is hidden and bias the fixes after it
                 self.shape, self.age = arm_shape(obs.res), 0
             assert obs.z is not None  # set with obs.res
-            # a weak corner is firm as a shallow one: its std along the stripe, glare
-            # included, within the evidence radius
-            firm = not weak or along * math.sqrt(_num(inflate)) <= c.evidence_px
-            fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, obs.seen and not weak,
-                      firm=firm, jumped=jumped)
+            fix = Fix(obs.z.copy(), o.value(cov), _num(inflate), taken, obs.seen,
+                      jumped=jumped)
         elif obs.shallow is not None:
             # a nearly straight stripe: its slope break places the corner weakly along the
             # stripe, firmly across it (R from the fit, c.shallow_noise for the centre line's
