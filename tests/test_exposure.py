@@ -267,3 +267,18 @@ def test_the_welds_exposure_step_asks_the_camera_for_less_under_clipping_glare()
     with pytest.raises(FrameStreamError, match="camera:0: takes no exposure request"):
         opencv.request_exposure(0.5)
 
+
+
+def test_the_welds_table_says_the_automatic_exposure_it_asked_for():
+    """`torchseam weld`'s last table: the scales asked for (min / median / max, changes) when
+    the automatic exposure ran, no such row when it did not; a weld that ended before its link
+    ran says n/a rather than failing."""
+    from torchseam.live.cell_cli import summary_rows
+    from torchseam.live.weld import WeldResult, weld_summary
+
+    res = WeldResult()
+    assert not any("exposure" in r[0] for r in summary_rows(weld_summary(res, {}), "a"))
+    res.exposure = [("a", 0.0, 1.0), ("a", 0.04, 0.8), ("a", 0.08, 0.8), ("b", 0.12, 0.64)]
+    rows = {r[0]: r[1] for r in summary_rows(weld_summary(res, {}), "ab")}
+    assert rows["automatic exposure min / median / max (changes)"] == "0.64 / 0.80 / 1.00 (2)"
+    assert rows["EGM replies sent / late"] == "n/a" and rows["segments welded"] == "0 of 2"

@@ -8,6 +8,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from torchseam.core.cliargs import (
     MAX_SEED,
@@ -211,17 +212,7 @@ def run_weld_cmd(args: argparse.Namespace) -> int:
     write_json_atomic(out / "summary.json", summary)     # last: the run's word
     (out / "RUNNING").unlink(missing_ok=True)
     sm = summary
-    lat = ("n/a" if sm["latency_p50_ms"] is None
-           else f"{sm['latency_p50_ms']:.2f} / {sm['latency_p99_ms']:.2f}")
-    print(format_table(["figure", "value", "unit"], [
-        ["segments welded", f"{len(sm['segments_welded'])} of {len(args.segments)}", ""],
-        ["frames / without a pose / dropped", f"{sm['frames']} / {sm['frames_without_pose']} / "
-                                              f"{sm['frames_dropped_by_weld']}", ""],
-        ["camera stalls", sm["camera_stalls"], ""],
-        ["frame -> command latency p50 / p99", lat, "ms"],
-        ["EGM replies sent / late", f"{sm['link']['sent']} / {sm['link']['late_replies']}", ""],
-        ["controller clock offset", f"{sm['clocks']['controller_offset_s']:+.4f}", "s"],
-        ["loop holds", sum(sm["holds"].values()), ""]]))
+    print(format_table(["figure", "value", "unit"], summary_rows(sm, args.segments)))
     for seg in sm["segments_incomplete"]:
         print(f"segment {seg['segment']} NOT welded: {seg['reason']}")
     if res.interrupted:
@@ -229,3 +220,29 @@ def run_weld_cmd(args: argparse.Namespace) -> int:
               f"{out / 'summary.json'} (interrupted)", file=sys.stderr)
     print(f"report: {out / 'summary.json'}")
     return exit_code(res)
+
+
+def summary_rows(sm: dict[str, Any], segments: str) -> list[list[Any]]:
+    """The table ``torchseam weld`` ends with, from its summary.json ``sm`` (the ``segments``
+    asked for)."""
+    lat = ("n/a" if sm["latency_p50_ms"] is None
+           else f"{sm['latency_p50_ms']:.2f} / {sm['latency_p99_ms']:.2f}")
+    link = sm.get("link") or {}            # empty where the weld ended before the link ran
+    offset = (sm.get("clocks") or {}).get("controller_offset_s")
+    rows = [
+        ["segments welded", f"{len(sm['segments_welded'])} of {len(segments)}", ""],
+        ["frames / without a pose / dropped", f"{sm['frames']} / {sm['frames_without_pose']} / "
+                                              f"{sm['frames_dropped_by_weld']}", ""],
+        ["camera stalls", sm["camera_stalls"], ""],
+        ["frame -> command latency p50 / p99", lat, "ms"],
+        ["EGM replies sent / late", f"{link['sent']} / {link['late_replies']}"
+         if "sent" in link else "n/a", ""],
+        ["controller clock offset", f"{offset:+.4f}" if offset is not None else "n/a", "s"],
+        ["loop holds", sum(sm["holds"].values()), ""]]
+    ae = sm.get("exposure")
+    if ae is not None:
+        rows.append(["automatic exposure min / median / max (changes)",
+                     f"{ae['scale_min']:.2f} / {ae['scale_median']:.2f} / "
+                     f"{ae['scale_max']:.2f} ({ae['changes']})", "x"])
+    return rows
+
