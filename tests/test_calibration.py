@@ -146,12 +146,15 @@ def test_failed_detection_names_the_image(camera_set, cfg):
     blank = np.full_like(camera_set.images[0], 40)
     images = [*camera_set.images[:3], blank]
     names = [*camera_set.names[:3], "blank_07.png"]
-    with pytest.raises(CalibrationError, match=r"blank_07\.png: no 11x8 checkerboard found"):
+    with pytest.raises(CalibrationError, match=r"blank_07\.png: no 11x8 checkerboard found"
+                       r".*--skip-failed leaves out"):
         calibrate_camera(images, names, cfg)
-    # --skip-failed goes on with the rest (3 views are enough to run)
+    # --skip-failed goes on with the rest (3 views are enough to run) and says what it left out
     res = calibrate_camera(images, names, dataclasses.replace(
         cfg, camera=dataclasses.replace(cfg.camera, max_focal_std_rel=1.0)), skip_failed=True)
     assert res.names == camera_set.names[:3]
+    assert [e.split(":")[0] for e in res.skipped] == ["blank_07.png"]
+    assert "skipped             1 of 4 images, board not found: blank_07.png" in res.summary()
 
 
 def test_too_few_camera_views_is_a_clear_error(camera_set, cfg):

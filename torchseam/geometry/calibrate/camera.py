@@ -41,6 +41,7 @@ class CameraCalibration:
         board_poses: (N, 4, 4) board pose in the camera ``T_C_O`` per view (mm).
         tilt_spread_deg: largest angle between two views' board normals.
         names: the N views used.
+        skipped: the images left out (``skip_failed``), each with why: "NAME: reason".
     """
 
     camera: CameraConfig
@@ -50,11 +51,12 @@ class CameraCalibration:
     board_poses: np.ndarray
     tilt_spread_deg: float
     names: list[str]
+    skipped: list[str]
 
     def summary(self) -> list[str]:
         c, s = self.camera, self.std
         worst = int(np.argmax(self.view_rms_px))
-        return [
+        lines = [
             f"views               {len(self.names)} (board normals spread over "
             f"{self.tilt_spread_deg:.1f} deg)",
             f"fx, fy              {c.fx:.3f} +- {s['fx']:.3f}, {c.fy:.3f} +- {s['fy']:.3f} px",
@@ -63,6 +65,11 @@ class CameraCalibration:
             f"reprojection RMS    {self.rms_px:.4f} px (worst view {self.names[worst]}: "
             f"{self.view_rms_px[worst]:.4f} px)",
         ]
+        if self.skipped:
+            n = len(self.skipped) + len(self.names)
+            lines.insert(1, f"skipped             {len(self.skipped)} of {n} images, board not "
+                            "found: " + ", ".join(e.split(":", 1)[0] for e in self.skipped))
+        return lines
 
 
 def calibrate_camera(images: Sequence[np.ndarray], names: Sequence[str], cfg: CalibrationConfig,
@@ -97,7 +104,9 @@ def calibrate_camera(images: Sequence[np.ndarray], names: Sequence[str], cfg: Ca
         raise ValueError(f"{len(images)} images but {len(names)} names")
     check_count(len(images), cfg.camera.min_views, what, "camera.min_views")
     w, h = check_sizes(images, names)
-    corners, keep = detect_all(images, names, cfg, skip_failed, what)
+    corners, keep, skipped = detect_all(
+        images, names, cfg, skip_failed, what,
+        hint=" (--skip-failed leaves out the images where it is not found)")
     names = [names[k] for k in keep]
     check_count(len(corners), cfg.camera.min_views, what, "camera.min_views")
     obj = [cfg.board.object_points().astype(np.float32)] * len(corners)
@@ -134,7 +143,7 @@ def calibrate_camera(images: Sequence[np.ndarray], names: Sequence[str], cfg: Ca
     camera = CameraConfig(width=w, height=h, fx=float(K[0, 0]), fy=float(K[1, 1]),
                           cx=float(K[0, 2]), cy=float(K[1, 2]), dist=tuple(float(x) for x in d))
     return CameraCalibration(camera, float(rms), np.asarray(per_view, float).ravel(), std, poses,
-                             spread, list(names))
+                             spread, list(names), skipped)
 
 
 def _cv_msg(e: cv2.error) -> str:

@@ -196,7 +196,7 @@ def calibrate_hand_eye(images: Sequence[np.ndarray], names: Sequence[str], T_B_F
     hs = cfg.handeye
     check_count(len(T_B_F), hs.min_views, what, "handeye.min_views", "robot poses")
     check_motion(T_B_F, hs.min_rotation_deg, hs.min_axis_spread_deg, what, "robot poses")
-    corners, _ = detect_all(images, names, cfg, False, what)
+    corners, _, _ = detect_all(images, names, cfg, False, what)
     T_C_O = np.stack([board_pose(c, cfg.board, camera)[0] for c in corners])
     X, used = hand_eye_linear(T_B_F, T_C_O, method)
     T_B_O = _mean_pose(T_B_F @ X @ T_C_O)

@@ -235,7 +235,7 @@ def calibrate_laser_plane(laser_images: Sequence[np.ndarray], names: Sequence[st
         bnames = list(board_names) if board_names is not None else list(names)
         if len(board_images) != n_views or len(bnames) != n_views:
             raise ValueError(f"{n_views} laser images but {len(board_images)} board images")
-        corners, _ = detect_all(board_images, bnames, cfg, False, what)
+        corners, _, _ = detect_all(board_images, bnames, cfg, False, what)
         poses = np.stack([board_pose(c, cfg.board, camera)[0] for c in corners])
     else:
         poses = np.asarray(board_poses, float).reshape(-1, 4, 4)

@@ -152,8 +152,13 @@ def rt_matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
 
 
 def detect_all(images: Sequence[np.ndarray], names: Sequence[str], cfg: CalibrationConfig,
-                skip_failed: bool, what: str) -> tuple[list[np.ndarray], list[int]]:
-    """Detect the board in every image; name every failure (or skip them)."""
+                skip_failed: bool, what: str,
+                hint: str = "") -> tuple[list[np.ndarray], list[int], list[str]]:
+    """Detect the board in every image; name every failure (or skip them).
+
+    Returns the boards found, their indices in ``images`` and, for each image skipped, its
+    reason (``skip_failed``; otherwise a failure raises, ending with ``hint``).
+    """
     found, keep, failed = [], [], []
     for k, (img, name) in enumerate(zip(images, names, strict=True)):
         try:
@@ -164,8 +169,8 @@ def detect_all(images: Sequence[np.ndarray], names: Sequence[str], cfg: Calibrat
     if failed and not skip_failed:
         more = f" (and {len(failed) - 3} more)" if len(failed) > 3 else ""
         raise CalibrationError(f"{what}: board not found in {len(failed)} of {len(images)} "
-                               f"images: " + "; ".join(failed[:3]) + more)
-    return found, keep
+                               f"images: " + "; ".join(failed[:3]) + more + hint)
+    return found, keep, failed
 
 
 def check_count(n: int, need: int, what: str, field_name: str, unit: str = "views") -> None:
