@@ -261,6 +261,12 @@ def cli(monkeypatch, capsys):
 def test_cli_fk(cli):
     rc, out, err = cli("fk", "--joints", "0,0,0,0,0,0")
     assert rc == 0 and out == "955.000 0.000 1195.000 0.707107 0.000000 0.707107 0.000000\n"
+    assert err == ""
+    # joints the robot cannot take (configs/robot.yaml: axis 2 -70..70): the pose, and a note
+    rc, out, err = cli("fk", "--joints", "0,100,0,0,0,0")
+    assert rc == 0 and len(out.split()) == 7
+    assert err == ("note: axis 2 is +30.000 deg outside its range -70..70 (robot config): the "
+                   "robot cannot reach these joints\n")
     rc, out, _ = cli("fk", "--joints", "30.80,-12.13,15.33,-40.00,59.80,-28.00")
     v = [float(x) for x in out.split()]
     # RobotStudio pair 1 (test_robot_kinematics.py): 691.027 356.960 921.353 ...

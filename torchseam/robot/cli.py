@@ -148,12 +148,24 @@ def _fmt(values: Any, digits: int) -> str:
 
 
 def run_fk(args: argparse.Namespace) -> int:
+    import torch
+
     from torchseam.robot.kinematics import pose_to_xyzq
 
     q = parse_joints(args.joints)
     robot = _robot(args)
     xyzq = pose_to_xyzq(robot.fk([q]))[0]
     print(f"{_fmt(xyzq[:3], 3)} {_fmt(xyzq[3:], 6)}")
+    # FK is defined outside the axis ranges, but the robot cannot stand there: say so (stderr,
+    # so that the pose line stays the only output a script reads)
+    excess = robot.range_excess(torch.as_tensor([q], dtype=robot.dtype))[0].tolist()
+    lo, hi = robot.min_deg.tolist(), robot.max_deg.tolist()
+    what = "axis3 - axis2" if robot.axis3_difference else "axis 3"
+    for i, e in enumerate(excess):
+        if e != 0.0:
+            name = what if i == 2 else f"axis {i + 1}"
+            print(f"note: {name} is {e:+.3f} deg outside its range {lo[i]:g}..{hi[i]:g} "
+                  f"(robot config): the robot cannot reach these joints", file=sys.stderr)
     return 0
 
 
