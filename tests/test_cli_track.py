@@ -129,3 +129,24 @@ def test_eval_counts_the_frames_said_tracked_and_the_false_ones(seq_dir, tmp_pat
         assert "tracked %" in out and "false trk" in out
         row = out.strip().splitlines()[-1].split()
         assert float(row[6]) == pytest.approx(100.0) and int(row[7]) == false, out
+
+
+def test_ctrl_c_in_track_says_how_far_the_rows_go(seq_dir, tmp_path, monkeypatch, capsys):
+    """Ctrl-C during `track` (here on frame 12): the rows written stay, and one line says
+    which frames they hold; the command then ends as interrupted (130)."""
+    from torchseam.core.dataset import Dataset
+
+    read = Dataset.read
+
+    def read_until_ctrl_c(self, i):
+        if i == 12:
+            raise KeyboardInterrupt
+        return read(self, i)
+
+    monkeypatch.setattr(Dataset, "read", read_until_ctrl_c)
+    out = tmp_path / "c.csv"
+    assert main(["track", str(seq_dir), "--tracker", "tipm", "--out", str(out)]) == 130
+    rows = list(csv.DictReader(out.open()))
+    assert [int(r["frame"]) for r in rows] == list(range(12))
+    err = capsys.readouterr().err
+    assert f"tipm: interrupted after 12 of 30 frames; {out} holds frames 0-11" in err

@@ -269,7 +269,16 @@ def run_track(args: argparse.Namespace) -> int:
             counts[status] = counts.get(status, 0) + 1
             fh.flush()  # a run that stops early keeps the rows so far
 
-        note, _ = _follow(args, tracker, ds, uv0, row, tipm)
+        try:
+            note, _ = _follow(args, tracker, ds, uv0, row, tipm)
+        except KeyboardInterrupt:
+            # the rows written stay (flushed one by one): say how far they go, then stop
+            done = sum(n for k, n in counts.items() if k != MISSING)
+            kept = (f"{args.out} holds frames {int(ds.frames[0])}-{state['next'] - 1}"
+                    if out else f"nothing written to {args.out}")
+            print(f"{args.tracker}: interrupted after {done} of {len(ds)} frames; {kept}",
+                  file=sys.stderr, flush=True)
+            raise
     shown = ", ".join(f"{k} {n}" for k, n in counts.items()
                       if n or k in STATUS_NAMES.values())
     print(f"{args.tracker}: {len(ds)} frames -> {args.out} ({said}start: {note}; {shown})")
