@@ -241,3 +241,33 @@ def test_replay_command_on_folder_and_video(recording, video, tmp_path, capsys):
     assert "no such folder or video file" in capsys.readouterr().err
     assert main(["replay", str(folder), "--init", "1,2,3"]) == 2
     assert "--init" in capsys.readouterr().err
+
+
+def test_ctrl_c_stops_the_replay_with_the_figures_of_the_frames_done(recording, tmp_path,
+                                                                     monkeypatch, capsys):
+    """SIGINT (Ctrl-C) while the 11th frame is read: the replay stops before the next frame,
+    prints the figures of the frames done, writes --out for them and exits 130."""
+    import os
+    import signal
+
+    from torchseam.core.dataset import Dataset
+
+    folder, _ = recording
+    read = Dataset.read
+
+    def read_then_ctrl_c(self, i, *a, **k):
+        if i == 10:
+            os.kill(os.getpid(), signal.SIGINT)
+        return read(self, i, *a, **k)
+
+    monkeypatch.setattr(Dataset, "read", read_then_ctrl_c)
+    out = tmp_path / "c.csv"
+    before = signal.getsignal(signal.SIGINT)
+    assert main(["replay", str(folder), "--out", str(out)]) == 130
+    assert signal.getsignal(signal.SIGINT) is before  # the handler put back
+    cap = capsys.readouterr()
+    assert "replay of" in cap.out and ": 11 frames (start frame 0)" in cap.out
+    assert "[frame 11] stopped by SIGINT" in cap.out
+    assert "interrupted by SIGINT after 11 frames" in cap.err
+    lines = out.read_text().splitlines()
+    assert lines[0] == "frame,t_s,u,v,status,x,y,z" and len(lines) == 11  # frames 1-10

@@ -148,6 +148,7 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     import torch
 
     from torchseam.core.transforms import pose_matrix
+    from torchseam.live.events import DemoControl
     from torchseam.live.parts import load_live_parts
     from torchseam.live.replay import run_replay
     from torchseam.live.sources import FolderSource, open_source
@@ -190,13 +191,22 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     if meta and isinstance(meta.get("frames"), list):
         truth = {int(e["frame"]): np.asarray(e["seam_mm"], float)
                  for e in meta["frames"] if "seam_mm" in e and "frame" in e}
+    # SIGINT / SIGTERM: the first stops the replay before the next frame (the figures and
+    # --out then cover the frames done); a second quits at once
+    control = DemoControl()
+    stop = SignalStop(control.stop)
     t0 = time.perf_counter()
-    with source:
+    with source, stop.installed():
         res = run_replay(cell, source,
                          tracker,
-                         pose, uv0, parts=parts, max_frames=args.max_frames, truth=truth)
+                         pose, uv0, parts=parts, max_frames=args.max_frames, truth=truth,
+                         control=control)
     wall = time.perf_counter() - t0
     n = len(res.index)
+    if stop.signal is not None and n == 0:
+        print(f"torchseam replay: interrupted by {stop.signal} before the start frame was "
+              "tracked: nothing to report", file=sys.stderr)
+        return EXIT_SIGNAL[stop.signal]
     lost = int(np.sum(res.status == int(TrackStatus.LOST)))
     located = int(np.sum(np.isfinite(res.p).all(axis=1)))
     print(f"replay of {args.source}: {n + 1} frames (start frame {res.start_index}), tracker "
@@ -235,6 +245,10 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
                          f"{STATUS_NAMES.get(int(res.status[i]), res.status[i])},"
                          f"{x:.4f},{y:.4f},{z:.4f}\n")
         print(f"per-frame track: {args.out}")
+    if stop.signal is not None:
+        print(f"torchseam replay: interrupted by {stop.signal} after {n + 1} frames (start frame "
+              "included): the figures above are theirs", file=sys.stderr)
+        return EXIT_SIGNAL[stop.signal]
     return 0
 
 

@@ -119,7 +119,7 @@ def run_replay(cell: CellConfig, source: Iterable[Any], tracker: FrameTracker,
     while max_frames is None or n < max_frames:
         if control is not None and control.checkpoint():
             stopped = True
-            messages.append(f"[frame {n}] stopped by the operator")
+            messages.append(f"[frame {n}] stopped by {control.stopped_by}")
             break
         t0 = time.perf_counter()
         try:
