@@ -152,8 +152,6 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
     from torchseam.live.parts import load_live_parts
     from torchseam.live.replay import run_replay
     from torchseam.live.sources import FolderSource, open_source
-    from torchseam.track.fusion import TrackStatus
-    from torchseam.track.peers import STATUS_NAMES
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -207,14 +205,34 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
         print(f"torchseam replay: interrupted by {stop.signal} before the start frame was "
               "tracked: nothing to report", file=sys.stderr)
         return EXIT_SIGNAL[stop.signal]
-    lost = int(np.sum(res.status == int(TrackStatus.LOST)))
-    located = int(np.sum(np.isfinite(res.p).all(axis=1)))
     print(f"replay of {args.source}: {n + 1} frames (start frame {res.start_index}), tracker "
           f"{args.tracker}" + (f", joint {args.joint} (from {origin})" if origin else "")
           + f", {wall:.1f} s; torch poses "
           + ("from the recording" if res.poses_known else
              ("from --pose" if pose is not None else "not recorded: flange at the base origin "
               "(3D points in the flange frame)")))
+    print(format_table(["figure", "value", "unit"], _replay_rows(res)))
+    for m in res.messages[:8]:
+        print("  " + m)
+    if args.out is not None:
+        _write_replay_csv(res, args.out)
+        print(f"per-frame track: {args.out}")
+    if stop.signal is not None:
+        print(f"torchseam replay: interrupted by {stop.signal} after {n + 1} frames (start frame "
+              "included): the figures above are theirs", file=sys.stderr)
+        return EXIT_SIGNAL[stop.signal]
+    return 0
+
+
+def _replay_rows(res: Any) -> list[list[object]]:
+    """The replay's figure table: tracked / lost, located, planned, errors, latencies."""
+    import numpy as np
+
+    from torchseam.track.fusion import TrackStatus
+
+    n = len(res.index)
+    lost = int(np.sum(res.status == int(TrackStatus.LOST)))
+    located = int(np.sum(np.isfinite(res.p).all(axis=1)))
     rows: list[list[object]] = [["frames tracked / lost", f"{n - lost} / {lost}", ""],
             ["3D seam points located", located, ""],
             ["poses planned (open loop, not sent)", len(res.commands), ""]]
@@ -231,25 +249,22 @@ def run_replay_cmd(args: argparse.Namespace) -> int:
         rows.append([f"{k} p50 / p99", f"{a:.2f} / {b:.2f}", "ms"])
     rows.append(["read a frame (source, not in the loop) p50 / p99",
                  f"{res.read_ms[0]:.2f} / {res.read_ms[1]:.2f}", "ms"])
-    print(format_table(["figure", "value", "unit"], rows))
-    for m in res.messages[:8]:
-        print("  " + m)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        with args.out.open("w") as fh:
-            fh.write("frame,t_s,u,v,status,x,y,z\n")
-            for i in range(n):
-                u, v = res.uv[i]
-                x, y, z = res.p[i]
-                fh.write(f"{res.index[i]},{res.t_s[i]:.6f},{u:.4f},{v:.4f},"
-                         f"{STATUS_NAMES.get(int(res.status[i]), res.status[i])},"
-                         f"{x:.4f},{y:.4f},{z:.4f}\n")
-        print(f"per-frame track: {args.out}")
-    if stop.signal is not None:
-        print(f"torchseam replay: interrupted by {stop.signal} after {n + 1} frames (start frame "
-              "included): the figures above are theirs", file=sys.stderr)
-        return EXIT_SIGNAL[stop.signal]
-    return 0
+    return rows
+
+
+def _write_replay_csv(res: Any, path: Path) -> None:
+    """``frame,t_s,u,v,status,x,y,z`` per frame after the start frame."""
+    from torchseam.track.peers import STATUS_NAMES
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w") as fh:
+        fh.write("frame,t_s,u,v,status,x,y,z\n")
+        for i in range(len(res.index)):
+            u, v = res.uv[i]
+            x, y, z = res.p[i]
+            fh.write(f"{res.index[i]},{res.t_s[i]:.6f},{u:.4f},{v:.4f},"
+                     f"{STATUS_NAMES.get(int(res.status[i]), res.status[i])},"
+                     f"{x:.4f},{y:.4f},{z:.4f}\n")
 
 
 # what --start-offset-mm / --start-angle-deg accept (bad input beyond: exit 2); the search's
