@@ -431,6 +431,18 @@ def test_the_cell_file_names_its_camera(tmp_path):
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match=r"bad.yaml: camera.source: expected tcp://HOST:PORT"):
         load_weld_cell(tmp_path / "bad.yaml")
+    # the sensor's calibration (configs/cell.yaml) given for a cell file: named as such
+    from torchseam.core.config import config_path
+
+    with pytest.raises(ConfigError, match=r"cell.yaml: this is a sensor calibration .*not a "
+                                          r"cell file.*virtual-cell --write-cell FILE"):
+        load_weld_cell(config_path("cell.yaml"))
+    # a cell file with an unknown field is still said so
+    data = to_dict(cell)
+    data["hand_eye"] = {}
+    (tmp_path / "odd.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"odd.yaml: hand_eye: unknown field"):
+        load_weld_cell(tmp_path / "odd.yaml")
 
 
 def test_the_reply_puts_the_arc_out_over_a_standing_torch():

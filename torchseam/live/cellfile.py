@@ -127,9 +127,32 @@ def wait_for_cell(path: Path, seconds: float, command: str) -> None:
         time.sleep(0.1)
 
 
+#: top-level fields of the sensor's calibration (configs/cell.yaml) that a cell file holds
+#: under ``calibration:`` only
+_CALIBRATION_ONLY = ("laser_plane", "hand_eye", "tool", "process")
+
+
 def load_weld_cell(path: str | os.PathLike[str]) -> WeldCell:
-    """Read and validate a cell file (:class:`ConfigError` naming the file and the field)."""
-    return load_config(WeldCell, path)
+    """Read and validate a cell file (:class:`ConfigError` naming the file and the field).
+
+    The sensor's calibration file (``configs/cell.yaml``, what ``calibrate`` writes) given
+    instead is named as such, with how to make a cell file, rather than as an unknown field.
+    """
+    try:
+        return load_config(WeldCell, path)
+    except ConfigError:
+        try:
+            raw = yaml.safe_load(Path(path).read_text())
+        except (OSError, yaml.YAMLError):
+            raw = None
+        if (isinstance(raw, dict) and "calibration" not in raw
+                and any(k in raw for k in _CALIBRATION_ONLY)):
+            raise ConfigError(
+                f"{path}: this is a sensor calibration (the fields of configs/cell.yaml), not "
+                "a cell file: a cell file holds it under calibration:, with camera: (source, "
+                "latency_ms) and controller: (the EGM addresses); `torchseam virtual-cell "
+                "--write-cell FILE` writes one to start from (README, section 4)") from None
+        raise
 
 
 def save_weld_cell(cell: WeldCell, path: str | os.PathLike[str], header: str = "") -> None:
