@@ -486,6 +486,47 @@ def test_the_four_calibrations_in_turn_keep_the_file_s_comments(tmp_path, cell):
     assert got.tool.position_mm == (0.0204, -0.031, 349.9121)
 
 
+def test_a_calibration_goes_into_a_cell_file_in_place(tmp_path, cell):
+    """`calibrate KIND --cell CELLFILE --write CELLFILE` on the cell file `weld --cell` reads
+    (the calibration under `calibration:`, then the camera and controller links, whose
+    top-level `camera:` must not be taken for the calibrated camera): only the calibrated
+    section changes, the links and a person's comments stay, and weld reads the result."""
+    from torchseam.geometry.calibrate import load_calibrated_cell
+    from torchseam.live.cellfile import (
+        CameraLink,
+        ControllerLink,
+        WeldCell,
+        load_weld_cell,
+        save_weld_cell,
+    )
+
+    target = tmp_path / "cell.yaml"
+    links = (CameraLink(source="tcp://10.0.0.5:7000", latency_ms=21.5),
+             ControllerLink(host="10.0.0.2", port=6510, controller_host="10.0.0.7",
+                            controller_port=6511))
+    save_weld_cell(WeldCell(cell, *links), target, header="# cell 3, line B\n")
+    target.write_text(target.read_text().replace("    fx:", "    # the lens: 16 mm\n    fx:", 1)
+                      + "# end of the cell file\n")
+    steps = [("camera", dataclasses.replace(cell.camera, fx=1599.7401, fy=1599.8815,
+                                            cx=331.1456, cy=243.0019,
+                                            dist=(-0.0805, 0.1411, 0.00058, -0.00036, 0.0))),
+             ("tool", dataclasses.replace(cell.tool, position_mm=(0.0204, -0.031, 349.9121)))]
+    for section, value in steps:
+        written, kept = update_cell(target, target, section, value, f"calibrated: {section}")
+        assert kept, section
+        weld_cell = load_weld_cell(target)
+        assert written == load_calibrated_cell(target) == weld_cell.calibration, section
+        assert (weld_cell.camera, weld_cell.controller) == links, section
+        text = target.read_text()
+        assert text.startswith("# cell 3, line B\n") and "# end of the cell file" in text
+        assert "    # the lens: 16 mm\n" in text
+        assert f"# calibrated: {section}" in text, section
+    got = load_weld_cell(target).calibration
+    assert (got.camera.fx, got.camera.dist[1]) == (1599.7401, 0.1411)
+    assert got.tool.position_mm == (0.0204, -0.031, 349.9121)
+    assert got.laser_plane == cell.laser_plane and got.hand_eye == cell.hand_eye
+
+
 def test_cli_handeye_reads_its_folder(tmp_path, handeye_set, cell, capsys):
     folder = tmp_path / "he"
     folder.mkdir()

@@ -58,7 +58,9 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
                              f"'{section}' section and prints the residuals.")
         q.add_argument("dir", type=Path, metavar="DIR", help="folder of the calibration set")
         q.add_argument("--cell", type=Path,
-                       help="cell config to start from (default configs/cell.yaml)")
+                       help="cell config to start from: a calibration file (default "
+                            "configs/cell.yaml) or a cell file for `weld --cell` (its "
+                            "calibration: section is updated, the rest kept)")
         q.add_argument("--write", type=out_file_arg, metavar="OUT.yaml",
                        help="where to write the updated cell config (default DIR/cell.yaml; "
                             "may be the --cell file itself)")
@@ -102,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
         calibrate_hand_eye,
         calibrate_laser_plane,
         calibrate_tcp,
+        load_calibrated_cell,
         load_calibration,
         load_camera_set,
         load_handeye_set,
@@ -112,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_calibration(args.calib)
     cell_path = Path(args.cell) if args.cell else config_path("cell.yaml")
-    cell = load_cell(cell_path)
+    cell = load_calibrated_cell(cell_path)  # a calibration file or a cell file (weld --cell)
     folder = Path(args.dir)
     section, _ = KINDS[args.kind]
     out = Path(args.write) if args.write else folder / "cell.yaml"

@@ -159,7 +159,9 @@ def save_weld_cell(cell: WeldCell, path: str | os.PathLike[str], header: str = "
     """Write a cell file atomically (a reader never sees half of it), its folder made when it
     is not there yet (``--write-cell V/cell.yaml`` from an empty folder)."""
     p = Path(path)
-    text = header + yaml.safe_dump(to_dict(cell), sort_keys=False)
+    # lists of numbers on one line ([k1, k2, ...]): `calibrate KIND --cell` then rewrites a
+    # calibrated section in place, keeping the file's comments
+    text = header + yaml.safe_dump(to_dict(cell), sort_keys=False, default_flow_style=None)
     tmp = p.with_name(f".{p.name}.tmp")
     try:
         p.parent.mkdir(parents=True, exist_ok=True)

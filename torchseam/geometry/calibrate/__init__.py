@@ -59,7 +59,11 @@ from torchseam.core.calibration import (
     load_calibration,
 )
 from torchseam.geometry.calibrate.camera import CameraCalibration, calibrate_camera, load_camera_set
-from torchseam.geometry.calibrate.cellfile import splice_section, update_cell
+from torchseam.geometry.calibrate.cellfile import (
+    load_calibrated_cell,
+    splice_section,
+    update_cell,
+)
 from torchseam.geometry.calibrate.handeye import (
     HAND_EYE_METHODS,
     HandEyeCalibration,
@@ -94,6 +98,7 @@ __all__ = ["HAND_EYE_METHODS", "IMAGE_SUFFIXES", "BoardSpec", "CalibrationConfig
            "SimulationSettings", "TcpCalibration", "TcpSetSim", "TcpSettings", "board_pose",
            "calibrate_camera", "calibrate_hand_eye", "calibrate_laser_plane", "calibrate_tcp",
            "detect_board", "extract_stripe", "fit_plane", "hand_eye_linear", "list_images",
+           "load_calibrated_cell",
            "load_calibration", "load_camera_set", "load_handeye_set", "load_laser_set",
            "load_tcp_set", "read_image", "splice_section", "stripe_on_board",
            "to_grey", "update_cell"]

@@ -13,16 +13,18 @@ import re
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from torchseam.core.config import (
     CellConfig,
     ConfigError,
     from_dict,
-    load_cell,
+    read_yaml,
     save_config,
     to_dict,
 )
 
-__all__ = ["splice_section", "update_cell"]
+__all__ = ["load_calibrated_cell", "splice_section", "update_cell"]
 
 #: Digits kept when a calibrated value is written (far below each one's uncertainty).
 _DIGITS = {"fx": 4, "fy": 4, "cx": 4, "cy": 4, "dist": 8, "normal": 9, "distance_mm": 6,
@@ -55,20 +57,40 @@ def _yaml_value(v: Any) -> str:
     return text
 
 
-def splice_section(text: str, section: str, data: dict[str, Any], note: str) -> str | None:
-    """Replace the values of a top-level section of a YAML file in place.
+def _block(lines: list[str], key: str, lo: int, hi: int, indent: str) -> tuple[int, int] | None:
+    """The lines ``[head, end)`` of the mapping ``key`` written at ``indent`` within
+    ``lines[lo:hi]`` (its head line and everything indented deeper after it)."""
+    head = next((i for i in range(lo, hi)
+                 if re.match(rf"{indent}{key}\s*:\s*(#.*)?$", lines[i].rstrip("\n"))), None)
+    if head is None:
+        return None
+    deeper = re.compile(rf"{indent}\s+\S|\s*(#.*)?$")  # an indented line, a blank or a comment
+    end = next((i for i in range(head + 1, hi) if not deeper.match(lines[i].rstrip("\n"))), hi)
+    return head, end
+
+
+def splice_section(text: str, section: str, data: dict[str, Any], note: str,
+                   parent: str | None = None) -> str | None:
+    """Replace the values of a top-level section of a YAML file in place (or of a section
+    of the top-level mapping ``parent``: a cell file's ``calibration``).
 
     Keeps every comment and every other line; a ``# calibrated: ...`` line right under the
     section's key is replaced by ``note``. Returns None when a field is not a one-line value
     in ``text`` (the caller then writes the whole file anew).
     """
     lines = text.splitlines(keepends=True)
-    head = next((i for i, ln in enumerate(lines) if re.match(rf"{section}\s*:\s*(#.*)?$", ln)),
-                None)
-    if head is None:
+    found = _block(lines, section, 0, len(lines), "")
+    if parent is not None:
+        outer = _block(lines, parent, 0, len(lines), "")
+        inner = None
+        if outer is not None:
+            m = next((re.match(r"(\s+)\S", lines[i]) for i in range(outer[0] + 1, outer[1])
+                      if re.match(r"\s+[^#\s]", lines[i])), None)
+            inner = _block(lines, section, outer[0] + 1, outer[1], m.group(1)) if m else None
+        found = inner
+    if found is None:
         return None
-    end = next((i for i in range(head + 1, len(lines)) if re.match(r"[A-Za-z_]", lines[i])),
-               len(lines))
+    head, end = found
     for key, val in data.items():
         pat = re.compile(rf"^(\s+){re.escape(key)}\s*:\s*([^#\s][^#]*?)\s*(#.*)?$")
         hit = [i for i in range(head + 1, end) if pat.match(lines[i].rstrip("\n"))]
@@ -101,33 +123,60 @@ def _same(a: Any, b: Any) -> bool:
     return bool(a == b)
 
 
+#: the key under which a cell file (``torchseam weld --cell``) holds the sensor's calibration
+CELL_FILE_KEY = "calibration"
+
+
+def _is_cell_file(raw: Any) -> bool:
+    return isinstance(raw, dict) and isinstance(raw.get(CELL_FILE_KEY), dict)
+
+
+def load_calibrated_cell(path: str | Path) -> CellConfig:
+    """The sensor's calibration from ``path``: a calibration file (the fields of
+    ``configs/cell.yaml``) or a cell file (``weld --cell``), which holds them under
+    ``calibration:``. A bad field is a :class:`ConfigError` naming the file and the field."""
+    raw = read_yaml(Path(path))
+    if _is_cell_file(raw):
+        return from_dict(CellConfig, raw[CELL_FILE_KEY], source=f"{path}: {CELL_FILE_KEY}")
+    return from_dict(CellConfig, raw, source=str(path))
+
+
 def update_cell(cell_path: Path, out: Path, section: str, value: Any, note: str
                 ) -> tuple[CellConfig, bool]:
     """Write ``cell_path``'s config with ``section`` replaced by ``value`` to ``out``.
 
-    The new config is validated by core's parser first (an invalid result is a
-    :class:`ConfigError` naming the field). The file's text is kept, comments included, with
-    only the section's values changed; if the file's layout does not allow that, the whole
-    config is written with :func:`save_config`.
+    ``cell_path`` is a calibration file (the fields of ``configs/cell.yaml``) or a cell file
+    (``weld --cell``: the calibration under ``calibration:``, whose other sections, the camera
+    and the controller links, are kept as they are). The new config is validated by core's
+    parser first (an invalid result is a :class:`ConfigError` naming the field). The file's
+    text is kept, comments included, with only the section's values changed; if the file's
+    layout does not allow that, the whole file is written anew.
 
     Returns:
         ``(the written CellConfig, whether the file's text and comments were kept)``; the
-        config loads back equal with ``load_cell(out)``.
+        config loads back equal with :func:`load_calibrated_cell`.
     """
-    base = load_cell(cell_path)
+    raw = read_yaml(Path(cell_path))
+    nested = _is_cell_file(raw)
+    base = load_calibrated_cell(cell_path)
     data = to_dict(base)
     data[section] = _round(section, to_dict(value))
     new = from_dict(CellConfig, data, source=f"{out} (calibrated {section})")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    text = splice_section(Path(cell_path).read_text(), section, data[section], note)
+    text = splice_section(Path(cell_path).read_text(), section, data[section], note,
+                          parent=CELL_FILE_KEY if nested else None)
     if text is not None:
         out.write_text(text)
         try:
-            back = load_cell(out)
+            back = load_calibrated_cell(out)
             if _same(to_dict(back), to_dict(new)):
                 return back, True
         except ConfigError:
             pass
-    save_config(new, out)
+    if nested:
+        raw[CELL_FILE_KEY] = to_dict(new)
+        out.write_text(yaml.safe_dump(raw, sort_keys=False, default_flow_style=None))
+    else:
+        save_config(new, out)
     return new, False
