@@ -445,6 +445,35 @@ def test_the_cell_file_names_its_camera(tmp_path):
         load_weld_cell(tmp_path / "odd.yaml")
 
 
+def test_calibrate_latency_writes_into_the_cell_file_in_place(tmp_path):
+    """`calibrate latency` writes camera.latency_ms into the cell file as `calibrate KIND`
+    writes its sections: in place, a person's comments and the other values kept."""
+    from torchseam.core.config import load_cell
+    from torchseam.live.cellfile import (
+        CameraLink,
+        ControllerLink,
+        WeldCell,
+        load_weld_cell,
+        save_weld_cell,
+        write_latency,
+    )
+
+    cell = WeldCell(load_cell(), CameraLink(source="tcp://10.0.0.5:7000", latency_ms=30.0),
+                    ControllerLink(host="10.0.0.2", port=6510, controller_host="10.0.0.7",
+                                   controller_port=6511))
+    path = tmp_path / "cell.yaml"
+    save_weld_cell(cell, path, header="# line B\n")
+    path.write_text(path.read_text().replace("  latency_ms:", "  # measured on the cell\n"
+                                             "  latency_ms:", 1))
+    assert write_latency(path, cell, 18.456, "calibrated: latency") is True
+    got = load_weld_cell(path)
+    assert got.camera.latency_ms == 18.46 and got.calibration == cell.calibration
+    assert got.controller == cell.controller and got.camera.source == cell.camera.source
+    text = path.read_text()
+    assert text.startswith("# line B\n") and "  # measured on the cell\n" in text
+    assert "# calibrated: latency" in text
+
+
 def test_the_reply_puts_the_arc_out_over_a_standing_torch():
     """Every EGM cycle: a torch the controller feeds back as standing (a loop that fell
     behind between two frames) gets no arc, though the loop's lease still asks for it; moving

@@ -4,7 +4,7 @@ and ``latency``, which needs the cell's camera and controller (the live stage)."
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import datetime as _dt
 import math
 import signal
 import sys
@@ -53,7 +53,7 @@ def run_latency(args: argparse.Namespace) -> int:
     import torch
 
     from torchseam.core.report import format_table
-    from torchseam.live.cellfile import load_weld_cell, save_weld_cell, wait_for_cell
+    from torchseam.live.cellfile import load_weld_cell, wait_for_cell, write_latency
     from torchseam.live.latency import measure_latency
     from torchseam.live.parts import load_live_parts
     from torchseam.live.weld import Interrupted, WeldRunner
@@ -98,9 +98,9 @@ def run_latency(args: argparse.Namespace) -> int:
               f"({res.px_per_mm:.2f} px/mm): is the stripe on the part?", file=sys.stderr)
         return 1
     if not args.dry_run:
-        new = dataclasses.replace(cell, camera=dataclasses.replace(
-            cell.camera, latency_ms=round(float(res.latency_ms), 2)))
-        save_weld_cell(new, args.cell, header="# camera.latency_ms measured by torchseam "
-                                              "calibrate latency\n")
-        print(f"camera.latency_ms = {res.latency_ms:.2f} written to {args.cell}")
+        kept = write_latency(args.cell, cell, float(res.latency_ms),
+                             f"calibrated: torchseam calibrate latency "
+                             f"({_dt.date.today().isoformat()})")
+        how = "" if kept else " (written anew, the file's comments not kept)"
+        print(f"camera.latency_ms = {res.latency_ms:.2f} written to {args.cell}{how}")
     return 0

@@ -34,6 +34,7 @@ one for the virtual cell; for a real cell copy it and edit it)::
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 import time
@@ -158,10 +159,16 @@ def load_weld_cell(path: str | os.PathLike[str]) -> WeldCell:
 def save_weld_cell(cell: WeldCell, path: str | os.PathLike[str], header: str = "") -> None:
     """Write a cell file atomically (a reader never sees half of it), its folder made when it
     is not there yet (``--write-cell V/cell.yaml`` from an empty folder)."""
-    p = Path(path)
     # lists of numbers on one line ([k1, k2, ...]): `calibrate KIND --cell` then rewrites a
     # calibrated section in place, keeping the file's comments
-    text = header + yaml.safe_dump(to_dict(cell), sort_keys=False, default_flow_style=None)
+    from torchseam.geometry.calibrate.cellfile import dump_config_yaml
+
+    write_cell_text(path, header + dump_config_yaml(to_dict(cell)))
+
+
+def write_cell_text(path: str | os.PathLike[str], text: str) -> None:
+    """Write a cell file's text atomically, its folder made when it is not there yet."""
+    p = Path(path)
     tmp = p.with_name(f".{p.name}.tmp")
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -169,3 +176,25 @@ def save_weld_cell(cell: WeldCell, path: str | os.PathLike[str], header: str = "
         os.replace(tmp, p)
     except OSError as e:
         raise ConfigError(f"{p}: cannot write the cell file ({e.strerror or e})") from None
+
+
+def write_latency(path: str | os.PathLike[str], cell: WeldCell, latency_ms: float,
+                  note: str) -> bool:
+    """Write ``camera.latency_ms`` (rounded to 0.01 ms) into the cell file ``path`` that
+    ``cell`` was read from: in place, the file's comments and other lines kept (``note`` under
+    ``camera:``), else the whole file anew. Returns whether the text was kept."""
+    from torchseam.geometry.calibrate.cellfile import splice_section
+
+    new = dataclasses.replace(cell, camera=dataclasses.replace(
+        cell.camera, latency_ms=round(float(latency_ms), 2)))
+    text = splice_section(Path(path).read_text(), "camera",
+                          {"latency_ms": new.camera.latency_ms}, note)
+    if text is not None:
+        write_cell_text(path, text)
+        try:
+            if load_weld_cell(path) == new:
+                return True
+        except ConfigError:
+            pass
+    save_weld_cell(new, path, header=f"# {note}\n")
+    return False

@@ -24,7 +24,7 @@ from torchseam.core.config import (
     to_dict,
 )
 
-__all__ = ["load_calibrated_cell", "splice_section", "update_cell"]
+__all__ = ["dump_config_yaml", "load_calibrated_cell", "splice_section", "update_cell"]
 
 #: Digits kept when a calibrated value is written (far below each one's uncertainty).
 _DIGITS = {"fx": 4, "fy": 4, "cx": 4, "cy": 4, "dist": 8, "normal": 9, "distance_mm": 6,
@@ -123,6 +123,21 @@ def _same(a: Any, b: Any) -> bool:
     return bool(a == b)
 
 
+class _ListsOnOneLine(yaml.SafeDumper):
+    """YAML with mappings as blocks and lists on one line (``dist: [k1, k2, ...]``): the
+    layout :func:`splice_section` rewrites in place."""
+
+
+_ListsOnOneLine.add_representer(
+    list, lambda d, v: d.represent_sequence("tag:yaml.org,2002:seq", v, flow_style=True))
+
+
+def dump_config_yaml(data: Any) -> str:
+    """``data`` (a config's :func:`to_dict`) as YAML: mappings as blocks, lists on one line,
+    keys in their order."""
+    return yaml.dump(data, Dumper=_ListsOnOneLine, sort_keys=False)
+
+
 #: the key under which a cell file (``torchseam weld --cell``) holds the sensor's calibration
 CELL_FILE_KEY = "calibration"
 
@@ -176,7 +191,7 @@ def update_cell(cell_path: Path, out: Path, section: str, value: Any, note: str
             pass
     if nested:
         raw[CELL_FILE_KEY] = to_dict(new)
-        out.write_text(yaml.safe_dump(raw, sort_keys=False, default_flow_style=None))
+        out.write_text(dump_config_yaml(raw))
     else:
         save_config(new, out)
     return new, False
