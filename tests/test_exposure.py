@@ -80,8 +80,8 @@ def test_a_flickering_arc_does_not_make_the_exposure_hunt():
 def test_light_that_clips_at_any_exposure_is_not_chased_down():
     """A weld pool flaring over the corner for 40 frames (a disc clipped at any exposure,
     pasted on the frame): steps down change nothing in the window, so after respond_steps of
-    them the exposure holds instead of darkening the stripe to min_scale, and comes back
-    after."""
+    them the exposure goes back to where it was before them (they only darkened the stripe)
+    and holds there while the disc clips, instead of darkening the stripe to min_scale."""
     ae, rng, scales = ExposureController(CFG), np.random.default_rng(2), []
     yy, xx = np.mgrid[0:81, 0:81]
     disc = (xx - 40) ** 2 + (yy - 40) ** 2 <= 30 ** 2
@@ -92,11 +92,13 @@ def test_light_that_clips_at_any_exposure_is_not_chased_down():
             frame[disc] = 255
         ae.update(frame_stats(frame, np.array([40.0, 40.0]), CFG))
     scales = np.array(scales)
-    held = CFG.step_down ** CFG.respond_steps          # the steps it takes to tell
+    tell = CFG.step_down ** CFG.respond_steps          # the steps it takes to tell
     assert scales[21] == CFG.step_down                 # a step down: the disc clips
-    assert scales[20:61].min() == pytest.approx(held)  # and no more than those
-    assert held > CFG.min_scale
-    assert np.all(scales[-5:] == 1.0)                  # back after it
+    assert scales[20:61].min() == pytest.approx(tell)  # and no more than those
+    assert tell > CFG.min_scale
+    back = 21 + CFG.respond_steps                      # then undone: none of them helped
+    assert np.all(scales[back:61] == 1.0), scales[20:61]
+    assert np.all(scales[-5:] == 1.0)                  # and so after it
 
 
 def test_a_dim_stripe_keeps_the_configured_exposure():

@@ -19,8 +19,8 @@ tracked point:
   exposure (a weld pool flaring over the corner) is not chased down: after ``respond_steps``
   steps down in a row that each left the window's clipped share and its level within
   ``1 - respond`` of what they were (nothing changed: an arc that flickers changes them), the
-  exposure holds until the window stops clipping, rather than darkening the stripe for
-  nothing. (One step is not enough to tell: an overexposed stripe stays clipped for a step
+  exposure goes back to where it was before those steps (they only darkened the stripe) and
+  holds there until the window stops clipping. (One step is not enough to tell: an overexposed stripe stays clipped for a step
   or two before it comes under the clip.)
 
 Both are pure (numbers in, a number out); the settings are ``configs/exposure.yaml``
@@ -144,7 +144,9 @@ class ExposureController:
         self.scale = float(min(max(s, cfg.min_scale), cfg.max_scale))
         self._quiet = cfg.hold_frames   # frames in a row a step up was safe after: at once
         self._down_from: FrameStats | None = None   # the frame the last step down was for
+        self._down_scale = self.scale   # the scale that frame was taken at
         self._unhelped = 0     # steps down in a row that changed nothing in the window
+        self._undo_to = self.scale   # the scale before the first of them
 
     def update(self, stats: FrameStats) -> float:
         """Take one frame's statistics (taken at the current ``scale``); return the scale of
@@ -152,12 +154,20 @@ class ExposureController:
         cfg = self.cfg
         if stats.clipped > cfg.clip_high or stats.level > cfg.level_high:
             prev, self._down_from = self._down_from, stats
+            prev_scale, self._down_scale = self._down_scale, self.scale
             self._quiet = 0
             tol = 1.0 - cfg.respond
             if self._unhelped < cfg.respond_steps:
                 if prev is not None and (abs(stats.clipped - prev.clipped) <= tol * prev.clipped
                                          and abs(stats.level - prev.level) <= tol * prev.level):
+                    if self._unhelped == 0:
+                        self._undo_to = prev_scale
                     self._unhelped += 1    # the last step changed nothing
+                    if self._unhelped == cfg.respond_steps:
+                        # light that clips at any exposure: the steps that changed nothing
+                        # only darkened the stripe; back to the scale before them, and hold
+                        self.scale = self._undo_to
+                        return self.scale
                 else:
                     self._unhelped = 0
             if self._unhelped < cfg.respond_steps:
