@@ -379,10 +379,11 @@ class ProfileFinder:
         ``grey``: the brightness's own failure (a frame saturated by arc light is not looked
         at again).
 
-        Why: fume veils the stripe. Under it the stripe stands 5-30 grey levels above a veil
-        of 170-200, blurred to 8-10 px, and the read noise on the veil sets the threshold
-        (TIPM's noise term, ``noise_k`` times the ridge's 90th percentile: 18-24 where the
-        ridge's p90 is 6-8): the flanks' mask breaks into pieces smaller than ``min_area``,
+        Why: fume veils the stripe, blurred to 8-10 px on a bright veil, and the read noise
+        on the veil sets the threshold (TIPM's noise term, ``noise_k`` times the ridge's 90th
+        percentile: 18-33, median 21, above the stripe's median ridge on half the bench's
+        `smoke` extreme frames; docs/benchmarks.md, issue 37 h33): the flanks' mask breaks
+        into pieces smaller than ``min_area``,
         or misses a flank, and no groove is read (or one on spatter streaks). The read noise
         is the pixels' own; the fumed stripe is wider than the blur: blurred, the noise and
         the threshold with it fall several times while the stripe keeps most of its ridge,
