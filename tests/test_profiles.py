@@ -11,6 +11,7 @@ import pytest
 from scipy.special import erf
 
 from torchseam.core.config import ConfigError, load_config
+from torchseam.core.orient import BRIGHTNESS
 from torchseam.vision.axis import stripe_axis
 from torchseam.vision.profiles import (
     JOINTS,
@@ -194,6 +195,46 @@ def test_a_groove_white_along_its_centre_line_is_read_by_its_brightness():
     res = finder("v_groove")(img)
     assert res.ok, res.status
     assert np.hypot(*(res.aim - (315.0, 250.0))) <= 3.0, res.aim
+
+
+def _v_groove_under_fume(seed: int) -> np.ndarray:
+    """The groove of :data:`V_TRUTH` (mono) under a fume veil: its stripe soft (sigma 3.5 px,
+    8-10 px wide) and 28 grey levels above a veil of 183, with read noise of 6 grey levels on
+    the veil (the threshold's noise term, 3 times the ridge's 90th percentile, stands above
+    the stripe's ridge on most of its pixels) and two spatter streaks at 255, one across the
+    left flank near the root, one by the right root (as the bench's `smoke` extreme frames)."""
+    t = V_TRUTH
+    pieces = [((0, 150), t["left_shoulder"], 28.0), (t["left_shoulder"], t["left_root"], 28.0),
+              (t["right_root"], t["right_shoulder"], 28.0),
+              (t["right_shoulder"], (639, 150), 28.0)]
+    rng = np.random.default_rng(seed + 10)
+    img = draw(pieces, sigma=3.5, seed=seed) + 175.0 + rng.normal(0.0, 6.0, (480, 640))
+    streaks = np.zeros((480, 640), np.uint8)
+    for a, b in (((240, 230), (275, 165)), ((380, 215), (420, 250))):
+        cv2.line(streaks, a, b, 255, 2, cv2.LINE_AA)
+    return np.clip(np.maximum(img, streaks), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("seed", [2, 3, 5])
+@pytest.mark.parametrize("look", ["mono", "colour"])
+def test_a_groove_under_fume_is_read_on_its_brightness_blurred(seed, look):
+    """Fume veils the stripe: the read noise on the veil sets the threshold above most of the
+    stripe's ridge, its mask breaks into pieces and no groove is read (no shoulder on either
+    side); blurred by ``soft_sigma_px`` the noise falls several times, the soft stripe keeps
+    its ridge, and the groove is read (profiles.ProfileFinder._soft). A grey veil over a grey
+    stripe has no red excess: a colour frame is read by its brightness, as a mono one."""
+    img = _v_groove_under_fume(seed)
+    if look == "colour":
+        img = np.ascontiguousarray(np.repeat(img[..., None], 3, axis=2))
+    plain = finder("v_groove")
+    grey = cv2.transform(img, BRIGHTNESS) if look == "colour" else img
+    assert not plain._profile(grey).ok   # the brightness as it is: no groove
+    res = finder("v_groove")(img)
+    assert res.ok, res.status
+    near(res, V_TRUTH, 2.0)
+    assert np.hypot(*(res.aim - (315.0, 250.0))) <= 1.5, res.aim
+    off = dataclasses.replace(CFG, soft_sigma_px=0.0)   # without the blurred look: none
+    assert not ProfileFinder(TIPM, off, "v_groove")(img).ok
 
 
 def test_profiles_refuse_a_plain_straight_stripe():

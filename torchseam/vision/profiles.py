@@ -51,7 +51,7 @@ from torchseam.core.dataset import check_frame
 from torchseam.core.kernels import load_kernels
 from torchseam.core.orient import BRIGHTNESS, FrameView
 from torchseam.core.overlay import put_label
-from torchseam.vision.tipm import Tipm, TipmResult, red_response
+from torchseam.vision.tipm import SATURATED, Tipm, TipmResult, red_response
 
 #: the joint profiles (``joint:`` of a part, ``--joint`` of the commands)
 JOINTS = JOINT_PROFILES
@@ -86,6 +86,7 @@ class ProfileConfig:
     arm_px: float = config_field(lo=2.0)
     far_side: str = config_field(choices=("up", "down"))
     lit_face_share: float = config_field(lo=0.0, hi=1.0, lo_open=True)
+    soft_sigma_px: float = config_field(lo=0.0)
 
 
 def load_profile_config(path: str | Path | None = None) -> ProfileConfig:
@@ -318,7 +319,8 @@ class ProfileFinder:
             return ProfileResult("fillet", True, res.uv.copy(), {"corner": res.uv.copy()},
                                  centre=res.centre, tipm=res)
         if frame.ndim != 3:
-            return self._profile(frame)
+            found = self._profile(frame)
+            return found if found.ok else self._soft(frame, found, found)
         # a colour frame is also looked at by its brightness, as a mono frame: where the red
         # excess gives no profile (Tipm.find says why: red glare clipped round the stripe,
         # red-tinted fume), and where glare clips R round the stripe at the joint on more
@@ -338,8 +340,9 @@ class ProfileFinder:
         # its face stays)
         found = self._profile(frame)
         if not found.ok:
-            grey = self._profile(cv2.transform(frame, BRIGHTNESS))
-            return grey if grey.ok else found
+            bright = cv2.transform(frame, BRIGHTNESS)
+            grey = self._profile(bright)
+            return grey if grey.ok else self._soft(bright, grey, found)
         # the brightness is read beside a found profile only where white light lies within
         # fit_px of an aim it could be taken at as the same joint (a stripe's width of this
         # one's; a stripe is no wider than max_run_px + 1: a taller run is a blob, stripe())
@@ -367,6 +370,32 @@ class ProfileFinder:
                     np.linalg.norm(found.centre - grey.aim, axis=1))) > self.cfg.fit_px):
             return grey
         return found
+
+    def _soft(self, bright: np.ndarray, grey: ProfileResult, found: ProfileResult
+              ) -> ProfileResult:
+        """A groove's last look, where neither the red excess nor the brightness gives one:
+        the brightness ``bright`` (H, W) blurred by a Gaussian of ``soft_sigma_px``; the
+        profile found there, else ``found`` (the first look's failure: its reason stands).
+        ``grey``: the brightness's own failure (a frame saturated by arc light is not looked
+        at again).
+
+        Why: fume veils the stripe, blurred to 8-10 px on a bright veil, and the read noise
+        on the veil sets the threshold (TIPM's noise term, ``noise_k`` times the ridge's 90th
+        percentile: 18-33, median 21, above the stripe's median ridge on half the bench's
+        `smoke` extreme frames; docs/benchmarks.md, issue 37 h33): the flanks' mask breaks
+        into pieces smaller than ``min_area``,
+        or misses a flank, and no groove is read (or one on spatter streaks). The read noise
+        is the pixels' own; the fumed stripe is wider than the blur: blurred, the noise and
+        the threshold with it fall several times while the stripe keeps most of its ridge,
+        and its centre line and ends (where it has half its light) stay where they were.
+        Only a groove (the tracker checks its root edges against their recent places, and
+        a frame it reads off is no evidence); a frame with a groove at the first looks
+        keeps it."""
+        sigma = self.cfg.soft_sigma_px
+        if self.joint != "v_groove" or sigma <= 0 or grey.reason == SATURATED:
+            return found
+        soft = self._profile(cv2.GaussianBlur(bright, (0, 0), sigma))
+        return soft if soft.ok else found
 
     def _white_break(self, frame: np.ndarray, pts: np.ndarray | None) -> bool:
         """Whether glare whitens the stripe in a break of a centre line (N, 2) (ordered along
