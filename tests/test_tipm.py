@@ -726,3 +726,96 @@ def test_thin_clipped_runs_take_a_clipped_line_not_a_core_or_specks():
         for max_rows, min_area in ((3, 0), (5, 4), (10, 20)):
             assert np.array_equal(thin_clipped_runs(p, max_rows, min_area),
                                   plain(p, max_rows, min_area)), (k, max_rows, min_area)
+
+
+def _opencv_large_blobs(binary: np.ndarray, min_area: int) -> tuple[int, np.ndarray]:
+    """What :meth:`Tipm._mask` did before ``_kernels.large_blobs``: the blobs of ``min_area``
+    px at least through ``cv2.connectedComponentsWithStats`` (8-connected) and a lookup."""
+    n, lab, blobs, _ = cv2.connectedComponentsWithStats(binary, connectivity=8,
+                                                        ltype=cv2.CV_32S)
+    keep = np.nonzero(blobs[1:, cv2.CC_STAT_AREA] >= min_area)[0] + 1
+    lut = np.zeros(n, np.uint8)
+    lut[keep] = 255
+    return len(keep), lut[lab]
+
+
+def test_compiled_blobs_are_opencvs_connected_components_to_the_bit(cell, part, noise):
+    """The stripe mask's blobs of ``min_area`` px at least (``_kernels.large_blobs``, by runs)
+    against ``cv2.connectedComponentsWithStats``: the binary images of heavy-arc windows
+    (the tracker's), random images from sparse to dense, 1-row and 1-column boxes, boxes
+    inside a larger image; and the whole mask and its reason through :meth:`Tipm._mask`."""
+    tipm = load_tipm()
+    k = tipm._k
+    rng = np.random.default_rng(7)
+    images, ridges = [], []
+    for f, _ in list(simulate(cell, part, noise, SequenceSpec(n_frames=12, level=1.0,
+                                                                seed=3)))[::2]:
+        for y, x in ((150, 200), (0, 0), (300, 450)):
+            ridges.append(tipm.stripe_mask(np.ascontiguousarray(f[y:y + 221, x:x + 221]))[0]
+                          .copy())
+            for thr in (3, 8, 20):
+                images.append(np.where(ridges[-1] > thr, 255, 0).astype(np.uint8))
+    ridges += [(rng.random((60, 80)) * rng.uniform(0, 255, 80)).astype(np.uint8),
+               np.zeros((30, 30), np.uint8)]
+    for _ in range(150):
+        h, w = (int(x) for x in rng.integers(1, 90, 2))
+        images.append(np.where(rng.random((h, w)) < rng.uniform(0.02, 0.8), 255, 0
+                               ).astype(np.uint8))
+    images += [np.full((1, 50), 255, np.uint8), np.full((40, 1), 255, np.uint8),
+               np.eye(30, dtype=np.uint8) * 255, np.zeros((5, 5), np.uint8)]
+    for img in images:
+        h, w = img.shape
+        for y0, y1, x0, x1 in ((0, h, 0, w), (h // 4, h - h // 5, w // 3, w)):
+            if y1 <= y0 or x1 <= x0:
+                continue
+            box = np.ascontiguousarray(img[y0:y1, x0:x1])
+            for min_area in (1, 7, tipm.cfg.min_area):
+                out = np.full(box.shape, 9, np.uint8)
+                _, kept = k.large_blobs(img, y0, y1, x0, x1, min_area, out)
+                ref_kept, ref = _opencv_large_blobs(box, min_area)
+                assert kept == ref_kept
+                np.testing.assert_array_equal(out, ref)
+    for ridge in ridges:  # the whole mask and its reason, as _mask made them with OpenCV
+        mask, why = tipm._mask(ridge, np.empty_like(ridge))
+        _, binary = cv2.threshold(ridge, tipm._threshold(ridge), 255, cv2.THRESH_BINARY)
+        x, y, bw, bh = cv2.boundingRect(binary)
+        d = tipm.cfg.dilate_px
+        roi = (slice(max(y - d, 0), y + bh + d), slice(max(x - d, 0), x + bw + d))
+        n_kept, kept = _opencv_large_blobs(np.ascontiguousarray(binary[roi]), tipm.cfg.min_area)
+        ref = np.zeros_like(binary)
+        ref[roi] = cv2.dilate(kept, tipm._kernel)
+        assert why == ("no stripe found (no red pixels above threshold)" if bw == 0 else
+                       "no stripe found (only small blobs)" if n_kept == 0 else "")
+        np.testing.assert_array_equal(mask, ref if why == "" else np.zeros_like(ref))
+
+
+def test_compiled_brightness_plane_is_the_opencv_calls_to_the_bit(cell, part, noise):
+    """The brightness look's plane (``_kernels.brightness_line``) against the OpenCV calls it
+    replaces (``cv2.transform`` by BRIGHTNESS, the ridge's blur, the dilation by the two
+    rows ``ridge_px // 2`` away, saturating arithmetic): heavy-arc frames and windows, windows
+    shorter than the ridge filter, random images; and the brightness on every (B, G, R)."""
+    from torchseam.core.orient import BRIGHTNESS
+
+    tipm = load_tipm()
+    rng = np.random.default_rng(9)
+    frames = [f for f, _ in simulate(cell, part, noise, SequenceSpec(n_frames=6, level=1.0,
+                                                                     seed=4))]
+    images = [np.ascontiguousarray(f[y:y + 221, x:x + 221]) for f in frames
+              for y, x in ((0, 0), (150, 200), (400, 500))]
+    images += [rng.integers(0, 256, (int(h), int(w), 3), dtype=np.uint8)
+               for h, w in rng.integers(1, 60, (40, 2))]
+    images += [np.full((25, 30, 3), 255, np.uint8), frames[0]]
+    for img in images:
+        h, w = img.shape[:2]
+        grey, out = np.empty((h, w), np.uint8), np.empty((h, w), np.uint8)
+        tipm._k.brightness_line(img, int(tipm.cfg.ridge_px), tipm._mean_of, grey, out)
+        ref_grey = cv2.transform(img, BRIGHTNESS)
+        line = cv2.subtract(ref_grey, cv2.dilate(ref_grey, tipm._sides))
+        ridge = cv2.subtract(ref_grey, cv2.blur(ref_grey, (1, tipm.cfg.ridge_px)))
+        np.testing.assert_array_equal(grey, ref_grey)
+        np.testing.assert_array_equal(out, cv2.min(ridge, cv2.add(line, line)))
+    v = np.arange(256, dtype=np.uint8)  # every (B, G, R): 4096 x 4096 pixels
+    every = np.stack(np.meshgrid(v, v, v, indexing="ij"), -1).reshape(4096, 4096, 3)
+    grey = np.empty((4096, 4096), np.uint8)
+    tipm._k.brightness_line(every, 1, tipm._mean_of, grey, np.empty_like(grey))
+    np.testing.assert_array_equal(grey, cv2.transform(every, BRIGHTNESS))
