@@ -629,7 +629,9 @@ class LiteEAKFSTC:
         # None, centre, rho scale), in order
         self._pending: list[tuple[np.ndarray | None, np.ndarray | None, np.ndarray, float]] = []
         # numba: compiled (or loaded) now, not on the first frame
-        self._peak_quality = load_kernels(__package__).peak_quality
+        kernels = load_kernels(__package__)
+        self._peak_quality = kernels.peak_quality
+        self._red_window = kernels.red_window
         # the filter's state, set by init (with H_f: None until then)
         self.x: np.ndarray | None = None
         self.P: np.ndarray | None = None
@@ -687,6 +689,11 @@ class LiteEAKFSTC:
         hi, wi = frame.shape[:2]
         u, v = int(c[0]), int(c[1])
         r0, c0 = v - self.h // 2, u - self.w // 2
+        if frame.ndim == 3 and frame.dtype == np.uint8 and frame.flags.c_contiguous:
+            # crop (border replicated), red response and float64 in one compiled pass
+            win = np.empty((self.h, self.w))
+            self._red_window(frame, r0, c0, win)
+            return win
         if r0 >= 0 and c0 >= 0 and r0 + self.h <= hi and c0 + self.w <= wi:
             win = frame[r0:r0 + self.h, c0:c0 + self.w]
         else:
@@ -811,13 +818,16 @@ class LiteEAKFSTC:
         centre = np.minimum(np.maximum(pred, 0.0), [wi - 1.0, hi - 1.0])
         z, psr, second_ratio, n_peaks, peak = self._detect(frame, centre)  # 2. measurement
         # 3. innovation of the delayed update (eakf_innovation, eq. 21-25)
-        Z_new = np.stack([z, z - self.Z[:, 0]], axis=-1)
+        Z_new = np.empty((2, 2))  # (np.stack's values without its overhead, here and below)
+        Z_new[:, 0] = z
+        Z_new[:, 1] = z - self.Z[:, 0]
         nu = Z_new - self.psi * self.Z - (self.H_star @ x[..., None])[..., 0]
         PHt = P @ self.H_star.transpose(0, 2, 1)
         HPHt = self.H_star @ PHt
         noise = self.psi ** 2 * (self.s - 1.0)
-        s_gate = np.stack([np.ones(2), np.maximum(self.s_ref, 1.0)], axis=-1)
-        S_pos = HPHt[:, 0, 0] + self.R[:, 0] * (s_gate[:, 0] + noise[:, 0])
+        # the gate's scale on the position rows is 1 (its velocity rows' max(s_ref, 1) are
+        # not read)
+        S_pos = HPHt[:, 0, 0] + self.R[:, 0] * (1.0 + noise[:, 0])
         d2 = float((nu[:, 0] ** 2 / S_pos).sum())
         spread = max(float(S_pos.prod()), 0.0) ** 0.25
         # 4. drift guard (DriftGuard.forward)
@@ -831,12 +841,18 @@ class LiteEAKFSTC:
         rho_scale = _sigmoid(c[9] * (trust - c[10]))
         # 5. update (eakf_update, eq. 25-26), the kept measurement blended by trust
         sc = np.full(2, r_scale)
-        s_new = np.stack([sc, np.maximum(sc, self.s_ref)], axis=-1)
+        s_new = np.empty((2, 2))
+        s_new[:, 0] = sc
+        s_new[:, 1] = np.maximum(sc, self.s_ref)
         S = HPHt.copy()
-        S[:, [0, 1], [0, 1]] += self.R * (s_new + noise)
+        add = self.R * (s_new + noise)
+        S[:, 0, 0] += add[:, 0]
+        S[:, 1, 1] += add[:, 1]
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
-        S_inv = np.stack([np.stack([S[:, 1, 1], -S[:, 0, 1]], -1),
-                          np.stack([-S[:, 1, 0], S[:, 0, 0]], -1)], -2) / det[:, None, None]
+        S_inv = np.empty((2, 2, 2))
+        S_inv[:, 0, 0], S_inv[:, 0, 1] = S[:, 1, 1], -S[:, 0, 1]
+        S_inv[:, 1, 0], S_inv[:, 1, 1] = -S[:, 1, 0], S[:, 0, 0]
+        S_inv /= det[:, None, None]
         K = PHt @ S_inv
         x_post = x + (K @ nu[..., None])[..., 0]
         P_post = P - K @ PHt.transpose(0, 2, 1)
