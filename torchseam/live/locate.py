@@ -159,7 +159,9 @@ class SeamLocator:
         # newest first (one or two; a norm per point back cost ~0.04 ms a frame at 25 Hz)
         seen = np.array(self._seen)
         d = seen - p_b
-        near = np.sqrt(np.einsum("ij,ij->i", d, d)) < EXPECT_SPAN_MM * (1.0 - 1e-9)
+        # (a squared distance to a few ulps: the margin of 1e-9 keeps every point whose norm
+        # may reach EXPECT_SPAN_MM for the exact test)
+        near = np.sqrt((d * d).sum(axis=1)) < EXPECT_SPAN_MM * (1.0 - 1e-9)
         for i in np.flatnonzero(~near)[::-1]:
             p_a = self._seen[int(i)]
             if np.linalg.norm(p_b - p_a) >= EXPECT_SPAN_MM:

@@ -344,8 +344,8 @@ def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | No
     h, w = frame.shape[:2]
     cu, cv = float(x[0]), float(x[1])
     obs = Observation(glare_level(frame, x, cfg.glare_px))
-    x0 = int(np.clip(cu - cfg.window_px, 0, w - 1))
-    y0 = int(np.clip(cv - cfg.window_px, 0, h - 1))
+    x0 = int(min(max(cu - cfg.window_px, 0), w - 1))  # (np.clip's value, ~10 us less)
+    y0 = int(min(max(cv - cfg.window_px, 0), h - 1))
     roi = np.ascontiguousarray(frame[y0:int(cv) + cfg.window_px + 1,
                                      x0:int(cu) + cfg.window_px + 1])
     if roi.shape[0] < 16 or roi.shape[1] < 16:

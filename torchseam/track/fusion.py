@@ -620,6 +620,8 @@ class LiteEAKFSTC:
         self._even = not (h % 2 or w % 2)  # competing peaks on 2x2-block maxima (see stc.py)
         self._eb = (self.exclude + 1) // 2 if self._even else self.exclude
         self.H_f: np.ndarray | None = None
+        # (the anchored model of (id(H_f), id(H_ref)), and the two arrays: see _model)
+        self._anchored: tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray] | None = None
         self.frame = 0
         # (frame id, crop centre) and the prior spectrum of the last window: the learning step
         # re-crops at the filtered point, usually the pixel it detected at. Valid within one
@@ -738,6 +740,8 @@ class LiteEAKFSTC:
                 assert win is not None  # a step queues its window or its prior spectrum
                 prior_f = self._spectrum(win)
             self._apply_learn(prior_f, centre, rho_scale)
+        if pending:
+            self._model()  # the next detection's model, made now
 
     def _apply_learn(self, prior_f: np.ndarray, centre: np.ndarray, rho_scale: float) -> None:
         r = np.floor(centre + 0.5)
@@ -759,14 +763,25 @@ class LiteEAKFSTC:
             self.H_ref = self.H_f if self.frame == 1 else \
                 self.H_ref + (self.H_f - self.H_ref) / self.frame
 
+    def _model(self) -> np.ndarray:
+        """The context model detection runs with: ``H_f``, pulled ``anchor`` of the way to
+        the start model ``H_ref``; made once per learning step (:meth:`idle` makes it
+        between frames, off the frame's path)."""
+        H_f, H_ref = self.H_f, self.H_ref
+        assert H_f is not None  # (set by init)
+        if not (self.anchor > 0 and H_ref is not None):
+            return H_f
+        key = (id(H_f), id(H_ref))
+        if self._anchored is None or self._anchored[0] != key:
+            # (keyed by the two arrays: each learning step makes new ones, kept alive here)
+            self._anchored = (key, H_f + self.anchor * (H_ref - H_f), H_f, H_ref)
+        return self._anchored[1]
+
     def _detect(self, frame: np.ndarray, centre: np.ndarray
                 ) -> tuple[np.ndarray, float, float, int, float]:
         """Eq. 10-11 around ``centre``: (uv, psr, second_ratio, n_peaks, peak)."""
         base = np.floor(centre + 0.5)
-        H_f = self.H_f
-        if self.anchor > 0 and self.H_ref is not None:
-            H_f = H_f + self.anchor * (self.H_ref - H_f)
-        resp = _irfft2(H_f * self._prior_f(frame, base), (self.h, self.w))
+        resp = _irfft2(self._model() * self._prior_f(frame, base), (self.h, self.w))
         off_u, off_v, peak, psr, second_ratio, n_peaks = self._peak_quality(
             resp, self._e, self._even, self._eb)
         off = np.array([off_u, off_v])
@@ -840,10 +855,10 @@ class LiteEAKFSTC:
         r_scale = math.exp(c[8] * _sigmoid(c[11] * (c[12] - trust)))
         rho_scale = _sigmoid(c[9] * (trust - c[10]))
         # 5. update (eakf_update, eq. 25-26), the kept measurement blended by trust
-        sc = np.full(2, r_scale)
         s_new = np.empty((2, 2))
-        s_new[:, 0] = sc
-        s_new[:, 1] = np.maximum(sc, self.s_ref)
+        s_new[:, 0] = r_scale
+        s_new[:, 1] = np.maximum(r_scale, self.s_ref)
+        sc = s_new[:, 0].copy()
         S = HPHt.copy()
         add = self.R * (s_new + noise)
         S[:, 0, 0] += add[:, 0]
