@@ -819,3 +819,37 @@ def test_compiled_brightness_plane_is_the_opencv_calls_to_the_bit(cell, part, no
     grey = np.empty((4096, 4096), np.uint8)
     tipm._k.brightness_line(every, 1, tipm._mean_of, grey, np.empty_like(grey))
     np.testing.assert_array_equal(grey, cv2.transform(every, BRIGHTNESS))
+
+
+def test_compiled_blobs_dilated_are_opencvs_dilation_and_bounding_box():
+    """The blobs dilated in the same pass (``_kernels.large_blobs_dilated``, the structuring
+    element's rows as centred runs) against ``cv2.dilate`` of the blobs' box by the ellipse
+    of ``dilate_px`` 0-4 and ``cv2.boundingRect`` of the mask: random images, boxes at the
+    image's edges (the dilation stops at the box); a shape whose rows are no centred runs is
+    not taken (``_centred_runs`` None: ``cv2.dilate`` then)."""
+    from torchseam.vision.tipm import _centred_runs
+
+    tipm = load_tipm()
+    rng = np.random.default_rng(11)
+    for _ in range(120):
+        h, w = (int(x) for x in rng.integers(1, 70, 2))
+        img = np.where(rng.random((h, w)) < rng.uniform(0.01, 0.6), 255, 0).astype(np.uint8)
+        y0, x0 = (int(x) for x in rng.integers(0, [h, w]))
+        y1, x1 = int(rng.integers(y0 + 1, h + 1)), int(rng.integers(x0 + 1, w + 1))
+        min_area = int(rng.choice([1, 5, 30]))
+        for d in range(5):
+            se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1))
+            reach = _centred_runs(se)
+            assert reach is not None
+            mask = np.zeros_like(img)
+            kept, *rect = tipm._k.large_blobs_dilated(img, y0, y1, x0, x1, min_area, reach, mask)
+            ref_kept, blobs = _opencv_large_blobs(np.ascontiguousarray(img[y0:y1, x0:x1]),
+                                                  min_area)
+            ref = np.zeros_like(img)
+            ref[y0:y1, x0:x1] = cv2.dilate(blobs, se)
+            assert kept == ref_kept
+            np.testing.assert_array_equal(mask, ref)
+            assert tuple(rect) == cv2.boundingRect(ref)
+    assert _centred_runs(np.ones((3, 3), np.uint8)).tolist() == [1, 1, 1]
+    assert _centred_runs(np.array([[1, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)) is None
+    assert _centred_runs(np.array([[0, 0, 0], [1, 1, 1], [0, 0, 0]], np.uint8)) is None

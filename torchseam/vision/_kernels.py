@@ -122,16 +122,11 @@ def _row_runs(row, x0, w, r, rs, re, rr, parent, n, prev0, prev1):  # pragma: no
     return n
 
 
-@numba.njit("UniTuple(i8, 2)(u1[:, ::1], i8, i8, i8, i8, i8, u1[:, ::1])", cache=True,
-            nogil=True)
-def large_blobs(binary, y0, y1, x0, x1, min_area, out):  # pragma: no cover - compiled
-    """The blobs of ``min_area`` px at least in the box ``[y0, y1) x [x0, x1)`` of ``binary``
-    (H, W) uint8 (zero or not): ``out`` (y1 - y0, x1 - x0) is 255 on their pixels and 0
-    elsewhere; returns ``(blobs, blobs kept)``. A blob is an 8-connected area of non-zero
-    pixels, what ``cv2.connectedComponentsWithStats(..., connectivity=8)`` labels (the mask
-    is the same to the bit; its labels and statistics, then a lookup table, took ~60 us of
-    the tracker's ~0.3 ms TIPM window): here labelled by runs along the rows
-    (:func:`_row_runs`), a union-find over the runs."""
+@numba.njit(cache=True, nogil=True)
+def _blobs(binary, y0, y1, x0, x1, min_area):  # pragma: no cover - compiled
+    """The runs of the box ``[y0, y1) x [x0, x1)`` of ``binary`` (:func:`_row_runs`) and
+    their blobs: ``(runs, first columns, ends, rows (in the box), whether each run's blob has
+    min_area px at least, blobs, blobs kept)``."""
     h, w = y1 - y0, x1 - x0
     cap = h * ((w + 1) // 2) + 1  # runs at most: every other pixel of every row
     rs = np.empty(cap, np.int64)      # a run's first column (in the box) ...
@@ -154,11 +149,61 @@ def large_blobs(binary, y0, y1, x0, x1, min_area, out):  # pragma: no cover - co
         if parent[i] == i:
             blobs += 1
             kept += area[i] >= min_area
+    large = np.empty(max(n, 1), np.bool_)
+    for i in range(n):
+        large[i] = area[parent[i]] >= min_area
+    return n, rs, re, rr, large, blobs, kept
+
+
+@numba.njit("UniTuple(i8, 2)(u1[:, ::1], i8, i8, i8, i8, i8, u1[:, ::1])", cache=True,
+            nogil=True)
+def large_blobs(binary, y0, y1, x0, x1, min_area, out):  # pragma: no cover - compiled
+    """The blobs of ``min_area`` px at least in the box ``[y0, y1) x [x0, x1)`` of ``binary``
+    (H, W) uint8 (zero or not): ``out`` (y1 - y0, x1 - x0) is 255 on their pixels and 0
+    elsewhere; returns ``(blobs, blobs kept)``. A blob is an 8-connected area of non-zero
+    pixels, what ``cv2.connectedComponentsWithStats(..., connectivity=8)`` labels (the mask
+    is the same to the bit; its labels and statistics, then a lookup table, took ~60 us of
+    the tracker's ~0.3 ms TIPM window): here labelled by runs along the rows
+    (:func:`_row_runs`), a union-find over the runs."""
+    n, rs, re, rr, large, blobs, kept = _blobs(binary, y0, y1, x0, x1, min_area)
     out[:, :] = 0
     for i in range(n):
-        if area[parent[i]] >= min_area:
+        if large[i]:
             out[rr[i], rs[i]:re[i]] = 255
     return blobs, kept
+
+
+@numba.njit("UniTuple(i8, 5)(u1[:, ::1], i8, i8, i8, i8, i8, i8[::1], u1[:, ::1])",
+            cache=True, nogil=True)
+def large_blobs_dilated(binary, y0, y1, x0, x1, min_area, reach, mask
+                        ):  # pragma: no cover - compiled
+    """:func:`large_blobs` dilated, into ``mask`` (H, W), zeros on entry: its box
+    ``[y0, y1) x [x0, x1)`` gets ``cv2.dilate`` of the blobs' image by a structuring element
+    whose row ``k`` (of ``len(reach)``, centred) is the centred run ``+-reach[k]`` columns
+    (an ellipse's), the box's outside not read nor written (what ``cv2.dilate`` of the box
+    alone does). Returns ``(blobs kept, x, y, width, height)``: the bounding box of what it
+    wrote, ``cv2.boundingRect`` of ``mask`` (all 0 when nothing was)."""
+    n, rs, re, rr, large, blobs, kept = _blobs(binary, y0, y1, x0, x1, min_area)
+    h, w = y1 - y0, x1 - x0
+    d = len(reach) // 2
+    top, left, bottom, right = h, w, -1, -1
+    for i in range(n):
+        if not large[i]:
+            continue
+        for k in range(len(reach)):
+            r = rr[i] + k - d
+            if r < 0 or r >= h:
+                continue
+            c0 = max(rs[i] - reach[k], 0)
+            c1 = min(re[i] + reach[k], w)
+            if c1 <= c0:
+                continue
+            mask[y0 + r, x0 + c0:x0 + c1] = 255
+            top, bottom = min(top, r), max(bottom, r)
+            left, right = min(left, c0), max(right, c1)
+    if bottom < 0:
+        return kept, 0, 0, 0, 0
+    return kept, x0 + left, y0 + top, right - left, bottom - top + 1
 
 
 @numba.njit(cache=True, nogil=True)

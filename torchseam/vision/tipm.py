@@ -290,6 +290,24 @@ def thin_clipped_runs(plane: np.ndarray, max_rows: int, min_area: int = 0) -> np
     return out
 
 
+def _centred_runs(kernel: np.ndarray) -> np.ndarray | None:
+    """(2 d + 1,) int64 half-widths of a structuring element (2 d + 1, 2 d + 1) whose every
+    row is a run centred on its middle column (an ellipse's: ``cv2.MORPH_ELLIPSE``), or None
+    (another shape)."""
+    k = np.asarray(kernel) != 0
+    if k.ndim != 2 or k.shape[0] != k.shape[1] or k.shape[0] % 2 == 0:
+        return None
+    d = k.shape[0] // 2
+    reach = np.empty(k.shape[0], np.int64)
+    for i, row in enumerate(k):
+        cols = np.flatnonzero(row)
+        half = d - int(cols[0]) if len(cols) else -1
+        if half < 0 or not np.array_equal(cols, np.arange(d - half, d + half + 1)):
+            return None
+        reach[i] = half
+    return reach
+
+
 def _fail(reason: str, mask: np.ndarray | None = None, centre: np.ndarray | None = None
           ) -> TipmResult:
     return TipmResult(False, np.full(2, np.nan), reason, centre=centre, mask=mask)
@@ -325,6 +343,9 @@ class Tipm:
             if k % 2 and 255 * k < 2**16 else None)
         self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
         self._lobes = cfg.lobes  # (a property that builds a LobeRule each time)
+        self._reach = _centred_runs(self._kernel)  # the dilation's rows (see _mask)
+        # the last mask _mask made and its bounding box (x, y, w, h), for centre()
+        self._mask_rect: tuple[np.ndarray, tuple[int, ...]] | None = None
 
     def _plane(self, name: str, shape: tuple[int, int]) -> np.ndarray:
         """A reused uint8 work plane: fresh frame-sized arrays cost page faults on every frame,
@@ -429,11 +450,21 @@ class Tipm:
         if cfg.min_area <= 0:  # every blob is kept: nothing to label (the profiles' Tipm)
             mask[roi] = cv2.dilate(binary[roi], self._kernel) if d else binary[roi]
             return mask, ""
-        # the blobs of min_area px at least (one compiled pass, the mask of
-        # cv2.connectedComponentsWithStats's blobs to the bit at a third of its time)
-        box = np.empty((roi[0].stop - roi[0].start, roi[1].stop - roi[1].start), np.uint8)
-        _, kept = self._k.large_blobs(np.ascontiguousarray(binary), roi[0].start, roi[0].stop,
-                                      roi[1].start, roi[1].stop, int(cfg.min_area), box)
+        # the blobs of min_area px at least (one compiled pass: the mask of
+        # cv2.connectedComponentsWithStats's blobs to the bit at a third of its time), dilated
+        # in the same pass where the structuring element's rows are centred runs, with the
+        # bounding box centre() asks cv2.boundingRect for
+        binary = np.ascontiguousarray(binary)
+        (ya, yb), (xa, xb) = (roi[0].start, roi[0].stop), (roi[1].start, roi[1].stop)
+        if self._reach is not None:
+            kept, *rect = self._k.large_blobs_dilated(binary, ya, yb, xa, xb,
+                                                      int(cfg.min_area), self._reach, mask)
+            if kept == 0:
+                return mask, "no stripe found (only small blobs)"
+            self._mask_rect = (mask, tuple(rect))
+            return mask, ""
+        box = np.empty((yb - ya, xb - xa), np.uint8)
+        _, kept = self._k.large_blobs(binary, ya, yb, xa, xb, int(cfg.min_area), box)
         if kept == 0:
             return mask, "no stripe found (only small blobs)"
         mask[roi] = cv2.dilate(box, self._kernel)
@@ -520,7 +551,10 @@ class Tipm:
             pts = np.stack([u[order], v[order]], axis=1).astype(float)
             return pts[~self._k.border_columns(mask, reach)[u[order]]]
         response = np.ascontiguousarray(response, dtype=np.uint8)
-        x, y, bw, bh = cv2.boundingRect(mask)  # the runs are counted in there only
+        known = self._mask_rect
+        # the runs are counted in the mask's bounding box only (known when _mask made it)
+        x, y, bw, bh = (known[1] if known is not None and known[0] is mask
+                        else cv2.boundingRect(mask))
         pts = self._k.centre_line(response, mask, float(self.cfg.centre_half_px),
                                   int(self.cfg.centre_passes), reach, float(self.cfg.path_step_px),
                                   float(self.cfg.path_step_cost),
