@@ -842,7 +842,9 @@ def test_compiled_blobs_dilated_are_opencvs_dilation_and_bounding_box():
             reach = _centred_runs(se)
             assert reach is not None
             mask = np.zeros_like(img)
-            kept, *rect = tipm._k.large_blobs_dilated(img, y0, y1, x0, x1, min_area, reach, mask)
+            work = np.empty((4, tipm._k.runs_cap(y1 - y0, x1 - x0)), np.int64)
+            kept, *rect = tipm._k.large_blobs_dilated(img, y0, y1, x0, x1, min_area, reach,
+                                                      work, mask)
             ref_kept, blobs = _opencv_large_blobs(np.ascontiguousarray(img[y0:y1, x0:x1]),
                                                   min_area)
             ref = np.zeros_like(img)
@@ -850,6 +852,9 @@ def test_compiled_blobs_dilated_are_opencvs_dilation_and_bounding_box():
             assert kept == ref_kept
             np.testing.assert_array_equal(mask, ref)
             assert tuple(rect) == cv2.boundingRect(ref)
+    with pytest.raises(ValueError, match="work too small"):
+        tipm._k.large_blobs_dilated(img, 0, h, 0, w, 1, reach, np.empty((4, 1), np.int64),
+                                    np.zeros_like(img))
     assert _centred_runs(np.ones((3, 3), np.uint8)).tolist() == [1, 1, 1]
     assert _centred_runs(np.array([[1, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)) is None
     assert _centred_runs(np.array([[0, 0, 0], [1, 1, 1], [0, 0, 0]], np.uint8)) is None

@@ -122,17 +122,22 @@ def _row_runs(row, x0, w, r, rs, re, rr, parent, n, prev0, prev1):  # pragma: no
     return n
 
 
+@numba.njit("i8(i8, i8)", cache=True, nogil=True)
+def runs_cap(h, w):  # pragma: no cover - compiled
+    """The most runs an (h, w) box holds: every other pixel of every row."""
+    return h * ((w + 1) // 2) + 1
+
+
 @numba.njit(cache=True, nogil=True)
-def _blobs(binary, y0, y1, x0, x1, min_area):  # pragma: no cover - compiled
+def _blobs(binary, y0, y1, x0, x1, min_area, work):  # pragma: no cover - compiled
     """The runs of the box ``[y0, y1) x [x0, x1)`` of ``binary`` (:func:`_row_runs`) and
     their blobs: ``(runs, first columns, ends, rows (in the box), whether each run's blob has
-    min_area px at least, blobs, blobs kept)``."""
+    min_area px at least, blobs, blobs kept)``. ``work``: (4, runs_cap(box)) int64."""
     h, w = y1 - y0, x1 - x0
-    cap = h * ((w + 1) // 2) + 1  # runs at most: every other pixel of every row
-    rs = np.empty(cap, np.int64)      # a run's first column (in the box) ...
-    re = np.empty(cap, np.int64)      # ... one past its last
-    rr = np.empty(cap, np.int64)      # ... its row
-    parent = np.empty(cap, np.int64)  # union-find over the runs
+    rs = work[0]      # a run's first column (in the box) ...
+    re = work[1]      # ... one past its last
+    rr = work[2]      # ... its row
+    parent = work[3]  # union-find over the runs
     n = 0
     prev0 = 0  # the runs of the row above: [prev0, n)
     for r in range(h):
@@ -165,7 +170,8 @@ def large_blobs(binary, y0, y1, x0, x1, min_area, out):  # pragma: no cover - co
     is the same to the bit; its labels and statistics, then a lookup table, took ~60 us of
     the tracker's ~0.3 ms TIPM window): here labelled by runs along the rows
     (:func:`_row_runs`), a union-find over the runs."""
-    n, rs, re, rr, large, blobs, kept = _blobs(binary, y0, y1, x0, x1, min_area)
+    work = np.empty((4, runs_cap(y1 - y0, x1 - x0)), np.int64)
+    n, rs, re, rr, large, blobs, kept = _blobs(binary, y0, y1, x0, x1, min_area, work)
     out[:, :] = 0
     for i in range(n):
         if large[i]:
@@ -173,17 +179,21 @@ def large_blobs(binary, y0, y1, x0, x1, min_area, out):  # pragma: no cover - co
     return blobs, kept
 
 
-@numba.njit("UniTuple(i8, 5)(u1[:, ::1], i8, i8, i8, i8, i8, i8[::1], u1[:, ::1])",
-            cache=True, nogil=True)
-def large_blobs_dilated(binary, y0, y1, x0, x1, min_area, reach, mask
+@numba.njit("UniTuple(i8, 5)(u1[:, ::1], i8, i8, i8, i8, i8, i8[::1], i8[:, ::1], "
+            "u1[:, ::1])", cache=True, nogil=True)
+def large_blobs_dilated(binary, y0, y1, x0, x1, min_area, reach, work, mask
                         ):  # pragma: no cover - compiled
     """:func:`large_blobs` dilated, into ``mask`` (H, W), zeros on entry: its box
     ``[y0, y1) x [x0, x1)`` gets ``cv2.dilate`` of the blobs' image by a structuring element
     whose row ``k`` (of ``len(reach)``, centred) is the centred run ``+-reach[k]`` columns
     (an ellipse's), the box's outside not read nor written (what ``cv2.dilate`` of the box
     alone does). Returns ``(blobs kept, x, y, width, height)``: the bounding box of what it
-    wrote, ``cv2.boundingRect`` of ``mask`` (all 0 when nothing was)."""
-    n, rs, re, rr, large, blobs, kept = _blobs(binary, y0, y1, x0, x1, min_area)
+    wrote, ``cv2.boundingRect`` of ``mask`` (all 0 when nothing was). ``work``: (4, at
+    least :func:`runs_cap` of the box) int64, the caller's (reused: a fresh one for a whole
+    window is ~0.8 MB, fresh pages on every call)."""
+    if work.shape[0] < 4 or work.shape[1] < runs_cap(y1 - y0, x1 - x0):
+        raise ValueError("large_blobs_dilated: work too small")
+    n, rs, re, rr, large, blobs, kept = _blobs(binary, y0, y1, x0, x1, min_area, work)
     h, w = y1 - y0, x1 - x0
     d = len(reach) // 2
     top, left, bottom, right = h, w, -1, -1

@@ -344,6 +344,7 @@ class Tipm:
         self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
         self._lobes = cfg.lobes  # (a property that builds a LobeRule each time)
         self._reach = _centred_runs(self._kernel)  # the dilation's rows (see _mask)
+        self._runs = np.empty((4, 0), np.int64)  # the blobs' runs (reused, grown as needed)
         # the last mask _mask made and its bounding box (x, y, w, h), for centre()
         self._mask_rect: tuple[np.ndarray, tuple[int, ...]] | None = None
 
@@ -457,8 +458,12 @@ class Tipm:
         binary = np.ascontiguousarray(binary)
         (ya, yb), (xa, xb) = (roi[0].start, roi[0].stop), (roi[1].start, roi[1].stop)
         if self._reach is not None:
+            need = (yb - ya) * ((xb - xa + 1) // 2) + 1  # (_kernels.runs_cap)
+            if self._runs.shape[1] < need:
+                self._runs = np.empty((4, need), np.int64)
             kept, *rect = self._k.large_blobs_dilated(binary, ya, yb, xa, xb,
-                                                      int(cfg.min_area), self._reach, mask)
+                                                      int(cfg.min_area), self._reach,
+                                                      self._runs, mask)
             if kept == 0:
                 return mask, "no stripe found (only small blobs)"
             self._mask_rect = (mask, tuple(rect))
