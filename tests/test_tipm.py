@@ -858,3 +858,25 @@ def test_compiled_blobs_dilated_are_opencvs_dilation_and_bounding_box():
     assert _centred_runs(np.ones((3, 3), np.uint8)).tolist() == [1, 1, 1]
     assert _centred_runs(np.array([[1, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)) is None
     assert _centred_runs(np.array([[0, 0, 0], [1, 1, 1], [0, 0, 0]], np.uint8)) is None
+
+
+def test_compiled_row_blur_is_opencvs_to_the_bit():
+    """The second look's blur along the rows (``_kernels.row_box``) against ``cv2.blur``:
+    every sum a window of ``smooth_px`` columns can hold (each a row of its own), random
+    images of 1-60 px (reflected borders), a 0/255 image, other odd widths."""
+    tipm = load_tipm()
+    k = int(tipm.cfg.smooth_px)
+    s = np.arange(255 * k + 1)
+    every = np.minimum(np.maximum(s[:, None] - 255 * np.arange(k)[None], 0), 255)
+    images = [every.astype(np.uint8)]
+    rng = np.random.default_rng(13)
+    images += [rng.integers(0, 256, (int(h), int(w)), dtype=np.uint8)
+               for h, w in rng.integers(1, 60, (60, 2))]
+    images.append(np.where(rng.random((40, 70)) < 0.3, 255, 0).astype(np.uint8))
+    for img in images:
+        for width in (k, 3, 11):
+            table = ((2 * np.arange(255 * width + 1) + width) // (2 * width)).astype(np.uint8)
+            out = np.empty_like(img)
+            tipm._k.row_box(img, width, table, out)
+            np.testing.assert_array_equal(out, cv2.blur(img, (width, 1)))
+    assert np.array_equal(np.unique(every.sum(axis=1)), s)  # (every sum is there)

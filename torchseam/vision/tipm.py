@@ -341,6 +341,11 @@ class Tipm:
         self._mean_of: np.ndarray | None = (
             ((2 * np.arange(255 * k + 1) + k) // (2 * k)).astype(np.uint8)
             if k % 2 and 255 * k < 2**16 else None)
+        # the same table for the second look's blur along the rows (smooth_px columns)
+        k = int(cfg.smooth_px)
+        self._smooth_of: np.ndarray | None = (
+            ((2 * np.arange(255 * k + 1) + k) // (2 * k)).astype(np.uint8)
+            if k % 2 and k > 1 else None)
         self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
         self._lobes = cfg.lobes  # (a property that builds a LobeRule each time)
         self._reach = _centred_runs(self._kernel)  # the dilation's rows (see _mask)
@@ -615,7 +620,11 @@ class Tipm:
         if res.ok:
             return res, red, mask
         if k > 1 and why != SATURATED:
-            smooth = cv2.blur(red, (k, 1), dst=self._plane("smooth", red.shape))
+            smooth = self._plane("smooth", red.shape)
+            if self._smooth_of is not None and red.flags.c_contiguous:
+                self._k.row_box(red, int(k), self._smooth_of, smooth)  # (cv2.blur's plane)
+            else:
+                cv2.blur(red, (k, 1), dst=smooth)
             mask2, why2 = self._mask(smooth, self._plane("binary", red.shape))
             if not why2:
                 res2 = self.corner(self.centre(red, mask2), mask2, prior)
