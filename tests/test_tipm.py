@@ -880,3 +880,25 @@ def test_compiled_row_blur_is_opencvs_to_the_bit():
             tipm._k.row_box(img, width, table, out)
             np.testing.assert_array_equal(out, cv2.blur(img, (width, 1)))
     assert np.array_equal(np.unique(every.sum(axis=1)), s)  # (every sum is there)
+
+
+def test_compiled_threshold_is_the_numpy_one_to_the_bit():
+    """:meth:`Tipm._threshold` compiled (``_kernels.stripe_threshold``) against its numpy
+    statement (float32 cumulative counts, ``np.searchsorted``, the sorted column maxima's
+    middle): random ridges from dark to saturated, odd and even counts of strong columns,
+    1-pixel and empty-of-stripe ridges."""
+    tipm = load_tipm()
+    ref = Tipm(tipm.cfg)
+    ref._fast_threshold = False
+    assert tipm._fast_threshold  # (numpy 2)
+    rng = np.random.default_rng(17)
+    ridges = [np.zeros((5, 7), np.uint8), np.full((1, 1), 200, np.uint8),
+              np.full((30, 40), 255, np.uint8)]
+    for _ in range(400):
+        h, w = (int(x) for x in rng.integers(1, 120, 2))
+        top = int(rng.integers(1, 256))
+        r = (rng.random((h, w)) ** rng.uniform(1, 8) * top).astype(np.uint8)
+        r[:, rng.random(w) < rng.uniform(0, 0.5)] = top
+        ridges.append(r)
+    for r in ridges:
+        assert tipm._threshold(r) == ref._threshold(r)

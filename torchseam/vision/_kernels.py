@@ -160,6 +160,50 @@ def _blobs(binary, y0, y1, x0, x1, min_area, work):  # pragma: no cover - compil
     return n, rs, re, rr, large, blobs, kept
 
 
+@numba.njit("f8(i8[::1], u1[::1], f8, f8, f8)", cache=True, nogil=True)
+def stripe_threshold(hist, colmax, noise_k, min_red, rel):  # pragma: no cover - compiled
+    """:meth:`Tipm._threshold` of a ridge's histogram ``hist`` (256,) and column maxima
+    ``colmax`` (W,) (fewer than 2^24 pixels: the float32 cumulative counts are whole numbers,
+    exact), in numpy's arithmetic: the 90th percentile is the first level whose float32
+    cumulative count reaches ``float32(0.9) * float32(total)`` (numpy 2 multiplies a float32
+    by a Python float in float32), ``noise = noise_k * max(that, 1)``, the stripe's level
+    the median of the column maxima above the noise (the middle one, or the mean of the
+    middle two in float64), counted instead of sorted; returns ``max(min_red, noise,
+    rel * level)``."""
+    total = 0
+    for v in range(256):
+        total += hist[v]
+    target = np.float32(0.9) * np.float32(total)
+    cum = 0
+    p90 = 256  # (np.searchsorted past the end: only an empty histogram)
+    for v in range(256):
+        cum += hist[v]
+        if np.float32(cum) >= target:
+            p90 = v
+            break
+    noise = noise_k * max(float(p90), 1.0)
+    above = np.zeros(256, np.int64)
+    n = 0
+    for c in range(len(colmax)):
+        if colmax[c] > noise:
+            above[colmax[c]] += 1
+            n += 1
+    level = 0.0
+    if n:
+        lo = -1  # the values of rank (n - 1) // 2 and n // 2
+        hi = -1
+        seen = 0
+        for v in range(256):
+            seen += above[v]
+            if lo < 0 and seen > (n - 1) // 2:
+                lo = v
+            if seen > n // 2:
+                hi = v
+                break
+        level = float(hi) if n % 2 else (float(lo) + float(hi)) / 2.0
+    return max(min_red, noise, rel * level)
+
+
 @numba.njit("UniTuple(i8, 2)(u1[:, ::1], i8, i8, i8, i8, i8, u1[:, ::1])", cache=True,
             nogil=True)
 def large_blobs(binary, y0, y1, x0, x1, min_area, out):  # pragma: no cover - compiled

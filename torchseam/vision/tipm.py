@@ -349,6 +349,9 @@ class Tipm:
         self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
         self._lobes = cfg.lobes  # (a property that builds a LobeRule each time)
         self._reach = _centred_runs(self._kernel)  # the dilation's rows (see _mask)
+        # _threshold compiled: numpy 2 multiplies float32 by a Python float in float32 (the
+        # kernel's arithmetic; numpy 1 did it in float64)
+        self._fast_threshold = (0.9 * np.float32(3.0)).dtype == np.float32
         self._runs = np.empty((4, 0), np.int64)  # the blobs' runs (reused, grown as needed)
         # the last mask _mask made and its bounding box (x, y, w, h), for centre()
         self._mask_rect: tuple[np.ndarray, tuple[int, ...]] | None = None
@@ -499,6 +502,10 @@ class Tipm:
             stats = self._stats(ridge.shape[1])
             self._k.ridge_stats(ridge, *stats)
         counts, colmax = stats
+        if self._fast_threshold and ridge.size < 2**24:
+            # the arithmetic below in one compiled pass (its float32 sums are exact there)
+            return self._k.stripe_threshold(counts, colmax, float(cfg.noise_k),
+                                            float(cfg.min_red), float(cfg.rel_threshold))
         # float32 counts, as cv2.calcHist gives them (the same cumulative sums to the bit)
         hist = counts.astype(np.float32)
         cdf = np.cumsum(hist)
