@@ -900,5 +900,12 @@ def test_compiled_threshold_is_the_numpy_one_to_the_bit():
         r = (rng.random((h, w)) ** rng.uniform(1, 8) * top).astype(np.uint8)
         r[:, rng.random(w) < rng.uniform(0, 0.5)] = top
         ridges.append(r)
+    for k in range(1, 41):  # a stripe's columns over a dark ridge: their median sets it
+        r = np.zeros((20, 60), np.uint8)
+        r[3, :k] = rng.integers(20, 256, k)
+        ridges.append(r)
+    levels = set()
     for r in ridges:
         assert tipm._threshold(r) == ref._threshold(r)
+        levels.add(ref._threshold(r))
+    assert len(levels) > 100
