@@ -775,8 +775,12 @@ def test_compiled_blobs_are_opencvs_connected_components_to_the_bit(cell, part, 
                 ref_kept, ref = _opencv_large_blobs(box, min_area)
                 assert kept == ref_kept
                 np.testing.assert_array_equal(out, ref)
+    ridges += [np.where(rng.random((50, 70)) < 0.02, 200, 0).astype(np.uint8),  # specks
+               np.full((20, 20), 255, np.uint8)]
+    reasons = set()
     for ridge in ridges:  # the whole mask and its reason, as _mask made them with OpenCV
         mask, why = tipm._mask(ridge, np.empty_like(ridge))
+        reasons.add(why)
         _, binary = cv2.threshold(ridge, tipm._threshold(ridge), 255, cv2.THRESH_BINARY)
         x, y, bw, bh = cv2.boundingRect(binary)
         d = tipm.cfg.dilate_px
@@ -787,6 +791,10 @@ def test_compiled_blobs_are_opencvs_connected_components_to_the_bit(cell, part, 
         assert why == ("no stripe found (no red pixels above threshold)" if bw == 0 else
                        "no stripe found (only small blobs)" if n_kept == 0 else "")
         np.testing.assert_array_equal(mask, ref if why == "" else np.zeros_like(ref))
+        if why == "":
+            assert tipm.centre(ridge, mask).tolist() == tipm.centre(ridge, mask.copy()).tolist()
+    assert reasons == {"", "no stripe found (no red pixels above threshold)",
+                       "no stripe found (only small blobs)"}
 
 
 def test_compiled_brightness_plane_is_the_opencv_calls_to_the_bit(cell, part, noise):

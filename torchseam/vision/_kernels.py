@@ -87,19 +87,20 @@ def _root(parent, a):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _row_runs(row, x0, w, r, rs, re, rr, parent, n, prev0, prev1):  # pragma: no cover
-    """The runs of non-zero pixels of ``row[x0:x0 + w]`` (row ``r`` of the box) from run
-    ``n`` on, each joined to the runs ``[prev0, prev1)`` of the row above that touch it (a
+def _row_runs(row, x0, w, r, rs, re, rr, parent, n, prev0, prev1, level
+              ):  # pragma: no cover - compiled
+    """The runs of pixels above ``level`` of ``row[x0:x0 + w]`` (row ``r`` of the box) from
+    run ``n`` on, each joined to the runs ``[prev0, prev1)`` of the row above that touch it (a
     column apart at most: 8-connected); returns the run count after them."""
     c = 0
     j = prev0
     while c < w:
-        while c < w and row[x0 + c] == 0:
+        while c < w and row[x0 + c] <= level:
             c += 1
         if c >= w:
             break
         s = c
-        while c < w and row[x0 + c] != 0:
+        while c < w and row[x0 + c] > level:
             c += 1
         rs[n], re[n], rr[n] = s, c, r
         parent[n] = n
@@ -129,8 +130,9 @@ def runs_cap(h, w):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _blobs(binary, y0, y1, x0, x1, min_area, work):  # pragma: no cover - compiled
-    """The runs of the box ``[y0, y1) x [x0, x1)`` of ``binary`` (:func:`_row_runs`) and
+def _blobs(binary, y0, y1, x0, x1, min_area, work, level=0):  # pragma: no cover - compiled
+    """The runs of the box ``[y0, y1) x [x0, x1)`` of ``binary`` (pixels above ``level``:
+    :func:`_row_runs`) and
     their blobs: ``(runs, first columns, ends, rows (in the box), whether each run's blob has
     min_area px at least, blobs, blobs kept)``. ``work``: (4, runs_cap(box)) int64."""
     h, w = y1 - y0, x1 - x0
@@ -142,7 +144,7 @@ def _blobs(binary, y0, y1, x0, x1, min_area, work):  # pragma: no cover - compil
     prev0 = 0  # the runs of the row above: [prev0, n)
     for r in range(h):
         first = n
-        n = _row_runs(binary[y0 + r], x0, w, r, rs, re, rr, parent, n, prev0, n)
+        n = _row_runs(binary[y0 + r], x0, w, r, rs, re, rr, parent, n, prev0, n, level)
         prev0 = first
     area = np.zeros(max(n, 1), np.int64)
     for i in range(n):
@@ -202,6 +204,45 @@ def stripe_threshold(hist, colmax, noise_k, min_red, rel):  # pragma: no cover -
                 break
         level = float(hi) if n % 2 else (float(lo) + float(hi)) / 2.0
     return max(min_red, noise, rel * level)
+
+
+@numba.njit("UniTuple(i8, 6)(u1[:, ::1], i8, i8, i8[::1], i8[:, ::1], u1[:, ::1])",
+            cache=True, nogil=True)
+def stripe_blobs(ridge, level, min_area, reach, work, mask):  # pragma: no cover - compiled
+    """:meth:`Tipm._mask` from the threshold on: the pixels of ``ridge`` (H, W) above
+    ``level`` (an integer: ``cv2.threshold``'s binary image at a threshold in
+    ``[level, level + 1)``), their blobs of ``min_area`` px at least, dilated into ``mask``
+    (zeros on entry) as :func:`large_blobs_dilated` does in the box round the binary image
+    (a blob's dilation reaches ``len(reach) // 2`` px at most: the box's margin; the image's
+    edge clips both alike). Returns ``(pixels above, blobs kept, x, y, width, height)``, the
+    last four ``cv2.boundingRect`` of ``mask``. ``work``: (4, :func:`runs_cap` (H, W)) int64
+    at least."""
+    h, w = ridge.shape
+    if work.shape[0] < 4 or work.shape[1] < runs_cap(h, w):
+        raise ValueError("stripe_blobs: work too small")
+    n, rs, re, rr, large, blobs, kept = _blobs(ridge, 0, h, 0, w, min_area, work, level)
+    above = 0
+    for i in range(n):
+        above += re[i] - rs[i]
+    d = len(reach) // 2
+    top, left, bottom, right = h, w, -1, -1
+    for i in range(n):
+        if not large[i]:
+            continue
+        for k in range(len(reach)):
+            r = rr[i] + k - d
+            if r < 0 or r >= h:
+                continue
+            c0 = max(rs[i] - reach[k], 0)
+            c1 = min(re[i] + reach[k], w)
+            if c1 <= c0:
+                continue
+            mask[r, c0:c1] = 255
+            top, bottom = min(top, r), max(bottom, r)
+            left, right = min(left, c0), max(right, c1)
+    if bottom < 0:
+        return above, kept, 0, 0, 0, 0
+    return above, kept, left, top, right - left, bottom - top + 1
 
 
 @numba.njit("UniTuple(i8, 2)(u1[:, ::1], i8, i8, i8, i8, i8, u1[:, ::1])", cache=True,

@@ -29,6 +29,7 @@ previous frame's (a MAP fit); without it the fit is the plain least squares.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -445,6 +446,24 @@ class Tipm:
         the ridge's histogram and column maxima when they are known (else counted here)."""
         cfg = self.cfg
         thr = self._threshold(ridge, stats)
+        if (self._reach is not None and cfg.min_area > 0 and ridge.dtype == np.uint8
+                and ridge.flags.c_contiguous and 0.0 <= thr < 2**31):
+            # threshold, blobs, dilation and bounding box in one compiled pass (the same
+            # mask to the bit: a uint8 pixel is above thr where it is above floor(thr))
+            h, w = ridge.shape
+            need = h * ((w + 1) // 2) + 1  # (_kernels.runs_cap)
+            if self._runs.shape[1] < need:
+                self._runs = np.empty((4, need), np.int64)
+            mask = np.zeros_like(ridge)
+            above, kept, *rect = self._k.stripe_blobs(ridge, math.floor(thr),
+                                                      int(cfg.min_area), self._reach,
+                                                      self._runs, mask)
+            if above == 0:
+                return mask, "no stripe found (no red pixels above threshold)"
+            if kept == 0:
+                return mask, "no stripe found (only small blobs)"
+            self._mask_rect = (mask, tuple(rect))
+            return mask, ""
         _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY, dst=work)
         bx, by, bw, bh = cv2.boundingRect(binary)
         if bw == 0:
