@@ -24,6 +24,7 @@ no pose).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import overload
@@ -214,7 +215,7 @@ class Ecal:
             raise ValueError(f"mask: expected (H, W), got {mask.shape}")
         uv = np.asarray(uv, dtype=float)
         nan2 = np.full((2, 2), np.nan)
-        if not np.all(np.isfinite(uv)):
+        if not np.isfinite(uv).all():
             return EcalResult(False, nan2, np.full(2, np.nan), reason="no feature point")
         # the pair of arms at a clean circle: (p1, a1, p2, a2, radius, rejected so far); the
         # result is made of the one kept only
@@ -319,6 +320,8 @@ def _wrap(a: float) -> float: ...
 def _wrap(a: np.ndarray) -> np.ndarray: ...
 def _wrap(a: float | np.ndarray) -> float | np.ndarray:
     """Angle(s) wrapped into [-pi, pi)."""
+    if isinstance(a, float):  # (np.float64 too) Python's float % is numpy's remainder, to the
+        return (float(a) + math.pi) % (2 * math.pi) - math.pi  # bit, without its ~3 us
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
@@ -351,7 +354,7 @@ def _pick_pair(cands: list[_Crossing], prev: np.ndarray | None, min_separation_d
                     best, score = (cands[i], cands[j]), s
         assert best is not None  # three or more crossings: some pair scores >= 0
         pair = list(best)
-    if abs(_wrap(pair[0][0] - pair[1][0])) < np.radians(min_separation_deg):
+    if abs(_wrap(pair[0][0] - pair[1][0])) < math.radians(min_separation_deg):  # (np.radians')
         return None  # both on one arm (a gap or a dark streak splits it): not a pair
     pair = sorted(pair, key=lambda c: c[1][0])
     return pair[0], pair[1]

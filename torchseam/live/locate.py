@@ -229,7 +229,7 @@ class SeamLocator:
         t1 = time.perf_counter()
         nan3, q = np.full(3, np.nan), np.full((2, 3), np.nan)
         arms_ok = fallback = False
-        if status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
+        if status == TrackStatus.LOST or not np.isfinite(uv).all():
             return Location(axis.to_camera(uv), status, nan3, q, False, False,
                             {"track": (t1 - t0) * 1e3})
         if isinstance(self.tracker, ProfileTracker):
@@ -247,7 +247,7 @@ class SeamLocator:
         # the points the expected pixel is drawn from: those resting on a TIPM corner taken
         # this frame (seen, or extrapolated over a short gap: accurate either way) or a firm
         # shallow one (Fix.firm; docs/benchmarks.md), not predictions
-        if np.all(np.isfinite(X[0])) and (status == TrackStatus.TRACKED or (
+        if np.isfinite(X[0]).all() and (status == TrackStatus.TRACKED or (
                 res.fix is not None and res.fix.taken and res.fix.firm)):
             self._seen.append(X[0])
         if arms_ok:

@@ -1087,7 +1087,7 @@ class AnchoredTracker(Tracker):
         """Where the feature point should be in the next frame, from the robot's motion (the
         live loop knows the camera's pose and the seam seen so far): it replaces the filter's
         random-walk prediction for that frame. None: no idea."""
-        self._expected = None if uv is None or not np.all(np.isfinite(uv)) else np.asarray(
+        self._expected = None if uv is None or not np.isfinite(uv).all() else np.asarray(
             uv, float)
 
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
@@ -1115,7 +1115,7 @@ class AnchoredTracker(Tracker):
         uv, status = self.inner.update(frame)
         # EAKF-STC that gave up is no measurement; the filter goes on from its prediction and
         # a far corner is taken only through the persistence test of search()
-        inner_ok = status != TrackStatus.LOST and bool(np.all(np.isfinite(uv)))
+        inner_ok = status != TrackStatus.LOST and bool(np.isfinite(uv).all())
         x, reanchor, fix, obs = self.filter.step(frame, uv, inner_ok, expected)
         out = np.array(x, dtype=float)
         if reanchor:
