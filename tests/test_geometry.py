@@ -328,6 +328,35 @@ def test_ecal_compiled_crossings_match_their_numpy_statement(cell, part, noise, 
     assert n_cross > 500 and n_rejected > 20  # crossings and rejected spatter were compared
 
 
+def test_ecal_compiled_polar_sampling_is_the_numpy_gather_to_the_bit(cell, part, noise, tipm):
+    """ECAL's rings gathered in one compiled pass (``_kernels.polar``) against the numpy
+    gather it replaces (ring offsets plus the point, rounded, one flat index), with and
+    without grey levels, on heavy-arc stripe windows and on views of a larger window (how
+    the live locator lends the tracker's planes), points at sub-pixel places."""
+    ecal = load_ecal()
+    rng = np.random.default_rng(2)
+    n = 0
+    for img, t in simulate(cell, part, noise, SequenceSpec(n_frames=6, level=1.0, seed=5)):
+        red, mask, (x0, y0) = tipm.mask_around(img, t.uv, int(ecal.cfg.r_max_px) + 30)
+        for dy, dx in ((0, 0), (7, 19)):
+            r_win, m_win = red[dy:dy + 199, dx:dx + 201], mask[dy:dy + 199, dx:dx + 201]
+            for local in (t.uv - (x0 + dx, y0 + dy), rng.uniform(92, 106, 2),
+                          np.array([99.5, 100.5])):
+                h, w = m_win.shape
+                iu = np.rint(local[0] + ecal._ru).astype(np.intp)
+                iv = np.rint(local[1] + ecal._rv).astype(np.intp)
+                if iu.min() < 0 or iv.min() < 0 or iu.max() >= w or iv.max() >= h:
+                    continue
+                on, val = ecal.polar(m_win, local, r_win)
+                np.testing.assert_array_equal(on, m_win[iv, iu] > 0)
+                np.testing.assert_array_equal(val, r_win[iv, iu].astype(float))
+                on2, val2 = ecal.polar(m_win, local, None)
+                np.testing.assert_array_equal(on2, on)
+                assert val2 is None
+                n += 1
+    assert n >= 24
+
+
 def test_numpy_torch_frame_matches_the_torch_one():
     import torch
 

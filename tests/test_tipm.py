@@ -726,3 +726,194 @@ def test_thin_clipped_runs_take_a_clipped_line_not_a_core_or_specks():
         for max_rows, min_area in ((3, 0), (5, 4), (10, 20)):
             assert np.array_equal(thin_clipped_runs(p, max_rows, min_area),
                                   plain(p, max_rows, min_area)), (k, max_rows, min_area)
+
+
+def _opencv_large_blobs(binary: np.ndarray, min_area: int) -> tuple[int, np.ndarray]:
+    """What :meth:`Tipm._mask` did before ``_kernels.large_blobs``: the blobs of ``min_area``
+    px at least through ``cv2.connectedComponentsWithStats`` (8-connected) and a lookup."""
+    n, lab, blobs, _ = cv2.connectedComponentsWithStats(binary, connectivity=8,
+                                                        ltype=cv2.CV_32S)
+    keep = np.nonzero(blobs[1:, cv2.CC_STAT_AREA] >= min_area)[0] + 1
+    lut = np.zeros(n, np.uint8)
+    lut[keep] = 255
+    return len(keep), lut[lab]
+
+
+def test_compiled_blobs_are_opencvs_connected_components_to_the_bit(cell, part, noise):
+    """The stripe mask's blobs of ``min_area`` px at least (``_kernels.large_blobs``, by runs)
+    against ``cv2.connectedComponentsWithStats``: the binary images of heavy-arc windows
+    (the tracker's), random images from sparse to dense, 1-row and 1-column boxes, boxes
+    inside a larger image; and the whole mask and its reason through :meth:`Tipm._mask`."""
+    tipm = load_tipm()
+    k = tipm._k
+    rng = np.random.default_rng(7)
+    images, ridges = [], []
+    for f, _ in list(simulate(cell, part, noise, SequenceSpec(n_frames=12, level=1.0,
+                                                                seed=3)))[::2]:
+        for y, x in ((150, 200), (0, 0), (300, 450)):
+            ridges.append(tipm.stripe_mask(np.ascontiguousarray(f[y:y + 221, x:x + 221]))[0]
+                          .copy())
+            for thr in (3, 8, 20):
+                images.append(np.where(ridges[-1] > thr, 255, 0).astype(np.uint8))
+    ridges += [(rng.random((60, 80)) * rng.uniform(0, 255, 80)).astype(np.uint8),
+               np.zeros((30, 30), np.uint8)]
+    for _ in range(150):
+        h, w = (int(x) for x in rng.integers(1, 90, 2))
+        images.append(np.where(rng.random((h, w)) < rng.uniform(0.02, 0.8), 255, 0
+                               ).astype(np.uint8))
+    images += [np.full((1, 50), 255, np.uint8), np.full((40, 1), 255, np.uint8),
+               np.eye(30, dtype=np.uint8) * 255, np.zeros((5, 5), np.uint8)]
+    for img in images:
+        h, w = img.shape
+        for y0, y1, x0, x1 in ((0, h, 0, w), (h // 4, h - h // 5, w // 3, w)):
+            if y1 <= y0 or x1 <= x0:
+                continue
+            box = np.ascontiguousarray(img[y0:y1, x0:x1])
+            for min_area in (1, 7, tipm.cfg.min_area):
+                out = np.full(box.shape, 9, np.uint8)
+                _, kept = k.large_blobs(img, y0, y1, x0, x1, min_area, out)
+                ref_kept, ref = _opencv_large_blobs(box, min_area)
+                assert kept == ref_kept
+                np.testing.assert_array_equal(out, ref)
+    ridges += [np.where(rng.random((50, 70)) < 0.02, 200, 0).astype(np.uint8),  # specks
+               np.full((20, 20), 255, np.uint8)]
+    reasons = set()
+    for ridge in ridges:  # the whole mask and its reason, as _mask made them with OpenCV
+        mask, why = tipm._mask(ridge, np.empty_like(ridge))
+        reasons.add(why)
+        _, binary = cv2.threshold(ridge, tipm._threshold(ridge), 255, cv2.THRESH_BINARY)
+        x, y, bw, bh = cv2.boundingRect(binary)
+        d = tipm.cfg.dilate_px
+        roi = (slice(max(y - d, 0), y + bh + d), slice(max(x - d, 0), x + bw + d))
+        n_kept, kept = _opencv_large_blobs(np.ascontiguousarray(binary[roi]), tipm.cfg.min_area)
+        ref = np.zeros_like(binary)
+        ref[roi] = cv2.dilate(kept, tipm._kernel)
+        assert why == ("no stripe found (no red pixels above threshold)" if bw == 0 else
+                       "no stripe found (only small blobs)" if n_kept == 0 else "")
+        np.testing.assert_array_equal(mask, ref if why == "" else np.zeros_like(ref))
+        if why == "":
+            assert tipm.centre(ridge, mask).tolist() == tipm.centre(ridge, mask.copy()).tolist()
+    assert reasons == {"", "no stripe found (no red pixels above threshold)",
+                       "no stripe found (only small blobs)"}
+
+
+def test_compiled_brightness_plane_is_the_opencv_calls_to_the_bit(cell, part, noise):
+    """The brightness look's plane (``_kernels.brightness_line``) against the OpenCV calls it
+    replaces (``cv2.transform`` by BRIGHTNESS, the ridge's blur, the dilation by the two
+    rows ``ridge_px // 2`` away, saturating arithmetic): heavy-arc frames and windows, windows
+    shorter than the ridge filter, random images; and the brightness on every (B, G, R)."""
+    from torchseam.core.orient import BRIGHTNESS
+
+    tipm = load_tipm()
+    rng = np.random.default_rng(9)
+    frames = [f for f, _ in simulate(cell, part, noise, SequenceSpec(n_frames=6, level=1.0,
+                                                                     seed=4))]
+    images = [np.ascontiguousarray(f[y:y + 221, x:x + 221]) for f in frames
+              for y, x in ((0, 0), (150, 200), (400, 500))]
+    images += [rng.integers(0, 256, (int(h), int(w), 3), dtype=np.uint8)
+               for h, w in rng.integers(1, 60, (40, 2))]
+    images += [np.full((25, 30, 3), 255, np.uint8), frames[0]]
+    for img in images:
+        h, w = img.shape[:2]
+        grey, out = np.empty((h, w), np.uint8), np.empty((h, w), np.uint8)
+        tipm._k.brightness_line(img, int(tipm.cfg.ridge_px), tipm._mean_of, grey, out)
+        ref_grey = cv2.transform(img, BRIGHTNESS)
+        line = cv2.subtract(ref_grey, cv2.dilate(ref_grey, tipm._sides))
+        ridge = cv2.subtract(ref_grey, cv2.blur(ref_grey, (1, tipm.cfg.ridge_px)))
+        np.testing.assert_array_equal(grey, ref_grey)
+        np.testing.assert_array_equal(out, cv2.min(ridge, cv2.add(line, line)))
+    v = np.arange(256, dtype=np.uint8)  # every (B, G, R): 4096 x 4096 pixels
+    every = np.stack(np.meshgrid(v, v, v, indexing="ij"), -1).reshape(4096, 4096, 3)
+    grey = np.empty((4096, 4096), np.uint8)
+    tipm._k.brightness_line(every, 1, tipm._mean_of, grey, np.empty_like(grey))
+    np.testing.assert_array_equal(grey, cv2.transform(every, BRIGHTNESS))
+
+
+def test_compiled_blobs_dilated_are_opencvs_dilation_and_bounding_box():
+    """The blobs dilated in the same pass (``_kernels.large_blobs_dilated``, the structuring
+    element's rows as centred runs) against ``cv2.dilate`` of the blobs' box by the ellipse
+    of ``dilate_px`` 0-4 and ``cv2.boundingRect`` of the mask: random images, boxes at the
+    image's edges (the dilation stops at the box); a shape whose rows are no centred runs is
+    not taken (``_centred_runs`` None: ``cv2.dilate`` then)."""
+    from torchseam.vision.tipm import _centred_runs
+
+    tipm = load_tipm()
+    rng = np.random.default_rng(11)
+    for _ in range(120):
+        h, w = (int(x) for x in rng.integers(1, 70, 2))
+        img = np.where(rng.random((h, w)) < rng.uniform(0.01, 0.6), 255, 0).astype(np.uint8)
+        y0, x0 = (int(x) for x in rng.integers(0, [h, w]))
+        y1, x1 = int(rng.integers(y0 + 1, h + 1)), int(rng.integers(x0 + 1, w + 1))
+        min_area = int(rng.choice([1, 5, 30]))
+        for d in range(5):
+            se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1))
+            reach = _centred_runs(se)
+            assert reach is not None
+            mask = np.zeros_like(img)
+            work = np.empty((4, tipm._k.runs_cap(y1 - y0, x1 - x0)), np.int64)
+            kept, *rect = tipm._k.large_blobs_dilated(img, y0, y1, x0, x1, min_area, reach,
+                                                      work, mask)
+            ref_kept, blobs = _opencv_large_blobs(np.ascontiguousarray(img[y0:y1, x0:x1]),
+                                                  min_area)
+            ref = np.zeros_like(img)
+            ref[y0:y1, x0:x1] = cv2.dilate(blobs, se)
+            assert kept == ref_kept
+            np.testing.assert_array_equal(mask, ref)
+            assert tuple(rect) == cv2.boundingRect(ref)
+    with pytest.raises(ValueError, match="work too small"):
+        tipm._k.large_blobs_dilated(img, 0, h, 0, w, 1, reach, np.empty((4, 1), np.int64),
+                                    np.zeros_like(img))
+    assert _centred_runs(np.ones((3, 3), np.uint8)).tolist() == [1, 1, 1]
+    assert _centred_runs(np.array([[1, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)) is None
+    assert _centred_runs(np.array([[0, 0, 0], [1, 1, 1], [0, 0, 0]], np.uint8)) is None
+
+
+def test_compiled_row_blur_is_opencvs_to_the_bit():
+    """The second look's blur along the rows (``_kernels.row_box``) against ``cv2.blur``:
+    every sum a window of ``smooth_px`` columns can hold (each a row of its own), random
+    images of 1-60 px (reflected borders), a 0/255 image, other odd widths."""
+    tipm = load_tipm()
+    k = int(tipm.cfg.smooth_px)
+    s = np.arange(255 * k + 1)
+    every = np.minimum(np.maximum(s[:, None] - 255 * np.arange(k)[None], 0), 255)
+    images = [every.astype(np.uint8)]
+    rng = np.random.default_rng(13)
+    images += [rng.integers(0, 256, (int(h), int(w)), dtype=np.uint8)
+               for h, w in rng.integers(1, 60, (60, 2))]
+    images.append(np.where(rng.random((40, 70)) < 0.3, 255, 0).astype(np.uint8))
+    for img in images:
+        for width in (k, 3, 11):
+            table = ((2 * np.arange(255 * width + 1) + width) // (2 * width)).astype(np.uint8)
+            out = np.empty_like(img)
+            tipm._k.row_box(img, width, table, out)
+            np.testing.assert_array_equal(out, cv2.blur(img, (width, 1)))
+    assert np.array_equal(np.unique(every.sum(axis=1)), s)  # (every sum is there)
+
+
+def test_compiled_threshold_is_the_numpy_one_to_the_bit():
+    """:meth:`Tipm._threshold` compiled (``_kernels.stripe_threshold``) against its numpy
+    statement (float32 cumulative counts, ``np.searchsorted``, the sorted column maxima's
+    middle): random ridges from dark to saturated, odd and even counts of strong columns,
+    1-pixel and empty-of-stripe ridges."""
+    tipm = load_tipm()
+    ref = Tipm(tipm.cfg)
+    ref._fast_threshold = False
+    assert tipm._fast_threshold  # (numpy 2)
+    rng = np.random.default_rng(17)
+    ridges = [np.zeros((5, 7), np.uint8), np.full((1, 1), 200, np.uint8),
+              np.full((30, 40), 255, np.uint8)]
+    for _ in range(400):
+        h, w = (int(x) for x in rng.integers(1, 120, 2))
+        top = int(rng.integers(1, 256))
+        r = (rng.random((h, w)) ** rng.uniform(1, 8) * top).astype(np.uint8)
+        r[:, rng.random(w) < rng.uniform(0, 0.5)] = top
+        ridges.append(r)
+    for k in range(1, 41):  # a stripe's columns over a dark ridge: their median sets it
+        r = np.zeros((20, 60), np.uint8)
+        r[3, :k] = rng.integers(20, 256, k)
+        ridges.append(r)
+    levels = set()
+    for r in ridges:
+        assert tipm._threshold(r) == ref._threshold(r)
+        levels.add(ref._threshold(r))
+    assert len(levels) > 100

@@ -15,6 +15,23 @@ import numba
 import numpy as np
 
 
+@numba.njit("void(u1[:, :], u1[:, :], b1, f8[:, ::1], f8[:, ::1], f8, f8, b1[:, ::1], "
+            "f8[:, ::1])", cache=True, nogil=True)
+def polar(mask, intensity, has_val, ru, rv, u, v, on, val):  # pragma: no cover - compiled
+    """:meth:`Ecal.polar` of a feature point ``(u, v)`` whose rings lie inside the image: the
+    sample ``(i, j)`` is the pixel ``(rint(u + ru[i, j]), rint(v + rv[i, j]))``; ``on`` is
+    whether ``mask`` is non-zero there, ``val`` the ``intensity`` there (``has_val``), as
+    float64. The numpy version's arithmetic (the same additions, the same rounding) without
+    its ~10 passes over the (R, N) rings."""
+    for i in range(ru.shape[0]):
+        for j in range(ru.shape[1]):
+            c = int(np.rint(ru[i, j] + u))
+            r = int(np.rint(rv[i, j] + v))
+            on[i, j] = mask[r, c] > 0
+            if has_val:
+                val[i, j] = np.float64(intensity[r, c])
+
+
 @numba.njit("Tuple((i8[::1], f8[::1], i8[::1]))(b1[:, ::1], f8[:, ::1], i8[::1], f8[::1], "
             "f8[::1], f8[::1], f8, f8, f8)", cache=True, nogil=True)
 def crossings(on, val, rows, radii, cos_t, sin_t, min_width, max_width, min_connected

@@ -24,6 +24,7 @@ no pose).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import overload
@@ -135,6 +136,16 @@ class Ecal:
         h, w = mask.shape
         r = self.cfg.r_max_px + 1
         inside = None
+        if (r <= uv[0] < w - r and r <= uv[1] < h - r and mask.dtype == np.uint8
+                and (intensity is None or (intensity.dtype == np.uint8
+                                           and intensity.shape == mask.shape))):
+            # the rings inside the image: the gather below in one compiled pass
+            on = np.empty(self._ru.shape, np.bool_)
+            val = np.empty(self._ru.shape) if intensity is not None else None
+            self._k.polar(mask, mask if intensity is None else intensity,
+                          intensity is not None, self._ru, self._rv, float(uv[0]), float(uv[1]),
+                          on, _NO_VAL if val is None else val)
+            return on, val
         if r <= uv[0] < w - r and r <= uv[1] < h - r:
             # one flat gather per image (2-D fancy indexing costs more); the pixel index
             # v * w + u formed in float64 (exact: whole numbers far below 2^53) and cast once
@@ -179,7 +190,9 @@ class Ecal:
             self._cos, self._sin, float(cfg.min_width_px), float(cfg.max_width_px),
             float(cfg.min_connected))
         r = self.circles[circle]
-        px = uv + r[:, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+        px = np.empty((len(ang), 2))  # uv + r * (cos, sin), column by column
+        np.add(uv[0], r * np.cos(ang), out=px[:, 0])
+        np.add(uv[1], r * np.sin(ang), out=px[:, 1])
         out: list[tuple[list[_Crossing], int]] = [([], int(x)) for x in rejected]
         for i, c in enumerate(circle.tolist()):
             out[c][0].append((float(ang[i]), px[i]))
@@ -202,14 +215,16 @@ class Ecal:
             raise ValueError(f"mask: expected (H, W), got {mask.shape}")
         uv = np.asarray(uv, dtype=float)
         nan2 = np.full((2, 2), np.nan)
-        if not np.all(np.isfinite(uv)):
+        if not np.isfinite(uv).all():
             return EcalResult(False, nan2, np.full(2, np.nan), reason="no feature point")
-        best: EcalResult | None = None
+        # the pair of arms at a clean circle: (p1, a1, p2, a2, radius, rejected so far); the
+        # result is made of the one kept only
+        best: tuple[np.ndarray, float, np.ndarray, float, float, int] | None = None
         single: tuple[float, float, np.ndarray] | None = None
         radii: list[float] = []
         arm_angles: list[np.ndarray] = []
         rejected_total = 0
-        kept: list[EcalResult] = []  # the result at each clean circle
+        kept: list[tuple[np.ndarray, float, np.ndarray, float, float, int]] = []
         on, val = self.polar(mask, uv, intensity)
         for r, (cands, rejected) in zip(self.circles, self.crossings(on, val, uv), strict=True):
             rejected_total += rejected
@@ -232,14 +247,16 @@ class Ecal:
             prev_angles = np.array([a1, a2])  # follow the arms outwards
             radii.append(float(r))
             arm_angles.append(prev_angles)
-            best = EcalResult(True, np.stack([p1, p2]), np.array([a1, a2]), float(r),
-                              rejected=rejected_total)
+            best = (p1, a1, p2, a2, float(r), rejected_total)
             kept.append(best)
         if best is not None:
-            best.circles = (np.array(radii), np.array(arm_angles))
+            p1, a1, p2, a2, r_best, rejected_best = best
+            res = EcalResult(True, np.stack([p1, p2]), np.array([a1, a2]), r_best,
+                             rejected=rejected_best)
+            res.circles = (np.array(radii), np.array(arm_angles))
             if tangents:
-                self.tangents(best, uv)
-            return best
+                self.tangents(res, uv)
+            return res
         if single is not None and prev_angles is not None:
             r, a, p = single
             k = int(np.argmin(np.abs(_wrap(prev_angles - a))))
@@ -303,6 +320,8 @@ def _wrap(a: float) -> float: ...
 def _wrap(a: np.ndarray) -> np.ndarray: ...
 def _wrap(a: float | np.ndarray) -> float | np.ndarray:
     """Angle(s) wrapped into [-pi, pi)."""
+    if isinstance(a, float):  # (np.float64 too) Python's float % is numpy's remainder, to the
+        return (float(a) + math.pi) % (2 * math.pi) - math.pi  # bit, without its ~3 us
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
@@ -335,7 +354,7 @@ def _pick_pair(cands: list[_Crossing], prev: np.ndarray | None, min_separation_d
                     best, score = (cands[i], cands[j]), s
         assert best is not None  # three or more crossings: some pair scores >= 0
         pair = list(best)
-    if abs(_wrap(pair[0][0] - pair[1][0])) < np.radians(min_separation_deg):
+    if abs(_wrap(pair[0][0] - pair[1][0])) < math.radians(min_separation_deg):  # (np.radians')
         return None  # both on one arm (a gap or a dark streak splits it): not a pair
     pair = sorted(pair, key=lambda c: c[1][0])
     return pair[0], pair[1]

@@ -159,7 +159,9 @@ class SeamLocator:
         # newest first (one or two; a norm per point back cost ~0.04 ms a frame at 25 Hz)
         seen = np.array(self._seen)
         d = seen - p_b
-        near = np.sqrt(np.einsum("ij,ij->i", d, d)) < EXPECT_SPAN_MM * (1.0 - 1e-9)
+        # (a squared distance to a few ulps: the margin of 1e-9 keeps every point whose norm
+        # may reach EXPECT_SPAN_MM for the exact test)
+        near = np.sqrt((d * d).sum(axis=1)) < EXPECT_SPAN_MM * (1.0 - 1e-9)
         for i in np.flatnonzero(~near)[::-1]:
             p_a = self._seen[int(i)]
             if np.linalg.norm(p_b - p_a) >= EXPECT_SPAN_MM:
@@ -227,7 +229,7 @@ class SeamLocator:
         t1 = time.perf_counter()
         nan3, q = np.full(3, np.nan), np.full((2, 3), np.nan)
         arms_ok = fallback = False
-        if status == TrackStatus.LOST or not np.all(np.isfinite(uv)):
+        if status == TrackStatus.LOST or not np.isfinite(uv).all():
             return Location(axis.to_camera(uv), status, nan3, q, False, False,
                             {"track": (t1 - t0) * 1e3})
         if isinstance(self.tracker, ProfileTracker):
@@ -245,7 +247,7 @@ class SeamLocator:
         # the points the expected pixel is drawn from: those resting on a TIPM corner taken
         # this frame (seen, or extrapolated over a short gap: accurate either way) or a firm
         # shallow one (Fix.firm; docs/benchmarks.md), not predictions
-        if np.all(np.isfinite(X[0])) and (status == TrackStatus.TRACKED or (
+        if np.isfinite(X[0]).all() and (status == TrackStatus.TRACKED or (
                 res.fix is not None and res.fix.taken and res.fix.firm)):
             self._seen.append(X[0])
         if arms_ok:

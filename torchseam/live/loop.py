@@ -435,7 +435,7 @@ class LiveLoop:
         # a point counts as located only with the stripe seen around it (ECAL's arms):
         # a coasting filter's guess over a dark or blinded frame is not a seam point
         located = loc is not None and bool(
-            np.all(np.isfinite(loc.p)) and loc.status != TrackStatus.LOST and loc.arms_ok)
+            np.isfinite(loc.p).all() and loc.status != TrackStatus.LOST and loc.arms_ok)
         # A point the tracker only coasted through (no evidence on its frame) waits until the
         # next evidence confirms the track again, and joins the buffer then; a coast longer
         # than max_blind_ms is never confirmed: its points are dropped, and the torch later

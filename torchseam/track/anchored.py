@@ -344,8 +344,8 @@ def observe(tipm: Tipm, frame: np.ndarray, x: np.ndarray, prior: np.ndarray | No
     h, w = frame.shape[:2]
     cu, cv = float(x[0]), float(x[1])
     obs = Observation(glare_level(frame, x, cfg.glare_px))
-    x0 = int(np.clip(cu - cfg.window_px, 0, w - 1))
-    y0 = int(np.clip(cv - cfg.window_px, 0, h - 1))
+    x0 = int(min(max(cu - cfg.window_px, 0), w - 1))  # (np.clip's value, ~10 us less)
+    y0 = int(min(max(cv - cfg.window_px, 0), h - 1))
     roi = np.ascontiguousarray(frame[y0:int(cv) + cfg.window_px + 1,
                                      x0:int(cu) + cfg.window_px + 1])
     if roi.shape[0] < 16 or roi.shape[1] < 16:
@@ -1087,7 +1087,7 @@ class AnchoredTracker(Tracker):
         """Where the feature point should be in the next frame, from the robot's motion (the
         live loop knows the camera's pose and the seam seen so far): it replaces the filter's
         random-walk prediction for that frame. None: no idea."""
-        self._expected = None if uv is None or not np.all(np.isfinite(uv)) else np.asarray(
+        self._expected = None if uv is None or not np.isfinite(uv).all() else np.asarray(
             uv, float)
 
     def init(self, frame: np.ndarray, uv: np.ndarray) -> None:
@@ -1115,7 +1115,7 @@ class AnchoredTracker(Tracker):
         uv, status = self.inner.update(frame)
         # EAKF-STC that gave up is no measurement; the filter goes on from its prediction and
         # a far corner is taken only through the persistence test of search()
-        inner_ok = status != TrackStatus.LOST and bool(np.all(np.isfinite(uv)))
+        inner_ok = status != TrackStatus.LOST and bool(np.isfinite(uv).all())
         x, reanchor, fix, obs = self.filter.step(frame, uv, inner_ok, expected)
         out = np.array(x, dtype=float)
         if reanchor:

@@ -620,6 +620,8 @@ class LiteEAKFSTC:
         self._even = not (h % 2 or w % 2)  # competing peaks on 2x2-block maxima (see stc.py)
         self._eb = (self.exclude + 1) // 2 if self._even else self.exclude
         self.H_f: np.ndarray | None = None
+        # (the anchored model of (id(H_f), id(H_ref)), and the two arrays: see _model)
+        self._anchored: tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray] | None = None
         self.frame = 0
         # (frame id, crop centre) and the prior spectrum of the last window: the learning step
         # re-crops at the filtered point, usually the pixel it detected at. Valid within one
@@ -629,7 +631,9 @@ class LiteEAKFSTC:
         # None, centre, rho scale), in order
         self._pending: list[tuple[np.ndarray | None, np.ndarray | None, np.ndarray, float]] = []
         # numba: compiled (or loaded) now, not on the first frame
-        self._peak_quality = load_kernels(__package__).peak_quality
+        kernels = load_kernels(__package__)
+        self._peak_quality = kernels.peak_quality
+        self._red_window = kernels.red_window
         # the filter's state, set by init (with H_f: None until then)
         self.x: np.ndarray | None = None
         self.P: np.ndarray | None = None
@@ -687,6 +691,11 @@ class LiteEAKFSTC:
         hi, wi = frame.shape[:2]
         u, v = int(c[0]), int(c[1])
         r0, c0 = v - self.h // 2, u - self.w // 2
+        if frame.ndim == 3 and frame.dtype == np.uint8 and frame.flags.c_contiguous:
+            # crop (border replicated), red response and float64 in one compiled pass
+            win = np.empty((self.h, self.w))
+            self._red_window(frame, r0, c0, win)
+            return win
         if r0 >= 0 and c0 >= 0 and r0 + self.h <= hi and c0 + self.w <= wi:
             win = frame[r0:r0 + self.h, c0:c0 + self.w]
         else:
@@ -731,6 +740,8 @@ class LiteEAKFSTC:
                 assert win is not None  # a step queues its window or its prior spectrum
                 prior_f = self._spectrum(win)
             self._apply_learn(prior_f, centre, rho_scale)
+        if pending:
+            self._model()  # the next detection's model, made now
 
     def _apply_learn(self, prior_f: np.ndarray, centre: np.ndarray, rho_scale: float) -> None:
         r = np.floor(centre + 0.5)
@@ -752,14 +763,25 @@ class LiteEAKFSTC:
             self.H_ref = self.H_f if self.frame == 1 else \
                 self.H_ref + (self.H_f - self.H_ref) / self.frame
 
+    def _model(self) -> np.ndarray:
+        """The context model detection runs with: ``H_f``, pulled ``anchor`` of the way to
+        the start model ``H_ref``; made once per learning step (:meth:`idle` makes it
+        between frames, off the frame's path)."""
+        H_f, H_ref = self.H_f, self.H_ref
+        assert H_f is not None  # (set by init)
+        if not (self.anchor > 0 and H_ref is not None):
+            return H_f
+        key = (id(H_f), id(H_ref))
+        if self._anchored is None or self._anchored[0] != key:
+            # (keyed by the two arrays: each learning step makes new ones, kept alive here)
+            self._anchored = (key, H_f + self.anchor * (H_ref - H_f), H_f, H_ref)
+        return self._anchored[1]
+
     def _detect(self, frame: np.ndarray, centre: np.ndarray
                 ) -> tuple[np.ndarray, float, float, int, float]:
         """Eq. 10-11 around ``centre``: (uv, psr, second_ratio, n_peaks, peak)."""
         base = np.floor(centre + 0.5)
-        H_f = self.H_f
-        if self.anchor > 0 and self.H_ref is not None:
-            H_f = H_f + self.anchor * (self.H_ref - H_f)
-        resp = _irfft2(H_f * self._prior_f(frame, base), (self.h, self.w))
+        resp = _irfft2(self._model() * self._prior_f(frame, base), (self.h, self.w))
         off_u, off_v, peak, psr, second_ratio, n_peaks = self._peak_quality(
             resp, self._e, self._even, self._eb)
         off = np.array([off_u, off_v])
@@ -811,13 +833,16 @@ class LiteEAKFSTC:
         centre = np.minimum(np.maximum(pred, 0.0), [wi - 1.0, hi - 1.0])
         z, psr, second_ratio, n_peaks, peak = self._detect(frame, centre)  # 2. measurement
         # 3. innovation of the delayed update (eakf_innovation, eq. 21-25)
-        Z_new = np.stack([z, z - self.Z[:, 0]], axis=-1)
+        Z_new = np.empty((2, 2))  # (np.stack's values without its overhead, here and below)
+        Z_new[:, 0] = z
+        Z_new[:, 1] = z - self.Z[:, 0]
         nu = Z_new - self.psi * self.Z - (self.H_star @ x[..., None])[..., 0]
         PHt = P @ self.H_star.transpose(0, 2, 1)
         HPHt = self.H_star @ PHt
         noise = self.psi ** 2 * (self.s - 1.0)
-        s_gate = np.stack([np.ones(2), np.maximum(self.s_ref, 1.0)], axis=-1)
-        S_pos = HPHt[:, 0, 0] + self.R[:, 0] * (s_gate[:, 0] + noise[:, 0])
+        # the gate's scale on the position rows is 1 (its velocity rows' max(s_ref, 1) are
+        # not read)
+        S_pos = HPHt[:, 0, 0] + self.R[:, 0] * (1.0 + noise[:, 0])
         d2 = float((nu[:, 0] ** 2 / S_pos).sum())
         spread = max(float(S_pos.prod()), 0.0) ** 0.25
         # 4. drift guard (DriftGuard.forward)
@@ -830,13 +855,19 @@ class LiteEAKFSTC:
         r_scale = math.exp(c[8] * _sigmoid(c[11] * (c[12] - trust)))
         rho_scale = _sigmoid(c[9] * (trust - c[10]))
         # 5. update (eakf_update, eq. 25-26), the kept measurement blended by trust
-        sc = np.full(2, r_scale)
-        s_new = np.stack([sc, np.maximum(sc, self.s_ref)], axis=-1)
+        s_new = np.empty((2, 2))
+        s_new[:, 0] = r_scale
+        s_new[:, 1] = np.maximum(r_scale, self.s_ref)
+        sc = s_new[:, 0].copy()
         S = HPHt.copy()
-        S[:, [0, 1], [0, 1]] += self.R * (s_new + noise)
+        add = self.R * (s_new + noise)
+        S[:, 0, 0] += add[:, 0]
+        S[:, 1, 1] += add[:, 1]
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
-        S_inv = np.stack([np.stack([S[:, 1, 1], -S[:, 0, 1]], -1),
-                          np.stack([-S[:, 1, 0], S[:, 0, 0]], -1)], -2) / det[:, None, None]
+        S_inv = np.empty((2, 2, 2))
+        S_inv[:, 0, 0], S_inv[:, 0, 1] = S[:, 1, 1], -S[:, 0, 1]
+        S_inv[:, 1, 0], S_inv[:, 1, 1] = -S[:, 1, 0], S[:, 0, 0]
+        S_inv /= det[:, None, None]
         K = PHt @ S_inv
         x_post = x + (K @ nu[..., None])[..., 0]
         P_post = P - K @ PHt.transpose(0, 2, 1)

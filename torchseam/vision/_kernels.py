@@ -80,6 +80,228 @@ def ridge_stats(ridge, hist, colmax):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
+def _root(parent, a):  # pragma: no cover - compiled
+    while parent[a] != a:
+        a = parent[a]
+    return a
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_runs(row, x0, w, r, rs, re, rr, parent, n, prev0, prev1, level
+              ):  # pragma: no cover - compiled
+    """The runs of pixels above ``level`` of ``row[x0:x0 + w]`` (row ``r`` of the box) from
+    run ``n`` on, each joined to the runs ``[prev0, prev1)`` of the row above that touch it (a
+    column apart at most: 8-connected); returns the run count after them."""
+    c = 0
+    j = prev0
+    while c < w:
+        while c < w and row[x0 + c] <= level:
+            c += 1
+        if c >= w:
+            break
+        s = c
+        while c < w and row[x0 + c] > level:
+            c += 1
+        rs[n], re[n], rr[n] = s, c, r
+        parent[n] = n
+        best = n
+        while j < prev1 and re[j] < s:  # ends left of column s - 1
+            j += 1
+        k = j
+        while k < prev1 and rs[k] <= c:  # starts by column c (this run ends at c - 1)
+            a = _root(parent, k)
+            b = _root(parent, best)
+            if a < b:
+                parent[b] = a
+            elif b < a:
+                parent[a] = b
+            best = min(a, b)
+            k += 1
+        if k > j:
+            j = k - 1  # the last one touched may reach the next run too
+        n += 1
+    return n
+
+
+@numba.njit("i8(i8, i8)", cache=True, nogil=True)
+def runs_cap(h, w):  # pragma: no cover - compiled
+    """The most runs an (h, w) box holds: every other pixel of every row."""
+    return h * ((w + 1) // 2) + 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _blobs(binary, y0, y1, x0, x1, min_area, work, level=0):  # pragma: no cover - compiled
+    """The runs of the box ``[y0, y1) x [x0, x1)`` of ``binary`` (pixels above ``level``:
+    :func:`_row_runs`) and
+    their blobs: ``(runs, first columns, ends, rows (in the box), whether each run's blob has
+    min_area px at least, blobs, blobs kept)``. ``work``: (4, runs_cap(box)) int64."""
+    h, w = y1 - y0, x1 - x0
+    rs = work[0]      # a run's first column (in the box) ...
+    re = work[1]      # ... one past its last
+    rr = work[2]      # ... its row
+    parent = work[3]  # union-find over the runs
+    n = 0
+    prev0 = 0  # the runs of the row above: [prev0, n)
+    for r in range(h):
+        first = n
+        n = _row_runs(binary[y0 + r], x0, w, r, rs, re, rr, parent, n, prev0, n, level)
+        prev0 = first
+    area = np.zeros(max(n, 1), np.int64)
+    for i in range(n):
+        a = _root(parent, i)
+        parent[i] = a
+        area[a] += re[i] - rs[i]
+    blobs = kept = 0
+    for i in range(n):
+        if parent[i] == i:
+            blobs += 1
+            kept += area[i] >= min_area
+    large = np.empty(max(n, 1), np.bool_)
+    for i in range(n):
+        large[i] = area[parent[i]] >= min_area
+    return n, rs, re, rr, large, blobs, kept
+
+
+@numba.njit("f8(i8[::1], u1[::1], f8, f8, f8)", cache=True, nogil=True)
+def stripe_threshold(hist, colmax, noise_k, min_red, rel):  # pragma: no cover - compiled
+    """:meth:`Tipm._threshold` of a ridge's histogram ``hist`` (256,) and column maxima
+    ``colmax`` (W,) (fewer than 2^24 pixels: the float32 cumulative counts are whole numbers,
+    exact), in numpy's arithmetic: the 90th percentile is the first level whose float32
+    cumulative count reaches ``float32(0.9) * float32(total)`` (numpy 2 multiplies a float32
+    by a Python float in float32), ``noise = noise_k * max(that, 1)``, the stripe's level
+    the median of the column maxima above the noise (the middle one, or the mean of the
+    middle two in float64), counted instead of sorted; returns ``max(min_red, noise,
+    rel * level)``."""
+    total = 0
+    for v in range(256):
+        total += hist[v]
+    target = np.float32(0.9) * np.float32(total)
+    cum = 0
+    p90 = 256  # (np.searchsorted past the end: only an empty histogram)
+    for v in range(256):
+        cum += hist[v]
+        if np.float32(cum) >= target:
+            p90 = v
+            break
+    noise = noise_k * max(float(p90), 1.0)
+    above = np.zeros(256, np.int64)
+    n = 0
+    for c in range(len(colmax)):
+        if colmax[c] > noise:
+            above[colmax[c]] += 1
+            n += 1
+    level = 0.0
+    if n:
+        lo = -1  # the values of rank (n - 1) // 2 and n // 2
+        hi = -1
+        seen = 0
+        for v in range(256):
+            seen += above[v]
+            if lo < 0 and seen > (n - 1) // 2:
+                lo = v
+            if seen > n // 2:
+                hi = v
+                break
+        level = float(hi) if n % 2 else (float(lo) + float(hi)) / 2.0
+    return max(min_red, noise, rel * level)
+
+
+@numba.njit("UniTuple(i8, 6)(u1[:, ::1], i8, i8, i8[::1], i8[:, ::1], u1[:, ::1])",
+            cache=True, nogil=True)
+def stripe_blobs(ridge, level, min_area, reach, work, mask):  # pragma: no cover - compiled
+    """:meth:`Tipm._mask` from the threshold on: the pixels of ``ridge`` (H, W) above
+    ``level`` (an integer: ``cv2.threshold``'s binary image at a threshold in
+    ``[level, level + 1)``), their blobs of ``min_area`` px at least, dilated into ``mask``
+    (zeros on entry) as :func:`large_blobs_dilated` does in the box round the binary image
+    (a blob's dilation reaches ``len(reach) // 2`` px at most: the box's margin; the image's
+    edge clips both alike). Returns ``(pixels above, blobs kept, x, y, width, height)``, the
+    last four ``cv2.boundingRect`` of ``mask``. ``work``: (4, :func:`runs_cap` (H, W)) int64
+    at least."""
+    h, w = ridge.shape
+    if work.shape[0] < 4 or work.shape[1] < runs_cap(h, w):
+        raise ValueError("stripe_blobs: work too small")
+    n, rs, re, rr, large, blobs, kept = _blobs(ridge, 0, h, 0, w, min_area, work, level)
+    above = 0
+    for i in range(n):
+        above += re[i] - rs[i]
+    d = len(reach) // 2
+    top, left, bottom, right = h, w, -1, -1
+    for i in range(n):
+        if not large[i]:
+            continue
+        for k in range(len(reach)):
+            r = rr[i] + k - d
+            if r < 0 or r >= h:
+                continue
+            c0 = max(rs[i] - reach[k], 0)
+            c1 = min(re[i] + reach[k], w)
+            if c1 <= c0:
+                continue
+            mask[r, c0:c1] = 255
+            top, bottom = min(top, r), max(bottom, r)
+            left, right = min(left, c0), max(right, c1)
+    if bottom < 0:
+        return above, kept, 0, 0, 0, 0
+    return above, kept, left, top, right - left, bottom - top + 1
+
+
+@numba.njit("UniTuple(i8, 2)(u1[:, ::1], i8, i8, i8, i8, i8, u1[:, ::1])", cache=True,
+            nogil=True)
+def large_blobs(binary, y0, y1, x0, x1, min_area, out):  # pragma: no cover - compiled
+    """The blobs of ``min_area`` px at least in the box ``[y0, y1) x [x0, x1)`` of ``binary``
+    (H, W) uint8 (zero or not): ``out`` (y1 - y0, x1 - x0) is 255 on their pixels and 0
+    elsewhere; returns ``(blobs, blobs kept)``. A blob is an 8-connected area of non-zero
+    pixels, what ``cv2.connectedComponentsWithStats(..., connectivity=8)`` labels (the mask
+    is the same to the bit; its labels and statistics, then a lookup table, took ~60 us of
+    the tracker's ~0.3 ms TIPM window): here labelled by runs along the rows
+    (:func:`_row_runs`), a union-find over the runs."""
+    work = np.empty((4, runs_cap(y1 - y0, x1 - x0)), np.int64)
+    n, rs, re, rr, large, blobs, kept = _blobs(binary, y0, y1, x0, x1, min_area, work)
+    out[:, :] = 0
+    for i in range(n):
+        if large[i]:
+            out[rr[i], rs[i]:re[i]] = 255
+    return blobs, kept
+
+
+@numba.njit("UniTuple(i8, 5)(u1[:, ::1], i8, i8, i8, i8, i8, i8[::1], i8[:, ::1], "
+            "u1[:, ::1])", cache=True, nogil=True)
+def large_blobs_dilated(binary, y0, y1, x0, x1, min_area, reach, work, mask
+                        ):  # pragma: no cover - compiled
+    """:func:`large_blobs` dilated, into ``mask`` (H, W), zeros on entry: its box
+    ``[y0, y1) x [x0, x1)`` gets ``cv2.dilate`` of the blobs' image by a structuring element
+    whose row ``k`` (of ``len(reach)``, centred) is the centred run ``+-reach[k]`` columns
+    (an ellipse's), the box's outside not read nor written (what ``cv2.dilate`` of the box
+    alone does). Returns ``(blobs kept, x, y, width, height)``: the bounding box of what it
+    wrote, ``cv2.boundingRect`` of ``mask`` (all 0 when nothing was). ``work``: (4, at
+    least :func:`runs_cap` of the box) int64, the caller's (reused: a fresh one for a whole
+    window is ~0.8 MB, fresh pages on every call)."""
+    if work.shape[0] < 4 or work.shape[1] < runs_cap(y1 - y0, x1 - x0):
+        raise ValueError("large_blobs_dilated: work too small")
+    n, rs, re, rr, large, blobs, kept = _blobs(binary, y0, y1, x0, x1, min_area, work)
+    h, w = y1 - y0, x1 - x0
+    d = len(reach) // 2
+    top, left, bottom, right = h, w, -1, -1
+    for i in range(n):
+        if not large[i]:
+            continue
+        for k in range(len(reach)):
+            r = rr[i] + k - d
+            if r < 0 or r >= h:
+                continue
+            c0 = max(rs[i] - reach[k], 0)
+            c1 = min(re[i] + reach[k], w)
+            if c1 <= c0:
+                continue
+            mask[y0 + r, x0 + c0:x0 + c1] = 255
+            top, bottom = min(top, r), max(bottom, r)
+            left, right = min(left, c0), max(right, c1)
+    if bottom < 0:
+        return kept, 0, 0, 0, 0
+    return kept, x0 + left, y0 + top, right - left, bottom - top + 1
+
+
+@numba.njit(cache=True, nogil=True)
 def _box_ridge(red, ksize, mean_of, ridge):  # pragma: no cover - compiled
     """``ridge = red - mean_of[sum of red over ksize rows]``, saturating, the rows outside the
     image reflected (reflect-101): ``cv2.subtract(red, cv2.blur(red, (1, ksize)))`` with
@@ -104,6 +326,27 @@ def _box_ridge(red, ksize, mean_of, ridge):  # pragma: no cover - compiled
             sub = red[reflect101(r - half, h)]
             for c in range(w):
                 acc[c] = acc[c] + add[c] - sub[c]
+
+
+@numba.njit("void(u1[:, ::1], i8, u1[::1], u1[:, ::1])", cache=True, nogil=True)
+def row_box(src, ksize, mean_of, out):  # pragma: no cover - compiled
+    """``out = cv2.blur(src, (ksize, 1))`` of an (H, W) uint8 plane: the mean over ``ksize``
+    columns (odd), the columns outside the image reflected (reflect-101), ``mean_of`` the
+    rounding of a sum to the mean (see :func:`_box_ridge`). TIPM's second look (~35 us as
+    the OpenCV call on the tracker's window)."""
+    h, w = src.shape
+    half = ksize // 2
+    for r in range(h):
+        row = src[r]
+        o = out[r]
+        acc = 0
+        for j in range(-half, half + 1):
+            acc += row[reflect101(j, w)]
+        for c in range(w):
+            o[c] = mean_of[acc]
+            if c + 1 < w:
+                acc += np.int64(row[reflect101(c + 1 + half, w)]) - np.int64(
+                    row[reflect101(c - half, w)])
 
 
 @numba.njit("Tuple((i8, i8))(u1[:, :, ::1], i8, u1[::1], u1[:, ::1], u1[:, ::1], i8[::1], "
@@ -135,6 +378,37 @@ def colour_ridge(frame, ksize, mean_of, red, ridge, hist, colmax):  # pragma: no
     _box_ridge(red, ksize, mean_of, ridge)
     ridge_stats(ridge, hist, colmax)
     return n_clip, n_sat
+
+
+@numba.njit("void(u1[:, :, ::1], i8, u1[::1], u1[:, ::1], u1[:, ::1])", cache=True,
+            nogil=True)
+def brightness_line(frame, ksize, mean_of, grey, out):  # pragma: no cover - compiled
+    """The plane :meth:`Tipm.find`'s brightness look reads a BGR frame (H, W, 3) uint8 by, in
+    one pass instead of eight OpenCV calls (~0.2 ms on the tracker's window): ``grey`` the
+    brightness, ``cv2.transform(frame, BRIGHTNESS)``, which is ``(B + G + R + 1) // 3``
+    (the float sum is within ~1e-4 of ``(B + G + R) / 3``, whose fraction is 0, 1/3 or 2/3:
+    never near a rounding tie); ``ridge = grey - box(grey)`` (:func:`_box_ridge`); ``line =
+    grey - max(grey ksize // 2 rows above, ... below)`` (``cv2.dilate`` by ``Tipm._sides``:
+    rows outside the image count as 0), all saturating; ``out = min(ridge, line + line)``."""
+    h, w = grey.shape
+    for r in range(h):
+        px = frame[r].ravel()  # B, G, R interleaved
+        g = grey[r]
+        for c in range(w):
+            g[c] = (np.uint32(px[3 * c]) + np.uint32(px[3 * c + 1]) + np.uint32(px[3 * c + 2])
+                    + np.uint32(1)) // np.uint32(3)
+    _box_ridge(grey, ksize, mean_of, out)
+    half = ksize // 2
+    zero = np.zeros(w, np.uint8)
+    for r in range(h):
+        g = grey[r]
+        o = out[r]
+        up = grey[r - half] if r - half >= 0 else zero
+        dn = grey[r + half] if r + half < h else zero
+        for c in range(w):
+            m = max(up[c], dn[c])
+            line = np.uint32(max(g[c], m) - m)
+            o[c] = min(np.uint32(o[c]), min(line + line, np.uint32(255)))
 
 
 @numba.njit("i8(u1[:, ::1], i8, u1[::1], u1[:, ::1], u1[:, ::1], i8[::1], u1[::1])",

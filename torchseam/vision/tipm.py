@@ -29,6 +29,7 @@ previous frame's (a MAP fit); without it the fit is the plain least squares.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -290,6 +291,24 @@ def thin_clipped_runs(plane: np.ndarray, max_rows: int, min_area: int = 0) -> np
     return out
 
 
+def _centred_runs(kernel: np.ndarray) -> np.ndarray | None:
+    """(2 d + 1,) int64 half-widths of a structuring element (2 d + 1, 2 d + 1) whose every
+    row is a run centred on its middle column (an ellipse's: ``cv2.MORPH_ELLIPSE``), or None
+    (another shape)."""
+    k = np.asarray(kernel) != 0
+    if k.ndim != 2 or k.shape[0] != k.shape[1] or k.shape[0] % 2 == 0:
+        return None
+    d = k.shape[0] // 2
+    reach = np.empty(k.shape[0], np.int64)
+    for i, row in enumerate(k):
+        cols = np.flatnonzero(row)
+        half = d - int(cols[0]) if len(cols) else -1
+        if half < 0 or not np.array_equal(cols, np.arange(d - half, d + half + 1)):
+            return None
+        reach[i] = half
+    return reach
+
+
 def _fail(reason: str, mask: np.ndarray | None = None, centre: np.ndarray | None = None
           ) -> TipmResult:
     return TipmResult(False, np.full(2, np.nan), reason, centre=centre, mask=mask)
@@ -323,8 +342,20 @@ class Tipm:
         self._mean_of: np.ndarray | None = (
             ((2 * np.arange(255 * k + 1) + k) // (2 * k)).astype(np.uint8)
             if k % 2 and 255 * k < 2**16 else None)
+        # the same table for the second look's blur along the rows (smooth_px columns)
+        k = int(cfg.smooth_px)
+        self._smooth_of: np.ndarray | None = (
+            ((2 * np.arange(255 * k + 1) + k) // (2 * k)).astype(np.uint8)
+            if k % 2 and k > 1 else None)
         self._k = load_kernels(__package__)  # compiled (or loaded) now, not on the first frame
         self._lobes = cfg.lobes  # (a property that builds a LobeRule each time)
+        self._reach = _centred_runs(self._kernel)  # the dilation's rows (see _mask)
+        # _threshold compiled: numpy 2 multiplies float32 by a Python float in float32 (the
+        # kernel's arithmetic; numpy 1 did it in float64)
+        self._fast_threshold = (0.9 * np.float32(3.0)).dtype == np.float32
+        self._runs = np.empty((4, 0), np.int64)  # the blobs' runs (reused, grown as needed)
+        # the last mask _mask made and its bounding box (x, y, w, h), for centre()
+        self._mask_rect: tuple[np.ndarray, tuple[int, ...]] | None = None
 
     def _plane(self, name: str, shape: tuple[int, int]) -> np.ndarray:
         """A reused uint8 work plane: fresh frame-sized arrays cost page faults on every frame,
@@ -415,6 +446,24 @@ class Tipm:
         the ridge's histogram and column maxima when they are known (else counted here)."""
         cfg = self.cfg
         thr = self._threshold(ridge, stats)
+        if (self._reach is not None and cfg.min_area > 0 and ridge.dtype == np.uint8
+                and ridge.flags.c_contiguous and 0.0 <= thr < 2**31):
+            # threshold, blobs, dilation and bounding box in one compiled pass (the same
+            # mask to the bit: a uint8 pixel is above thr where it is above floor(thr))
+            h, w = ridge.shape
+            need = h * ((w + 1) // 2) + 1  # (_kernels.runs_cap)
+            if self._runs.shape[1] < need:
+                self._runs = np.empty((4, need), np.int64)
+            mask = np.zeros_like(ridge)
+            above, kept, *rect = self._k.stripe_blobs(ridge, math.floor(thr),
+                                                      int(cfg.min_area), self._reach,
+                                                      self._runs, mask)
+            if above == 0:
+                return mask, "no stripe found (no red pixels above threshold)"
+            if kept == 0:
+                return mask, "no stripe found (only small blobs)"
+            self._mask_rect = (mask, tuple(rect))
+            return mask, ""
         _, binary = cv2.threshold(ridge, thr, 255, cv2.THRESH_BINARY, dst=work)
         bx, by, bw, bh = cv2.boundingRect(binary)
         if bw == 0:
@@ -429,19 +478,27 @@ class Tipm:
         if cfg.min_area <= 0:  # every blob is kept: nothing to label (the profiles' Tipm)
             mask[roi] = cv2.dilate(binary[roi], self._kernel) if d else binary[roi]
             return mask, ""
-        n, lab, blobs, _ = cv2.connectedComponentsWithStats(binary[roi], connectivity=8,
-                                                            ltype=cv2.CV_16U)
-        keep = np.nonzero(blobs[1:, cv2.CC_STAT_AREA] >= cfg.min_area)[0] + 1
-        if len(keep) == 0:
+        # the blobs of min_area px at least (one compiled pass: the mask of
+        # cv2.connectedComponentsWithStats's blobs to the bit at a third of its time), dilated
+        # in the same pass where the structuring element's rows are centred runs, with the
+        # bounding box centre() asks cv2.boundingRect for
+        binary = np.ascontiguousarray(binary)
+        (ya, yb), (xa, xb) = (roi[0].start, roi[0].stop), (roi[1].start, roi[1].stop)
+        if self._reach is not None:
+            need = (yb - ya) * ((xb - xa + 1) // 2) + 1  # (_kernels.runs_cap)
+            if self._runs.shape[1] < need:
+                self._runs = np.empty((4, need), np.int64)
+            kept, *rect = self._k.large_blobs_dilated(binary, ya, yb, xa, xb,
+                                                      int(cfg.min_area), self._reach,
+                                                      self._runs, mask)
+            if kept == 0:
+                return mask, "no stripe found (only small blobs)"
+            self._mask_rect = (mask, tuple(rect))
+            return mask, ""
+        box = np.empty((yb - ya, xb - xa), np.uint8)
+        _, kept = self._k.large_blobs(binary, ya, yb, xa, xb, int(cfg.min_area), box)
+        if kept == 0:
             return mask, "no stripe found (only small blobs)"
-        if len(keep) == n - 1:
-            box = binary[roi]  # every blob is large enough: nothing to filter
-        else:
-            lut = np.zeros(max(n, 256), np.uint8)
-            lut[keep] = 255
-            # cv2.LUT needs 8-bit labels; with <= 256 labels (nearly always) it is 5x np.take
-            box = (cv2.LUT(lab.astype(np.uint8), lut[:256]) if n <= 256
-                   else np.take(lut, lab))  # type: ignore[arg-type]  # CV_16U labels: integers
         mask[roi] = cv2.dilate(box, self._kernel)
         return mask, ""
 
@@ -464,6 +521,10 @@ class Tipm:
             stats = self._stats(ridge.shape[1])
             self._k.ridge_stats(ridge, *stats)
         counts, colmax = stats
+        if self._fast_threshold and ridge.size < 2**24:
+            # the arithmetic below in one compiled pass (its float32 sums are exact there)
+            return self._k.stripe_threshold(counts, colmax, float(cfg.noise_k),
+                                            float(cfg.min_red), float(cfg.rel_threshold))
         # float32 counts, as cv2.calcHist gives them (the same cumulative sums to the bit)
         hist = counts.astype(np.float32)
         cdf = np.cumsum(hist)
@@ -526,7 +587,10 @@ class Tipm:
             pts = np.stack([u[order], v[order]], axis=1).astype(float)
             return pts[~self._k.border_columns(mask, reach)[u[order]]]
         response = np.ascontiguousarray(response, dtype=np.uint8)
-        x, y, bw, bh = cv2.boundingRect(mask)  # the runs are counted in there only
+        known = self._mask_rect
+        # the runs are counted in the mask's bounding box only (known when _mask made it)
+        x, y, bw, bh = (known[1] if known is not None and known[0] is mask
+                        else cv2.boundingRect(mask))
         pts = self._k.centre_line(response, mask, float(self.cfg.centre_half_px),
                                   int(self.cfg.centre_passes), reach, float(self.cfg.path_step_px),
                                   float(self.cfg.path_step_cost),
@@ -582,7 +646,11 @@ class Tipm:
         if res.ok:
             return res, red, mask
         if k > 1 and why != SATURATED:
-            smooth = cv2.blur(red, (k, 1), dst=self._plane("smooth", red.shape))
+            smooth = self._plane("smooth", red.shape)
+            if self._smooth_of is not None and red.flags.c_contiguous:
+                self._k.row_box(red, int(k), self._smooth_of, smooth)  # (cv2.blur's plane)
+            else:
+                cv2.blur(red, (k, 1), dst=smooth)
             mask2, why2 = self._mask(smooth, self._plane("binary", red.shape))
             if not why2:
                 res2 = self.corner(self.centre(red, mask2), mask2, prior)
@@ -595,13 +663,20 @@ class Tipm:
             first = self._plane("first", red.shape)
             np.copyto(first, red)
             red = first
-            grey = (cv2.transform(frame, BRIGHTNESS, dst=self._plane("grey", frame.shape[:2]))
-                    if frame.dtype == np.uint8 else cv2.transform(frame, BRIGHTNESS))
             # a line, not an edge: the ridge where the light ridge_px // 2 rows above AND
             # below it is darker by half of it at least (an edge's bright side stays bright)
-            line = cv2.subtract(grey, cv2.dilate(grey, self._sides))
-            ridge = cv2.subtract(grey, cv2.blur(grey, (1, self.cfg.ridge_px)))
-            res3, red3, mask3 = self.find(cv2.min(ridge, cv2.add(line, line)), prior)
+            if self._mean_of is not None and frame.dtype == np.uint8 and frame.flags.c_contiguous:
+                # the OpenCV calls below in one compiled pass (the same plane to the bit)
+                look = self._plane("look", red.shape)
+                self._k.brightness_line(frame, int(self.cfg.ridge_px), self._mean_of,
+                                        self._plane("grey", red.shape), look)
+            else:
+                grey = (cv2.transform(frame, BRIGHTNESS, dst=self._plane("grey", red.shape))
+                        if frame.dtype == np.uint8 else cv2.transform(frame, BRIGHTNESS))
+                line = cv2.subtract(grey, cv2.dilate(grey, self._sides))
+                ridge = cv2.subtract(grey, cv2.blur(grey, (1, self.cfg.ridge_px)))
+                look = cv2.min(ridge, cv2.add(line, line))
+            res3, red3, mask3 = self.find(look, prior)
             if res3.ok:
                 res3.first_look = False
                 return res3, red3, mask3
