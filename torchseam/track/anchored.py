@@ -21,8 +21,9 @@ Per frame (:class:`AnchoredFilter`, one stream):
 7. status from evidence: ``tracked`` only when this frame's corner is seen (both arms reach
    it) within ``evidence_px`` of the point, and (offline, without the robot's prediction) is
    not the clean corner of step 4's restart: a jump is evidence once the next frame finds its
-   corner there, and a jump the next frame does not confirm is undone (the filter goes back
-   to the track it left and fuses that frame from there); ``coasting`` otherwise; ``lost`` after
+   corner there, its own frame reports the prediction the jump left, and a jump the next
+   frame does not confirm is undone (the filter goes back to the track it left and fuses
+   that frame from there); ``coasting`` otherwise; ``lost`` after
    ``lost_frames`` or ``lost_px`` of coasting. While coasting, TIPM searches the whole frame
    between frames and ``reacquire_frames`` consistent corners move the track (no lock-out).
 
@@ -829,6 +830,15 @@ class AnchoredFilter:
                                     dist - p["reanchor_px"], REANCHOR_TEMP)
         return self.x, reanchor, fix, obs
 
+    def reported(self, x: Any) -> Any:
+        """The point to report for this frame, given its fused point ``x``: ``x``, but on a
+        frame where the filter jumped to a clean corner outside its gate (offline, unconfirmed
+        until the next frame: see :meth:`step`) the prediction the jump left. The filter
+        follows the jump; what is reported waits for the next frame to confirm it, so a
+        corner glare made for one frame tens of px away is never the frame's point (a genuine
+        jump is reported one frame late)."""
+        return x if self.left is None else self.left.x
+
     def evidence(self, out: np.ndarray, fix: Fix | None) -> bool:
         """Whether ``fix`` is evidence for the point ``out`` (2,): seen, within
         ``evidence_px`` of it, and not a corner the filter jumped to on this frame (that is
@@ -976,18 +986,19 @@ class AnchoredModel(nn.Module):
         for f, fr in zip(state.filters, state.frames, strict=True):
             f.search(fr)  # the last frame's between-frames search
         inner, uv, status, _ = self.eakf_stc.step_state(state.inner, grey)
-        outs, weights, statuses = [], [], []
+        fused, outs, weights, statuses = [], [], [], []
         for i, f in enumerate(state.filters):
             ok = bool(status[i] != TrackStatus.LOST) and bool(torch.isfinite(uv[i]).all())
             x, w, fix, _ = f.step(frames[i], uv[i], ok)
-            outs.append(x)
+            fused.append(x)
+            outs.append(f.reported(x))
             weights.append(w if isinstance(w, Tensor) else x.new_tensor(w))
-            statuses.append(f.verdict(TorchOps.value(x), fix))
+            statuses.append(f.verdict(TorchOps.value(outs[-1]), fix))
         out = torch.stack(outs)
         w = torch.stack(weights)
         hard = w.detach() > 0.5
         if bool(hard.any()):
-            inner = self._reanchor(inner, grey, out, w, hard)
+            inner = self._reanchor(inner, grey, torch.stack(fused), w, hard)
         return AnchoredState(inner, state.filters, list(frames)), out, statuses
 
     def _reanchor(self, s: FusionState, grey: Tensor, uv: Tensor, w: Tensor, hard: Tensor
@@ -1117,9 +1128,9 @@ class AnchoredTracker(Tracker):
         # a far corner is taken only through the persistence test of search()
         inner_ok = status != TrackStatus.LOST and bool(np.isfinite(uv).all())
         x, reanchor, fix, obs = self.filter.step(frame, uv, inner_ok, expected)
-        out = np.array(x, dtype=float)
         if reanchor:
-            self.inner.reanchor(frame, out)
+            self.inner.reanchor(frame, np.array(x, dtype=float))
+        out = np.array(self.filter.reported(x), dtype=float)
         self.glare, self.fix = obs.glare, fix
         arm_dirs = (arm_directions(obs.res) if fix is not None and fix.taken
                     and obs.res is not None
