@@ -359,6 +359,13 @@ def test_anchored_takes_a_far_clean_fix_at_once_and_refuses_far_loose_ones():
     assert res[4][1] == TrackStatus.TRACKED and res[5][1] == TrackStatus.COASTING
     assert abs(out[5][0] - 200.0) < 0.3
     assert res[6][1] == TrackStatus.TRACKED
+    # a loop that predicts the point (expect() every frame, None where it has no prediction:
+    # a segment's first frames) takes the fused point as it is: the jump's corner
+    trk = _anchored_with_tipm([on] * 5 + [far], rms=0.15)
+    for _ in range(6):
+        trk.expect(None)
+        uv, status = trk.update(frame)
+    assert abs(uv[0] - 206.0) < 0.3 and status == TrackStatus.COASTING
     # the live loop (the robot's prediction every frame) as before: tracked at once
     trk = _anchored_with_tipm([on] * 5 + [far], rms=0.15)
     for _ in range(5):

@@ -836,7 +836,9 @@ class AnchoredFilter:
         until the next frame: see :meth:`step`) the prediction the jump left. The filter
         follows the jump; what is reported waits for the next frame to confirm it, so a
         corner glare made for one frame tens of px away is never the frame's point (a genuine
-        jump is reported one frame late)."""
+        jump is reported one frame late). Offline only: the live loop, which predicts the
+        point from the robot's motion, takes each frame's fused point (its located points of
+        coasting frames wait for the next evidence anyway)."""
         return x if self.left is None else self.left.x
 
     def evidence(self, out: np.ndarray, fix: Fix | None) -> bool:
@@ -1052,6 +1054,10 @@ class AnchoredTracker(Tracker):
         self.values = live.fusion.values()   # the fitted values the filter runs with
         self.filter = AnchoredFilter(self.cfg, tipm, self.values)
         self._expected: np.ndarray | None = None
+        # driven by a loop that predicts the point (expect() called, even with None): each
+        # frame's fused point is reported as it is; offline a jump's own frame reports the
+        # prediction it left (AnchoredFilter.reported)
+        self._predicted = False
         self._frame: np.ndarray | None = None
         self.glare = 0.0
         self.fix: Fix | None = None  # this frame's TIPM corner and what became of it
@@ -1098,6 +1104,7 @@ class AnchoredTracker(Tracker):
         """Where the feature point should be in the next frame, from the robot's motion (the
         live loop knows the camera's pose and the seam seen so far): it replaces the filter's
         random-walk prediction for that frame. None: no idea."""
+        self._predicted = True
         self._expected = None if uv is None or not np.isfinite(uv).all() else np.asarray(
             uv, float)
 
@@ -1130,7 +1137,7 @@ class AnchoredTracker(Tracker):
         x, reanchor, fix, obs = self.filter.step(frame, uv, inner_ok, expected)
         if reanchor:
             self.inner.reanchor(frame, np.array(x, dtype=float))
-        out = np.array(self.filter.reported(x), dtype=float)
+        out = np.array(x if self._predicted else self.filter.reported(x), dtype=float)
         self.glare, self.fix = obs.glare, fix
         arm_dirs = (arm_directions(obs.res) if fix is not None and fix.taken
                     and obs.res is not None
