@@ -339,7 +339,7 @@ def row_box(src, ksize, mean_of, out):  # pragma: no cover - compiled
     for r in range(h):
         row = src[r]
         o = out[r]
-        acc = 0
+        acc = np.int64(0)
         for j in range(-half, half + 1):
             acc += row[reflect101(j, w)]
         for c in range(w):

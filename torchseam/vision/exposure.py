@@ -20,8 +20,8 @@ tracked point:
   steps down in a row that each left the window's clipped share and its level within
   ``1 - respond`` of what they were (nothing changed: an arc that flickers changes them), the
   exposure goes back to where it was before those steps (they only darkened the stripe) and
-  holds there until the window stops clipping. (One step is not enough to tell: an overexposed stripe stays clipped for a step
-  or two before it comes under the clip.)
+  holds there until the window stops clipping. (One step is not enough to tell: an
+  overexposed stripe stays clipped for a step or two before it comes under the clip.)
 
 Both are pure (numbers in, a number out); the settings are ``configs/exposure.yaml``
 (:func:`load_exposure_config`), read at the boundary.
