@@ -206,6 +206,31 @@ def stripe_threshold(hist, colmax, noise_k, min_red, rel):  # pragma: no cover -
     return max(min_red, noise, rel * level)
 
 
+@numba.njit(cache=True, nogil=True)
+def _dilate_large(n, rs, re, rr, large, reach, mask, y0, x0, h, w):  # pragma: no cover
+    """The runs of :func:`_blobs`' large blobs dilated into ``mask``'s box at ``(y0, x0)`` of
+    ``h`` x ``w`` (a row ``k`` of the structuring element the centred run ``+-reach[k]``,
+    clipped to the box); returns the box-relative ``(top, left, bottom, right)`` written
+    (``bottom`` -1: nothing)."""
+    d = len(reach) // 2
+    top, left, bottom, right = h, w, -1, -1
+    for i in range(n):
+        if not large[i]:
+            continue
+        for k in range(len(reach)):
+            r = rr[i] + k - d
+            if r < 0 or r >= h:
+                continue
+            c0 = max(rs[i] - reach[k], 0)
+            c1 = min(re[i] + reach[k], w)
+            if c1 <= c0:
+                continue
+            mask[y0 + r, x0 + c0:x0 + c1] = 255
+            top, bottom = min(top, r), max(bottom, r)
+            left, right = min(left, c0), max(right, c1)
+    return top, left, bottom, right
+
+
 @numba.njit("UniTuple(i8, 6)(u1[:, ::1], i8, i8, i8[::1], i8[:, ::1], u1[:, ::1])",
             cache=True, nogil=True)
 def stripe_blobs(ridge, level, min_area, reach, work, mask):  # pragma: no cover - compiled
@@ -224,22 +249,7 @@ def stripe_blobs(ridge, level, min_area, reach, work, mask):  # pragma: no cover
     above = 0
     for i in range(n):
         above += re[i] - rs[i]
-    d = len(reach) // 2
-    top, left, bottom, right = h, w, -1, -1
-    for i in range(n):
-        if not large[i]:
-            continue
-        for k in range(len(reach)):
-            r = rr[i] + k - d
-            if r < 0 or r >= h:
-                continue
-            c0 = max(rs[i] - reach[k], 0)
-            c1 = min(re[i] + reach[k], w)
-            if c1 <= c0:
-                continue
-            mask[r, c0:c1] = 255
-            top, bottom = min(top, r), max(bottom, r)
-            left, right = min(left, c0), max(right, c1)
+    top, left, bottom, right = _dilate_large(n, rs, re, rr, large, reach, mask, 0, 0, h, w)
     if bottom < 0:
         return above, kept, 0, 0, 0, 0
     return above, kept, left, top, right - left, bottom - top + 1
@@ -280,22 +290,7 @@ def large_blobs_dilated(binary, y0, y1, x0, x1, min_area, reach, work, mask
         raise ValueError("large_blobs_dilated: work too small")
     n, rs, re, rr, large, blobs, kept = _blobs(binary, y0, y1, x0, x1, min_area, work)
     h, w = y1 - y0, x1 - x0
-    d = len(reach) // 2
-    top, left, bottom, right = h, w, -1, -1
-    for i in range(n):
-        if not large[i]:
-            continue
-        for k in range(len(reach)):
-            r = rr[i] + k - d
-            if r < 0 or r >= h:
-                continue
-            c0 = max(rs[i] - reach[k], 0)
-            c1 = min(re[i] + reach[k], w)
-            if c1 <= c0:
-                continue
-            mask[y0 + r, x0 + c0:x0 + c1] = 255
-            top, bottom = min(top, r), max(bottom, r)
-            left, right = min(left, c0), max(right, c1)
+    top, left, bottom, right = _dilate_large(n, rs, re, rr, large, reach, mask, y0, x0, h, w)
     if bottom < 0:
         return kept, 0, 0, 0, 0
     return kept, x0 + left, y0 + top, right - left, bottom - top + 1
