@@ -150,3 +150,24 @@ def test_ctrl_c_in_track_says_how_far_the_rows_go(seq_dir, tmp_path, monkeypatch
     assert [int(r["frame"]) for r in rows] == list(range(12))
     err = capsys.readouterr().err
     assert f"tipm: interrupted after 12 of 30 frames; {out} holds frames 0-11" in err
+
+
+def test_ctrl_c_in_eval_prints_the_table_of_the_frames_done(seq_dir, monkeypatch, capsys):
+    """Ctrl-C during `eval` (on frame 12): the table over the 12 frames tracked, said to be
+    partial, then the command ends as interrupted (130)."""
+    from torchseam.core.dataset import Dataset
+
+    read = Dataset.read
+
+    def read_until_ctrl_c(self, i, *a, **k):
+        if i == 12:
+            raise KeyboardInterrupt
+        return read(self, i, *a, **k)
+
+    monkeypatch.setattr(Dataset, "read", read_until_ctrl_c)
+    assert main(["eval", str(seq_dir), "--tracker", "tipm"]) == 130
+    cap = capsys.readouterr()
+    assert "tipm: interrupted after 12 of 30 frames; the table is theirs" in cap.err
+    assert "(12 of 30 frames labelled; " in cap.out and "start: interrupted)" in cap.out
+    row = cap.out.strip().splitlines()[-1].split()
+    assert row[0] == "tipm" and row[1] == "12" and float(row[3]) < 1.0  # max px: TIPM's own

@@ -298,16 +298,34 @@ def run_eval(args: argparse.Namespace) -> int:
     start = np.zeros(len(ds), bool)  # the frame the tracker started on (its point is given)
     n_bad = 0
 
+    done = np.zeros(len(ds), bool)
+
     def keep(i: int, p: np.ndarray, status: str) -> None:
         nonlocal n_bad
         uv[i] = p
         said_tracked[i] = status == "tracked"
         start[i] = not start.any() and status != UNREADABLE
         n_bad += status == UNREADABLE
+        done[i] = True
 
     tipm = load_tipm()
-    note, secs = _follow(args, _make_tracker(args, tipm), ds, uv0, keep, tipm)
-    labelled = ds.labelled
+    try:
+        note, secs = _follow(args, _make_tracker(args, tipm), ds, uv0, keep, tipm)
+    except KeyboardInterrupt:
+        # the table of the frames tracked so far, said to be partial; then stop (exit 130)
+        print(f"{args.tracker}: interrupted after {int(done.sum())} of {len(ds)} frames; the "
+              "table is theirs (times not kept)", file=sys.stderr, flush=True)
+        _eval_table(args, ds, uv, said_tracked, start, done, n_bad, said, "interrupted", [])
+        raise
+    _eval_table(args, ds, uv, said_tracked, start, done, n_bad, said, note, secs)
+    return 0
+
+
+def _eval_table(args: argparse.Namespace, ds: Dataset, uv: np.ndarray,
+                said_tracked: np.ndarray, start: np.ndarray, done: np.ndarray, n_bad: int,
+                said: str, note: str, secs: list[float]) -> None:
+    """``eval``'s table over the labelled frames tracked (``done``)."""
+    labelled = ds.labelled & done
     err = np.linalg.norm(uv - ds.labels, axis=1)[labelled]
     s = error_stats(err)
     # the status against the labels: a frame said tracked more than FALSE_TRACKED_PX off is a
@@ -316,11 +334,10 @@ def run_eval(args: argparse.Namespace) -> int:
     tracked = said_tracked[labelled][counted]
     false = int(np.sum(tracked & ~(err[counted] <= FALSE_TRACKED_PX)))
     pct_tracked = 100.0 * float(tracked.mean()) if len(tracked) else 0.0
-    p50, p99 = percentiles_ms(secs if secs else [0.0])
+    p50, p99 = percentiles_ms(secs) if secs else ("-", "-")
     print(f"{args.tracker} on {ds.root} ({int(labelled.sum())} of {len(ds)} frames labelled; "
           f"{said}start: {note}" + (f"; {n_bad} unreadable, counted lost" if n_bad else "") + ")")
     print(format_table(["tracker", "frames", "RMSE px", "max px", "> 5 px %", "lost %",
                         "tracked %", "false trk", "ms p50", "ms p99"],
                        [[args.tracker, s["n"], s["rmse"], s["max"], s["pct_gt5"], s["pct_lost"],
                          pct_tracked, false, p50, p99]]))
-    return 0
